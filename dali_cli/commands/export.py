@@ -1,0 +1,5 @@
+"""`dali export` (placeholder until the importers issue lands)."""
+
+from dali_cli.commands.common import not_implemented
+
+command = not_implemented("export", "importers issue")

@@ -1,0 +1,5 @@
+"""`dali ppcg-rc` (placeholder until the PPCG issue lands)."""
+
+from dali_cli.commands.common import not_implemented
+
+command = not_implemented("ppcg-rc", "PPCG issue")

@@ -1,0 +1,5 @@
+"""`dali pretrain` (placeholder until the detector issue lands)."""
+
+from dali_cli.commands.common import not_implemented
+
+command = not_implemented("pretrain", "detector issue")

@@ -1,0 +1,5 @@
+"""`dali retrain` (placeholder until the retrain issue lands)."""
+
+from dali_cli.commands.common import not_implemented
+
+command = not_implemented("retrain", "retrain issue")

@@ -1,0 +1,1 @@
+"""One module per pipeline stage: each reads artifacts, calls the library, writes artifacts."""

@@ -1,0 +1,1 @@
+"""Stage: ppcg_cf (library call + artifact I/O). Filled in by its issue."""

@@ -1,0 +1,1 @@
+"""Stage: ptsn_sweep (library call + artifact I/O). Filled in by its issue."""

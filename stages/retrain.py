@@ -1,0 +1,1 @@
+"""Stage: retrain (library call + artifact I/O). Filled in by its issue."""
