@@ -62,7 +62,9 @@ class FrameSet:
             )
         offsets = np.asarray(group["offsets"][:])
         if offsets.dtype != np.int64 or offsets.ndim != 1 or offsets.size < 1:
-            raise ArtifactError(f"{self.path}/offsets: expected int64 (F + 1,), got {offsets.dtype} {offsets.shape}")
+            raise ArtifactError(
+                f"{self.path}/offsets: expected int64 (F + 1,), got {offsets.dtype} {offsets.shape}"
+            )
         if offsets[0] != 0 or np.any(np.diff(offsets) < 0):
             raise ArtifactError(f"{self.path}/offsets: not monotone non-decreasing from 0")
         if offsets[-1] != self._points.shape[0]:
@@ -99,7 +101,9 @@ class FrameSet:
         """Points of one frame, `(n, 4)` float32. Raises ArtifactError on NaN/inf values."""
         index = self.index_of(index_or_id) if isinstance(index_or_id, str) else int(index_or_id)
         start, stop = int(self.offsets[index]), int(self.offsets[index + 1])
-        points = np.asarray(self._points[start:stop]) if stop > start else np.zeros((0, 4), np.float32)
+        points = (
+            np.asarray(self._points[start:stop]) if stop > start else np.zeros((0, 4), np.float32)
+        )
         return self._checked(points, index)
 
     def _checked(self, points: np.ndarray, index: int) -> np.ndarray:
@@ -430,9 +434,13 @@ def read_boxes(directory: str | Path) -> BoxTable:
     finite = np.isfinite(boxes).all(axis=1)
     if not finite.all():
         row = int(np.flatnonzero(~finite)[0])
-        raise ArtifactError(f"{path}: row {row} (frame '{result.frame_id[row]}') has NaN/inf box values")
+        raise ArtifactError(
+            f"{path}: row {row} (frame '{result.frame_id[row]}') has NaN/inf box values"
+        )
     negative = (boxes[:, 3:6] < 0).any(axis=1)
     if negative.any():
         row = int(np.flatnonzero(negative)[0])
-        raise ArtifactError(f"{path}: row {row} (frame '{result.frame_id[row]}') has a negative size")
+        raise ArtifactError(
+            f"{path}: row {row} (frame '{result.frame_id[row]}') has a negative size"
+        )
     return result

@@ -110,7 +110,9 @@ def why_stale(out: Path, stage: str, inputs: dict, params: dict) -> str | None:
     old_hashes = {k: [r["hash"] for r in v] for k, v in manifest.get("inputs", {}).items()}
     new_hashes = {k: [r["hash"] for r in v] for k, v in inputs.items()}
     if old_hashes != new_hashes:
-        changed = sorted(k for k in set(old_hashes) | set(new_hashes) if old_hashes.get(k) != new_hashes.get(k))
+        changed = sorted(
+            k for k in set(old_hashes) | set(new_hashes) if old_hashes.get(k) != new_hashes.get(k)
+        )
         return f"inputs changed: {', '.join(changed)}"
     if manifest.get("params") != params:
         old = manifest.get("params", {})

@@ -172,8 +172,14 @@ def parse_profile(name: str, table: dict, source: str = "<sensors>") -> SensorPr
     if isinstance(beams, bool) or not isinstance(beams, int) or beams <= 0:
         raise _fail(source, name, "beams", f"must be an integer > 0, got {beams!r}")
     points_per_beam = table["points_per_beam"]
-    if isinstance(points_per_beam, bool) or not isinstance(points_per_beam, int) or points_per_beam <= 0:
-        raise _fail(source, name, "points_per_beam", f"must be an integer > 0, got {points_per_beam!r}")
+    if (
+        isinstance(points_per_beam, bool)
+        or not isinstance(points_per_beam, int)
+        or points_per_beam <= 0
+    ):
+        raise _fail(
+            source, name, "points_per_beam", f"must be an integer > 0, got {points_per_beam!r}"
+        )
 
     if "elevations_deg" in table:
         elevations = table["elevations_deg"]
@@ -188,7 +194,9 @@ def parse_profile(name: str, table: dict, source: str = "<sensors>") -> SensorPr
         low = _number(table, "elevation_min_deg", source, name)
         high = _number(table, "elevation_max_deg", source, name)
         if not low < high:
-            raise _fail(source, name, "elevation_min_deg", f"must be < elevation_max_deg ({low} >= {high})")
+            raise _fail(
+                source, name, "elevation_min_deg", f"must be < elevation_max_deg ({low} >= {high})"
+            )
         if low <= -90.0 or high >= 90.0:
             raise _fail(source, name, "elevation_min_deg", "elevations must lie in (-90, 90)")
         elevations = np.linspace(low, high, beams).tolist() if beams > 1 else [0.5 * (low + high)]
@@ -206,7 +214,9 @@ def parse_profile(name: str, table: dict, source: str = "<sensors>") -> SensorPr
     if max_range <= 0:
         raise _fail(source, name, "max_range_m", f"must be > 0, got {max_range}")
     if not 0 <= min_range < max_range:
-        raise _fail(source, name, "min_range_m", f"must satisfy 0 <= min_range < max_range ({max_range})")
+        raise _fail(
+            source, name, "min_range_m", f"must satisfy 0 <= min_range < max_range ({max_range})"
+        )
     noise = _number(table, "range_noise_sigma_m", source, name, 0.0)
     if noise < 0:
         raise _fail(source, name, "range_noise_sigma_m", f"must be >= 0, got {noise}")
@@ -214,7 +224,11 @@ def parse_profile(name: str, table: dict, source: str = "<sensors>") -> SensorPr
     if not 0.0 <= dropout < 1.0:
         raise _fail(source, name, "ray_dropout", f"must satisfy 0 <= dropout < 1, got {dropout}")
     intensities = {}
-    for key, default in (("intensity_car", 0.3), ("intensity_ground", 0.1), ("intensity_clutter", 0.4)):
+    for key, default in (
+        ("intensity_car", 0.3),
+        ("intensity_ground", 0.1),
+        ("intensity_clutter", 0.4),
+    ):
         value = _number(table, key, source, name, default)
         if not 0.0 <= value <= 1.0:
             raise _fail(source, name, key, f"must lie in [0, 1], got {value}")
@@ -246,18 +260,18 @@ def parse_profile(name: str, table: dict, source: str = "<sensors>") -> SensorPr
 def load_profiles(path: str | Path | None = None) -> dict[str, SensorProfile]:
     """Load every profile of a sensors.toml (default: the project's). Errors name file and key."""
     path = Path(path) if path is not None else DEFAULT_SENSORS_PATH
-    return dict(_load_cached(str(path.resolve())))
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise SensorConfigError(f"{path}: sensor file not found") from None
+    except OSError as error:
+        raise SensorConfigError(f"{path}: cannot read sensor file ({error})") from None
+    return dict(_parse_cached(str(path), text))
 
 
 @lru_cache(maxsize=8)
-def _load_cached(path: str) -> tuple[tuple[str, SensorProfile], ...]:
-    source = path
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise SensorConfigError(f"{source}: sensor file not found") from None
-    except OSError as error:
-        raise SensorConfigError(f"{source}: cannot read sensor file ({error})") from None
+def _parse_cached(source: str, text: str) -> tuple[tuple[str, SensorProfile], ...]:
+    """Parsing is cached by (path, content), so an edited file is re-read."""
     try:
         document = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
