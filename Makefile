@@ -56,19 +56,104 @@ bench: install
 	@for script in bench/*.py; do echo "== $$script"; $(BIN)/python $$script || exit 1; done
 
 # ---------------------------------------------------------------------------------------------
-# Data (synthesized when not given)
+# The pipeline. Every step's target is its artifact's manifest.json (written last, atomically), so an
+# interrupted `make iter2` resumes where it stopped and `make -n iter2` shows the plan. Each dali stage
+# also skips itself when its inputs (by content hash) and parameters are unchanged.
+#
+#   iter0: pretrain on SOURCE; eval source-only (s = 1) and PTSN-only (s from iter1/ptsn)
+#   iterN: ptsn-sweep (model N-1) -> pseudo-label -> ppcg-rc -> ppcg-cf -> retrain -> eval (PTSN)
+MINUTES        ?=
+TRAIN_BUDGET    = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(EPOCHS))
+EXPECTED       ?= sn
+LIBRARY_MODELS ?= 24
+SYNTH_WORKERS  ?= 2
+VAL_FRAMES     ?= $(FRAMES)
+
 $(RUN)/data/source/manifest.json: | install
-	$(DALI) synth --sensor $(SOURCE_SENSOR) --cars $(SOURCE_SENSOR) --frames $(FRAMES) --seed $(SEED) --out $(RUN)/data/source
+	$(DALI) synth --sensor $(SOURCE_SENSOR) --cars $(SOURCE_SENSOR) --frames $(FRAMES) --seed $(SEED) --workers $(SYNTH_WORKERS) --out $(@D)
+$(RUN)/data/source_val/manifest.json: | install
+	$(DALI) synth --sensor $(SOURCE_SENSOR) --cars $(SOURCE_SENSOR) --frames $(VAL_FRAMES) --seed $$(( $(SEED) + 3000 )) --workers $(SYNTH_WORKERS) --out $(@D)
 $(RUN)/data/target/manifest.json: | install
-	$(DALI) synth --sensor $(SENSOR) --cars $(SENSOR) --frames $(FRAMES) --seed $$(( $(SEED) + 1000 )) --out $(RUN)/data/target
+	$(DALI) synth --sensor $(SENSOR) --cars $(SENSOR) --frames $(FRAMES) --seed $$(( $(SEED) + 1000 )) --workers $(SYNTH_WORKERS) --out $(@D)
 $(RUN)/data/target_val/manifest.json: | install
-	$(DALI) synth --sensor $(SENSOR) --cars $(SENSOR) --frames $(FRAMES) --seed $$(( $(SEED) + 2000 )) --out $(RUN)/data/target_val
+	$(DALI) synth --sensor $(SENSOR) --cars $(SENSOR) --frames $(VAL_FRAMES) --seed $$(( $(SEED) + 2000 )) --workers $(SYNTH_WORKERS) --out $(@D)
+$(RUN)/library/manifest.json: | install
+	$(DALI) library build --procedural $(LIBRARY_MODELS) --seed $$(( $(SEED) + 4000 )) --out $(@D)
 
 data: $(SOURCE)/manifest.json $(TARGET)/manifest.json $(TARGET_VAL)/manifest.json
 
-demo: install
-	@$(BIN)/python -m dali_cli.demo_status
-	$(MAKE) --no-print-directory data RUN=$(RUN) FRAMES=$(FRAMES) SEED=$(SEED)
+# iteration 0: the source-only detector
+$(RUN)/iter0/model/manifest.json: $(SOURCE)/manifest.json
+	$(DALI) pretrain --source $(SOURCE) --seed $(SEED) $(TRAIN_BUDGET) --out $(@D)
+$(RUN)/iter0/eval/metrics.json: $(RUN)/iter0/model/manifest.json $(TARGET_VAL)/manifest.json
+	$(DALI) eval --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale 1.0 --out $@
+$(RUN)/iter0/eval_ptsn/metrics.json: $(RUN)/iter1/ptsn/manifest.json $(TARGET_VAL)/manifest.json
+	$(DALI) eval --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale-from $(RUN)/iter1/ptsn --out $@
+iter0: $(RUN)/iter0/eval/metrics.json $(RUN)/iter0/eval_ptsn/metrics.json
 
-clean-runs:
-	rm -rf runs
+# ptsn-sweep N uses model N-1 (ITER_PTSN), iteration N builds model N (ITER)
+define ITER_PTSN
+$(RUN)/iter$(1)/ptsn/manifest.json: $(RUN)/iter$(2)/model/manifest.json $(TARGET)/manifest.json
+	$(DALI) ptsn-sweep --model $(RUN)/iter$(2)/model --target $(TARGET) --expected-size $(EXPECTED) --seed $(SEED) --out $$(@D)
+endef
+define ITER
+$(RUN)/iter$(1)/pseudo/manifest.json: $(RUN)/iter$(1)/ptsn/manifest.json
+	$(DALI) pseudo-label --model $(RUN)/iter$(2)/model --target $(TARGET) --scale-from $(RUN)/iter$(1)/ptsn --out $$(@D)
+$(RUN)/iter$(1)/rc/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
+	$(DALI) ppcg-rc --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) --out $$(@D)
+$(RUN)/iter$(1)/cf/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
+	$(DALI) ppcg-cf --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) --out $$(@D)
+$(RUN)/iter$(1)/model/manifest.json: $(RUN)/iter$(1)/rc/manifest.json $(RUN)/iter$(1)/cf/manifest.json $(SOURCE)/manifest.json
+	$(DALI) retrain --init $(RUN)/iter$(2)/model --source $(SOURCE) --ppcg $(RUN)/iter$(1)/rc $(RUN)/iter$(1)/cf --seed $(SEED) $(TRAIN_BUDGET) --out $$(@D)
+$(RUN)/iter$(1)/eval/metrics.json: $(RUN)/iter$(3)/ptsn/manifest.json $(TARGET_VAL)/manifest.json
+	$(DALI) eval --model $(RUN)/iter$(1)/model --data $(TARGET_VAL) --scale-from $(RUN)/iter$(3)/ptsn --out $$@
+iter$(1): iter$(2) $(RUN)/iter$(1)/eval/metrics.json
+.PHONY: iter$(1)
+endef
+$(foreach n,1 2 3 4 5 6,$(eval $(call ITER_PTSN,$(n),$(shell echo $$(( $(n) - 1 ))))))
+$(foreach n,1 2 3 4 5,$(eval $(call ITER,$(n),$(shell echo $$(( $(n) - 1 ))),$(shell echo $$(( $(n) + 1 ))))))
+
+# Baselines and ablations for the results table (make experiment)
+$(RUN)/baselines/sn/model/manifest.json: $(SOURCE)/manifest.json
+	$(DALI) pretrain --source $(SOURCE) --size-norm sn --target-profile $(SENSOR) --seed $(SEED) $(TRAIN_BUDGET) --out $(@D)
+$(RUN)/baselines/ros/model/manifest.json: $(SOURCE)/manifest.json
+	$(DALI) pretrain --source $(SOURCE) --size-norm ros --seed $(SEED) $(TRAIN_BUDGET) --out $(@D)
+$(RUN)/baselines/oracle/model/manifest.json: $(TARGET)/manifest.json
+	$(DALI) pretrain --source $(TARGET) --seed $(SEED) $(TRAIN_BUDGET) --out $(@D)
+$(RUN)/baselines/rc_only/model/manifest.json: $(RUN)/iter1/rc/manifest.json $(SOURCE)/manifest.json
+	$(DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/rc --seed $(SEED) $(TRAIN_BUDGET) --out $(@D)
+$(RUN)/baselines/cf_only/model/manifest.json: $(RUN)/iter1/cf/manifest.json $(SOURCE)/manifest.json
+	$(DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/cf --seed $(SEED) $(TRAIN_BUDGET) --out $(@D)
+$(RUN)/baselines/%/eval/metrics.json: $(RUN)/baselines/%/model/manifest.json $(TARGET_VAL)/manifest.json
+	$(DALI) eval --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale 1.0 --out $@
+$(RUN)/baselines/%/ptsn/manifest.json: $(RUN)/baselines/%/model/manifest.json $(TARGET)/manifest.json
+	$(DALI) ptsn-sweep --model $(RUN)/baselines/$*/model --target $(TARGET) --expected-size $(EXPECTED) --seed $(SEED) --out $(@D)
+$(RUN)/baselines/%/eval_ptsn/metrics.json: $(RUN)/baselines/%/ptsn/manifest.json $(TARGET_VAL)/manifest.json
+	$(DALI) eval --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale-from $(RUN)/baselines/$*/ptsn --out $@
+# cross-domain check: every model on the source validation set at s = 1
+$(RUN)/%/eval_source/metrics.json: $(RUN)/%/model/manifest.json $(RUN)/data/source_val/manifest.json
+	$(DALI) eval --model $(RUN)/$*/model --data $(RUN)/data/source_val --scale 1.0 --out $@
+
+BASELINE_EVALS = $(addprefix $(RUN)/baselines/,sn/eval/metrics.json ros/eval/metrics.json \
+    oracle/eval/metrics.json rc_only/eval_ptsn/metrics.json cf_only/eval_ptsn/metrics.json)
+SOURCE_EVALS = $(addprefix $(RUN)/,iter0/eval_source/metrics.json iter2/eval_source/metrics.json)
+
+report: | install
+	$(DALI) report $(RUN)
+
+DEMO_FRAMES ?= 48
+DEMO_EPOCHS ?= 6
+demo: install
+	$(MAKE) --no-print-directory iter2 RUN=runs/demo FRAMES=$(DEMO_FRAMES) EPOCHS=$(DEMO_EPOCHS)
+	$(DALI) report runs/demo
+	@echo
+	@echo "This was the small demo (runs/demo). The full synthetic benchmark: make experiment"
+
+EXPERIMENT_FRAMES ?= 600
+EXPERIMENT_MINUTES ?= 12
+experiment: install
+	$(MAKE) --no-print-directory iter2 $(BASELINE_EVALS) $(SOURCE_EVALS) RUN=runs/experiment \
+	    FRAMES=$(EXPERIMENT_FRAMES) VAL_FRAMES=200 MINUTES=$(EXPERIMENT_MINUTES)
+	$(DALI) report runs/experiment
+
+.PHONY: data iter0 report experiment
