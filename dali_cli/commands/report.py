@@ -1,5 +1,46 @@
-"""`dali report` (placeholder until the retrain issue lands)."""
+"""`dali report RUN`: the results table of a run (markdown + JSON) and its plots."""
 
-from dali_cli.commands.common import not_implemented
+from __future__ import annotations
 
-command = not_implemented("report", "retrain issue")
+import json
+import os
+from pathlib import Path
+
+import click
+
+from dali_cli.report import build_report
+
+
+@click.command(name="report")
+@click.argument("run", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=None,
+    help="Where to write report.md / report.json / plots (default: RUN/report).",
+)
+@click.option("--plots/--no-plots", default=True, show_default=True, help="Draw PNG plots.")
+def command(run: Path, out_dir: Path | None, plots: bool) -> None:
+    """Summarize a run: AP_BEV / AP_3D at IoU 0.7 and 0.5 per method row (source only, SN, ROS,
+    PTSN, PTSN + RC, PTSN + CF, x1, x2, oracle), sizes, PTSN scales and time per stage.
+
+    Reads RUN/iter*/ and RUN/baselines/*/ artifacts; rows that were not run show "—".
+    Writes RUN/report/report.md, report.json and plots/*.png, and prints the markdown.
+    """
+    out_dir = out_dir or run / "report"
+    text, document = build_report(run)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if plots:
+        from dali_cli.report_plots import draw_plots
+
+        document["plots"] = [str(p) for p in draw_plots(run, out_dir / "plots")]
+    for name, content in (
+        ("report.md", text),
+        ("report.json", json.dumps(document, indent=2, default=str)),
+    ):
+        temporary = out_dir / f".{name}.part"
+        temporary.write_text(content)
+        os.replace(temporary, out_dir / name)
+    click.echo(text)
+    click.echo(f"report written to {out_dir}")

@@ -1,0 +1,209 @@
+"""The results table of a run: AP per method row, sizes, cross-domain AP and time per stage.
+
+Reads only artifacts a run directory already holds (metrics.json files written by `dali eval`,
+manifests, PTSN outputs); rows whose artifacts are missing are shown as "—", never invented.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+# (row name, metrics.json relative to the run, how the model was evaluated)
+ROWS: tuple[tuple[str, str], ...] = (
+    ("Source only", "iter0/eval/metrics.json"),
+    ("SN", "baselines/sn/eval/metrics.json"),
+    ("ROS", "baselines/ros/eval/metrics.json"),
+    ("PTSN only", "iter0/eval_ptsn/metrics.json"),
+    ("PTSN + RC", "baselines/rc_only/eval_ptsn/metrics.json"),
+    ("PTSN + CF", "baselines/cf_only/eval_ptsn/metrics.json"),
+    ("PTSN + RC&CF (x1)", "iter1/eval/metrics.json"),
+    ("x2", "iter2/eval/metrics.json"),
+    ("Oracle", "baselines/oracle/eval/metrics.json"),
+)
+SOURCE_ROWS: tuple[tuple[str, str], ...] = (
+    ("Source only", "iter0/eval_source/metrics.json"),
+    ("DALI x2", "iter2/eval_source/metrics.json"),
+)
+STAGE_DIRS = ("model", "ptsn", "pseudo", "rc", "cf")
+IOUS = (0.7, 0.5)
+
+
+@dataclass
+class Row:
+    name: str
+    path: str
+    ap: dict  # {"0.7": {"bev": x, "3d": y}, "0.5": {...}} in percent, missing → absent
+    sizes: dict  # {"pred": [l, w, h], "gt": [l, w, h]} when recorded
+    scale: float | None
+
+
+def _summary_key(block: dict) -> str | None:
+    """The headline bucket of one AP block: 'moderate' with KITTI difficulties, else 'all'."""
+    for key in ("moderate", "all"):
+        if key in block:
+            return key
+    return next(iter(block), None)
+
+
+def read_metrics(path: Path) -> tuple[dict, dict, float | None]:
+    """AP per IoU ({iou: {"bev", "3d"}}), sizes and scale from one metrics.json."""
+    document = json.loads(path.read_text())
+    blocks = [
+        value
+        for key, value in document.items()
+        if key.startswith("Car") and isinstance(value, dict)
+    ]
+    ap = {}
+    for block in blocks:
+        iou = block.get("iou")
+        if iou is None:
+            continue
+        entry = {}
+        for metric in ("bev", "3d"):
+            values = block.get(metric, {})
+            key = _summary_key(values)
+            if key is not None and values[key] is not None:
+                entry[metric] = float(values[key])
+        ap[f"{float(iou):.1f}"] = entry
+    sizes = document.get("sizes", {})
+    scale = document.get("scale")
+    return ap, sizes, scale
+
+
+def collect_rows(run: Path, rows=ROWS) -> list[Row]:
+    collected = []
+    for name, relative in rows:
+        path = run / relative
+        if path.is_file():
+            ap, sizes, scale = read_metrics(path)
+        else:
+            ap, sizes, scale = {}, {}, None
+        collected.append(Row(name, relative, ap, sizes, scale))
+    return collected
+
+
+def stage_timings(run: Path) -> dict[str, dict[str, float]]:
+    """Wall seconds per stage directory per iteration, from the manifests."""
+    timings: dict[str, dict[str, float]] = {}
+    for iteration in sorted(run.glob("iter*")):
+        for stage in STAGE_DIRS:
+            manifest = iteration / stage / "manifest.json"
+            if manifest.is_file():
+                document = json.loads(manifest.read_text())
+                seconds = document.get("timings", {}).get("wall_seconds")
+                if seconds is not None:
+                    timings.setdefault(iteration.name, {})[stage] = float(seconds)
+    return timings
+
+
+def ptsn_scales(run: Path) -> dict[str, dict]:
+    """ŝ and the size numbers of every PTSN sweep in the run."""
+    scales = {}
+    for path in sorted(run.glob("iter*/ptsn/scale.json")):
+        scales[path.parent.parent.name] = json.loads(path.read_text())
+    return scales
+
+
+def _triple(value) -> str:
+    if isinstance(value, list | tuple):
+        return "/".join(f"{x:.2f}" for x in value)
+    return "—" if value is None else str(value)
+
+
+def _cell(value: float | None) -> str:
+    return "—" if value is None else f"{value:.2f}"
+
+
+def _sizes_cell(sizes: dict, key: str) -> str:
+    values = sizes.get(key)
+    if not values:
+        return "—"
+    return "/".join(f"{v:.2f}" for v in values)
+
+
+def markdown_table(rows: list[Row]) -> str:
+    header = "| method | BEV@0.7 | 3D@0.7 | BEV@0.5 | 3D@0.5 | scale | pred l/w/h | gt l/w/h |"
+    lines = [header, "|" + "---|" * 8]
+    for row in rows:
+        cells = [row.name]
+        for iou in ("0.7", "0.5"):
+            entry = row.ap.get(iou, {})
+            cells += [_cell(entry.get("bev")), _cell(entry.get("3d"))]
+        cells.append("—" if row.scale is None else f"{row.scale:.3f}")
+        cells += [_sizes_cell(row.sizes, "pred"), _sizes_cell(row.sizes, "gt")]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def gap_closed(rows: list[Row], metric: str = "3d", iou: str = "0.7") -> float | None:
+    """Share of the source-only → oracle gap closed by the last DALI iteration present."""
+    by_name = {row.name: row.ap.get(iou, {}).get(metric) for row in rows}
+    source, oracle = by_name.get("Source only"), by_name.get("Oracle")
+    final = by_name.get("x2") if by_name.get("x2") is not None else by_name.get("PTSN + RC&CF (x1)")
+    if source is None or oracle is None or final is None or np.isclose(oracle, source):
+        return None
+    return float((final - source) / (oracle - source))
+
+
+def build_report(run: Path) -> tuple[str, dict]:
+    """Markdown text and a JSON-ready dict describing the run."""
+    rows = collect_rows(run)
+    source_rows = collect_rows(run, SOURCE_ROWS)
+    timings = stage_timings(run)
+    scales = ptsn_scales(run)
+    parts = [
+        f"# dali report: {run}",
+        "",
+        "## Target validation (Car AP, R40)",
+        "",
+        markdown_table(rows),
+    ]
+    closed = gap_closed(rows)
+    if closed is not None:
+        parts += ["", f"Gap from source only to oracle closed (AP_3D@0.7): {100 * closed:.0f}%"]
+    if any(row.ap for row in source_rows):
+        parts += ["", "## Source validation (cross-domain check)", "", markdown_table(source_rows)]
+    if scales:
+        parts += [
+            "",
+            "## PTSN",
+            "",
+            "| sweep | ŝ | E_est l/w/h | E_pred(ŝ) l/w/h | passes |",
+            "|---|---|---|---|---|",
+        ]
+        for name, info in scales.items():
+            est = info.get("expected_lwh") or info.get("E_est")
+            pred = info.get("pred_lwh_at_scale") or info.get("E_pred")
+            )
+            parts.append(
+                f"| {name} | {info.get('scale', float('nan')):.3f} | {_triple(est)} | {_triple(pred)} | "
+                f"{info.get('passes', '—')} |"
+            )
+    if timings:
+        parts += [
+            "",
+            "## Time per stage (s)",
+            "",
+            "| iteration | " + " | ".join(STAGE_DIRS) + " |",
+            "|---|" + "---|" * len(STAGE_DIRS),
+        ]
+        for iteration, stages in timings.items():
+            parts.append(
+                f"| {iteration} | " + " | ".join(_cell(stages.get(s)) for s in STAGE_DIRS) + " |"
+            )
+    missing = [row.name for row in rows if not row.ap]
+    if missing:
+        parts += ["", f"Not run in this RUN (shown as —): {', '.join(missing)}."]
+    document = {
+        "run": str(run),
+        "target": [row.__dict__ for row in rows],
+        "source": [row.__dict__ for row in source_rows],
+        "gap_closed_3d_0.7": closed,
+        "ptsn": scales,
+        "timings": timings,
+    }
+    return "\n".join(parts) + "\n", document

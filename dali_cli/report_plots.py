@@ -1,0 +1,121 @@
+"""Plots of a run for `dali report`: PTSN curves per iteration and pseudo-label size distributions.
+
+Each plot is drawn only from artifacts the run holds; a missing artifact means a missing plot.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _volume_column(names: list[str]) -> str | None:
+    for candidate in ("mean_volume", "mean_volume_m3", "volume"):
+        if candidate in names:
+            return candidate
+    return next((name for name in names if "volume" in name), None)
+
+
+def plot_ptsn_curves(run: Path, out: Path) -> Path | None:
+    """Mean predicted volume vs scale for every iteration's sweep, E_est line and ŝ marked."""
+    import pyarrow.parquet as pq
+
+    sweeps = sorted(run.glob("iter*/ptsn/sweep.parquet"))
+    if not sweeps:
+        return None
+    plt = _pyplot()
+    figure, axis = plt.subplots(figsize=(6, 4))
+    expected_volume = None
+    for path in sweeps:
+        table = pq.read_table(path).to_pydict()
+        column = _volume_column(list(table))
+        if column is None or "scale" not in table:
+            continue
+        order = np.argsort(table["scale"])
+        scales = np.asarray(table["scale"], float)[order]
+        volumes = np.asarray(table[column], float)[order]
+        label = path.parent.parent.name
+        (line,) = axis.plot(scales, volumes, "o-", ms=3, label=f"{label} E_pred(s)")
+        info_path = path.parent / "scale.json"
+        if info_path.is_file():
+            info = json.loads(info_path.read_text())
+            if "scale" in info:
+                axis.axvline(info["scale"], color=line.get_color(), ls=":", lw=1)
+            estimate = info.get("expected_volume") or info.get("E_est_volume")
+            if estimate is None and isinstance(info.get("expected_lwh"), list):
+                estimate = float(np.prod(info["expected_lwh"]))
+            expected_volume = estimate if estimate is not None else expected_volume
+    if expected_volume is not None:
+        axis.axhline(expected_volume, color="k", ls="--", lw=1, label="E_est")
+    axis.set_xlabel("scale s")
+    axis.set_ylabel("mean predicted car volume (m³)")
+    axis.set_title("PTSN sweep")
+    axis.legend(fontsize=8)
+    figure.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(out, dpi=120)
+    plt.close(figure)
+    return out
+
+
+def plot_size_distributions(run: Path, out: Path, target: Path | None = None) -> Path | None:
+    """Histograms of pseudo-label l, w, h per iteration against the target's label sizes."""
+    from dali_cli.artifacts import read_boxes
+
+    pseudo_dirs = sorted(p.parent for p in run.glob("iter*/pseudo/boxes.parquet"))
+    if not pseudo_dirs:
+        return None
+    target = target or run / "data" / "target"
+    plt = _pyplot()
+    figure, axes = plt.subplots(1, 3, figsize=(11, 3.4))
+    truth = read_boxes(target) if (target / "boxes.parquet").is_file() else None
+    for index, name in enumerate(("length l (m)", "width w (m)", "height h (m)")):
+        axis = axes[index]
+        if truth is not None and len(truth):
+            cars = truth.select(truth["label"] == "Car")
+            axis.hist(
+                cars.boxes[:, 3 + index],
+                bins=30,
+                density=True,
+                alpha=0.35,
+                color="k",
+                label="ground truth",
+            )
+        for directory in pseudo_dirs:
+            boxes = read_boxes(directory).boxes
+            if len(boxes):
+                axis.hist(
+                    boxes[:, 3 + index],
+                    bins=30,
+                    density=True,
+                    histtype="step",
+                    lw=1.5,
+                    label=f"pseudo {directory.parent.name}",
+                )
+        axis.set_xlabel(name)
+    axes[0].legend(fontsize=8)
+    figure.suptitle("Pseudo-label sizes vs target ground truth")
+    figure.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(out, dpi=120)
+    plt.close(figure)
+    return out
+
+
+def draw_plots(run: Path, out_dir: Path) -> list[Path]:
+    drawn = [
+        plot_ptsn_curves(run, out_dir / "ptsn_curves.png"),
+        plot_size_distributions(run, out_dir / "pseudo_sizes.png"),
+    ]
+    return [path for path in drawn if path is not None]

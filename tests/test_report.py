@@ -1,0 +1,59 @@
+"""`dali report`: rows come only from artifacts present; the gap-closed figure is computed right."""
+
+from __future__ import annotations
+
+import json
+
+from click.testing import CliRunner
+
+from dali_cli.cli import main
+from dali_cli.report import build_report, collect_rows, gap_closed
+
+
+def write_metrics(path, bev, ap3d, iou=0.7, bucket="all", **extra):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    block = {
+        "iou": iou,
+        "recall_positions": 40,
+        "bev": {bucket: bev},
+        "3d": {bucket: ap3d},
+        "counts": {},
+    }
+    path.write_text(json.dumps({"Car": block, **extra}))
+
+
+def test_rows_gap_and_missing(tmp_path):
+    write_metrics(tmp_path / "iter0/eval/metrics.json", 60.0, 20.0)
+    write_metrics(tmp_path / "iter2/eval/metrics.json", 80.0, 50.0, scale=1.02)
+    write_metrics(tmp_path / "baselines/oracle/eval/metrics.json", 90.0, 70.0, bucket="moderate")
+    rows = {row.name: row for row in collect_rows(tmp_path)}
+    assert rows["Source only"].ap["0.7"] == {"bev": 60.0, "3d": 20.0}
+    assert rows["x2"].scale == 1.02
+    assert rows["Oracle"].ap["0.7"]["3d"] == 70.0
+    assert rows["SN"].ap == {}
+    # (50 - 20) / (70 - 20)
+    assert abs(gap_closed(list(rows.values())) - 0.6) < 1e-12
+    text, document = build_report(tmp_path)
+    assert "| SN | — | — |" in text and "closed (AP_3D@0.7): 60%" in text
+    assert document["gap_closed_3d_0.7"] == gap_closed(list(rows.values()))
+
+
+def test_second_iou_block_is_read(tmp_path):
+    path = tmp_path / "iter1/eval/metrics.json"
+    write_metrics(path, 70.0, 40.0)
+    document = json.loads(path.read_text())
+    document["Car@0.5"] = {"iou": 0.5, "bev": {"all": 95.0}, "3d": {"all": 90.0}}
+    path.write_text(json.dumps(document))
+    row = {r.name: r for r in collect_rows(tmp_path)}["PTSN + RC&CF (x1)"]
+    assert row.ap == {"0.7": {"bev": 70.0, "3d": 40.0}, "0.5": {"bev": 95.0, "3d": 90.0}}
+
+
+def test_report_command_writes_files(tmp_path):
+    write_metrics(tmp_path / "iter0/eval/metrics.json", 60.0, 20.0)
+    result = CliRunner().invoke(main, ["report", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "report/report.md").read_text().startswith("# dali report")
+    assert (
+        json.loads((tmp_path / "report/report.json").read_text())["target"][0]["ap"]["0.7"]["bev"]
+        == 60.0
+    )
