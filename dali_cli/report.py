@@ -178,7 +178,6 @@ def build_report(run: Path) -> tuple[str, dict]:
         for name, info in scales.items():
             est = info.get("expected_lwh") or info.get("E_est")
             pred = info.get("pred_lwh_at_scale") or info.get("E_pred")
-            )
             parts.append(
                 f"| {name} | {info.get('scale', float('nan')):.3f} | {_triple(est)} | {_triple(pred)} | "
                 f"{info.get('passes', '—')} |"
