@@ -1,1 +1,373 @@
-"""Stage: ptsn_sweep (library call + artifact I/O). Filled in by its issue."""
+"""Stage ptsn_sweep: read a model and a target frame set (never its labels), find ŝ, write
+sweep.parquet (every evaluated scale), scale.json (ŝ and how it was found), optional sweep.png."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import click
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from dali_cli import ptsn
+from dali_cli.artifacts import FrameSet
+from dali_cli.manifest import BuildResult, StageOutcome, run_stage
+from dali_cli.sensors import get_profile
+
+STAGE = "ptsn_sweep"
+SCALE_NAME = "scale.json"
+SWEEP_NAME = "sweep.parquet"
+PLOT_NAME = "sweep.png"
+
+
+def load_detector(model_dir: str | Path) -> ptsn.Predictor:
+    """The trained detector of `model_dir` (imported lazily: torch loads only when needed)."""
+    from dali_cli.detector import Detector
+
+    return Detector.load(model_dir)
+
+
+def read_model_info(model_dir: str | Path) -> dict:
+    """`<model_dir>/model.json` as a dict, {} when absent."""
+    path = Path(model_dir) / "model.json"
+    if not path.is_file():
+        return {}
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise click.ClickException(f"{path}: invalid JSON ({error})") from None
+
+
+def detector_point_range(detector) -> tuple[float, ...] | None:
+    """(x0, y0, z0, x1, y1, z1) of the detector's input range in the sensor frame, if it has one."""
+    config = getattr(detector, "config", None)
+    try:
+        x, y, z = config.x_range_m, config.y_range_m, config.z_range_m
+    except AttributeError:
+        return None
+    return (x[0], y[0], z[0], x[1], y[1], z[1])
+
+
+def model_source_profile(info: dict) -> str | None:
+    """The source sensor profile a model was trained on, from its model.json."""
+    for key in ("source_sensor", "source_profile"):
+        if isinstance(info.get(key), str):
+            return info[key]
+    config = info.get("config")
+    if isinstance(config, dict) and isinstance(config.get("sensor"), str):
+        return config["sensor"]
+    return None
+
+
+def model_ros_factor(info: dict) -> float | None:
+    """The mean ROS factor a model was trained with (model.json), None when it says nothing."""
+    for key in ("ros_factor_mean", "ros_mean_factor"):
+        if isinstance(info.get(key), int | float):
+            return float(info[key])
+    for key in ("ros_range", "ros_scale_range", "ros_factor_range"):
+        value = info.get(key)
+        if isinstance(value, list | tuple) and len(value) == 2:
+            return 0.5 * (float(value[0]) + float(value[1]))
+    return None
+
+
+def resolve_expected_size(
+    spec: str,
+    *,
+    target_profile: str | None,
+    model_info: dict,
+    source_profile: str | None,
+    ros_factor: float | None,
+    sensors_path: str | None,
+) -> tuple[np.ndarray, dict]:
+    """E_est (3,) and a record of where it came from. spec: sn | ros | L,W,H."""
+    if spec == "sn":
+        if not target_profile:
+            raise click.UsageError(
+                "--expected-size sn needs the target's sensor profile: the frame set names none; "
+                "give --target-profile"
+            )
+        lwh = np.asarray(get_profile(target_profile, sensors_path).car_mean_lwh_m)
+        return lwh, {"mode": "sn", "profile": target_profile}
+    if spec == "ros":
+        profile = source_profile or model_source_profile(model_info)
+        if not profile:
+            raise click.UsageError(
+                "--expected-size ros needs --source-profile (model.json names none)"
+            )
+        factor = ros_factor if ros_factor is not None else model_ros_factor(model_info)
+        factor = ptsn.DEFAULT_ROS_FACTOR if factor is None else factor
+        source_lwh = get_profile(profile, sensors_path).car_mean_lwh_m
+        lwh = ptsn.ros_expected_size(source_lwh, factor)
+        return lwh, {"mode": "ros", "source_profile": profile, "ros_factor": factor}
+    try:
+        lwh = np.asarray(ptsn.parse_size(spec))
+    except ValueError as error:
+        raise click.BadParameter(str(error), param_hint="--expected-size") from None
+    return lwh, {"mode": "explicit"}
+
+
+class FrameStore:
+    """`frames[i]`: frame i of a FrameSet, cropped to what any swept scale can bring into range.
+
+    Frames are kept in memory up to `budget_bytes`; the rest are read again when needed.
+    """
+
+    def __init__(self, frameset: FrameSet, crop, budget_bytes: int = 2 << 30):
+        self.frameset = frameset
+        self.crop = crop
+        self.budget_bytes = budget_bytes
+        self.kept: dict[int, np.ndarray] = {}
+        self.kept_bytes = 0
+
+    def keep(self, index: int, points: np.ndarray) -> np.ndarray:
+        points = self.crop(points)
+        if self.kept_bytes + points.nbytes <= self.budget_bytes:
+            self.kept[int(index)] = points
+            self.kept_bytes += points.nbytes
+        return points
+
+    def __getitem__(self, index: int) -> np.ndarray:
+        index = int(index)
+        if index in self.kept:
+            return self.kept[index]
+        return self.crop(self.frameset.frame(index))
+
+    def __len__(self) -> int:
+        return len(self.frameset)
+
+
+def _progress_bar(enabled: bool, description: str):
+    from tqdm import tqdm
+
+    return tqdm(desc=description, unit="frame", file=sys.stderr, disable=not enabled, leave=False)
+
+
+def _warn(message: str) -> None:
+    click.secho(f"WARNING: {message}", fg="red", bold=True, err=True)
+
+
+def ptsn_sweep(
+    model_dir: str | Path,
+    target_dir: str | Path,
+    out: str | Path,
+    *,
+    scale_range: ptsn.ScaleRange = ptsn.ScaleRange(0.8, 1.4, 0.01),
+    expected_size: str = "sn",
+    search: str = "bracket",
+    frames: int | None = None,
+    frame_fraction: float | None = None,
+    score_min: float = 0.3,
+    mean: str = "per-frame",
+    match: str = "volume",
+    seed: int = 0,
+    subsample_fraction: float = 0.25,
+    subsample_min: int = 16,
+    noise: float = 0.02,
+    target_profile: str | None = None,
+    source_profile: str | None = None,
+    ros_factor: float | None = None,
+    mount_height_m: float | None = None,
+    plot: bool = False,
+    sensors_path: str | None = None,
+    batch_size: int = 8,
+    force: bool = False,
+    dry_run: bool = False,
+    progress: bool = True,
+    detector_loader=None,
+) -> StageOutcome:
+    """Run the PTSN sweep stage (see the module docstring); `detector_loader(model_dir)` for tests."""
+    model_dir, target_dir = Path(model_dir), Path(target_dir)
+    if frames is not None and frame_fraction is not None:
+        raise click.UsageError("give --frames or --frame-fraction, not both")
+    if not model_dir.is_dir():
+        raise click.ClickException(f"{model_dir}: model directory not found")
+    target = FrameSet(target_dir)
+    target_profile = target_profile or target.sensor or None
+    model_info = read_model_info(model_dir)
+    target_lwh, expected_record = resolve_expected_size(
+        expected_size,
+        target_profile=target_profile,
+        model_info=model_info,
+        source_profile=source_profile,
+        ros_factor=ros_factor,
+        sensors_path=sensors_path,
+    )
+    if mount_height_m is None:
+        if not target_profile:
+            raise click.UsageError(
+                f"{target_dir}: the frame set names no sensor; give --target-profile or --mount-height-m"
+            )
+        mount_height_m = get_profile(target_profile, sensors_path).mount_height_m
+    params = {
+        "scales": scale_range.as_list(),
+        "expected_size": expected_size,
+        "expected_lwh_m": [round(float(v), 6) for v in target_lwh],
+        "search": search,
+        "frames": frames,
+        "frame_fraction": frame_fraction,
+        "score_min": score_min,
+        "mean": mean,
+        "match": match,
+        "seed": seed,
+        "subsample_fraction": subsample_fraction,
+        "subsample_min": subsample_min,
+        "noise": noise,
+        "target_profile": target_profile,
+        "mount_height_m": mount_height_m,
+        "plot": plot,
+    }
+
+    def build(directory: Path) -> BuildResult:
+        loader = detector_loader or load_detector
+        detector = loader(model_dir)
+        selected = ptsn.select_frames(len(target), frames, frame_fraction, seed)
+        point_range = detector_point_range(detector)
+        store = FrameStore(
+            target,
+            lambda p: ptsn.crop_for_scales(p, point_range, scale_range.low, scale_range.high),
+        )
+        counts = np.zeros(len(selected), dtype=np.int64)
+        for k, (_, points) in enumerate(target.iter_frames(selected)):
+            counts[k] = ptsn.points_in_range(points, point_range)
+            store.keep(selected[k], points)
+        usable = selected[counts > 0]
+        skipped = int(len(selected) - len(usable))
+        subsample = ptsn.subsample_for_bracket(usable, subsample_fraction, subsample_min, seed)
+        bar = _progress_bar(progress, "ptsn detector passes")
+        cache = ptsn.DetectionCache(
+            detector,
+            store,
+            score_min=score_min,
+            mount_height_m=mount_height_m,
+            batch_size=batch_size,
+            progress=bar.update,
+        )
+        try:
+            result = ptsn.find_scale(
+                cache,
+                scale_range,
+                target_lwh,
+                usable,
+                search=search,
+                match=match,
+                mean=mean,
+                subsample=subsample,
+                noise=noise,
+            )
+        except ptsn.PTSNError as error:
+            raise click.ClickException(f"{target_dir}: {error}") from None
+        finally:
+            bar.close()
+        rows = [evaluation.row() for evaluation in result.evaluations]
+        pq.write_table(pa.Table.from_pylist(rows), directory / SWEEP_NAME)
+        grid_frame_passes = len(scale_range.grid()) * len(usable)
+        document = scale_document(
+            result,
+            target_lwh,
+            expected_record,
+            cache,
+            frames_selected=len(selected),
+            frames_used=len(usable),
+            frames_skipped=skipped,
+            subsample=len(subsample) if search == "bracket" else len(usable),
+            params=params,
+            grid_frame_passes=grid_frame_passes,
+        )
+        (directory / SCALE_NAME).write_text(json.dumps(document, indent=2) + "\n")
+        if plot:
+            title = f"PTSN sweep: ŝ = {result.scale:.3f} ({search}, {match})"
+            ptsn.plot_sweep(rows, result.scale, target_lwh, directory / PLOT_NAME, title)
+        for message in result.warnings:
+            _warn(message)
+        if skipped:
+            _warn(f"{skipped} of {len(selected)} selected frames have no points in range: skipped")
+        print_summary(document)
+        return BuildResult(
+            counts={
+                "frames": len(usable),
+                "frames_skipped": skipped,
+                "scales_evaluated": document["passes"],
+                "detector_frames": cache.frame_passes,
+            },
+            timings={"detector_seconds": round(cache.seconds, 3)},
+            notes=list(result.warnings),
+            extra={"ptsn": {"scale": result.scale, "clipped": result.clipped}},
+        )
+
+    return run_stage(
+        STAGE,
+        out,
+        inputs={"model": model_dir, "target": target_dir},
+        params=params,
+        build=build,
+        force=force,
+        dry_run=dry_run,
+        seed=seed,
+    )
+
+
+def scale_document(
+    result: ptsn.SearchResult,
+    target_lwh: np.ndarray,
+    expected_record: dict,
+    cache: ptsn.DetectionCache,
+    *,
+    frames_selected: int,
+    frames_used: int,
+    frames_skipped: int,
+    subsample: int,
+    params: dict,
+    grid_frame_passes: int,
+) -> dict:
+    """The content of scale.json (`"scale"` is the key other stages read)."""
+    e_pred = np.asarray(result.mean_lwh, np.float64)
+
+    def listed(values) -> list[float | None]:
+        return [round(float(v), 6) if math.isfinite(v) else None for v in values]
+
+    return {
+        "scale": round(result.scale, 6),
+        "E_est": listed(target_lwh),
+        "E_est_volume": round(float(np.prod(target_lwh)), 6),
+        "expected_size": expected_record,
+        "E_pred_at_scale": listed(e_pred),
+        "bias_lwh": listed(e_pred - target_lwh),
+        "search": result.strategy,
+        "match": params["match"],
+        "mean": params["mean"],
+        "fallback": result.fallback,
+        "monotone": result.monotone,
+        "clipped": result.clipped,
+        "scale_range": params["scales"],
+        "score_min": params["score_min"],
+        "passes": len({(e.scale, e.subset) for e in result.evaluations}),
+        "scales_evaluated": sorted({e.scale for e in result.evaluations}),
+        "detector_frames": cache.frame_passes,
+        "grid_detector_frames": grid_frame_passes,
+        "detector_seconds": round(cache.seconds, 3),
+        "frames": {
+            "selected": frames_selected,
+            "used": frames_used,
+            "skipped_no_points": frames_skipped,
+            "subsample": subsample,
+        },
+        "mount_height_m": params["mount_height_m"],
+        "warnings": result.warnings,
+    }
+
+
+def print_summary(document: dict) -> None:
+    e_est = ", ".join(f"{v:.2f}" for v in document["E_est"])
+    e_pred = ", ".join("nan" if v is None else f"{v:.2f}" for v in document["E_pred_at_scale"])
+    click.echo(
+        f"ptsn-sweep: ŝ = {document['scale']:.4f} ({document['search']}, match {document['match']}"
+        f"{', ' + document['fallback'] if document['fallback'] else ''}); "
+        f"E_est = ({e_est}) m, E_pred(ŝ) = ({e_pred}) m; "
+        f"{document['passes']} scale passes, {document['detector_frames']} detector frames "
+        f"(full grid: {document['grid_detector_frames']})"
+    )

@@ -1,5 +1,161 @@
-"""`dali ptsn-sweep` (placeholder until the PTSN issue lands)."""
+"""`dali ptsn-sweep`: find the PTSN scale ŝ of a trained model on an unlabeled target."""
 
-from dali_cli.commands.common import not_implemented
+from __future__ import annotations
 
-command = not_implemented("ptsn-sweep", "PTSN issue")
+import click
+
+from dali_cli.commands.common import sensors_option, stage_options
+from dali_cli.ptsn import ScaleRange, parse_scale_range
+
+
+class ScaleRangeType(click.ParamType):
+    """LOW:HIGH[:STEP] → ScaleRange; a bad spec is a usage error (exit 2)."""
+
+    name = "LOW:HIGH[:STEP]"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, ScaleRange):
+            return value
+        try:
+            return parse_scale_range(value)
+        except ValueError as error:
+            self.fail(str(error), param, ctx)
+
+
+SCALE_RANGE = ScaleRangeType()
+
+
+@click.command(name="ptsn-sweep")
+@click.option(
+    "--model",
+    "model_dir",
+    required=True,
+    type=click.Path(exists=True, file_okay=False),
+    help="Trained model directory (model.pt + model.json), e.g. RUN/iter0/model.",
+)
+@click.option(
+    "--target",
+    "target_dir",
+    required=True,
+    type=click.Path(exists=True, file_okay=False),
+    help="Target frame set (frames.zarr). Its labels, if any, are never read.",
+)
+@click.option("--out", required=True, type=click.Path(file_okay=False), help="Output directory.")
+@click.option(
+    "--scales",
+    "scale_range",
+    type=SCALE_RANGE,
+    default="0.8:1.4",
+    show_default=True,
+    help="Swept scales LOW:HIGH[:STEP] (STEP default 0.01; the grid and the confirm resolution).",
+)
+@click.option(
+    "--expected-size",
+    "--target-size",
+    "expected_size",
+    default="sn",
+    show_default=True,
+    help="E_est: 'sn' (target profile's mean car size, sensors.toml), 'ros' (source mean x mean "
+    "ROS factor) or explicit L,W,H in metres.",
+)
+@click.option(
+    "--search",
+    type=click.Choice(["bracket", "grid"]),
+    default="bracket",
+    show_default=True,
+    help="bracket: secant on a frame subsample, confirmed on all frames; grid: every scale.",
+)
+@click.option("--frames", type=click.IntRange(min=1), default=None, help="Use N seeded frames.")
+@click.option(
+    "--frame-fraction",
+    type=click.FloatRange(0, 1, min_open=True),
+    default=None,
+    help="Use this fraction of the frames (seeded).",
+)
+@click.option(
+    "--score-min",
+    type=click.FloatRange(0, 1),
+    default=0.3,
+    show_default=True,
+    help="Box score cut.",
+)
+@click.option(
+    "--mean",
+    type=click.Choice(["per-frame", "pooled"]),
+    default="per-frame",
+    show_default=True,
+    help="per-frame: mean of per-frame means (paper Eq. 1); pooled: one mean over all boxes.",
+)
+@click.option(
+    "--match",
+    type=click.Choice(["volume", "lwh"]),
+    default="volume",
+    show_default=True,
+    help="Match mean volume (a 1-D root) or l, w, h in the least-squares sense.",
+)
+@click.option(
+    "--seed", type=int, default=0, show_default=True, help="Seed of the frame subsamples."
+)
+@click.option(
+    "--subsample-fraction",
+    type=click.FloatRange(0, 1, min_open=True),
+    default=0.25,
+    show_default=True,
+    help="bracket: fraction of the frames used for the secant phase.",
+)
+@click.option(
+    "--subsample-min",
+    type=click.IntRange(min=1),
+    default=16,
+    show_default=True,
+    help="bracket: at least this many frames in the secant phase.",
+)
+@click.option(
+    "--noise",
+    type=click.FloatRange(min=0),
+    default=0.02,
+    show_default=True,
+    help="How far the criterion may rise with s and still count as monotone (volume: log ratio).",
+)
+@click.option(
+    "--target-profile", default=None, help="Target sensor profile (default: the frame set's)."
+)
+@click.option("--source-profile", default=None, help="Source profile for --expected-size ros.")
+@click.option(
+    "--ros-factor",
+    type=click.FloatRange(0, min_open=True),
+    default=None,
+    help="Mean ROS factor for --expected-size ros (default: model.json, else 0.875).",
+)
+@click.option(
+    "--mount-height-m",
+    type=float,
+    default=None,
+    help="Target sensor height above ground for scaling (default: the target profile's).",
+)
+@click.option("--plot", is_flag=True, help="Also write sweep.png (mean volume vs scale).")
+@click.option("--batch-size", type=click.IntRange(min=1), default=8, show_default=True)
+@click.option("--no-progress", is_flag=True, help="No progress bar.")
+@sensors_option
+@stage_options
+def command(model_dir, target_dir, out, scale_range, sensors_path, no_progress, **options):
+    """Find the PTSN scale ŝ: the point-cloud scale at which the model's mean predicted car size
+    E_pred(s) (boxes de-scaled, score >= --score-min) matches the expected target size E_est.
+
+    Reads MODEL (model.json, model.pt) and the TARGET frame set only: never target labels.
+    Writes OUT/scale.json ("scale": ŝ, E_est, E_pred at ŝ, per-dimension bias, passes, detector
+    frames, strategy, clipping), OUT/sweep.parquet (one row per evaluated scale and frame set:
+    frames, boxes, mean l/w/h, mean volume, seconds), OUT/sweep.png with --plot, and manifest.json.
+    When E_est lies outside --scales, ŝ is clipped to the bound and a warning says so.
+    """
+    from stages.ptsn_sweep import ptsn_sweep
+
+    ptsn_sweep(
+        model_dir,
+        target_dir,
+        out,
+        scale_range=scale_range,
+        sensors_path=sensors_path,
+        progress=not no_progress,
+        **options,
+    )
