@@ -19,6 +19,7 @@ from dali_cli.ppcg.fitting import (
     size_cost,
     viewing_angle,
 )
+from dali_cli.ppcg.inbox import points_per_box
 from dali_cli.ppcg.point_models import (
     angular_threshold_rad,
     cast_point_model,
@@ -304,3 +305,40 @@ def test_point_model_cast_handles_empty_inputs():
     assert empty.hit.shape == (0,)
     no_model = cast_point_model(np.zeros(3), np.ones((4, 3)), np.zeros((0, 3)), 0.01)
     assert not no_model.hit.any() and np.isinf(no_model.distance).all()
+
+
+# ------------------------------------------------------------------------------- in-box points
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_points_per_box_equals_bruteforce(seed):
+    rng = np.random.default_rng(seed)
+    count = 20000
+    points = np.concatenate(
+        [
+            rng.uniform(-30, 30, (count, 2)),
+            rng.uniform(-2, 1, (count, 1)),
+            rng.uniform(0, 1, (count, 1)),
+        ],
+        1,
+    ).astype(np.float32)
+    k = int(rng.integers(1, 20))
+    boxes = np.concatenate(
+        [
+            rng.uniform(-35, 35, (k, 2)),
+            rng.uniform(-1, 0, (k, 1)),
+            rng.uniform(0.5, 6, (k, 3)),
+            rng.uniform(-4, 4, (k, 1)),
+        ],
+        1,
+    )
+    boxes = np.concatenate([boxes, boxes[:1] + [0.5, 0, 0, 0, 0, 0, 0.3]])  # an overlapping pair
+    margin = float(rng.uniform(0, 0.5))
+    result = points_per_box(points, boxes, margin)
+    claimed = np.zeros(count, bool)
+    for box, got in zip(boxes, result, strict=True):
+        local = sensor_to_model(points[:, :3].astype(np.float64), box) * box[3:6]
+        inside = (np.abs(local) <= box[3:6] / 2 + margin + 1e-9).all(axis=1) & ~claimed
+        claimed |= inside
+        np.testing.assert_array_equal(got, np.flatnonzero(inside))
+    assert claimed.sum() > 0
