@@ -1,5 +1,197 @@
-"""`dali export` (placeholder until the importers issue lands)."""
+"""`dali export kitti|openpcdet`: dali artifacts -> other tools' formats."""
 
-from dali_cli.commands.common import not_implemented
+from __future__ import annotations
 
-command = not_implemented("export", "importers issue")
+from pathlib import Path
+
+import click
+
+from dali_cli.commands.common import stage_options
+
+
+@click.group(name="export")
+def command() -> None:
+    """Export dali boxes (and frames) to other tools' formats. Each export is a stage with a
+    manifest.json, written atomically and skipped when up to date."""
+
+
+def _parse_image_size(_ctx, _param, value: str | None) -> tuple[int, int] | None:
+    if value is None:
+        return None
+    try:
+        width, height = (int(v) for v in value.lower().split("x"))
+    except ValueError:
+        raise click.BadParameter(f"expected WIDTHxHEIGHT in pixels, got {value!r}") from None
+    if width <= 0 or height <= 0:
+        raise click.BadParameter(f"image size must be positive, got {value!r}")
+    return width, height
+
+
+def _frame_ids(table, frames_dir: Path | None) -> list[str]:
+    """Frames of the FrameSet (when given), then any other frame of the box table, in order."""
+    from dali_cli.artifacts import FrameSet
+
+    ids = list(FrameSet(frames_dir).frame_ids) if frames_dir is not None else []
+    known = set(ids)
+    for frame_id in dict.fromkeys(table.frame_id.astype(str).tolist()):
+        if frame_id not in known:
+            ids.append(frame_id)
+            known.add(frame_id)
+    return ids
+
+
+@command.command(name="kitti")
+@click.argument("boxes_dir", type=click.Path(exists=True))
+@click.option(
+    "--calib-root",
+    type=click.Path(exists=True, file_okay=False),
+    required=True,
+    help="KITTI root (ROOT/SPLIT/calib or ROOT/calib) or the calib directory itself.",
+)
+@click.option(
+    "--split",
+    type=click.Choice(["training", "testing"]),
+    default="training",
+    show_default=True,
+    help="Split directory under --calib-root.",
+)
+@click.option(
+    "--frames",
+    "frames_dir",
+    type=click.Path(exists=True, file_okay=False),
+    default=None,
+    help="FrameSet whose frames all get a file (frames without boxes an empty one). "
+    "Default: BOXES_DIR when it holds frames.zarr, else the frames of the box table.",
+)
+@click.option(
+    "--image-size",
+    default=None,
+    callback=_parse_image_size,
+    help="WIDTHxHEIGHT for clipping 2D boxes. Default: each frame's image_2 PNG, else 1242x375.",
+)
+@click.option("--score-min", type=float, default=None, help="Export only boxes with score >= this.")
+@click.option(
+    "--keep-outside",
+    is_flag=True,
+    help="Also write boxes behind the camera or outside the image (default: left out, counted).",
+)
+@click.option(
+    "--project-bbox",
+    is_flag=True,
+    help="Always compute alpha and the 2D box from the 3D box, even when the table has the "
+    "KITTI label columns (an imported label set).",
+)
+@click.option(
+    "--no-score", is_flag=True, help="Write 15-field lines (ground-truth format) without the score."
+)
+@click.option(
+    "--out", "out", type=click.Path(file_okay=False), required=True, help="Output directory."
+)
+@stage_options
+def kitti_command(
+    boxes_dir,
+    calib_root,
+    split,
+    frames_dir,
+    image_size,
+    score_min,
+    keep_outside,
+    project_bbox,
+    no_score,
+    out,
+    force,
+    dry_run,
+):
+    """Write BOXES_DIR/boxes.parquet as KITTI label_2 files OUT/data/<frame>.txt.
+
+    Boxes go from the LiDAR frame to the rectified camera through each frame's calib
+    (CALIB_ROOT/.../calib/<frame>.txt); the 2D box is the projection of the 8 corners clipped to
+    the image; alpha = rotation_y - atan2(x, z). Lines have 16 fields (the score last) unless
+    --no-score. DontCare rows are not written. Score them with the KITTI devkit or OpenPCDet's
+    kitti_eval, or re-import them with `dali import kitti ROOT --label-dir OUT/data`.
+    """
+    from dali_cli.artifacts import FRAMES_NAME, read_boxes
+    from dali_cli.export import build_export_kitti
+    from dali_cli.importers.kitti import find_calib_dir
+    from dali_cli.manifest import run_stage
+
+    table = read_boxes(boxes_dir)
+    if score_min is not None:
+        table = table.select(table["score"] >= score_min)
+    if frames_dir is None and (Path(boxes_dir) / FRAMES_NAME).is_dir():
+        frames_dir = Path(boxes_dir)
+    frame_ids = _frame_ids(table, Path(frames_dir) if frames_dir else None)
+    calib_dir = find_calib_dir(calib_root, split)
+    image_dir = calib_dir.parent / "image_2"
+    params = {
+        "split": split,
+        "image_size": image_size,
+        "score_min": score_min,
+        "keep_outside": keep_outside,
+        "project_bbox": project_bbox,
+        "score": not no_score,
+        "frames": len(frame_ids),
+    }
+    outcome = run_stage(
+        "export-kitti",
+        out,
+        {"boxes": boxes_dir, "calib": calib_dir, "frames": frames_dir},
+        params,
+        lambda tmp: build_export_kitti(
+            tmp,
+            table,
+            frame_ids,
+            calib_dir,
+            image_dir if image_dir.is_dir() else None,
+            image_size,
+            keep_outside,
+            reuse_columns=not project_bbox,
+            with_score=not no_score,
+        ),
+        force=force,
+        dry_run=dry_run,
+    )
+    if outcome.status == "ran":
+        counts = outcome.manifest["outputs"]["counts"]
+        click.echo(
+            f"  {counts['boxes_written']} boxes in {counts['frames']} files under {Path(out) / 'data'}, "
+            f"{counts['boxes_outside_image']} outside the image left out"
+        )
+
+
+@command.command(name="openpcdet")
+@click.argument("data_dir", type=click.Path(exists=True, file_okay=False))
+@click.option(
+    "--boxes",
+    "boxes_dir",
+    type=click.Path(exists=True),
+    default=None,
+    help="Box table to write as labels. Default: DATA_DIR/boxes.parquet when present.",
+)
+@click.option("--split", default=None, help="Also write ImageSets/SPLIT.txt listing the frames.")
+@click.option("--score-min", type=float, default=None, help="Write only boxes with score >= this.")
+@click.option(
+    "--out", "out", type=click.Path(file_okay=False), required=True, help="Output directory."
+)
+@stage_options
+def openpcdet_command(data_dir, boxes_dir, split, score_min, out, force, dry_run):
+    """Write the FrameSet DATA_DIR in OpenPCDet's custom format: OUT/points/<frame>.npy
+    ((n, 4) float32) and, with boxes, OUT/labels/<frame>.txt (x y z dx dy dz heading class)."""
+    from dali_cli.artifacts import BOXES_NAME, FrameSet, read_boxes
+    from dali_cli.importers.openpcdet import write_dataset
+    from dali_cli.manifest import run_stage
+
+    frames = FrameSet(data_dir)
+    if boxes_dir is None and (Path(data_dir) / BOXES_NAME).is_file():
+        boxes_dir = data_dir
+    table = read_boxes(boxes_dir) if boxes_dir is not None else None
+    params = {"split": split, "score_min": score_min}
+    run_stage(
+        "export-openpcdet",
+        out,
+        {"frames": data_dir, "boxes": boxes_dir},
+        params,
+        lambda tmp: write_dataset(tmp, frames.iter_frames(), table, split, score_min),
+        force=force,
+        dry_run=dry_run,
+    )

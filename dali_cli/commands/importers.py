@@ -1,5 +1,295 @@
-"""`dali import` (placeholder until the importers issue lands)."""
+"""`dali import kitti|nuscenes|openpcdet`: other datasets' files -> a FrameSet + boxes.parquet."""
 
-from dali_cli.commands.common import not_implemented
+from __future__ import annotations
 
-command = not_implemented("import", "importers issue")
+from pathlib import Path
+
+import click
+
+from dali_cli.commands.common import sensors_option, stage_options
+
+
+@click.group(name="import")
+def command() -> None:
+    """Import real data as a dali frame set (frames.zarr) with boxes (boxes.parquet).
+
+    Points end up in the dali sensor frame (x forward, y left, z up, intensity in [0, 1]); boxes
+    are LiDAR-frame geometric centres (x, y, z, l, w, h, yaw). Each import is a stage: the output
+    is written atomically with a manifest.json and skipped when up to date.
+    """
+
+
+def _check_sensor(name: str, sensors_path: str | None) -> None:
+    from dali_cli.sensors import get_profile
+
+    get_profile(name, sensors_path)
+
+
+def _summary(outcome) -> None:
+    if outcome.manifest and outcome.status == "ran":
+        counts = outcome.manifest["outputs"]["counts"]
+        by_label = ", ".join(f"{k} {v}" for k, v in counts.get("boxes_by_label", {}).items())
+        click.echo(
+            f"  {counts['frames']} frames, {counts['points']} points, "
+            f"{counts.get('boxes', 0)} boxes{f' ({by_label})' if by_label else ''}, "
+            f"{counts['frames_without_labels']} frames without labels"
+        )
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+@command.command(name="kitti")
+@click.argument("root", type=click.Path(exists=True, file_okay=False))
+@click.option(
+    "--split",
+    type=click.Choice(["training", "testing"]),
+    default="training",
+    show_default=True,
+    help="Split directory under ROOT (ignored when ROOT itself holds velodyne/).",
+)
+@click.option(
+    "--ids",
+    "ids_path",
+    type=click.Path(exists=True, dir_okay=False),
+    default=None,
+    help="Text file of frame ids, one per line (e.g. ImageSets/val.txt). Default: every scan.",
+)
+@click.option(
+    "--label-dir",
+    type=click.Path(exists=True, file_okay=False),
+    default=None,
+    help="Read labels from here instead of <split>/label_2 (e.g. exported predictions).",
+)
+@click.option(
+    "--crop-fov",
+    is_flag=True,
+    help="Keep only points that project into the camera image (KITTI labels cover only it).",
+)
+@click.option(
+    "--sensor", default="kitti", show_default=True, help="Sensor profile recorded with the frames."
+)
+@click.option(
+    "--out", "out", type=click.Path(file_okay=False), required=True, help="Output directory."
+)
+@sensors_option
+@stage_options
+def kitti_command(
+    root, split, ids_path, label_dir, crop_fov, sensor, out, sensors_path, force, dry_run
+):
+    """Import KITTI object data from ROOT (holding training/ and testing/, or one split).
+
+    Reads <split>/velodyne/*.bin (float32 x, y, z, reflectance), label_2/*.txt (camera frame,
+    h w l, bottom centre, rotation_y; 15 fields, or 16 with a score) and calib/*.txt (P2,
+    R0_rect, Tr_velo_to_cam). Writes OUT/frames.zarr and, when any frame has labels,
+    OUT/boxes.parquet: LiDAR-frame boxes through the calib, with label (the KITTI type, DontCare
+    and Van kept as rows for the evaluation to ignore), truncated, occluded, alpha, the 2D bbox
+    and the in-box point count. Frames without a label file are allowed (an unlabeled target);
+    a frame with labels needs its calib file.
+    """
+    from dali_cli.importers.common import read_id_list
+    from dali_cli.importers.kitti import KittiLayout, build_import
+    from dali_cli.manifest import run_stage
+
+    _check_sensor(sensor, sensors_path)
+    layout = KittiLayout.of(root, split, label_dir)
+    frame_ids = layout.frame_ids(read_id_list(ids_path) if ids_path else None)
+    inputs = {"velodyne": layout.velodyne_dir, "ids": ids_path}
+    for name, path in (("labels", layout.label_dir), ("calib", layout.calib_dir)):
+        if path.is_dir():
+            inputs[name] = path
+    params = {"split": split, "crop_fov": crop_fov, "sensor": sensor, "frames": len(frame_ids)}
+    outcome = run_stage(
+        "import-kitti",
+        out,
+        inputs,
+        params,
+        lambda tmp: build_import(tmp, layout, frame_ids, crop_fov=crop_fov, sensor=sensor),
+        force=force,
+        dry_run=dry_run,
+    )
+    _summary(outcome)
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+@command.command(name="nuscenes")
+@click.argument("path", type=click.Path(exists=True))
+@click.option(
+    "--version",
+    "version",
+    default="v1.0-mini",
+    show_default=True,
+    help="Table directory under the data root (v1.0-trainval, v1.0-mini, ...).",
+)
+@click.option(
+    "--boxes-csv",
+    type=click.Path(exists=True, dir_okay=False),
+    default=None,
+    help="Boxes already in the LiDAR frame (columns category,x,y,z,l,w,h,yaw[,num_lidar_pts]"
+    "[,frame_id]); PATH is then a .pcd.bin file or a directory of them.",
+)
+@click.option(
+    "--car-category",
+    "car_categories",
+    multiple=True,
+    help="Category mapped to label 'Car' (repeatable). Default: vehicle.car and car. "
+    "Other categories keep their name as label.",
+)
+@click.option(
+    "--scenes",
+    default=None,
+    help="Comma-separated scene names to import (JSON tables only). Default: all key frames.",
+)
+@click.option(
+    "--max-frames",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Import only the first N key frames (in time order per scene).",
+)
+@click.option(
+    "--lidar-frame",
+    is_flag=True,
+    help="Keep nuScenes' LiDAR axes (x right, y forward) instead of turning them to dali's "
+    "x forward, y left.",
+)
+@click.option(
+    "--sensor",
+    default="nuscenes",
+    show_default=True,
+    help="Sensor profile recorded with the frames.",
+)
+@click.option(
+    "--out", "out", type=click.Path(file_okay=False), required=True, help="Output directory."
+)
+@sensors_option
+@stage_options
+def nuscenes_command(
+    path,
+    version,
+    boxes_csv,
+    car_categories,
+    scenes,
+    max_frames,
+    lidar_frame,
+    sensor,
+    out,
+    sensors_path,
+    force,
+    dry_run,
+):
+    """Import nuScenes LIDAR_TOP key frames.
+
+    With the v1.0 JSON tables, PATH is the data root (holding samples/ and VERSION/): boxes come
+    from sample_annotation (global frame, size w, l, h) through ego_pose and calibrated_sensor
+    into the LiDAR frame; no devkit needed. With --boxes-csv, PATH is one .pcd.bin (or a
+    directory of them) and the CSV gives LiDAR-frame boxes. Points are the .pcd.bin's float32
+    x, y, z, intensity, ring (ring dropped, intensity / 255). Only key-frame sweeps are read (no
+    multi-sweep accumulation). By default points and boxes are rotated by -90 degrees about z so
+    that x points forward as in dali's convention; the rotation is recorded in the manifest.
+    Writes OUT/frames.zarr and OUT/boxes.parquet (num_points = in-box point count; the dataset's
+    num_lidar_pts kept as a column).
+    """
+    from dali_cli.importers import nuscenes
+    from dali_cli.manifest import run_stage
+
+    _check_sensor(sensor, sensors_path)
+    categories = tuple(car_categories) or nuscenes.DEFAULT_CAR_CATEGORIES
+    if boxes_csv:
+        if scenes:
+            raise click.UsageError("--scenes needs the JSON tables, not --boxes-csv")
+        source = nuscenes.CsvSource.of(path, boxes_csv)
+        inputs = {"points": path, "boxes_csv": boxes_csv}
+    else:
+        source = nuscenes.JsonSource.of(path, version, scenes.split(",") if scenes else None)
+        inputs = {"tables": source.table_dir, "points": source.lidar_dir()}
+    samples = source.samples()[:max_frames] if max_frames else source.samples()
+    params = {
+        "version": None if boxes_csv else version,
+        "car_categories": list(categories),
+        "scenes": scenes,
+        "max_frames": max_frames,
+        "x_forward": not lidar_frame,
+        "sensor": sensor,
+    }
+    outcome = run_stage(
+        "import-nuscenes",
+        out,
+        inputs,
+        params,
+        lambda tmp: nuscenes.build_import(
+            tmp, source, samples, categories, x_forward=not lidar_frame, sensor=sensor
+        ),
+        force=force,
+        dry_run=dry_run,
+    )
+    _summary(outcome)
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+@command.command(name="openpcdet")
+@click.argument("root", type=click.Path(exists=True, file_okay=False))
+@click.option(
+    "--split",
+    default=None,
+    help="Read ids from ROOT/ImageSets/SPLIT.txt (e.g. train, val). Default: every points/*.npy.",
+)
+@click.option(
+    "--car-class",
+    "car_classes",
+    multiple=True,
+    help="Class name mapped to label 'Car' (repeatable). Default: Car and Vehicle.",
+)
+@click.option(
+    "--intensity-max",
+    type=click.FloatRange(min=0, min_open=True),
+    default=1.0,
+    show_default=True,
+    help="Intensities are divided by this (255 for 8-bit intensities).",
+)
+@click.option("--sensor", required=True, help="Sensor profile of the data (a sensors.toml name).")
+@click.option(
+    "--out", "out", type=click.Path(file_okay=False), required=True, help="Output directory."
+)
+@sensors_option
+@stage_options
+def openpcdet_command(
+    root, split, car_classes, intensity_max, sensor, out, sensors_path, force, dry_run
+):
+    """Import OpenPCDet's custom format from ROOT.
+
+    Reads ROOT/points/ID.npy ((n, 4) x, y, z, intensity; more columns are dropped) and
+    ROOT/labels/ID.txt (one box a line: x y z dx dy dz heading class; LiDAR frame, geometric
+    centre, dx along the heading). A frame without a label file has no labels. Writes
+    OUT/frames.zarr and OUT/boxes.parquet.
+    """
+    from dali_cli.importers import openpcdet
+    from dali_cli.manifest import run_stage
+
+    _check_sensor(sensor, sensors_path)
+    classes = tuple(car_classes) or openpcdet.DEFAULT_CAR_CLASSES
+    frame_ids = openpcdet.frame_ids(root, split)
+    root = Path(root)
+    inputs = {"points": root / "points"}
+    if (root / "labels").is_dir():
+        inputs["labels"] = root / "labels"
+    params = {
+        "split": split,
+        "car_classes": list(classes),
+        "intensity_max": intensity_max,
+        "sensor": sensor,
+        "frames": len(frame_ids),
+    }
+    outcome = run_stage(
+        "import-openpcdet",
+        out,
+        inputs,
+        params,
+        lambda tmp: openpcdet.build_import(tmp, root, frame_ids, classes, intensity_max, sensor),
+        force=force,
+        dry_run=dry_run,
+    )
+    _summary(outcome)

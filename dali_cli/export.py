@@ -1,0 +1,134 @@
+"""Export dali box tables as KITTI label_2 files, so the KITTI devkit or OpenPCDet can score them.
+
+Each LiDAR-frame box goes to the rectified camera through the frame's calib (inverse of the
+importer's conversion), its 2D box is the projection of its 8 corners clipped to the image, and
+alpha is rotation_y minus the viewing angle. Output: `OUT/data/<frame>.txt`, one file per frame
+(an empty file for a frame without boxes), the layout of the devkit's results directory.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dali_cli.artifacts import BoxTable
+from dali_cli.importers.common import ImportFormatError
+from dali_cli.importers.kitti import (
+    DEFAULT_IMAGE_SIZE,
+    IGNORE_TYPES,
+    Calibration,
+    format_label_lines,
+    image_boxes,
+    lidar_boxes_to_camera,
+    observation_angle,
+    png_size,
+    read_calib,
+)
+
+KITTI_COLUMNS = (
+    "truncated",
+    "occluded",
+    "alpha",
+    "bbox_left",
+    "bbox_top",
+    "bbox_right",
+    "bbox_bottom",
+)
+
+
+@dataclass
+class FrameExport:
+    """The label lines of one frame and how many boxes were left out (outside the image)."""
+
+    lines: list[str]
+    outside: int
+
+
+def frame_label_lines(
+    table: BoxTable,
+    calib: Calibration,
+    image_size: tuple[int, int] = DEFAULT_IMAGE_SIZE,
+    keep_outside: bool = False,
+    reuse_columns: bool = True,
+    with_score: bool = True,
+) -> FrameExport:
+    """label_2 lines for the boxes of one frame (DontCare rows are skipped).
+
+    reuse_columns: when the table has the KITTI columns (an imported label set), write its
+    truncated, occluded, alpha and 2D box as they are; otherwise compute alpha and the 2D box and
+    write -1 for truncation and occlusion, as OpenPCDet does for predictions.
+    keep_outside: also write boxes behind the camera or outside the image (their 2D box is empty).
+    """
+    table = table.select(~np.isin(table["label"].astype(str), IGNORE_TYPES))
+    location, hwl, rotation_y = lidar_boxes_to_camera(table.boxes, calib)
+    bbox, visible = image_boxes(location, hwl, rotation_y, calib, image_size)
+    count = len(table)
+    if reuse_columns and all(name in table.columns for name in KITTI_COLUMNS):
+        truncated = table["truncated"]
+        occluded = table["occluded"]
+        alpha = table["alpha"]
+        bbox = np.stack([table[name] for name in KITTI_COLUMNS[3:]], axis=1)
+    else:
+        truncated = np.full(count, -1.0)
+        occluded = np.full(count, -1)
+        alpha = observation_angle(location, rotation_y)
+    keep = np.ones(count, bool) if keep_outside else visible
+    rows = np.flatnonzero(keep)
+    lines = format_label_lines(
+        table["label"][rows],
+        truncated[rows],
+        occluded[rows],
+        alpha[rows],
+        bbox[rows],
+        hwl[rows],
+        location[rows],
+        rotation_y[rows],
+        score=table["score"][rows] if with_score else None,
+    )
+    return FrameExport(lines, int(count - len(rows)))
+
+
+def build_export_kitti(
+    out: str | Path,
+    table: BoxTable,
+    frame_ids: list[str],
+    calib_dir: Path,
+    image_dir: Path | None = None,
+    image_size: tuple[int, int] | None = None,
+    keep_outside: bool = False,
+    reuse_columns: bool = True,
+    with_score: bool = True,
+) -> dict:
+    """Stage body of `dali export kitti`: write OUT/data/<frame>.txt for every frame id.
+
+    The image size comes from `image_size`, else the frame's image_2 PNG, else 1242 x 375.
+    A frame without its calib file is an error naming the file.
+    """
+    from tqdm import tqdm
+
+    data = Path(out) / "data"
+    data.mkdir(parents=True)
+    rows = table.rows_by_frame()
+    written = outside = 0
+    for frame_id in tqdm(frame_ids, desc="export kitti", unit="frame", leave=False):
+        calib_path = calib_dir / f"{frame_id}.txt"
+        if not calib_path.is_file():
+            raise ImportFormatError(f"{calib_path}: calib file missing for frame '{frame_id}'")
+        size = image_size
+        if size is None and image_dir is not None:
+            size = png_size(image_dir / f"{frame_id}.png")
+        frame = table.select(rows.get(frame_id, np.zeros(0, np.int64)))
+        result = frame_label_lines(
+            frame,
+            read_calib(calib_path),
+            size or DEFAULT_IMAGE_SIZE,
+            keep_outside,
+            reuse_columns,
+            with_score,
+        )
+        (data / f"{frame_id}.txt").write_text("".join(line + "\n" for line in result.lines))
+        written += len(result.lines)
+        outside += result.outside
+    return {"frames": len(frame_ids), "boxes_written": written, "boxes_outside_image": outside}

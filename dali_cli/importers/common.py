@@ -1,0 +1,102 @@
+"""Shared pieces of the importers: the error type, raw float32 point files, id lists, writing."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+import numpy as np
+
+
+class ImportFormatError(click.ClickException):
+    """Malformed input data; the message names the file, the line or point, and the field."""
+
+
+def read_float_records(path: str | Path, fields: int) -> np.ndarray:
+    """Read a raw little-endian float32 file of `fields` values per point.
+
+    Returns `(n, fields)` float32. Raises ImportFormatError when the size is not a multiple of
+    `4 * fields` bytes (a truncated file) or when a point holds NaN/inf (naming the point).
+    """
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise ImportFormatError(f"{path}: point file not found") from None
+    except OSError as error:
+        raise ImportFormatError(f"{path}: cannot read point file ({error})") from None
+    record = 4 * fields
+    if len(raw) % record:
+        raise ImportFormatError(
+            f"{path}: size {len(raw)} bytes is not a multiple of {record} "
+            f"({fields} float32 values per point); the file is truncated or has another layout"
+        )
+    points = np.frombuffer(raw, dtype="<f4").reshape(-1, fields).astype(np.float32)
+    check_finite_points(points, path)
+    return points
+
+
+def check_finite_points(points: np.ndarray, path: str | Path) -> None:
+    """Raise ImportFormatError naming the first point (0-based) with a NaN/inf value."""
+    finite = np.isfinite(points).all(axis=1)
+    if not finite.all():
+        bad = int(np.flatnonzero(~finite)[0])
+        raise ImportFormatError(
+            f"{path}: point {bad} has NaN/inf values ({int((~finite).sum())} bad points in all)"
+        )
+
+
+def read_id_list(path: str | Path) -> list[str]:
+    """Frame ids from a text file, one per line (blank lines and `#` comments ignored)."""
+    path = Path(path)
+    try:
+        lines = path.read_text().splitlines()
+    except OSError as error:
+        raise ImportFormatError(f"{path}: cannot read id list ({error})") from None
+    ids = [line.split("#", 1)[0].strip() for line in lines]
+    ids = [frame_id for frame_id in ids if frame_id]
+    if len(set(ids)) != len(ids):
+        raise ImportFormatError(f"{path}: duplicate frame ids")
+    return ids
+
+
+def write_imported(
+    out: str | Path,
+    frames,
+    sensor: str,
+    attrs: dict | None = None,
+    total: int | None = None,
+    description: str = "import",
+) -> dict:
+    """Write `(frame_id, points (n, 4), BoxTable | None)` triples as a FrameSet + boxes.parquet.
+
+    A frame whose table is None has no labels; when no frame has labels, no box table is written
+    (an unlabeled set). Returns counts for the manifest. `out` is the stage's temporary directory.
+    """
+    from tqdm import tqdm
+
+    from dali_cli.artifacts import BoxTable, FrameSetWriter, write_boxes
+
+    tables = []
+    unlabeled = 0
+    with FrameSetWriter(out, sensor=sensor, attrs=attrs) as writer:
+        for frame_id, points, table in tqdm(
+            frames, total=total, desc=description, unit="frame", leave=False
+        ):
+            writer.append(frame_id, points)
+            if table is None:
+                unlabeled += 1
+            else:
+                tables.append(table)
+    counts = {
+        "frames": writer.count,
+        "points": int(writer.num_points),
+        "frames_without_labels": unlabeled,
+    }
+    if tables:
+        boxes = BoxTable.concat(tables)
+        write_boxes(out, boxes)
+        labels, per_label = np.unique(boxes["label"].astype(str), return_counts=True)
+        counts["boxes"] = len(boxes)
+        counts["boxes_by_label"] = {str(k): int(v) for k, v in zip(labels, per_label, strict=True)}
+    return counts
