@@ -1,5 +1,222 @@
-"""`dali library` (placeholder until the PPCG issue lands)."""
+"""`dali library build|show`: build a 3D model library artifact (CAD meshes, procedural cars, point models)."""
 
-from dali_cli.commands.common import not_implemented
+from __future__ import annotations
 
-command = not_implemented("library", "PPCG issue")
+from pathlib import Path
+
+import click
+
+from dali_cli.commands.common import stage_options
+
+
+@click.group(name="library")
+def command() -> None:
+    """3D model libraries for PPCG: car meshes (CAD or procedural) and point models."""
+
+
+def _parse_range(_ctx, _param, value: str | None) -> tuple[float, float] | None:
+    if value is None:
+        return None
+    try:
+        low, high = (float(v) for v in value.split(":"))
+    except ValueError:
+        raise click.BadParameter(f"expected LOW:HIGH, got {value!r}") from None
+    if not 0 <= low < high:
+        raise click.BadParameter(f"need 0 <= LOW < HIGH, got {value!r}")
+    return low, high
+
+
+@command.command(name="build")
+@click.option(
+    "--cad",
+    "cad_dir",
+    type=click.Path(file_okay=False),
+    default=None,
+    help="Directory of OBJ/PLY/STL/GLB/GLTF/OFF car meshes (searched recursively; "
+    "materials and textures are ignored).",
+)
+@click.option(
+    "--up", default="z", show_default=True, help="Up axis of the CAD files (x, y, z, -x, -y, -z)."
+)
+@click.option(
+    "--forward", default="x", show_default=True, help="Forward (length) axis of the CAD files."
+)
+@click.option(
+    "--length-m",
+    "length_range",
+    default=None,
+    callback=_parse_range,
+    help="Keep CAD models whose native length lies in LOW:HIGH (file units; the paper kept 2:8).",
+)
+@click.option(
+    "--skip-bad",
+    is_flag=True,
+    help="Skip unreadable or degenerate CAD files (listed in the manifest) instead of failing.",
+)
+@click.option(
+    "--procedural",
+    "procedural_count",
+    type=click.IntRange(min=0),
+    default=0,
+    show_default=True,
+    help="Number of procedural cars to generate (sedan, hatchback, SUV, van, pickup).",
+)
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the procedural cars.")
+@click.option(
+    "--lod",
+    type=click.IntRange(1000, 200000),
+    default=20000,
+    show_default=True,
+    help="Approximate triangles per procedural car (5,000-70,000 is the useful range).",
+)
+@click.option(
+    "--points",
+    "points_dir",
+    type=click.Path(exists=True, file_okay=False),
+    default=None,
+    help="Labeled FrameSet directory (frames.zarr + boxes.parquet) to take point models from.",
+)
+@click.option(
+    "--min-points",
+    type=click.IntRange(min=1),
+    default=300,
+    show_default=True,
+    help="Point models: instances with at least this many points in their box.",
+)
+@click.option("--label", default="Car", show_default=True, help="Point models: box label to use.")
+@click.option(
+    "--out", type=click.Path(file_okay=False), required=True, help="Output library directory."
+)
+@stage_options
+def build_command(
+    cad_dir,
+    up,
+    forward,
+    length_range,
+    skip_bad,
+    procedural_count,
+    seed,
+    lod,
+    points_dir,
+    min_points,
+    label,
+    out,
+    force,
+    dry_run,
+):
+    """Build a model library OUT from any combination of --cad, --procedural and --points.
+
+    Meshes are normalized to the unit box centered at the origin (l along +x, up +z) and keep
+    their native size; point models are instances with >= --min-points points, stored in
+    box-normalized coordinates with their viewing angle. Writes OUT/library.zarr (meshes and
+    points), OUT/meshes.parquet, OUT/point_models.parquet and OUT/manifest.json.
+    """
+    from dali_cli.library import (
+        LibraryError,
+        axis_rotation,
+        load_cad_directory,
+        point_models_from_frameset,
+        procedural_library,
+        write_library,
+    )
+    from dali_cli.manifest import BuildResult, run_stage
+
+    if cad_dir is None and procedural_count == 0 and points_dir is None:
+        raise click.UsageError("give at least one of --cad DIR, --procedural N, --points DIR")
+    if cad_dir is not None and not Path(cad_dir).is_dir():
+        raise click.UsageError(f"--cad: {cad_dir}: directory not found")
+    if cad_dir is not None:
+        try:
+            axis_rotation(up, forward)
+        except LibraryError as error:
+            raise click.UsageError(error.message) from None
+
+    params = {
+        "cad": cad_dir is not None,
+        "up": up,
+        "forward": forward,
+        "length_m": length_range,
+        "skip_bad": skip_bad,
+        "procedural": procedural_count,
+        "seed": seed,
+        "lod": lod,
+        "points": points_dir is not None,
+        "min_points": min_points,
+        "label": label,
+    }
+
+    def build(tmp: Path) -> BuildResult:
+        import time
+
+        timings, notes, meshes = {}, [], []
+        started = time.perf_counter()
+        skipped = []
+        if cad_dir is not None:
+            cad, skipped = load_cad_directory(cad_dir, up, forward, length_range, skip_bad)
+            meshes += cad
+            notes += [f"skipped {message}" for message in skipped]
+        timings["cad_seconds"] = round(time.perf_counter() - started, 3)
+        started = time.perf_counter()
+        if procedural_count:
+            meshes += procedural_library(procedural_count, seed, lod)
+        timings["procedural_seconds"] = round(time.perf_counter() - started, 3)
+        started = time.perf_counter()
+        point_models = (
+            point_models_from_frameset(points_dir, min_points, label) if points_dir else None
+        )
+        timings["point_models_seconds"] = round(time.perf_counter() - started, 3)
+        counts = write_library(tmp, meshes, point_models)
+        counts["cad_skipped"] = len(skipped)
+        notes.append(
+            "meshes normalized to the unit box (l along +x, w along +y, up +z), native size kept"
+        )
+        return BuildResult(counts=counts, timings=timings, notes=notes)
+
+    outcome = run_stage(
+        "library",
+        out,
+        {"cad": cad_dir, "points": points_dir},
+        params,
+        build,
+        force=force,
+        dry_run=dry_run,
+        seed=seed if procedural_count else None,
+    )
+    if outcome.status == "ran":
+        counts = outcome.manifest["outputs"]["counts"]
+        click.echo(
+            f"  {counts['meshes']} meshes ({counts['mesh_triangles']} triangles), "
+            f"{counts['point_models']} point models ({counts['model_points']} points)"
+            + (f", {counts['cad_skipped']} CAD files skipped" if counts["cad_skipped"] else "")
+        )
+
+
+@command.command(name="show")
+@click.argument("library_dir", type=click.Path(exists=True, file_okay=False))
+def show_command(library_dir):
+    """Summarize a model library: meshes by kind and size, point models by size and points."""
+    import numpy as np
+
+    from dali_cli.library import read_library
+
+    library = read_library(library_dir)
+    lwh = library.mesh_lwh
+    click.echo(
+        f"{library_dir}: {len(library.meshes)} meshes, {len(library.point_models)} point models"
+    )
+    if library.meshes:
+        kinds: dict[str, int] = {}
+        for model in library.meshes:
+            kinds[model.kind or "-"] = kinds.get(model.kind or "-", 0) + 1
+        triangles = np.array([m.num_triangles for m in library.meshes])
+        click.echo("  kinds: " + ", ".join(f"{k} {n}" for k, n in sorted(kinds.items())))
+        click.echo(
+            f"  triangles per mesh: mean {triangles.mean():.0f}, min {triangles.min()}, max {triangles.max()}"
+        )
+        click.echo("  native l, w, h mean: " + ", ".join(f"{v:.2f}" for v in lwh.mean(axis=0)))
+    if len(library.point_models):
+        pm = library.point_models
+        click.echo(
+            f"  points per model: mean {pm.num_points.mean():.0f}, min {pm.num_points.min()}"
+        )
+        click.echo("  box l, w, h mean: " + ", ".join(f"{v:.2f}" for v in pm.lwh.mean(axis=0)))
