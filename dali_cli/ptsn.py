@@ -610,29 +610,19 @@ def subsample_for_bracket(
     return np.sort(rng.choice(np.asarray(indices), size=size, replace=False)).astype(np.int64)
 
 
-def points_in_range(points: np.ndarray, point_range: Sequence[float] | None) -> int:
-    """Number of points of `(n, >=3)` inside `point_range` (x0, y0, z0, x1, y1, z1), all if None."""
-    if point_range is None:
-        return int(len(points))
-    low = np.asarray(point_range[:3], np.float64)
-    high = np.asarray(point_range[3:6], np.float64)
-    xyz = np.asarray(points)[:, :3]
-    return int(np.count_nonzero(np.all((xyz >= low) & (xyz <= high), axis=1)))
-
-
 def crop_for_scales(
-    points: np.ndarray, point_range: Sequence[float] | None, low: float, high: float
+    points: np.ndarray, bev_range: Sequence[float] | None, low: float, high: float
 ) -> np.ndarray:
-    """Drop points `(n, C)` that no scale in [low, high] brings into the detector's x, y range.
+    """Drop points `(n, C)` that no scale in [low, high] brings into the BEV range (x0, y0, x1, y1).
 
-    Scaling about the ground leaves x, y scaled about the sensor axis, so a point can enter the
-    range [x0, x1] at some s only inside [min(x0/low, x0/high), max(x1/low, x1/high)] (same in y).
+    Scaling about the ground scales x, y about the sensor axis, so a point can enter [x0, x1] at
+    some s only inside [min(x0/low, x0/high), max(x1/low, x1/high)] (same in y).
     """
-    if point_range is None:
+    if bev_range is None:
         return points
-    bounds = np.asarray(point_range, np.float64)
+    bounds = np.asarray(bev_range, np.float64)
     lower = np.minimum(bounds[:2] / low, bounds[:2] / high)  # (2,) x, y
-    upper = np.maximum(bounds[3:5] / low, bounds[3:5] / high)
+    upper = np.maximum(bounds[2:4] / low, bounds[2:4] / high)
     xy = points[:, :2]
     return points[np.all((xy >= lower) & (xy <= upper), axis=1)]
 

@@ -1,1 +1,230 @@
-"""Stage: pseudo_label (library call + artifact I/O). Filled in by its issue."""
+"""Stage pseudo_label: run the detector on the target at the PTSN scale ŝ, de-scale, keep
+score >= score_min, BEV NMS, count the original points in each box; write boxes.parquet and
+summary.json (boxes per frame, mean size vs E_est, score histogram)."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import click
+import numpy as np
+
+from dali_cli import ptsn
+from dali_cli.artifacts import BoxTable, FrameSet, write_boxes
+from dali_cli.manifest import BuildResult, StageOutcome, run_stage
+from dali_cli.sensors import get_profile
+
+STAGE = "pseudo_label"
+SUMMARY_NAME = "summary.json"
+SCORE_BINS = np.round(np.linspace(0.0, 1.0, 11), 2)  # histogram edges (11,)
+
+
+def load_detector(model_dir: str | Path) -> ptsn.Predictor:
+    """The trained detector of `model_dir` (torch is imported only here)."""
+    from dali_cli.detector import Detector
+
+    return Detector.load(model_dir)
+
+
+def read_scale(scale_from: str | Path) -> tuple[float, dict]:
+    """ŝ and the whole document of `<scale_from>/scale.json` (or a scale.json path)."""
+    path = Path(scale_from)
+    if path.is_dir():
+        path = path / "scale.json"
+    if not path.is_file():
+        raise click.ClickException(f"{path}: scale file not found (run `dali ptsn-sweep` first)")
+    try:
+        document = json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise click.ClickException(f"{path}: invalid JSON ({error})") from None
+    scale = document.get("scale") if isinstance(document, dict) else None
+    if (
+        isinstance(scale, bool)
+        or not isinstance(scale, int | float)
+        or not (math.isfinite(scale) and scale > 0)
+    ):
+        raise click.ClickException(
+            f"{path}: field 'scale' must be a positive number, got {scale!r}"
+        )
+    return float(scale), document
+
+
+def label_frame(
+    boxes: np.ndarray, scores: np.ndarray, points: np.ndarray, score_min: float, nms_iou: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One frame's pseudo labels: boxes (K, 7), scores (K,), in-box point counts (K,) int32.
+
+    boxes (M, 7) are already de-scaled to the original frame; points (n, 4) are the original ones.
+    """
+    from dali_cli.geometry import count_points_in_boxes, nms_bev
+
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    scores = np.asarray(scores, np.float32).reshape(-1)
+    keep = scores >= score_min
+    boxes, scores = boxes[keep], scores[keep]
+    kept = nms_bev(boxes, scores, nms_iou)
+    boxes, scores = boxes[kept], scores[kept]
+    return boxes, scores, count_points_in_boxes(points, boxes)
+
+
+def summarize(table: BoxTable, frames: int, scale: float, e_est: list | None) -> dict:
+    """summary.json: counts, mean size (per-frame mean as paper Eq. 1, and pooled) vs E_est."""
+    sizes = table.boxes[:, 3:6]  # (N, 3)
+    per_frame = ptsn.expected_prediction(
+        [sizes[rows] for rows in table.rows_by_frame().values()], "per-frame"
+    )
+    pooled = sizes.mean(axis=0) if len(sizes) else np.full(3, np.nan)
+    histogram, _ = np.histogram(table["score"], bins=SCORE_BINS)
+
+    def listed(values) -> list[float | None]:
+        return [round(float(v), 4) if math.isfinite(v) else None for v in values]
+
+    summary = {
+        "scale": scale,
+        "frames": frames,
+        "frames_with_boxes": per_frame.frames_with_boxes,
+        "boxes": len(table),
+        "boxes_per_frame": round(len(table) / frames, 4) if frames else 0.0,
+        "mean_lwh": listed(per_frame.mean_lwh),
+        "mean_lwh_pooled": listed(pooled),
+        "E_est": e_est,
+        "mean_minus_E_est": None,
+        "score_histogram": {"edges": SCORE_BINS.tolist(), "counts": histogram.tolist()},
+        "num_points": {
+            "median": float(np.median(table["num_points"])) if len(table) else None,
+            "boxes_under_3": int(np.count_nonzero(table["num_points"] < 3)),
+            "boxes_300_or_more": int(np.count_nonzero(table["num_points"] >= 300)),
+        },
+    }
+    if e_est is not None and np.isfinite(per_frame.mean_lwh).all():
+        summary["mean_minus_E_est"] = listed(per_frame.mean_lwh - np.asarray(e_est, np.float64))
+    return summary
+
+
+def pseudo_label(
+    model_dir: str | Path,
+    target_dir: str | Path,
+    out: str | Path,
+    *,
+    scale: float | None = None,
+    scale_from: str | Path | None = None,
+    score_min: float = 0.3,
+    nms_iou: float = 0.1,
+    target_profile: str | None = None,
+    mount_height_m: float | None = None,
+    sensors_path: str | None = None,
+    batch_size: int = 8,
+    force: bool = False,
+    dry_run: bool = False,
+    progress: bool = True,
+    detector_loader=None,
+) -> StageOutcome:
+    """Run the pseudo-label stage (see the module docstring); `detector_loader` is for tests."""
+    model_dir, target_dir = Path(model_dir), Path(target_dir)
+    if scale is None and scale_from is None:
+        raise click.UsageError("give --scale-from PTSN_DIR (from `dali ptsn-sweep`) or --scale S")
+    if not model_dir.is_dir():
+        raise click.ClickException(f"{model_dir}: model directory not found")
+    scale_document: dict = {}
+    if scale_from is not None:
+        found, scale_document = read_scale(scale_from)
+        scale_source = "option" if scale is not None else str(scale_from)
+        scale = found if scale is None else scale
+    else:
+        scale_source = "option"
+    e_est = scale_document.get("E_est")
+    target = FrameSet(target_dir)
+    target_profile = target_profile or target.sensor or None
+    if mount_height_m is None and target_profile:
+        mount_height_m = get_profile(target_profile, sensors_path).mount_height_m
+    params = {
+        "scale": scale,
+        "score_min": score_min,
+        "nms_iou": nms_iou,
+        "target_profile": target_profile,
+        "mount_height_m": mount_height_m,
+    }
+    inputs = {"model": model_dir, "target": target_dir}
+    if scale_from is not None:
+        inputs["scale_from"] = scale_from
+
+    def build(directory: Path) -> BuildResult:
+        from tqdm import tqdm
+
+        detector = (detector_loader or load_detector)(model_dir)
+        ids, boxes_all, scores_all, counts_all = [], [], [], []
+        bar = tqdm(
+            total=len(target), desc="pseudo-label", unit="frame", file=sys.stderr,
+            disable=not progress, leave=False,
+        )  # fmt: skip
+        seconds = 0.0
+        buffer: list[tuple[str, np.ndarray]] = []
+        for item in (*target.iter_frames(), None):
+            if item is not None:
+                buffer.append(item)
+            if not buffer or (item is not None and len(buffer) < batch_size):
+                continue
+            started = time.perf_counter()
+            predictions = detector.predict(
+                [points for _, points in buffer], scale=scale, mount_height_m=mount_height_m
+            )
+            seconds += time.perf_counter() - started
+            if len(predictions) != len(buffer):
+                raise click.ClickException(
+                    f"{model_dir}: detector returned {len(predictions)} results for {len(buffer)} frames"
+                )
+            for (frame_id, points), (boxes, scores) in zip(buffer, predictions, strict=True):
+                boxes, scores, counts = label_frame(boxes, scores, points, score_min, nms_iou)
+                ids.extend([frame_id] * len(boxes))
+                boxes_all.append(boxes)
+                scores_all.append(scores)
+                counts_all.append(counts)
+            bar.update(len(buffer))
+            buffer = []
+        bar.close()
+        if ids:
+            table = BoxTable.from_arrays(
+                np.asarray(ids),
+                np.concatenate(boxes_all),
+                score=np.concatenate(scores_all),
+                num_points=np.concatenate(counts_all),
+                scale=np.full(len(ids), scale, np.float64),
+            )
+        else:
+            table = BoxTable.empty().with_columns(scale=np.zeros(0, np.float64))
+        write_boxes(directory, table)
+        summary = summarize(table, len(target), scale, e_est)
+        summary["scale_source"] = scale_source
+        (directory / SUMMARY_NAME).write_text(json.dumps(summary, indent=2) + "\n")
+        print_summary(summary)
+        notes = []
+        if not len(table):
+            notes.append(f"no boxes with score >= {score_min} on any frame")
+            click.secho(f"WARNING: {notes[-1]}", fg="red", bold=True, err=True)
+        return BuildResult(
+            counts={"frames": len(target), "boxes": len(table)},
+            timings={"detector_seconds": round(seconds, 3)},
+            notes=notes,
+            extra={"pseudo_label": {"scale": scale, "scale_source": scale_source}},
+        )
+
+    return run_stage(
+        STAGE, out, inputs=inputs, params=params, build=build, force=force, dry_run=dry_run
+    )
+
+
+def print_summary(summary: dict) -> None:
+    def triple(values) -> str:
+        return (
+            "—" if values is None else ", ".join("nan" if v is None else f"{v:.2f}" for v in values)
+        )
+
+    click.echo(
+        f"pseudo-label: {summary['boxes']} boxes on {summary['frames']} frames "
+        f"({summary['boxes_per_frame']:.2f}/frame) at s = {summary['scale']:.4f}; "
+        f"mean l/w/h ({triple(summary['mean_lwh'])}) m vs E_est ({triple(summary['E_est'])}) m"
+    )

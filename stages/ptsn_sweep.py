@@ -42,14 +42,14 @@ def read_model_info(model_dir: str | Path) -> dict:
         raise click.ClickException(f"{path}: invalid JSON ({error})") from None
 
 
-def detector_point_range(detector) -> tuple[float, ...] | None:
-    """(x0, y0, z0, x1, y1, z1) of the detector's input range in the sensor frame, if it has one."""
+def detector_bev_range(detector) -> tuple[float, float, float, float] | None:
+    """(x0, y0, x1, y1) of the detector's input range (metres), if it has one."""
     config = getattr(detector, "config", None)
     try:
-        x, y, z = config.x_range_m, config.y_range_m, config.z_range_m
+        x, y = config.x_range_m, config.y_range_m
     except AttributeError:
         return None
-    return (x[0], y[0], z[0], x[1], y[1], z[1])
+    return (float(x[0]), float(y[0]), float(x[1]), float(y[1]))
 
 
 def model_source_profile(info: dict) -> str | None:
@@ -226,15 +226,13 @@ def ptsn_sweep(
         loader = detector_loader or load_detector
         detector = loader(model_dir)
         selected = ptsn.select_frames(len(target), frames, frame_fraction, seed)
-        point_range = detector_point_range(detector)
+        bev_range = detector_bev_range(detector)
         store = FrameStore(
-            target,
-            lambda p: ptsn.crop_for_scales(p, point_range, scale_range.low, scale_range.high),
+            target, lambda p: ptsn.crop_for_scales(p, bev_range, scale_range.low, scale_range.high)
         )
-        counts = np.zeros(len(selected), dtype=np.int64)
+        counts = np.zeros(len(selected), dtype=np.int64)  # points some swept scale brings in range
         for k, (_, points) in enumerate(target.iter_frames(selected)):
-            counts[k] = ptsn.points_in_range(points, point_range)
-            store.keep(selected[k], points)
+            counts[k] = len(store.keep(selected[k], points))
         usable = selected[counts > 0]
         skipped = int(len(selected) - len(usable))
         subsample = ptsn.subsample_for_bracket(usable, subsample_fraction, subsample_min, seed)
@@ -336,6 +334,7 @@ def scale_document(
         "E_est_volume": round(float(np.prod(target_lwh)), 6),
         "expected_size": expected_record,
         "E_pred_at_scale": listed(e_pred),
+        "E_pred": listed(e_pred),  # alias read by `dali report`
         "bias_lwh": listed(e_pred - target_lwh),
         "search": result.strategy,
         "match": params["match"],

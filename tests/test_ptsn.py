@@ -263,12 +263,6 @@ def test_select_frames_is_seeded_and_sized():
     assert np.array_equal(ptsn.select_frames(5, None, None, 0), np.arange(5))
 
 
-def test_points_in_range_counts_only_inside():
-    points = np.array([[1, 0, 0, 0], [100, 0, 0, 0], [5, -50, 0, 0]], np.float32)
-    assert ptsn.points_in_range(points, (0, -40, -3, 70.4, 40, 1)) == 1
-    assert ptsn.points_in_range(points, None) == 3
-
-
 def test_ros_expected_size():
     assert np.allclose(ptsn.ros_expected_size(SOURCE_LWH, 0.875), SOURCE_LWH * 0.875)
 
@@ -408,7 +402,7 @@ def test_cli_no_detections_fails_without_output(sweep_setup, monkeypatch):
 def test_crop_for_scales_keeps_every_point_some_scale_brings_into_range():
     rng = np.random.default_rng(2)
     points = rng.uniform(-120, 120, size=(20000, 4)).astype(np.float32)
-    point_range = (0.0, -40.0, -3.0, 70.4, 40.0, 1.0)
+    point_range = (0.0, -40.0, 70.4, 40.0)
     kept = ptsn.crop_for_scales(points, point_range, 0.8, 1.4)
     assert 0 < len(kept) < len(points)
     scales = np.linspace(0.8, 1.4, 61)

@@ -1,5 +1,83 @@
-"""`dali pseudo-label` (placeholder until the PTSN issue lands)."""
+"""`dali pseudo-label`: pseudo-label the target at the PTSN scale ŝ."""
 
-from dali_cli.commands.common import not_implemented
+from __future__ import annotations
 
-command = not_implemented("pseudo-label", "PTSN issue")
+import click
+
+from dali_cli.commands.common import sensors_option, stage_options
+
+
+@click.command(name="pseudo-label")
+@click.option(
+    "--model",
+    "model_dir",
+    required=True,
+    type=click.Path(exists=True, file_okay=False),
+    help="Trained model directory (model.pt + model.json).",
+)
+@click.option(
+    "--target",
+    "target_dir",
+    required=True,
+    type=click.Path(exists=True, file_okay=False),
+    help="Target frame set (frames.zarr). Its labels, if any, are never read.",
+)
+@click.option("--out", required=True, type=click.Path(file_okay=False), help="Output directory.")
+@click.option(
+    "--scale-from",
+    type=click.Path(exists=True),
+    default=None,
+    help="PTSN directory (or scale.json) of `dali ptsn-sweep`: its 'scale' is ŝ.",
+)
+@click.option(
+    "--scale",
+    type=click.FloatRange(0, min_open=True),
+    default=None,
+    help="Use this scale instead (overrides --scale-from's ŝ).",
+)
+@click.option(
+    "--score-min",
+    type=click.FloatRange(0, 1),
+    default=0.3,
+    show_default=True,
+    help="Box score cut.",
+)
+@click.option(
+    "--nms-iou",
+    type=click.FloatRange(0, 1),
+    default=0.1,
+    show_default=True,
+    help="BEV NMS IoU threshold after de-scaling.",
+)
+@click.option(
+    "--target-profile", default=None, help="Target sensor profile (default: the frame set's)."
+)
+@click.option(
+    "--mount-height-m",
+    type=float,
+    default=None,
+    help="Target sensor height above ground for scaling (default: the target profile's).",
+)
+@click.option("--batch-size", type=click.IntRange(min=1), default=8, show_default=True)
+@click.option("--no-progress", is_flag=True, help="No progress bar.")
+@sensors_option
+@stage_options
+def command(model_dir, target_dir, out, sensors_path, no_progress, **options):
+    """Pseudo-label the target: run the model on the target points scaled by ŝ about the ground,
+    de-scale the boxes, keep score >= --score-min, BEV NMS at --nms-iou.
+
+    Reads MODEL, the TARGET frame set (never its labels) and --scale-from's scale.json.
+    Writes OUT/boxes.parquet (one row per pseudo box: frame_id, x, y, z, l, w, h, yaw, score,
+    label, num_points = original target points inside the box, scale = the scale used),
+    OUT/summary.json (boxes per frame, mean size vs E_est, score histogram) and manifest.json.
+    """
+    from stages.pseudo_label import pseudo_label
+
+    pseudo_label(
+        model_dir,
+        target_dir,
+        out,
+        sensors_path=sensors_path,
+        progress=not no_progress,
+        **options,
+    )

@@ -1,0 +1,223 @@
+"""`dali pseudo-label` with stub detectors: score cut, BEV NMS, in-box point counts on the original
+points, the scale read from a PTSN sweep, and the PTSN scaling round trip it relies on."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from dali_cli.artifacts import read_boxes, write_frameset
+from dali_cli.cli import main
+from dali_cli.geometry import (
+    descale_boxes_about_ground,
+    scale_boxes_about_ground,
+    scale_points_about_ground,
+)
+
+KITTI_LWH = np.array([3.89, 1.62, 1.53])
+MOUNT = 1.73  # the kitti profile's mount height
+PER_BOX = 40
+
+
+def car_boxes(frame: int) -> np.ndarray:
+    """Two or three KITTI-sized cars standing on the ground, sensor frame, (K, 7)."""
+    count = 2 + frame % 2
+    boxes = np.zeros((count, 7))
+    boxes[:, 0] = 8.0 + 9.0 * np.arange(count)
+    boxes[:, 1] = (-1.0) ** np.arange(count) * 3.0
+    boxes[:, 2] = -MOUNT + KITTI_LWH[2] / 2
+    boxes[:, 3:6] = KITTI_LWH
+    boxes[:, 6] = 0.3 * frame - 1.0
+    return boxes
+
+
+def frame_points(frame: int) -> np.ndarray:
+    """PER_BOX points inside each car plus ground points away from them, (n, 4) float32.
+    The first point's intensity encodes the frame index for the stub detector."""
+    rng = np.random.default_rng(frame)
+    clouds = []
+    for box in car_boxes(frame):
+        local = rng.uniform(-0.45, 0.45, size=(PER_BOX, 3)) * box[3:6]
+        c, s = np.cos(box[6]), np.sin(box[6])
+        rotated = np.stack(
+            [c * local[:, 0] - s * local[:, 1], s * local[:, 0] + c * local[:, 1], local[:, 2]], 1
+        )
+        clouds.append(rotated + box[:3])
+    ground = np.stack(
+        [rng.uniform(-30, -5, 200), rng.uniform(-20, 20, 200), np.full(200, -MOUNT)], 1
+    )
+    xyz = np.concatenate([*clouds, ground])
+    intensity = np.full((len(xyz), 1), 0.3)
+    intensity[0] = frame / 100.0
+    return np.concatenate([xyz, intensity], axis=1).astype(np.float32)
+
+
+class SizeLawDetector:
+    """In the s-scaled cloud it finds each car at its scaled centre but with size `scaled_lwh`
+    (its training bias), standing on the ground; boxes come back de-scaled, so their size is
+    scaled_lwh / s. Per frame it adds a near-duplicate (score 0.5) and a faint box (score 0.1)."""
+
+    def __init__(self, scaled_lwh=KITTI_LWH):
+        self.scaled_lwh = np.asarray(scaled_lwh, np.float64)
+        self.scales: list[float] = []
+
+    def predict(self, points_list, scale=1.0, mount_height_m=None):
+        self.scales.append(scale)
+        results = []
+        for points in points_list:
+            frame = int(round(float(points[0, 3]) * 100))
+            scaled = scale_boxes_about_ground(car_boxes(frame), scale, mount_height_m)
+            scaled[:, 3:6] = self.scaled_lwh
+            scaled[:, 2] = -mount_height_m + self.scaled_lwh[2] / 2
+            duplicate, faint = scaled[:1].copy(), scaled[:1].copy()
+            duplicate[:, 0] += 0.2
+            faint[:, 1] += 10.0
+            boxes = np.concatenate([scaled, duplicate, faint])
+            scores = np.r_[np.full(len(scaled), 0.9), 0.5, 0.1].astype(np.float32)
+            results.append((descale_boxes_about_ground(boxes, scale, mount_height_m), scores))
+        return results
+
+
+@pytest.fixture
+def setup(tmp_path, monkeypatch):
+    target = tmp_path / "target"
+    target.mkdir()
+    write_frameset(target, [(f"{i:03d}", frame_points(i)) for i in range(6)], sensor="kitti")
+    model = tmp_path / "model"
+    model.mkdir()
+    (model / "model.json").write_text(json.dumps({"config": {"sensor": "waymo"}}))
+    detector = SizeLawDetector(KITTI_LWH * 1.2)
+    import stages.pseudo_label
+    import stages.ptsn_sweep
+
+    monkeypatch.setattr(stages.pseudo_label, "load_detector", lambda _: detector)
+    monkeypatch.setattr(stages.ptsn_sweep, "load_detector", lambda _: detector)
+    return tmp_path, target, model, detector
+
+
+def run(*arguments):
+    return CliRunner().invoke(main, [*map(str, arguments)])
+
+
+def test_pseudo_labels_at_the_swept_scale_match_e_est(setup):
+    tmp_path, target, model, detector = setup
+    ptsn_dir, out = tmp_path / "ptsn", tmp_path / "pseudo"
+    result = run(
+        "ptsn-sweep", "--model", model, "--target", target, "--out", ptsn_dir, "--no-progress"
+    )
+    assert result.exit_code == 0, result.output
+    scale = json.loads((ptsn_dir / "scale.json").read_text())["scale"]
+    assert scale == pytest.approx(1.2, abs=2e-3)
+    detector.scales.clear()
+    result = run(
+        "pseudo-label",
+        "--model",
+        model,
+        "--target",
+        target,
+        "--scale-from",
+        ptsn_dir,
+        "--out",
+        out,
+        "--no-progress",
+    )
+    assert result.exit_code == 0, result.output
+    assert set(detector.scales) == {scale}
+    table = read_boxes(out)
+    expected_boxes = sum(len(car_boxes(i)) for i in range(6))
+    assert len(table) == expected_boxes  # the duplicate (NMS) and the faint box (score) are gone
+    assert np.all(table["score"] >= 0.3) and np.all(table["scale"] == scale)
+    assert np.all(table["num_points"] == PER_BOX)  # counted on the original (unscaled) points
+    summary = json.loads((out / "summary.json").read_text())
+    assert np.abs(np.asarray(summary["mean_minus_E_est"])).max() < 0.01  # within 0.1 m required
+    assert summary["boxes"] == expected_boxes and summary["frames"] == 6
+    assert sum(summary["score_histogram"]["counts"]) == expected_boxes
+    truth = np.concatenate([car_boxes(i) for i in range(6)])
+    order = np.lexsort((table.boxes[:, 0], table.frame_id.astype(str)))
+    assert np.allclose(table.boxes[order][:, [0, 1, 6]], truth[:, [0, 1, 6]], atol=1e-6)
+    assert np.allclose(table.boxes[order][:, 2], truth[:, 2], atol=0.01)  # same ground plane
+
+
+def test_explicit_scale_overrides_and_options(setup):
+    tmp_path, target, model, detector = setup
+    out = tmp_path / "p1"
+    result = run(
+        "pseudo-label", "--model", model, "--target", target, "--scale", "1.0", "--out", out,
+        "--no-progress", "--nms-iou", "0.95", "--score-min", "0.05",
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    table = read_boxes(out)
+    assert len(table) == sum(len(car_boxes(i)) + 2 for i in range(6))  # nothing suppressed
+    assert np.allclose(table.boxes[table["score"] > 0.8][:, 3:6], KITTI_LWH * 1.2)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["E_est"] is None and summary["scale_source"] == "option"
+
+
+def test_missing_scale_is_a_usage_error(setup):
+    tmp_path, target, model, _ = setup
+    result = run("pseudo-label", "--model", model, "--target", target, "--out", tmp_path / "x")
+    assert result.exit_code == 2 and "--scale-from" in result.output
+    bad = tmp_path / "bad_ptsn"
+    bad.mkdir()
+    (bad / "scale.json").write_text(json.dumps({"scale": -1}))
+    result = run(
+        "pseudo-label",
+        "--model",
+        model,
+        "--target",
+        target,
+        "--scale-from",
+        bad,
+        "--out",
+        tmp_path / "y",
+    )
+    assert result.exit_code == 1 and "scale.json" in result.output and "'scale'" in result.output
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# the scaling PTSN relies on (dali_cli.geometry)
+
+finite = st.floats(-80, 80, allow_nan=False)
+boxes_strategy = st.lists(
+    st.tuples(
+        finite,
+        finite,
+        st.floats(-3, 3),
+        st.floats(0.1, 8),
+        st.floats(0.1, 3),
+        st.floats(0.1, 3),
+        st.floats(-3.14, 3.14),
+    ),
+    min_size=1,
+    max_size=8,
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(boxes_strategy, st.floats(0.5, 2.0), st.floats(0.0, 2.5))
+def test_scale_then_descale_is_identity(boxes, scale, mount):
+    boxes = np.asarray(boxes)
+    back = descale_boxes_about_ground(scale_boxes_about_ground(boxes, scale, mount), scale, mount)
+    assert np.abs(back - boxes).max() <= 1e-9
+    scaled = scale_boxes_about_ground(boxes, scale, mount)
+    assert np.array_equal(scaled[:, 6], boxes[:, 6])  # yaw kept
+    assert np.allclose(scaled[:, 3:6], boxes[:, 3:6] * scale)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(0.5, 2.0), st.floats(0.0, 2.5))
+def test_ground_scaling_keeps_the_ground_plane(scale, mount):
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-50, 50, size=(100, 4)).astype(np.float32)
+    points[:50, 2] = -mount  # on the ground
+    scaled = scale_points_about_ground(points, scale, mount)
+    assert np.allclose(scaled[:50, 2], -mount, atol=1e-5)
+    assert np.array_equal(scaled[:, 3], points[:, 3])  # intensity untouched
+    height = points[50:, 2] + mount
+    assert np.allclose(scaled[50:, 2] + mount, height * scale, atol=1e-4)
