@@ -75,6 +75,14 @@ def model_ros_factor(info: dict) -> float | None:
     return None
 
 
+def _is_size(value) -> bool:
+    return (
+        isinstance(value, list)
+        and len(value) == 3
+        and all(isinstance(v, int | float) and math.isfinite(v) and v > 0 for v in value)
+    )
+
+
 def resolve_expected_size(
     spec: str,
     *,
@@ -94,13 +102,17 @@ def resolve_expected_size(
         lwh = np.asarray(get_profile(target_profile, sensors_path).car_mean_lwh_m)
         return lwh, {"mode": "sn", "profile": target_profile}
     if spec == "ros":
+        factor = ros_factor if ros_factor is not None else model_ros_factor(model_info)
+        factor = ptsn.DEFAULT_ROS_FACTOR if factor is None else factor
+        measured = model_info.get("source_mean_lwh_m")
+        if source_profile is None and _is_size(measured):
+            record = {"mode": "ros", "source": "model.json source_mean_lwh_m", "ros_factor": factor}
+            return ptsn.ros_expected_size(measured, factor), record
         profile = source_profile or model_source_profile(model_info)
         if not profile:
             raise click.UsageError(
                 "--expected-size ros needs --source-profile (model.json names none)"
             )
-        factor = ros_factor if ros_factor is not None else model_ros_factor(model_info)
-        factor = ptsn.DEFAULT_ROS_FACTOR if factor is None else factor
         source_lwh = get_profile(profile, sensors_path).car_mean_lwh_m
         lwh = ptsn.ros_expected_size(source_lwh, factor)
         return lwh, {"mode": "ros", "source_profile": profile, "ros_factor": factor}
