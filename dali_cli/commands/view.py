@@ -1,5 +1,103 @@
-"""`dali view` (placeholder until the importers issue lands)."""
+"""`dali view`: one frame with boxes of several sources as a PNG."""
 
-from dali_cli.commands.common import not_implemented
+from __future__ import annotations
 
-command = not_implemented("view", "importers issue")
+from pathlib import Path
+
+import click
+
+
+def _parse_boxes(value: str) -> tuple[str, Path]:
+    """`NAME=DIR` or `DIR` (named after the directory)."""
+    name, sep, path = value.partition("=")
+    if not sep:
+        name, path = Path(value).name or value, value
+    if not Path(path).exists():
+        raise click.BadParameter(f"{path}: not found", param_hint="--boxes")
+    return name, Path(path)
+
+
+@click.command(name="view")
+@click.argument("data_dir", type=click.Path(exists=True, file_okay=False))
+@click.option(
+    "--frame",
+    "frame",
+    required=True,
+    help="Frame id; a number that is not an id is taken as the frame's index.",
+)
+@click.option(
+    "--boxes",
+    "boxes",
+    multiple=True,
+    help="Box table to draw, DIR or NAME=DIR (repeatable; each gets its own colour). "
+    "DATA_DIR's own boxes.parquet is drawn first unless --no-own-boxes.",
+)
+@click.option("--no-own-boxes", is_flag=True, help="Do not draw DATA_DIR/boxes.parquet.")
+@click.option("--score-min", type=float, default=None, help="Draw only boxes with score >= this.")
+@click.option("--side", is_flag=True, help="Add a side view (x-z) under the bird's-eye view.")
+@click.option(
+    "--range-m",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="Show x, y in [-R, R]. Default: fitted to the points and boxes.",
+)
+@click.option(
+    "--colour-by",
+    type=click.Choice(["z", "intensity"]),
+    default="z",
+    show_default=True,
+    help="Point colour.",
+)
+@click.option("--annotate", is_flag=True, help="Write each box's score (or label) at its centre.")
+@click.option(
+    "--width-px",
+    type=click.IntRange(min=200, max=8000),
+    default=1200,
+    show_default=True,
+    help="Image width in pixels.",
+)
+@click.option(
+    "--out", "out", type=click.Path(dir_okay=False), required=True, help="PNG file to write."
+)
+def command(
+    data_dir,
+    frame,
+    boxes,
+    no_own_boxes,
+    score_min,
+    side,
+    range_m,
+    colour_by,
+    annotate,
+    width_px,
+    out,
+):
+    """Draw frame FRAME of the FrameSet DATA_DIR as a PNG: bird's-eye view of the points (x right,
+    y up, coloured by height or intensity) with the boxes of each box table in its own colour,
+    Car solid, other labels dashed, a tick towards each box's front; --side adds an x-z view.
+    For checking imported data and pseudo labels by eye. Writes only OUT."""
+    from dali_cli.artifacts import BOXES_NAME, ArtifactError, FrameSet, read_boxes
+    from dali_cli.view import BoxSet, render_frame
+
+    frames = FrameSet(data_dir)
+    frame_id = frame
+    if frame not in frames.frame_ids:
+        if not frame.isdigit() or int(frame) >= len(frames):
+            raise ArtifactError(f"{frames.path}: no frame '{frame}' ({len(frames)} frames)")
+        frame_id = frames.frame_ids[int(frame)]
+    points = frames.frame(frame_id)
+    sources = [_parse_boxes(value) for value in boxes]
+    if not no_own_boxes and (Path(data_dir) / BOXES_NAME).is_file():
+        sources.insert(0, ("labels", Path(data_dir)))
+    box_sets = []
+    for name, path in sources:
+        table = read_boxes(path).for_frame(frame_id)
+        if score_min is not None:
+            table = table.select(table["score"] >= score_min)
+        box_sets.append(BoxSet(name, table.boxes, table["label"], table["score"]))
+    extent = None if range_m is None else (-range_m, range_m, -range_m, range_m)
+    title = f"{Path(data_dir).name} / {frame_id}: {len(points)} points"
+    render_frame(points, box_sets, out, title, side, extent, colour_by, width_px, annotate)
+    click.echo(
+        f"view: wrote {out} ({', '.join(f'{b.name} {len(b.boxes)}' for b in box_sets) or 'no boxes'})"
+    )
