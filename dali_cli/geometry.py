@@ -1,0 +1,414 @@
+"""Box geometry: corners, rigid transforms, points in boxes, rotated BEV/3D IoU and BEV NMS.
+
+Boxes are `(N, 7)` float64 `x, y, z, l, w, h, yaw` (geometric centre, l along the heading, yaw CCW
+from +x); points are `(M, >=3)` in the same frame. Overlaps are computed in float64 by clipping one
+rectangle against the other (Sutherland-Hodgman), vectorized over all box pairs at once, in the
+second box's frame (built from centre differences, so far-away boxes at 1e4 m keep full precision).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# Local BEV corner signs, counter-clockwise: front-left, rear-left, rear-right, front-right.
+_BEV_SIGNS = np.array([[0.5, 0.5], [-0.5, 0.5], [-0.5, -0.5], [0.5, -0.5]])
+_PAIR_BLOCK = 1 << 14  # pairs clipped per block: bounds temporary memory to a few tens of MB
+
+
+# ---------------------------------------------------------------------------------------------
+# Angles, rotations, corners
+
+
+def normalize_yaw(yaw: float | np.ndarray) -> float | np.ndarray:
+    """Wrap angles (rad) into [-pi, pi); scalars stay scalars, arrays keep their shape."""
+    wrapped = np.mod(np.asarray(yaw, dtype=np.float64) + np.pi, 2.0 * np.pi) - np.pi
+    # np.mod can round up to exactly 2 pi for tiny negative inputs, which would give +pi
+    wrapped = np.where(wrapped >= np.pi, wrapped - 2.0 * np.pi, wrapped)
+    return float(wrapped) if np.ndim(yaw) == 0 else wrapped
+
+
+def rotation_z(yaw: float | np.ndarray) -> np.ndarray:
+    """Rotation about +z by `yaw` (rad): `(3, 3)` for a scalar, `(N, 3, 3)` for an `(N,)` array."""
+    yaw = np.asarray(yaw, dtype=np.float64)
+    c, s = np.cos(yaw), np.sin(yaw)
+    zero, one = np.zeros_like(yaw), np.ones_like(yaw)
+    matrix = np.stack([c, -s, zero, s, c, zero, zero, zero, one], axis=-1)  # (..., 9)
+    return matrix.reshape(yaw.shape + (3, 3))
+
+
+def _as_boxes(boxes: np.ndarray) -> np.ndarray:
+    boxes = np.asarray(boxes, dtype=np.float64)
+    if boxes.ndim == 1:
+        boxes = boxes.reshape(1, -1)
+    if boxes.ndim != 2 or boxes.shape[1] != 7:
+        raise ValueError(f"boxes must be (N, 7), got {boxes.shape}")
+    return boxes
+
+
+def bev_corners(boxes: np.ndarray) -> np.ndarray:
+    """BEV rectangle corners `(N, 4, 2)` float64, counter-clockwise, of `(N, 7)` boxes."""
+    boxes = _as_boxes(boxes)
+    local = _BEV_SIGNS[None] * boxes[:, None, 3:5]  # (N, 4, 2)
+    c, s = np.cos(boxes[:, 6])[:, None], np.sin(boxes[:, 6])[:, None]  # (N, 1)
+    x = c * local[..., 0] - s * local[..., 1] + boxes[:, None, 0]
+    y = s * local[..., 0] + c * local[..., 1] + boxes[:, None, 1]
+    return np.stack([x, y], axis=-1)
+
+
+def box_corners(boxes: np.ndarray) -> np.ndarray:
+    """Corners `(N, 8, 3)` float64: the bottom face CCW (as bev_corners), then the top face."""
+    boxes = _as_boxes(boxes)
+    bev = bev_corners(boxes)  # (N, 4, 2)
+    bottom = (boxes[:, 2] - boxes[:, 5] / 2)[:, None, None] * np.ones((1, 4, 1))
+    top = (boxes[:, 2] + boxes[:, 5] / 2)[:, None, None] * np.ones((1, 4, 1))
+    return np.concatenate(
+        [np.concatenate([bev, bottom], axis=2), np.concatenate([bev, top], axis=2)], axis=1
+    )
+
+
+def points_to_box_frame(points: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """Points `(M, >=3)` in the box's local frame `(M, 3)` float64: x along l, y along w, z up."""
+    box = np.asarray(box, dtype=np.float64).reshape(7)
+    offset = np.asarray(points, dtype=np.float64)[:, :3] - box[:3]  # (M, 3)
+    c, s = np.cos(box[6]), np.sin(box[6])
+    return np.stack(
+        [c * offset[:, 0] + s * offset[:, 1], -s * offset[:, 0] + c * offset[:, 1], offset[:, 2]],
+        axis=1,
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Points in boxes
+
+
+def _inside(points: np.ndarray, boxes: np.ndarray, margin_m: float) -> np.ndarray:
+    """Row-wise test: is points[k] `(K, >=3)` inside boxes[k] `(K, 7)` (boundaries included)?"""
+    offset = points[:, :3] - boxes[:, :3]  # (K, 3)
+    c, s = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
+    local_x = c * offset[:, 0] + s * offset[:, 1]
+    local_y = -s * offset[:, 0] + c * offset[:, 1]
+    return (
+        (np.abs(local_x) <= boxes[:, 3] / 2 + margin_m)
+        & (np.abs(local_y) <= boxes[:, 4] / 2 + margin_m)
+        & (np.abs(offset[:, 2]) <= boxes[:, 5] / 2 + margin_m)
+    )
+
+
+def _cell_keys(ix: np.ndarray, iy: np.ndarray) -> np.ndarray:
+    return ix.astype(np.int64) * (1 << 32) + iy.astype(np.int64)
+
+
+def point_box_pairs(
+    points: np.ndarray, boxes: np.ndarray, margin_m: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """All (point, box) containments: `(K,)` int64 point indices (ascending) and box indices.
+
+    Within one point the box indices ascend. Candidates come from a coarse BEV grid whose cell is
+    at least one box diameter, so each box touches at most 2 x 2 cells; no M x N matrix is built.
+    """
+    points = np.asarray(points)
+    boxes = _as_boxes(boxes)
+    if len(points) == 0 or len(boxes) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    xy = np.asarray(points[:, :2], dtype=np.float64)  # (M, 2)
+    radius = 0.5 * np.hypot(boxes[:, 3], boxes[:, 4]) + max(margin_m, 0.0)  # (N,)
+    cell = max(2.0 * float(radius.max()), 1.0)
+    low = np.floor((boxes[:, :2] - radius[:, None]) / cell).astype(np.int64)  # (N, 2)
+    high = np.floor((boxes[:, :2] + radius[:, None]) / cell).astype(np.int64)
+    # every box covers the cells low..high (at most 2 per axis): enumerate the 4 corners, dedupe
+    corner_x = np.stack([low[:, 0], high[:, 0], low[:, 0], high[:, 0]], axis=1)  # (N, 4)
+    corner_y = np.stack([low[:, 1], low[:, 1], high[:, 1], high[:, 1]], axis=1)
+    box_keys = _cell_keys(corner_x, corner_y).reshape(-1)  # (4N,)
+    box_ids = np.repeat(np.arange(len(boxes), dtype=np.int64), 4)
+    order = np.lexsort((box_ids, box_keys))
+    box_keys, box_ids = box_keys[order], box_ids[order]
+    unique = np.r_[True, (box_keys[1:] != box_keys[:-1]) | (box_ids[1:] != box_ids[:-1])]
+    box_keys, box_ids = box_keys[unique], box_ids[unique]
+
+    cells = np.floor(xy / cell).astype(np.int64)  # (M, 2)
+    point_keys = _cell_keys(cells[:, 0], cells[:, 1])
+    start = np.searchsorted(box_keys, point_keys, side="left")
+    stop = np.searchsorted(box_keys, point_keys, side="right")
+    counts = stop - start  # (M,) candidate boxes per point
+    point_index = np.repeat(np.arange(len(points), dtype=np.int64), counts)
+    first = np.repeat(start - np.cumsum(counts) + counts, counts)  # start of each run, repeated
+    box_index = box_ids[first + np.arange(len(point_index))]
+    inside = _inside(
+        np.asarray(points[point_index, :3], dtype=np.float64), boxes[box_index], margin_m
+    )
+    return point_index[inside], box_index[inside]
+
+
+def point_box_indices(points: np.ndarray, boxes: np.ndarray, margin_m: float = 0.0) -> np.ndarray:
+    """Index of the box containing each point `(M,)` int64, -1 if none; the first box wins.
+
+    points `(M, >=3)`, boxes `(N, 7)`; `margin_m` grows every box by that much on each side.
+    """
+    result = np.full(len(points), -1, dtype=np.int64)
+    point_index, box_index = point_box_pairs(points, boxes, margin_m)
+    if len(point_index):
+        first = np.r_[True, point_index[1:] != point_index[:-1]]  # lowest box index per point
+        result[point_index[first]] = box_index[first]
+    return result
+
+
+def count_points_in_boxes(
+    points: np.ndarray, boxes: np.ndarray, margin_m: float = 0.0
+) -> np.ndarray:
+    """Points inside each box `(N,)` int32; a point inside two overlapping boxes counts for both."""
+    boxes = _as_boxes(boxes)
+    _, box_index = point_box_pairs(points, boxes, margin_m)
+    return np.bincount(box_index, minlength=len(boxes)).astype(np.int32)
+
+
+# ---------------------------------------------------------------------------------------------
+# Rotated rectangle intersection (vectorized Sutherland-Hodgman on complex coordinates)
+#
+# BEV points are complex numbers x + iy. Box a is expressed in box b's frame, where b is the
+# axis-aligned rectangle [-l/2, l/2] x [-w/2, w/2]; a is clipped by b's four half-planes. A clip
+# step emits, per vertex, the vertex (if inside) and the edge's crossing point (if the edge
+# crosses), then packs the emitted points to the front. Crossing parameters divide by a difference
+# of opposite-signed sides, so they always lie in [0, 1]: no tolerances are needed.
+
+_CORNER_SIGNS = np.array([1 + 1j, -1 + 1j, -1 - 1j, 1 - 1j])  # CCW, as _BEV_SIGNS
+
+
+def _clip_half_plane(poly, count, bound, coordinate, sign, capacity):
+    """Keep the part of polygons `(P, K)` complex with `sign * coordinate <= bound (P,)`.
+
+    `count (P,)` leading vertices are valid. Returns polygons `(P, capacity)`, their counts and a
+    flag `(P,)` for rows that produced more than `capacity` vertices (output truncated).
+    """
+    rows, slots = poly.shape
+    row_index = np.arange(rows)
+    values = poly.real if coordinate == 0 else poly.imag
+    side = bound[:, None] - sign * values  # (P, K), >= 0: inside
+    valid = np.arange(slots)[None, :] < count[:, None]
+    last = np.maximum(count - 1, 0)
+    poly_next = np.empty_like(poly)  # the next vertex, cyclic over the valid ones
+    poly_next[:, :-1] = poly[:, 1:]
+    poly_next[row_index, last] = poly[:, 0]
+    side_next = np.empty_like(side)
+    side_next[:, :-1] = side[:, 1:]
+    side_next[row_index, last] = side[:, 0]
+    inside = side >= 0
+    crossing = valid & (inside != (side_next >= 0))
+    t = side / np.where(crossing, side - side_next, 1.0)  # (P, K) in [0, 1] where crossing
+    candidates = np.empty((rows, slots, 2), dtype=np.complex128)
+    candidates[:, :, 0] = poly
+    candidates[:, :, 1] = poly + t * (poly_next - poly)
+    emit = np.empty((rows, slots, 2), dtype=bool)
+    emit[:, :, 0] = valid & inside
+    emit[:, :, 1] = crossing
+    emit = emit.reshape(rows, 2 * slots)
+    position = np.cumsum(emit, axis=1)  # (P, 2K), 1-based slot of each emitted point
+    new_count = position[:, -1]
+    target = np.where(emit & (position <= capacity), position - 1, capacity)
+    target += row_index[:, None] * (capacity + 1)  # flat index; slot `capacity` is a dump
+    out = np.zeros(rows * (capacity + 1), dtype=np.complex128)
+    out[target.ravel()] = candidates.reshape(-1)
+    out = out.reshape(rows, capacity + 1)[:, :capacity]
+    return out, np.minimum(new_count, capacity), new_count > capacity
+
+
+def _polygon_area(poly: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """Shoelace area `(P,)` of complex polygons `(P, K)` with `count` leading valid vertices."""
+    rows, slots = poly.shape
+    valid = np.arange(slots)[None, :] < count[:, None]
+    poly_next = np.empty_like(poly)
+    poly_next[:, :-1] = poly[:, 1:]
+    poly_next[np.arange(rows), np.maximum(count - 1, 0)] = poly[:, 0]
+    terms = (poly.conj() * poly_next).imag  # cross(p, p_next)
+    return 0.5 * np.where(valid, terms, 0.0).sum(axis=1)
+
+
+def _clip_in_frame(a: np.ndarray, b: np.ndarray, lossless: bool) -> tuple:
+    """Area of a ∩ b `(P,)` and an overflow flag `(P,)` for row-wise boxes `(P, 7)`."""
+    offset = (a[:, 0] - b[:, 0]) + 1j * (a[:, 1] - b[:, 1])  # small numbers even far away
+    center = offset * np.exp(-1j * b[:, 6])  # a's centre in b's frame
+    turn = np.exp(1j * (a[:, 6] - b[:, 6]))
+    half = _CORNER_SIGNS.real[None] * (a[:, 3:4] / 2) + 1j * _CORNER_SIGNS.imag[None] * (
+        a[:, 4:5] / 2
+    )
+    poly = center[:, None] + turn[:, None] * half  # (P, 4) a's corners in b's frame, CCW
+    count = np.full(len(a), 4)
+    overflow = np.zeros(len(a), dtype=bool)
+    half_l, half_w = b[:, 3] / 2, b[:, 4] / 2
+    for bound, coordinate, sign in (
+        (half_l, 0, 1),
+        (half_l, 0, -1),
+        (half_w, 1, 1),
+        (half_w, 1, -1),
+    ):
+        slots = poly.shape[1]
+        capacity = 2 * slots if lossless else slots + 1  # a convex polygon gains <= 1 vertex
+        poly, count, over = _clip_half_plane(poly, count, bound, coordinate, sign, capacity)
+        overflow |= over
+    return np.maximum(_polygon_area(poly, count), 0.0), overflow
+
+
+def bev_intersection_pairs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """BEV intersection area `(N,)` float64 (m^2) of row-wise box pairs a[i], b[i] `(N, 7)`."""
+    a, b = _as_boxes(a), _as_boxes(b)
+    if a.shape != b.shape:
+        raise ValueError(f"pairwise inputs differ in shape: {a.shape} vs {b.shape}")
+    area = np.zeros(len(a))
+    for start in range(0, len(a), _PAIR_BLOCK):
+        part = slice(start, start + _PAIR_BLOCK)
+        block_area, overflow = _clip_in_frame(a[part], b[part], lossless=False)
+        if overflow.any():  # rounding made a clipped polygon non-convex: redo without truncation
+            block_area[overflow], _ = _clip_in_frame(a[part][overflow], b[part][overflow], True)
+        area[part] = block_area
+    return np.minimum(area, np.minimum(a[:, 3] * a[:, 4], b[:, 3] * b[:, 4]))
+
+
+def _height_overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    top = np.minimum(a[:, 2] + a[:, 5] / 2, b[:, 2] + b[:, 5] / 2)
+    bottom = np.maximum(a[:, 2] - a[:, 5] / 2, b[:, 2] - b[:, 5] / 2)
+    return np.clip(top - bottom, 0.0, np.minimum(a[:, 5], b[:, 5]))
+
+
+def _ratio(intersection: np.ndarray, size_a: np.ndarray, size_b: np.ndarray) -> np.ndarray:
+    union = size_a + size_b - intersection
+    safe = np.where(union > 0, union, 1.0)
+    return np.clip(np.where(union > 0, intersection / safe, 0.0), 0.0, 1.0)
+
+
+def bev_iou_pairs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Rotated BEV IoU `(N,)` float64 of row-wise pairs a[i], b[i] `(N, 7)`; 0 for empty unions."""
+    a, b = _as_boxes(a), _as_boxes(b)
+    iou = _ratio(bev_intersection_pairs(a, b), a[:, 3] * a[:, 4], b[:, 3] * b[:, 4])
+    identical = np.all(a == b, axis=1) & (a[:, 3] * a[:, 4] > 0)
+    return np.where(identical, 1.0, iou)
+
+
+def iou_3d_pairs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """3D IoU `(N,)` float64 of row-wise pairs: BEV intersection x height overlap over the union."""
+    a, b = _as_boxes(a), _as_boxes(b)
+    intersection = bev_intersection_pairs(a, b) * _height_overlap(a, b)
+    iou = _ratio(intersection, a[:, 3] * a[:, 4] * a[:, 5], b[:, 3] * b[:, 4] * b[:, 5])
+    identical = np.all(a == b, axis=1) & (a[:, 3] * a[:, 4] * a[:, 5] > 0)
+    return np.where(identical, 1.0, iou)
+
+
+def overlapping_pairs(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (i, j) whose BEV bounding circles touch: the only pairs that can overlap.
+
+    a `(N, 7)`, b `(M, 7)`; returns two `(K,)` int64 arrays, i ascending. Works in row blocks so
+    memory stays bounded for large N x M.
+    """
+    a, b = _as_boxes(a), _as_boxes(b)
+    radius_a = 0.5 * np.hypot(a[:, 3], a[:, 4])
+    radius_b = 0.5 * np.hypot(b[:, 3], b[:, 4])
+    rows_per_block = max(1, (1 << 22) // max(len(b), 1))
+    found_i, found_j = [], []
+    for start in range(0, len(a), rows_per_block):
+        part = slice(start, start + rows_per_block)
+        dx = a[part, None, 0] - b[None, :, 0]  # (n, M)
+        dy = a[part, None, 1] - b[None, :, 1]
+        reach = radius_a[part, None] + radius_b[None, :]
+        # slack so that touching boxes are never rejected by rounding
+        i, j = np.nonzero(dx * dx + dy * dy <= (reach * (1 + 1e-9) + 1e-9) ** 2)
+        found_i.append(i + start)
+        found_j.append(j)
+    if not found_i:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return np.concatenate(found_i).astype(np.int64), np.concatenate(found_j).astype(np.int64)
+
+
+def bev_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Pairwise rotated BEV IoU `(N, M)` float64 of boxes a `(N, 7)` and b `(M, 7)`."""
+    a, b = _as_boxes(a), _as_boxes(b)
+    result = np.zeros((len(a), len(b)))
+    i, j = overlapping_pairs(a, b)
+    if len(i):
+        result[i, j] = bev_iou_pairs(a[i], b[j])
+    return result
+
+
+def iou_3d(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Pairwise 3D IoU `(N, M)` float64 of boxes a `(N, 7)` and b `(M, 7)` (yaw about z only)."""
+    a, b = _as_boxes(a), _as_boxes(b)
+    result = np.zeros((len(a), len(b)))
+    i, j = overlapping_pairs(a, b)
+    if len(i):
+        result[i, j] = iou_3d_pairs(a[i], b[j])
+    return result
+
+
+def nms_bev(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float) -> np.ndarray:
+    """Greedy BEV non-maximum suppression: kept indices `(K,)` int64 by descending score.
+
+    A box is suppressed when its BEV IoU with a kept, higher-scoring box is > iou_threshold
+    (strict, as OpenPCDet's nms_gpu). Ties in score keep the earlier index first.
+    """
+    boxes = _as_boxes(boxes)
+    scores = np.asarray(scores, dtype=np.float64).reshape(-1)
+    if len(scores) != len(boxes):
+        raise ValueError(f"{len(scores)} scores for {len(boxes)} boxes")
+    if len(boxes) == 0:
+        return np.zeros(0, np.int64)
+    order = np.argsort(-scores, kind="stable")
+    ranked = boxes[order]
+    i, j = overlapping_pairs(ranked, ranked)
+    keep_pair = i < j
+    i, j = i[keep_pair], j[keep_pair]
+    overlapping = bev_iou_pairs(ranked[i], ranked[j]) > iou_threshold
+    i, j = i[overlapping], j[overlapping]  # i ranks above j; i sorted ascending
+    starts = np.searchsorted(i, np.arange(len(ranked) + 1))
+    suppressed = np.zeros(len(ranked), dtype=bool)
+    kept = []
+    for rank in range(len(ranked)):  # a loop over boxes, each step vectorized over neighbours
+        if suppressed[rank]:
+            continue
+        kept.append(rank)
+        suppressed[j[starts[rank] : starts[rank + 1]]] = True
+    return order[np.asarray(kept, dtype=np.int64)]
+
+
+# ---------------------------------------------------------------------------------------------
+# Sensor <-> ground frame, PTSN scaling about the ground
+
+
+def sensor_to_ground(xyz: np.ndarray, mount_height_m: float) -> np.ndarray:
+    """Copy of `(N, >=3)` coordinates with z raised by the mount height (ground near z = 0)."""
+    out = np.array(xyz, copy=True)
+    out[..., 2] += mount_height_m
+    return out
+
+
+def ground_to_sensor(xyz: np.ndarray, mount_height_m: float) -> np.ndarray:
+    """Inverse of sensor_to_ground: z lowered by the mount height (sensor at the origin)."""
+    out = np.array(xyz, copy=True)
+    out[..., 2] -= mount_height_m
+    return out
+
+
+def scale_points_about_ground(points: np.ndarray, s: float, mount_height_m: float) -> np.ndarray:
+    """Points `(N, >=3)` scaled by `s` about the ground point below the sensor; dtype kept.
+
+    Only x, y, z change (z is scaled in the ground frame, so the ground plane stays put);
+    other columns (intensity) are copied untouched.
+    """
+    out = np.array(points, copy=True)
+    xyz = out[:, :3].astype(np.float64)
+    xyz[:, 2] += mount_height_m
+    xyz *= s
+    xyz[:, 2] -= mount_height_m
+    out[:, :3] = xyz
+    return out
+
+
+def scale_boxes_about_ground(boxes: np.ndarray, s: float, mount_height_m: float) -> np.ndarray:
+    """Boxes `(N, 7)` scaled by `s` about the ground point below the sensor: centres and sizes
+    scale, yaw is kept."""
+    out = _as_boxes(boxes).copy()
+    out[:, 2] += mount_height_m
+    out[:, :6] *= s
+    out[:, 2] -= mount_height_m
+    return out
+
+
+def descale_boxes_about_ground(boxes: np.ndarray, s: float, mount_height_m: float) -> np.ndarray:
+    """Undo scale_boxes_about_ground: scale by 1 / s."""
+    return scale_boxes_about_ground(boxes, 1.0 / s, mount_height_m)
