@@ -9,12 +9,13 @@ from __future__ import annotations
 import numpy as np
 
 _CELL_M = 1.0
+_NONE, _SHARED = -1, -2  # cell owners that are not a box index
 
 
 def points_per_box(
     points: np.ndarray, boxes: np.ndarray, margin_m: float = 0.0
 ) -> list[np.ndarray]:
-    """Indices of the points inside each box, `k` arrays of int64, ascending and disjoint.
+    """Indices of the points inside each box, `k` arrays of int64, disjoint, each ascending.
 
     points `(n, >=3)` sensor frame; boxes `(k, 7)`; margin_m enlarges every box on all sides.
     A point inside several boxes belongs to the first (as geometry.point_box_indices).
@@ -27,13 +28,16 @@ def points_per_box(
     lower = (boxes[:, :2] - half_diagonal[:, None]).min(axis=0) - _CELL_M  # (2,)
     upper = (boxes[:, :2] + half_diagonal[:, None]).max(axis=0) + _CELL_M
     shape = np.ceil((upper - lower) / _CELL_M).astype(np.int64) + 1  # (2,) cells
-    marked = np.zeros((int(shape[0]), int(shape[1])), dtype=bool)
+    # cell -> the one box whose bounding square covers it, SHARED if several, NONE if none
+    owner_of_cell = np.full((int(shape[0]), int(shape[1])), _NONE, dtype=np.int64)
     first_cell = np.floor((boxes[:, :2] - half_diagonal[:, None] - lower) / _CELL_M).astype(
         np.int64
     )
     last_cell = np.floor((boxes[:, :2] + half_diagonal[:, None] - lower) / _CELL_M).astype(np.int64)
-    for first, last in zip(first_cell, last_cell, strict=True):  # loop over boxes
-        marked[first[0] : last[0] + 1, first[1] : last[1] + 1] = True
+    for box_index, (first, last) in enumerate(zip(first_cell, last_cell, strict=True)):
+        block = owner_of_cell[first[0] : last[0] + 1, first[1] : last[1] + 1]  # a view
+        block[block != _NONE] = _SHARED
+        block[block == _NONE] = box_index
     # one pass per axis on float32 columns; clipping sends every outside point to a border cell
     flat = None
     for axis in (0, 1):
@@ -46,44 +50,37 @@ def points_per_box(
         else:
             flat *= int(shape[1])
             flat += index
-    candidates = np.flatnonzero(marked.reshape(-1)[flat])  # (c,) ascending
-    candidate_cells = flat[candidates]
-    order = np.argsort(candidate_cells, kind="stable")  # candidates grouped by cell
-    sorted_cells = candidate_cells[order]
-    # each box covers one contiguous run of flat cell indices per grid row: all runs at once
-    row_counts = last_cell[:, 0] - first_cell[:, 0] + 1  # (k,)
-    run_box = np.repeat(np.arange(len(boxes)), row_counts)  # (r,)
-    run_row = (
-        first_cell[run_box, 0]
-        + np.arange(len(run_box))
-        - np.repeat(np.cumsum(row_counts) - row_counts, row_counts)
-    )
-    starts = np.searchsorted(sorted_cells, run_row * shape[1] + first_cell[run_box, 1], side="left")
-    stops = np.searchsorted(sorted_cells, run_row * shape[1] + last_cell[run_box, 1], side="right")
-    lengths = stops - starts  # (r,)
-    pair_box = np.repeat(run_box, lengths)  # (p,) candidate-box pairs
-    pair_slot = np.arange(int(lengths.sum())) - np.repeat(
-        np.cumsum(lengths) - lengths - starts, lengths
-    )
-    pair_candidate = order[pair_slot]  # (p,) position in `candidates`
-    near = np.take(points, candidates[pair_candidate], axis=0)  # (p, >=3) float32
-    cos, sin = np.cos(boxes[pair_box, 6]), np.sin(boxes[pair_box, 6])
-    dx = near[:, 0] - boxes[pair_box, 0]
-    dy = near[:, 1] - boxes[pair_box, 1]
-    local_x = cos * dx + sin * dy
-    local_y = cos * dy - sin * dx
-    hit = (
-        (np.abs(local_x) <= 0.5 * boxes[pair_box, 3] + margin_m)
-        & (np.abs(local_y) <= 0.5 * boxes[pair_box, 4] + margin_m)
-        & (np.abs(near[:, 2] - boxes[pair_box, 2]) <= 0.5 * boxes[pair_box, 5] + margin_m)
-    )
-    pair_box, pair_point = pair_box[hit], candidates[pair_candidate[hit]]
-    # first box wins: sort by (point, box) and keep each point's first pair
-    by_point = np.lexsort((pair_box, pair_point))
-    pair_box, pair_point = pair_box[by_point], pair_point[by_point]
-    first = np.r_[True, pair_point[1:] != pair_point[:-1]]
-    pair_box, pair_point = pair_box[first], pair_point[first]
-    by_box = np.argsort(pair_box, kind="stable")  # points stay ascending within each box
-    bounds = np.searchsorted(pair_box[by_box], np.arange(len(boxes) + 1))
-    pair_point = pair_point[by_box]
-    return [pair_point[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    cell_owner = owner_of_cell.reshape(-1)[flat]  # (n,)
+    candidates = np.flatnonzero(cell_owner != _NONE)  # (c,) ascending
+    # group candidates by cell owner (a stable radix sort on int16 keeps them ascending per group)
+    key_type = np.int16 if len(boxes) < 2**15 else np.int32
+    order = np.argsort(cell_owner[candidates].astype(key_type), kind="stable")
+    candidates = candidates[order]
+    bounds = np.searchsorted(cell_owner[candidates], np.arange(_SHARED, len(boxes) + 1))
+    near = np.take(points, candidates, axis=0)  # (c, >=3) float32, grouped by owner
+    members = []
+    for box_index, box in enumerate(boxes):  # cells of one box: test against that box only
+        a, b = bounds[box_index + 2], bounds[box_index + 3]
+        members.append(candidates[a:b][_inside(near[a:b], box, margin_m)])
+    shared = candidates[bounds[0] : bounds[1]]  # cells several boxes cover: first box wins
+    shared_points = near[bounds[0] : bounds[1]]
+    for box_index, box in enumerate(boxes):
+        if len(shared) == 0:
+            break
+        hit = _inside(shared_points, box, margin_m)
+        if hit.any():
+            members[box_index] = np.sort(np.concatenate([members[box_index], shared[hit]]))
+            shared, shared_points = shared[~hit], shared_points[~hit]
+    return members
+
+
+def _inside(points: np.ndarray, box: np.ndarray, margin_m: float) -> np.ndarray:
+    """Whether each point `(c, >=3)` float32 lies in `box` `(7,)` enlarged by margin_m -> `(c,)`."""
+    x, y, z, length, width, height, yaw = (float(v) for v in box)
+    cos, sin = np.float32(np.cos(yaw)), np.float32(np.sin(yaw))
+    dx = points[:, 0] - np.float32(x)
+    dy = points[:, 1] - np.float32(y)
+    inside = np.abs(cos * dx + sin * dy) <= np.float32(0.5 * length + margin_m)
+    inside &= np.abs(cos * dy - sin * dx) <= np.float32(0.5 * width + margin_m)
+    inside &= np.abs(points[:, 2] - np.float32(z)) <= np.float32(0.5 * height + margin_m)
+    return inside
