@@ -67,15 +67,18 @@ def write_imported(
     attrs: dict | None = None,
     total: int | None = None,
     description: str = "import",
-) -> dict:
+    notes: list[str] | None = None,
+):
     """Write `(frame_id, points (n, 4), BoxTable | None)` triples as a FrameSet + boxes.parquet.
 
     A frame whose table is None has no labels; when no frame has labels, no box table is written
-    (an unlabeled set). Returns counts for the manifest. `out` is the stage's temporary directory.
+    (an unlabeled set). Returns the manifest's BuildResult (counts, notes). `out` is the stage's
+    temporary directory.
     """
     from tqdm import tqdm
 
     from dali_cli.artifacts import BoxTable, FrameSetWriter, write_boxes
+    from dali_cli.manifest import BuildResult
 
     tables = []
     unlabeled = 0
@@ -99,4 +102,4 @@ def write_imported(
         labels, per_label = np.unique(boxes["label"].astype(str), return_counts=True)
         counts["boxes"] = len(boxes)
         counts["boxes_by_label"] = {str(k): int(v) for k, v in zip(labels, per_label, strict=True)}
-    return counts
+    return BuildResult(counts=counts, notes=list(notes or []))

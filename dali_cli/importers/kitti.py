@@ -17,8 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.geometry import normalize_yaw
-from dali_cli.importers.common import ImportFormatError, read_float_records
+from dali_cli.artifacts import BoxTable
+from dali_cli.geometry import count_points_in_boxes, normalize_yaw
+from dali_cli.importers.common import ImportFormatError, read_float_records, write_imported
+from dali_cli.manifest import BuildResult
 
 DEFAULT_IMAGE_SIZE = (1242, 375)  # width, height in pixels; KITTI images are 1224..1242 x 370..376
 IGNORE_TYPES = ("DontCare",)  # rows without a 3D box: kept for their 2D region only
@@ -467,8 +469,6 @@ def load_frame(layout: KittiLayout, frame_id: str, crop_fov: bool = False):
 
     The calib file is required when the frame has labels or `crop_fov` is set.
     """
-    from dali_cli.artifacts import BoxTable
-    from dali_cli.geometry import count_points_in_boxes
 
     points = read_velodyne(layout.velodyne_dir / f"{frame_id}.bin")
     label_path = layout.label_dir / f"{frame_id}.txt"
@@ -503,9 +503,8 @@ def build_import(
     frame_ids: list[str],
     crop_fov: bool = False,
     sensor: str = "kitti",
-) -> dict:
+) -> BuildResult:
     """Stage body of `dali import kitti`: read every frame, write FrameSet + boxes into `out`."""
-    from dali_cli.importers.common import write_imported
 
     def frames():
         for frame_id in frame_ids:
@@ -514,7 +513,16 @@ def build_import(
 
     attrs = {"source_format": "kitti", "crop_fov": bool(crop_fov)}
     return write_imported(
-        out, frames(), sensor, attrs, total=len(frame_ids), description="import kitti"
+        out,
+        frames(),
+        sensor,
+        attrs,
+        total=len(frame_ids),
+        description="import kitti",
+        notes=[
+            "boxes: label_2 through calib (R0_rect, Tr_velo_to_cam) to the LiDAR frame, geometric centre",
+            "DontCare rows: zero-size boxes at the origin; their 2D region is kept in bbox_*",
+        ],
     )
 
 

@@ -15,8 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.geometry import normalize_yaw
-from dali_cli.importers.common import ImportFormatError, read_float_records
+from dali_cli.artifacts import BoxTable
+from dali_cli.geometry import count_points_in_boxes, normalize_yaw
+from dali_cli.importers.common import ImportFormatError, read_float_records, write_imported
+from dali_cli.manifest import BuildResult
 
 DEFAULT_CAR_CATEGORIES = ("vehicle.car", "car")
 INTENSITY_MAX = 255.0  # nuScenes intensities are 0..255
@@ -387,11 +389,8 @@ def build_import(
     car_categories: tuple[str, ...] = DEFAULT_CAR_CATEGORIES,
     x_forward: bool = True,
     sensor: str = "nuscenes",
-) -> dict:
+) -> BuildResult:
     """Stage body of `dali import nuscenes`: write FrameSet + boxes into `out`; returns counts."""
-    from dali_cli.artifacts import BoxTable
-    from dali_cli.geometry import count_points_in_boxes
-    from dali_cli.importers.common import write_imported
 
     def frames():
         for sample in samples:
@@ -419,5 +418,14 @@ def build_import(
         else "nuScenes LiDAR: x right, y forward",
     }
     return write_imported(
-        out, frames(), sensor, attrs, total=len(samples), description="import nuscenes"
+        out,
+        frames(),
+        sensor,
+        attrs,
+        total=len(samples),
+        description="import nuscenes",
+        notes=[
+            attrs["axes"],
+            "one key-frame sweep per frame (no multi-sweep accumulation); intensity / 255",
+        ],
     )

@@ -11,8 +11,15 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.geometry import normalize_yaw
-from dali_cli.importers.common import ImportFormatError, check_finite_points, read_id_list
+from dali_cli.artifacts import BoxTable
+from dali_cli.geometry import count_points_in_boxes, normalize_yaw
+from dali_cli.importers.common import (
+    ImportFormatError,
+    check_finite_points,
+    read_id_list,
+    write_imported,
+)
+from dali_cli.manifest import BuildResult
 
 DEFAULT_CAR_CLASSES = ("Car", "Vehicle")
 
@@ -103,11 +110,8 @@ def build_import(
     car_classes: tuple[str, ...] = DEFAULT_CAR_CLASSES,
     intensity_max: float = 1.0,
     sensor: str = "kitti",
-) -> dict:
+) -> BuildResult:
     """Stage body of `dali import openpcdet`: FrameSet + boxes into `out`; returns counts."""
-    from dali_cli.artifacts import BoxTable
-    from dali_cli.geometry import count_points_in_boxes
-    from dali_cli.importers.common import write_imported
 
     root = Path(root)
 
@@ -134,7 +138,13 @@ def build_import(
 
     attrs = {"source_format": "openpcdet"}
     return write_imported(
-        out, frames(), sensor, attrs, total=len(frame_ids), description="import openpcdet"
+        out,
+        frames(),
+        sensor,
+        attrs,
+        total=len(frame_ids),
+        description="import openpcdet",
+        notes=[f"intensity divided by {intensity_max}"],
     )
 
 
