@@ -121,8 +121,9 @@ def render_frame(
             LineCollection(np.stack([boxes[:, :2], front], axis=1), colors=colour, linewidths=1.2)
         )
         if annotate:
+            scores = None if box_set.scores is None else np.asarray(box_set.scores)[drawn]
             for i in range(len(boxes)):
-                text = labels[i] if box_set.scores is None else f"{box_set.scores[drawn][i]:.2f}"
+                text = labels[i] if scores is None else f"{scores[i]:.2f}"
                 bev.text(
                     boxes[i, 0],
                     boxes[i, 1],

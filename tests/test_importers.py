@@ -541,3 +541,48 @@ def test_quaternion_matrix_matches_rodrigues():
         q = np.r_[np.cos(half), np.sin(half) * axis / np.linalg.norm(axis)]
         np.testing.assert_allclose(nuscenes.quaternion_to_matrix(q[None])[0], r, atol=1e-12)
         np.testing.assert_allclose(nuscenes.quaternion_to_matrix(-3 * q[None])[0], r, atol=1e-12)
+
+
+@needs_fixtures
+def test_nuscenes_csv_frame_ids_group_rows(tmp_path):
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    for name in ("b", "a"):
+        shutil.copy(NUSCENES_SCAN, scans / f"{name}.pcd.bin")
+    with open(NUSCENES / "boxes_lidar.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    frame_of = ["b" if i % 3 == 0 else "a" for i in range(len(rows))]  # interleaved rows
+    csv_path = tmp_path / "boxes.csv"
+    with open(csv_path, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=[*rows[0], "frame_id"])
+        writer.writeheader()
+        writer.writerows({**row, "frame_id": f} for row, f in zip(rows, frame_of, strict=True))
+    out = tmp_path / "out"
+    result = invoke(
+        "import", "nuscenes", scans, "--boxes-csv", csv_path, "--lidar-frame", "--out", out
+    )
+    assert result.exit_code == 0, result.output
+    assert FrameSet(out).frame_ids == ["a", "b"]
+    table = read_boxes(out)
+    for frame_id in ("a", "b"):
+        expected = [
+            [float(r[c]) for c in "x y z l w h".split()]
+            for r, f in zip(rows, frame_of, strict=True)
+            if f == frame_id
+        ]
+        np.testing.assert_allclose(table.for_frame(frame_id).boxes[:, :6], expected)
+    # without a frame_id column several scans are ambiguous
+    bad = tmp_path / "bad"
+    result = invoke(
+        "import", "nuscenes", scans, "--boxes-csv", NUSCENES / "boxes_lidar.csv", "--out", bad
+    )
+    assert result.exit_code == 1 and "frame_id" in result.output and not bad.exists()
+
+
+@needs_fixtures
+def test_nuscenes_tables_without_annotations_are_unlabeled(tmp_path):
+    write_nuscenes_tables(tmp_path / "nuscenes", np.zeros((0, 7)), [])
+    out = tmp_path / "out"
+    result = invoke("import", "nuscenes", tmp_path / "nuscenes", "--out", out)
+    assert result.exit_code == 0, result.output
+    assert len(FrameSet(out)) == 1 and not (out / "boxes.parquet").exists()

@@ -214,7 +214,7 @@ class JsonSource:
         annotations_rows = _load_table(table_dir, "sample_annotation", required=False)
         annotations = None
         category_of_instance: dict[str, str] = {}
-        if annotations_rows is not None:
+        if annotations_rows:  # absent or empty (the test split): an unlabeled set
             annotations = {}
             for row in annotations_rows:
                 annotations.setdefault(row.get("sample_token"), []).append(row)
@@ -311,10 +311,14 @@ class CsvSource:
             raise ImportFormatError(
                 f"{csv_path}: frame_id '{unknown[0]}' has no .pcd.bin under {path}"
             )
+        order = np.argsort(frame_of_row.astype(str), kind="stable")  # group rows by frame
+        grouped = frame_of_row.astype(str)[order]
+        starts = np.searchsorted(grouped, [s.frame_id for s in samples], side="left")
+        stops = np.searchsorted(grouped, [s.frame_id for s in samples], side="right")
         rows = {}
-        for frame_id in ids:
-            mask = frame_of_row == frame_id
-            rows[frame_id] = (boxes[mask], categories[mask], lidar_pts[mask])
+        for sample, start, stop in zip(samples, starts, stops, strict=True):
+            index = order[start:stop]
+            rows[sample.frame_id] = (boxes[index], categories[index], lidar_pts[index])
         return cls(path, csv_path, samples, rows)
 
     def samples(self) -> list[Sample]:
