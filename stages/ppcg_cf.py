@@ -1,1 +1,65 @@
-"""Stage: ppcg_cf (library call + artifact I/O). Filled in by its issue."""
+"""Stage ppcg_cf: CF pseudo point clouds of the target frames (I/O shared with stages.ppcg_rc)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from dali_cli.artifacts import FrameSet
+from dali_cli.manifest import StageOutcome
+from dali_cli.ppcg.cf import CfParams
+from dali_cli.ppcg.models import ModelBank
+from dali_cli.ppcg.point_models import angular_threshold_rad
+from dali_cli.sensors import get_profile
+from stages.ppcg_rc import run_ppcg
+
+
+def ppcg_cf(
+    target_dir: str | Path,
+    boxes_dir: str | Path,
+    library_dir: str | Path,
+    out: str | Path,
+    *,
+    sensor: str | None = None,
+    sensors_path: str | None = None,
+    models: str | None = None,
+    range_m: tuple[float, float] = (20.0, 50.0),
+    top_k: int = 1,
+    seed: int = 0,
+    ground_margin_m: float = 0.1,
+    label: str | None = "Car",
+    workers: int = 1,
+    force: bool = False,
+    dry_run: bool = False,
+    progress: bool = True,
+    bank: ModelBank | None = None,
+) -> StageOutcome:
+    """CF pseudo point clouds (see dali_cli.ppcg.cf); `bank` replaces the library (tests)."""
+    low, high = (float(v) for v in range_m)
+    if not 0 < low <= high:
+        raise click.UsageError(f"--range-m: need 0 < LOW <= HIGH, got {low}:{high}")
+    frames = FrameSet(target_dir)
+    name = sensor or frames.sensor
+    if not name:
+        raise click.UsageError(f"{frames.path}: no 'sensor' attribute; give --sensor")
+    profile = get_profile(name, sensors_path)
+    params = CfParams(
+        theta_rad=angular_threshold_rad(profile.points_per_beam),
+        range_m=(low, high),
+        top_k=top_k,
+        seed=seed,
+        ground_margin_m=ground_margin_m,
+    )
+    stage_params = {
+        "range_m": [low, high],
+        "top_k": top_k,
+        "seed": seed,
+        "ground_margin_m": ground_margin_m,
+    }
+    return run_ppcg(
+        "cf", target_dir, boxes_dir, library_dir, out,
+        params=params, stage_params=stage_params, sensor=sensor, sensors_path=sensors_path,
+        models=models, label=label, workers=workers, force=force, dry_run=dry_run,
+        progress=progress, bank=bank,
+    )  # fmt: skip

@@ -1,1 +1,278 @@
-"""Stage: ppcg_rc (library call + artifact I/O). Filled in by its issue."""
+"""Stage ppcg_rc (and the I/O shared with ppcg_cf): read the target frames, a box table and a model
+library; write the frames with each processed box's points replaced (frames.zarr), the boxes with
+their PPCG outcome (boxes.parquet) and manifest.json (counts, per-frame timing).
+
+boxes.parquet = the input rows (all of them, in order) plus ppcg (rc | cf | raw), ppcg_reason
+(ok | dense | too_few_points | no_hits | label), points_before / points_after (the box's points
+above its ground height, before / after), model_id ("" when raw); num_points becomes the
+number of points in the box in the new frame (rows of other labels keep theirs).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import click
+import numpy as np
+
+from dali_cli.artifacts import BoxTable, FrameSet, FrameSetWriter, read_boxes, write_boxes
+from dali_cli.manifest import BuildResult, StageOutcome, run_stage
+from dali_cli.ppcg.cf import CfParams
+from dali_cli.ppcg.driver import Job, run_frames
+from dali_cli.ppcg.models import ModelBank
+from dali_cli.ppcg.point_models import angular_threshold_rad
+from dali_cli.ppcg.rc import RcParams
+from dali_cli.sensors import get_profile
+
+NOTES = (
+    "occlusion between objects is not modelled: each box is processed alone",
+    "ground rule: a box's points below max(box bottom, -mount height) + ground_margin_m stay "
+    "as they are and are not counted; generated points below that height are dropped",
+)
+
+
+def boxes_by_frame(
+    table: BoxTable, frames: FrameSet, label: str | None, boxes_path: Path
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Per target frame: the rows `(k_i,)` of `table` to process (table order) and their boxes
+    `(k_i, 7)`. Errors name the box file, row, frame and field."""
+    frame_ids = table.frame_id.astype(str)
+    known = np.isin(frame_ids, np.asarray(frames.frame_ids, dtype=str))
+    if not known.all():
+        row = int(np.flatnonzero(~known)[0])
+        raise click.ClickException(
+            f"{boxes_path}: row {row} frame '{frame_ids[row]}' is not in {frames.path}"
+        )
+    selected = np.ones(len(table), bool)
+    if label is not None and len(table):
+        selected = np.asarray(table["label"]).astype(str) == label
+    boxes = table.boxes
+    for column, name in ((3, "l"), (4, "w"), (5, "h")):
+        bad = selected & ~(boxes[:, column] > 0)
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            raise click.ClickException(
+                f"{boxes_path}: row {row} (frame '{frame_ids[row]}') field '{name}' must be > 0"
+            )
+    grouped = table.select(np.flatnonzero(selected)).rows_by_frame() if selected.any() else {}
+    rows_in_table = np.flatnonzero(selected)
+    rows, frame_boxes = [], []
+    for frame_id in frames.frame_ids:
+        local = grouped.get(frame_id, np.zeros(0, np.int64))
+        rows.append(rows_in_table[local])
+        frame_boxes.append(boxes[rows_in_table[local]])
+    return rows, frame_boxes
+
+
+def parse_range(text: str) -> tuple[float, float]:
+    """'20:50' -> (20.0, 50.0); a usage error names the option."""
+    try:
+        low, high = (float(part) for part in str(text).split(":"))
+    except ValueError:
+        raise click.UsageError(f"--range-m: expected LOW:HIGH in metres, got '{text}'") from None
+    if not 0 < low <= high:
+        raise click.UsageError(f"--range-m: need 0 < LOW <= HIGH, got '{text}'")
+    return low, high
+
+
+def run_ppcg(
+    mode: str,
+    target_dir: str | Path,
+    boxes_dir: str | Path,
+    library_dir: str | Path,
+    out: str | Path,
+    *,
+    params: RcParams | CfParams,
+    stage_params: dict,
+    sensor: str | None,
+    sensors_path: str | None,
+    models: str | None,
+    label: str | None,
+    workers: int,
+    force: bool,
+    dry_run: bool,
+    progress: bool,
+    bank: ModelBank | None = None,
+) -> StageOutcome:
+    """The shared body of ppcg-rc and ppcg-cf (mode "rc" or "cf")."""
+    target_dir, boxes_dir, library_dir = Path(target_dir), Path(boxes_dir), Path(library_dir)
+    frames = FrameSet(target_dir)
+    sensor = sensor or frames.sensor
+    if not sensor:
+        raise click.UsageError(f"{frames.path}: no 'sensor' attribute; give --sensor")
+    profile = get_profile(sensor, sensors_path)
+    if bank is None:
+        from dali_cli.library import read_library
+
+        library = read_library(library_dir)
+        if models is None:
+            models = "cad" if library.meshes else "points"
+        try:
+            bank = ModelBank.from_library(library, models, str(library_dir))
+        except ValueError as error:
+            raise click.ClickException(str(error)) from None
+    models = bank.kind
+    params_record = {
+        **stage_params,
+        "sensor": sensor,
+        "models": models,
+        "label": label,
+        "theta_deg": float(np.degrees(angular_threshold_rad(profile.points_per_beam))),
+    }
+    inputs = {"target": target_dir, "boxes": boxes_dir, "library": library_dir}
+    job = Job(mode, str(target_dir), str(library_dir), models, sensor, sensors_path, params)
+
+    def build(directory: Path) -> BuildResult:
+        from tqdm import tqdm
+
+        table = read_boxes(boxes_dir)
+        boxes_path = boxes_dir / "boxes.parquet" if boxes_dir.is_dir() else boxes_dir
+        rows, frame_boxes = boxes_by_frame(table, frames, label, boxes_path)
+        count = len(table)
+        ppcg = np.full(count, "raw", dtype=object)
+        reason = np.full(count, "label", dtype=object)
+        before = np.zeros(count, np.int32)
+        after = np.zeros(count, np.int32)
+        model_id = np.full(count, "", dtype=object)
+        num_points = np.asarray(table["num_points"], np.int32).copy()
+        seconds = np.zeros(len(frames))
+        attrs = {k: v for k, v in frames.attrs.items() if k not in ("count", "frame_convention")}
+        attrs.update({"sensor": frames.sensor or sensor, "ppcg": mode, "ppcg_models": models})
+        points_in = points_out = 0
+        started = time.perf_counter()
+        bar = tqdm(
+            total=len(frames), desc=f"ppcg-{mode}", unit="frame", file=sys.stderr,
+            disable=not progress, leave=False,
+        )  # fmt: skip
+        with FrameSetWriter(directory, attrs.pop("sensor"), attrs) as writer:
+            results = run_frames(job, frame_boxes, workers, bank if workers <= 1 else None)
+            for index, result in enumerate(results):
+                frame_rows = rows[index]
+                writer.append(result.frame_id, result.points)
+                records = result.records
+                ppcg[frame_rows] = records.ppcg
+                reason[frame_rows] = records.reason
+                before[frame_rows] = records.points_before
+                after[frame_rows] = records.points_after
+                model_id[frame_rows] = records.model_id
+                num_points[frame_rows] = records.ground_points + records.points_after
+                seconds[index] = result.seconds
+                points_in += int(frames.offsets[index + 1] - frames.offsets[index])
+                points_out += len(result.points)
+                bar.update(1)
+        bar.close()
+        wall = time.perf_counter() - started
+        table = table.with_columns(
+            ppcg=ppcg,
+            ppcg_reason=reason,
+            points_before=before,
+            points_after=after,
+            model_id=model_id,
+            num_points=num_points,
+        )
+        write_boxes(directory, table)
+        processed = reason != "label"
+        counts = {
+            "frames": len(frames),
+            "frames_with_boxes": int(sum(len(r) > 0 for r in rows)),
+            "frames_without_boxes": int(sum(len(r) == 0 for r in rows)),
+            "boxes": int(processed.sum()),
+            "boxes_other_label": int((~processed).sum()),
+            f"boxes_{mode}": int((ppcg == mode).sum()),
+            "skipped_dense": int((reason == "dense").sum()),
+            "skipped_too_few_points": int((reason == "too_few_points").sum()),
+            "skipped_no_hits": int((reason == "no_hits").sum()),
+            "points_in": points_in,
+            "points_out": points_out,
+        }
+        busy = seconds[[len(r) > 0 for r in rows]] if len(rows) else seconds
+        timings = {
+            "frames_seconds": round(wall, 4),
+            "seconds_per_frame": round(wall / max(len(frames), 1), 6),
+            "compute_seconds_per_frame_with_boxes": {
+                "mean": round(float(busy.mean()), 6) if len(busy) else None,
+                "median": round(float(np.median(busy)), 6) if len(busy) else None,
+                "p95": round(float(np.percentile(busy, 95)), 6) if len(busy) else None,
+                "max": round(float(busy.max()), 6) if len(busy) else None,
+            },
+        }
+        click.echo(
+            f"ppcg-{mode}: {counts[f'boxes_{mode}']}/{counts['boxes']} boxes replaced on "
+            f"{counts['frames_with_boxes']} of {len(frames)} frames; skipped: "
+            f"{counts['skipped_dense']} dense, {counts['skipped_too_few_points']} too few points, "
+            f"{counts['skipped_no_hits']} no hits; {wall / max(len(frames), 1) * 1e3:.1f} ms/frame"
+        )
+        return BuildResult(
+            counts=counts,
+            timings=timings,
+            notes=list(NOTES),
+            extra={"per_frame_compute_seconds": [round(float(s), 6) for s in seconds]},
+        )
+
+    return run_stage(
+        f"ppcg_{mode}",
+        out,
+        inputs=inputs,
+        params=params_record,
+        build=build,
+        force=force,
+        dry_run=dry_run,
+        seed=stage_params.get("seed"),
+    )
+
+
+def ppcg_rc(
+    target_dir: str | Path,
+    boxes_dir: str | Path,
+    library_dir: str | Path,
+    out: str | Path,
+    *,
+    sensor: str | None = None,
+    sensors_path: str | None = None,
+    models: str | None = None,
+    max_points: int = 300,
+    min_points: int = 3,
+    top_k: int = 1,
+    seed: int = 0,
+    ground_margin_m: float = 0.1,
+    label: str | None = "Car",
+    workers: int = 1,
+    force: bool = False,
+    dry_run: bool = False,
+    progress: bool = True,
+    bank: ModelBank | None = None,
+) -> StageOutcome:
+    """RC pseudo point clouds (see dali_cli.ppcg.rc); `bank` replaces the library (tests)."""
+    if min_points < 1 or max_points <= min_points:
+        raise click.UsageError(
+            f"need 1 <= --min-points < --max-points, got {min_points}, {max_points}"
+        )
+    frames = FrameSet(target_dir)
+    name = sensor or frames.sensor
+    if not name:
+        raise click.UsageError(f"{frames.path}: no 'sensor' attribute; give --sensor")
+    profile = get_profile(name, sensors_path)
+    params = RcParams(
+        mount_height_m=profile.mount_height_m,
+        theta_rad=angular_threshold_rad(profile.points_per_beam),
+        max_points=max_points,
+        min_points=min_points,
+        top_k=top_k,
+        seed=seed,
+        ground_margin_m=ground_margin_m,
+    )
+    stage_params = {
+        "max_points": max_points,
+        "min_points": min_points,
+        "top_k": top_k,
+        "seed": seed,
+        "ground_margin_m": ground_margin_m,
+    }
+    return run_ppcg(
+        "rc", target_dir, boxes_dir, library_dir, out,
+        params=params, stage_params=stage_params, sensor=sensor, sensors_path=sensors_path,
+        models=models, label=label, workers=workers, force=force, dry_run=dry_run,
+        progress=progress, bank=bank,
+    )  # fmt: skip

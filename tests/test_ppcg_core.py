@@ -127,11 +127,27 @@ def test_circular_distance_wraps():
     assert circular_distance(np.pi - 0.1, -np.pi + 0.1) == pytest.approx(0.2)
     assert circular_distance(0.3, 0.3 + 4 * np.pi) == pytest.approx(0.0, abs=1e-12)
     assert circular_distance(0.0, np.pi) == pytest.approx(np.pi)
-    # the viewing angle of a car seen from behind is 0, from the front pi
+    # the sensor sees a car driving away from it from behind (pi), an oncoming one from the front (0)
     boxes = np.array(
         [[10, 0, 0, 4, 2, 1.5, 0.0], [10, 0, 0, 4, 2, 1.5, np.pi], [0, 10, 0, 4, 2, 1.5, 0.0]]
     )
-    np.testing.assert_allclose(np.abs(viewing_angle(boxes)), [0, np.pi, np.pi / 2])
+    np.testing.assert_allclose(np.abs(viewing_angle(boxes)), [np.pi, 0, np.pi / 2], atol=1e-12)
+
+
+def test_viewing_angle_matches_the_library_convention():
+    from dali_cli.library import point_models_from_frame
+
+    rng = np.random.default_rng(2)
+    boxes = np.array(
+        [[12.0, -5.0, -0.8, 4.0, 1.8, 1.5, 0.7], [-8.0, 9.0, -0.8, 4.5, 1.9, 1.6, -2.5]]
+    )
+    local = rng.uniform(-0.5, 0.5, size=(400, 3))
+    points = np.concatenate([model_to_sensor(local, box) for box in boxes])
+    points = np.concatenate([points, np.zeros((len(points), 1))], axis=1).astype(np.float32)
+    models = point_models_from_frame(points, boxes, "f", min_points=300)
+    np.testing.assert_allclose(
+        circular_distance(models.view_angle_rad, viewing_angle(boxes)), 0, atol=1e-9
+    )
 
 
 def test_point_model_selection_matches_bruteforce():

@@ -1,5 +1,115 @@
-"""`dali ppcg-rc` (placeholder until the PPCG issue lands)."""
+"""`dali ppcg-rc`: ray-constrained pseudo point clouds of the target (stage 4)."""
 
-from dali_cli.commands.common import not_implemented
+from __future__ import annotations
 
-command = not_implemented("ppcg-rc", "PPCG issue")
+import click
+
+from dali_cli.commands.common import sensors_option, stage_options
+
+
+def ppcg_options(function):
+    """Options shared by ppcg-rc and ppcg-cf."""
+    decorators = [
+        click.option(
+            "--target",
+            "target_dir",
+            required=True,
+            type=click.Path(exists=True, file_okay=False),
+            help="Target frame set (frames.zarr).",
+        ),
+        click.option(
+            "--boxes",
+            "boxes_dir",
+            required=True,
+            type=click.Path(exists=True),
+            help="Box table directory (boxes.parquet): pseudo labels, or labels for controlled runs.",
+        ),
+        click.option(
+            "--library",
+            "library_dir",
+            required=True,
+            type=click.Path(exists=True, file_okay=False),
+            help="Model library of `dali library build`.",
+        ),
+        click.option(
+            "--out", required=True, type=click.Path(file_okay=False), help="Output directory."
+        ),
+        click.option(
+            "--sensor",
+            default=None,
+            help="Target sensor profile (default: the frame set's 'sensor' attribute).",
+        ),
+        click.option(
+            "--models",
+            type=click.Choice(["cad", "points"]),
+            default=None,
+            help="Model kind to fit  [default: cad if the library has meshes, else points]",
+        ),
+        click.option(
+            "--top-k",
+            type=click.IntRange(min=1),
+            default=1,
+            show_default=True,
+            help="Pick at random among the K best models (per-box seed); 1 = the best.",
+        ),
+        click.option("--seed", type=int, default=0, show_default=True, help="Run seed."),
+        click.option(
+            "--ground-margin-m",
+            type=click.FloatRange(min=0),
+            default=0.1,
+            show_default=True,
+            help="Points of a box below max(box bottom, -mount height) + this are ground: kept.",
+        ),
+        click.option(
+            "--label",
+            default="Car",
+            show_default=True,
+            help="Process boxes of this label; other rows pass through as 'raw'.",
+        ),
+        click.option(
+            "--workers",
+            type=click.IntRange(min=1),
+            default=1,
+            show_default=True,
+            help="Processes; the output does not depend on it.",
+        ),
+        click.option("--no-progress", is_flag=True, help="No progress bar."),
+    ]
+    for decorator in reversed(decorators):
+        function = decorator(function)
+    return function
+
+
+@click.command(name="ppcg-rc")
+@ppcg_options
+@click.option(
+    "--max-points",
+    type=click.IntRange(min=2),
+    default=300,
+    show_default=True,
+    help="Boxes with this many points or more are dense: skipped.",
+)
+@click.option(
+    "--min-points",
+    type=click.IntRange(min=1),
+    default=3,
+    show_default=True,
+    help="Boxes with fewer points are skipped; fewer hits keep the raw points.",
+)
+@sensors_option
+@stage_options
+def command(target_dir, boxes_dir, library_dir, out, no_progress, **options):
+    """Ray-constrained PPCG: for each box with MIN <= points < MAX (points above its ground
+    height), fit the best library model (anisotropic scale into the box), cast the rays
+    sensor -> each point against it and move the point to the first hit (point models: the
+    nearest model point within 2 x 360/points-per-beam degrees of the ray). Misses are dropped;
+    ground points stay; RC never adds points.
+
+    Reads TARGET, the BOXES table and the LIBRARY. Writes OUT/frames.zarr (every target frame,
+    processed boxes' points replaced), OUT/boxes.parquet (the input rows plus ppcg = rc|raw,
+    ppcg_reason, points_before, points_after, model_id) and OUT/manifest.json (counts of
+    boxes processed and skipped, per-frame timing).
+    """
+    from stages.ppcg_rc import ppcg_rc
+
+    ppcg_rc(target_dir, boxes_dir, library_dir, out, progress=not no_progress, **options)

@@ -59,9 +59,9 @@ def cf_frame(
     if len(boxes) == 0:
         return points, BoxRecords.raw(np.zeros(0, np.int32))
     ground_z = ground_heights(boxes, profile.mount_height_m, params.ground_margin_m)
-    members = car_points(points, boxes, ground_z)
+    members, ground = car_points(points, boxes, ground_z)
     before = np.array([len(m) for m in members], dtype=np.int32)
-    records = BoxRecords.raw(before)
+    records = BoxRecords.raw(before, ground)
     rngs = [box_rng(params.seed, frame_id, i) for i in range(len(boxes))]
     low, high = params.range_m
     ranges = np.array([rng.uniform(low, high) for rng in rngs])  # first draw of each box's stream

@@ -113,13 +113,13 @@ def circular_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def viewing_angle(boxes: np.ndarray) -> np.ndarray:
-    """Direction of the sensor seen from each box, relative to its heading: `(N,)` rad in [-pi, pi).
+    """Azimuth of the sensor seen from each box, in the box frame: `(N,)` rad in [-pi, pi).
 
-    boxes `(N, 7)`. Angle = azimuth of the box centre (from the sensor) minus yaw: 0 means the
-    sensor looks at the car's back (the car drives away), pi at its front.
+    boxes `(N, 7)`. As library.PointModels.view_angle_rad: atan2 of the box-frame sensor position,
+    so 0 means the sensor is ahead of the car (it sees the front), pi behind it (it sees the back).
     """
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
-    angle = np.arctan2(boxes[:, 1], boxes[:, 0]) - boxes[:, 6]
+    angle = np.arctan2(-boxes[:, 1], -boxes[:, 0]) - boxes[:, 6]
     return np.mod(angle + np.pi, 2.0 * np.pi) - np.pi
 
 

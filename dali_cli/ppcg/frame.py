@@ -26,32 +26,41 @@ def ground_heights(boxes: np.ndarray, mount_height_m: float, ground_margin_m: fl
     return np.maximum(bottom, -float(mount_height_m)) + float(ground_margin_m)
 
 
-def car_points(points: np.ndarray, boxes: np.ndarray, ground_z: np.ndarray) -> list[np.ndarray]:
-    """Indices `(m_i,)` int64 of each box's points above its ground height (first box wins)."""
+def car_points(
+    points: np.ndarray, boxes: np.ndarray, ground_z: np.ndarray
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """Indices `(m_i,)` int64 of each box's points above its ground height (first box wins),
+    and the number of the box's points below it `(k,)` int32."""
     members = points_per_box(points, boxes)
-    return [idx[points[idx, 2] >= z] for idx, z in zip(members, ground_z, strict=True)]
+    cars = [idx[points[idx, 2] >= z] for idx, z in zip(members, ground_z, strict=True)]
+    ground = np.array([len(m) - len(c) for m, c in zip(members, cars, strict=True)], np.int32)
+    return cars, ground
 
 
 @dataclass
 class BoxRecords:
     """Per-box outcome of one frame, all `(k,)`: ppcg (rc|cf|raw), reason (REASONS),
-    points_before / points_after (car points in the box before/after), model_id ("" if none)."""
+    points_before / points_after (car points in the box before/after), ground_points (points
+    in the box below its ground height, kept), model_id ("" if none)."""
 
     ppcg: np.ndarray
     reason: np.ndarray
     points_before: np.ndarray
     points_after: np.ndarray
+    ground_points: np.ndarray
     model_id: np.ndarray
 
     @classmethod
-    def raw(cls, points_before: np.ndarray) -> BoxRecords:
+    def raw(cls, points_before: np.ndarray, ground_points: np.ndarray | None = None) -> BoxRecords:
         count = len(points_before)
         before = np.asarray(points_before, dtype=np.int32)
+        ground = np.zeros(count, np.int32) if ground_points is None else ground_points
         return cls(
             ppcg=np.full(count, RAW, dtype=object),
             reason=np.full(count, "ok", dtype=object),
             points_before=before,
             points_after=before.copy(),
+            ground_points=np.asarray(ground, dtype=np.int32),
             model_id=np.full(count, "", dtype=object),
         )
 

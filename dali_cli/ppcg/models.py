@@ -28,15 +28,17 @@ class ModelBank:
     """Models of one kind in the unit-box frame (l along +x, up +z, centred at the origin).
 
     kind: "cad" or "points". model_ids: M names. lwh: `(M, 3)` native sizes (m).
-    meshes: M (vertices `(V, 3)`, faces `(F, 3)`) for "cad"; points: M `(P, 3)` arrays and
-    angles `(M,)` viewing angles (rad, see fitting.viewing_angle) for "points".
+    meshes: M (vertices `(V, 3)`, faces `(F, 3)`) for "cad"; for "points": points `(P, >=3)`
+    all models' normalized points with offsets `(M + 1,)` (model k is points[offsets[k]:
+    offsets[k + 1]]) and angles `(M,)` viewing angles (rad, see fitting.viewing_angle).
     """
 
     kind: str
     model_ids: list[str]
     lwh: np.ndarray
     meshes: list[tuple[np.ndarray, np.ndarray]] | None = None
-    points: list[np.ndarray] | None = None
+    points: np.ndarray | None = None
+    offsets: np.ndarray | None = None
     angles: np.ndarray | None = None
     angle_tolerance_rad: float = np.radians(5.0)
     _bvhs: dict = field(default_factory=dict, repr=False)
@@ -53,14 +55,40 @@ class ModelBank:
         if self.kind == "cad" and (self.meshes is None or len(self.meshes) != count):
             raise ValueError("cad models need one mesh per model")
         if self.kind == "points":
-            if self.points is None or len(self.points) != count:
-                raise ValueError("point models need one point array per model")
+            if self.points is None or self.offsets is None or len(self.offsets) != count + 1:
+                raise ValueError("point models need points and offsets (M + 1,)")
             if self.angles is None or len(self.angles) != count:
                 raise ValueError("point models need one viewing angle per model")
             self.angles = np.asarray(self.angles, dtype=np.float64)
 
     def __len__(self) -> int:
         return len(self.model_ids)
+
+    @classmethod
+    def from_library(cls, library, kind: str, source: str = "library") -> ModelBank:
+        """The meshes ("cad") or point models ("points") of a library.ModelLibrary."""
+        if kind == "cad":
+            if not library.meshes:
+                raise ValueError(f"{source}: the library has no meshes (use --models points?)")
+            meshes = [(m.vertices, m.faces) for m in library.meshes]
+            return cls("cad", library.mesh_ids, library.mesh_lwh, meshes=meshes)
+        if kind == "points":
+            models = library.point_models
+            if len(models) == 0:
+                raise ValueError(f"{source}: the library has no point models (use --models cad?)")
+            return cls(
+                "points",
+                [str(m) for m in models.model_id],
+                models.lwh,
+                points=models.points,
+                offsets=models.offsets,
+                angles=models.view_angle_rad,
+            )
+        raise ValueError(f"unknown model kind '{kind}' (known: {', '.join(KINDS)})")
+
+    def model_points(self, index: int) -> np.ndarray:
+        """Normalized points `(P, 3)` of point model `index`."""
+        return self.points[self.offsets[index] : self.offsets[index + 1], :3]
 
     def select(
         self, boxes: np.ndarray, top_k: int = 1, rngs: list[np.random.Generator] | None = None
@@ -104,7 +132,7 @@ class ModelBank:
             return np.zeros(0, bool), np.zeros((0, 3))
         if self.kind == "cad":
             return _cast_mesh(self.bvh(index), box, directions)
-        placed = model_to_sensor(self.points[index], box)
+        placed = model_to_sensor(self.model_points(index), box)
         hits = cast_point_model(np.zeros(3), directions, placed, theta_rad)
         return hits.hit, hits.points
 

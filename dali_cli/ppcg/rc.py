@@ -39,9 +39,9 @@ def rc_frame(
     float32 (n' <= n) and the per-box records. Deterministic in (params.seed, frame_id, box order)."""
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
     ground_z = ground_heights(boxes, params.mount_height_m, params.ground_margin_m)
-    members = car_points(points, boxes, ground_z)
+    members, ground = car_points(points, boxes, ground_z)
     before = np.array([len(m) for m in members], dtype=np.int32)
-    records = BoxRecords.raw(before)
+    records = BoxRecords.raw(before, ground)
     records.reason[before < params.min_points] = "too_few_points"
     records.reason[before >= params.max_points] = "dense"
     eligible = np.flatnonzero((before >= params.min_points) & (before < params.max_points))
