@@ -182,3 +182,38 @@ def test_frame_label_lines_straddling_box_is_clipped():
     left, top, right, bottom = (float(v) for v in result.lines[0].split()[4:8])
     # the box's top (below the camera) is seen slightly below the horizon row (173 px)
     assert left == 0 and right == 1241 and bottom == 374 and 173 < top < 250
+
+
+def test_labels_and_exported_labels_score_100_ap(imported, tmp_path):
+    """The imported labels against themselves, and after export -> import as predictions, give
+    100 AP in every difficulty with ground truth. The KITTI protocol needs >= 41 ground-truth boxes
+    per level for R40 to reach 100, so the frame is repeated under 41 ids."""
+    evaluation = pytest.importorskip("dali_cli.evaluate", reason="dali_cli.evaluate not available")
+    exported, again = tmp_path / "exported", tmp_path / "again"
+    assert (
+        invoke(
+            "export", "kitti", imported, "--calib-root", KITTI, "--project-bbox", "--out", exported
+        ).exit_code
+        == 0
+    )
+    assert (
+        invoke("import", "kitti", KITTI, "--label-dir", exported / "data", "--out", again).exit_code
+        == 0
+    )
+
+    def repeated(table: BoxTable, times: int = 41) -> BoxTable:
+        return BoxTable.concat(
+            [
+                table.with_columns(frame_id=np.full(len(table), f"{i:06d}", dtype=object))
+                for i in range(times)
+            ]
+        )
+
+    labels = repeated(read_boxes(imported))
+    for predictions in (labels, repeated(read_boxes(again))):
+        metrics = evaluation.evaluate(predictions, labels)["Car"]
+        assert metrics["protocol"] == "kitti"
+        assert metrics["counts"]["easy"]["gt"] == 41 and metrics["counts"]["moderate"]["gt"] == 164
+        for level in ("easy", "moderate", "hard"):
+            assert metrics["bev"][level] == pytest.approx(100.0)
+            assert metrics["3d"][level] == pytest.approx(100.0)
