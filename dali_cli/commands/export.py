@@ -40,7 +40,7 @@ def _frame_ids(table, frames_dir: Path | None) -> list[str]:
     return ids
 
 
-@command.command(name="kitti")
+@command.command(name="kitti", short_help="KITTI label_2 files (LiDAR -> camera through calib).")
 @click.argument("boxes_dir", type=click.Path(exists=True))
 @click.option(
     "--calib-root",
@@ -159,7 +159,9 @@ def kitti_command(
         )
 
 
-@command.command(name="openpcdet")
+@command.command(
+    name="openpcdet", short_help="OpenPCDet custom format (points/*.npy, labels/*.txt)."
+)
 @click.argument("data_dir", type=click.Path(exists=True, file_okay=False))
 @click.option(
     "--boxes",

@@ -39,7 +39,7 @@ def _summary(outcome) -> None:
 # ---------------------------------------------------------------------------------------------
 
 
-@command.command(name="kitti")
+@command.command(name="kitti", short_help="KITTI velodyne + label_2 + calib.")
 @click.argument("root", type=click.Path(exists=True, file_okay=False))
 @click.option(
     "--split",
@@ -114,7 +114,7 @@ def kitti_command(
 # ---------------------------------------------------------------------------------------------
 
 
-@command.command(name="nuscenes")
+@command.command(name="nuscenes", short_help="nuScenes LIDAR_TOP, JSON tables or LiDAR-frame CSV.")
 @click.argument("path", type=click.Path(exists=True))
 @click.option(
     "--version",
@@ -230,7 +230,9 @@ def nuscenes_command(
 # ---------------------------------------------------------------------------------------------
 
 
-@command.command(name="openpcdet")
+@command.command(
+    name="openpcdet", short_help="OpenPCDet custom format (points/*.npy, labels/*.txt)."
+)
 @click.argument("root", type=click.Path(exists=True, file_okay=False))
 @click.option(
     "--split",
