@@ -412,3 +412,17 @@ def scale_boxes_about_ground(boxes: np.ndarray, s: float, mount_height_m: float)
 def descale_boxes_about_ground(boxes: np.ndarray, s: float, mount_height_m: float) -> np.ndarray:
     """Undo scale_boxes_about_ground: scale by 1 / s."""
     return scale_boxes_about_ground(boxes, 1.0 / s, mount_height_m)
+
+
+def iou_pairs_bev_3d(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Both BEV and 3D IoU `(N,)` of row-wise pairs, sharing one polygon clipping."""
+    a, b = _as_boxes(a), _as_boxes(b)
+    intersection = bev_intersection_pairs(a, b)
+    bev = _ratio(intersection, a[:, 3] * a[:, 4], b[:, 3] * b[:, 4])
+    volume = _ratio(
+        intersection * _height_overlap(a, b), a[:, 3] * a[:, 4] * a[:, 5], b[:, 3] * b[:, 4] * b[:, 5]
+    )
+    identical = np.all(a == b, axis=1)
+    bev = np.where(identical & (a[:, 3] * a[:, 4] > 0), 1.0, bev)
+    volume = np.where(identical & (a[:, 3] * a[:, 4] * a[:, 5] > 0), 1.0, volume)
+    return bev, volume

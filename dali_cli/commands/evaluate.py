@@ -1,5 +1,216 @@
-"""`dali eval` (placeholder until the evaluation issue lands)."""
+"""`dali eval`: KITTI-protocol AP_BEV / AP_3D of predictions against labels."""
 
-from dali_cli.commands.common import not_implemented
+from __future__ import annotations
 
-command = not_implemented("eval", "evaluation issue")
+import json
+import os
+from pathlib import Path
+
+import click
+
+from dali_cli.artifacts import BOXES_NAME, ArtifactError, BoxTable, FrameSet, read_boxes
+
+EPILOG = """\b
+Inputs (--pred, --gt): a box-table directory (boxes.parquet), a .parquet file, or a KITTI
+label_2-style directory of <frame>.txt files (predictions with a 16th score field).
+With --model MODEL --data DIR the predictions come from running the detector on DIR's frames
+(at --scale, or at the PTSN scale in PTSN_DIR/scale.json) and DIR/boxes.parquet is the ground
+truth unless --gt is given.
+
+\b
+Protocols: kitti = easy/moderate/hard from the KITTI label fields (2D box height, occlusion,
+truncation); range = all boxes and BEV-distance bands 0-30, 30-50, 50-80 m; st3d = ST3D's
+target-domain evaluation (ground truth only in the front 90 deg FOV and the detection range,
+every box 'easy'); auto (default) = kitti when the ground truth has the KITTI fields, else range.
+Van ground truths are ignored for Car; --min-gt-points marks ground-truth cars with fewer points
+as ignored (neither miss nor false positive), it never drops them.
+
+\b
+Output: the AP table on stdout; --out FILE writes metrics.json
+({"Car": {"iou", "recall_positions", "bev": {...}, "3d": {...}, "counts": {...}, "curves"}}).
+"""
+
+
+def _read_table(path: Path, role: str) -> tuple[BoxTable, list[str] | None]:
+    """A box table from a parquet dir/file or a label directory, plus the label files' frames."""
+    from dali_cli.kitti_label import list_label_frames, read_label_dir
+
+    if path.is_file() and path.suffix == ".parquet":
+        return read_boxes(path), None
+    if path.is_dir() and (path / BOXES_NAME).is_file():
+        return read_boxes(path), None
+    if path.is_dir() and (path / "label_2").is_dir():
+        path = path / "label_2"
+    if path.is_dir() and any(path.glob("*.txt")):
+        return read_label_dir(path), list_label_frames(path)
+    raise click.BadParameter(
+        f"{path}: neither a box table ({BOXES_NAME}) nor a directory of label .txt files",
+        param_hint=f"--{role}",
+    )
+
+
+def _read_scale(scale: float | None, scale_from: str | None) -> float:
+    if scale is not None and scale_from is not None:
+        raise click.UsageError("give either --scale or --scale-from, not both")
+    if scale_from is None:
+        value = 1.0 if scale is None else scale
+    else:
+        path = Path(scale_from) / "scale.json"
+        try:
+            value = json.loads(path.read_text())["scale"]
+        except FileNotFoundError:
+            raise click.ClickException(
+                f"{path}: not found (is {scale_from} a ptsn-sweep output?)"
+            ) from None
+        except (json.JSONDecodeError, KeyError, TypeError):
+            raise click.ClickException(f"{path}: no numeric key 'scale'") from None
+        if not isinstance(value, int | float) or isinstance(value, bool):
+            raise click.ClickException(f"{path}: key 'scale' is not a number ({value!r})")
+    if not value > 0:
+        raise click.UsageError(f"the scale must be positive, got {value}")
+    return float(value)
+
+
+def _predict(model: str, data: str, scale: float) -> BoxTable:
+    try:
+        from dali_cli.detector import predict_frameset
+    except ImportError as error:
+        raise click.ClickException(f"the detector is not available ({error})") from None
+    return predict_frameset(model, data, scale=scale, score_min=0.0, progress=True)
+
+
+def _write_json(path: Path, document: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(path.name + ".part")
+    partial.write_text(json.dumps(document, indent=2) + "\n")
+    os.replace(partial, path)
+
+
+@click.command(name="eval", epilog=EPILOG)
+@click.option(
+    "--pred",
+    "pred_path",
+    type=click.Path(exists=True, path_type=Path),
+    help="Predictions (box table or label_2 dir).",
+)
+@click.option(
+    "--gt",
+    "gt_path",
+    type=click.Path(exists=True, path_type=Path),
+    help="Ground truth (box table or label_2 dir).",
+)
+@click.option(
+    "--model",
+    type=click.Path(exists=True, file_okay=False),
+    help="Detector checkpoint dir: predict first.",
+)
+@click.option(
+    "--data",
+    type=click.Path(exists=True, file_okay=False),
+    help="Frame set to run --model on (its boxes.parquet is the default --gt).",
+)
+@click.option(
+    "--scale", type=float, default=None, help="PTSN scale for --model inference (default 1)."
+)
+@click.option(
+    "--scale-from",
+    type=click.Path(exists=True, file_okay=False),
+    help="Read the scale from PTSN_DIR/scale.json.",
+)
+@click.option(
+    "--iou",
+    type=float,
+    default=0.7,
+    show_default=True,
+    help="IoU threshold (a match needs IoU > this).",
+)
+@click.option(
+    "--recall-positions",
+    type=click.Choice(["40", "11"]),
+    default="40",
+    show_default=True,
+    help="R40 or R11 AP.",
+)
+@click.option(
+    "--protocol",
+    type=click.Choice(["auto", "kitti", "range", "st3d"]),
+    default="auto",
+    show_default=True,
+    help="Difficulty filters (see below).",
+)
+@click.option("--class", "class_name", default="Car", show_default=True, help="Class to evaluate.")
+@click.option(
+    "--min-gt-points",
+    type=click.IntRange(min=0),
+    default=0,
+    show_default=True,
+    help="Ignore ground-truth boxes with fewer points (needs num_points).",
+)
+@click.option(
+    "--out", type=click.Path(dir_okay=False, path_type=Path), help="Write metrics.json here."
+)
+def command(
+    pred_path,
+    gt_path,
+    model,
+    data,
+    scale,
+    scale_from,
+    iou,
+    recall_positions,
+    protocol,
+    class_name,
+    min_gt_points,
+    out,
+):
+    """Average precision (KITTI protocol, BEV and 3D, float64 rotated IoU) of predictions."""
+    from dali_cli.evaluate import EvaluationError, evaluate, format_table
+
+    if not 0.0 <= iou < 1.0:
+        raise click.BadParameter(f"must be in [0, 1), got {iou}", param_hint="--iou")
+    frame_ids = None
+    source: dict = {}
+    if model is not None or data is not None:
+        if model is None or data is None:
+            raise click.UsageError("--model and --data go together")
+        if pred_path is not None:
+            raise click.UsageError("give either --pred or --model/--data, not both")
+        chosen_scale = _read_scale(scale, scale_from)
+        frame_ids = FrameSet(data).frame_ids
+        if gt_path is None:
+            gt_path = Path(data)
+        pred = _predict(model, data, chosen_scale)
+        source = {"model": str(model), "data": str(data), "scale": chosen_scale}
+    else:
+        if scale is not None or scale_from is not None:
+            raise click.UsageError("--scale/--scale-from only apply with --model")
+        if pred_path is None or gt_path is None:
+            raise click.UsageError("give --pred and --gt (or --model and --data)")
+        pred, _ = _read_table(pred_path, "pred")
+        source = {"pred": str(pred_path)}
+    gt, label_frames = _read_table(gt_path, "gt")
+    source["gt"] = str(gt_path)
+    if frame_ids is None:
+        frame_ids = label_frames
+    try:
+        metrics = evaluate(
+            pred,
+            gt,
+            iou=iou,
+            recall_positions=int(recall_positions),
+            protocol=protocol,
+            class_name=class_name,
+            min_gt_points=min_gt_points,
+            frame_ids=frame_ids,
+        )
+    except EvaluationError as error:
+        raise click.ClickException(
+            f"cannot evaluate {source.get('pred', model)} against {gt_path}: {error}"
+        ) from None
+    except ArtifactError:
+        raise
+    metrics[class_name]["source"] = source
+    click.echo(format_table(metrics))
+    if out is not None:
+        _write_json(out, metrics)
+        click.echo(f"wrote {out}", err=True)

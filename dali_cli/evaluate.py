@@ -1,0 +1,515 @@
+"""KITTI-protocol average precision (R40 / R11, BEV and 3D) of predicted boxes against labels.
+
+The protocol follows OpenPCDet's `kitti_object_eval_python` (the reference every DA paper uses):
+per ground truth, in label order, the matching detection is chosen among unassigned detections
+with overlap strictly above the IoU threshold; thresholds are 41 samples of the true-positive
+scores; matching is redone at every threshold, preferring the largest overlap; precision is
+max-interpolated from the right; AP_R40 is the mean of precision entries 1..40, AP_R11 of entries
+0, 4, ..., 40. "Ignored" ground truths (Van for Car, outside the difficulty or range band, too few
+points) and ignored detections (2D box too small, outside the band) neither count as misses nor
+as false positives. Overlaps are float64 (dali_cli.geometry), not OpenPCDet's float32 kernel.
+
+Everything is vectorized over frames. Frames where one detection overlaps several ground truths
+above the threshold (possible only below IoU 0.5 or with overlapping labels) are evaluated with
+a direct port of the reference loop, so results match it in every case.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from dali_cli import geometry
+from dali_cli.artifacts import BoxTable
+
+DIFFICULTIES = ("easy", "moderate", "hard")
+MIN_HEIGHT_PX = (40.0, 25.0, 25.0)
+MAX_OCCLUSION = (0, 1, 2)
+MAX_TRUNCATION = (0.15, 0.3, 0.5)
+RANGE_BANDS_M = {
+    "all": (0.0, math.inf),
+    "0-30": (0.0, 30.0),
+    "30-50": (30.0, 50.0),
+    "50-80": (50.0, 80.0),
+}
+KITTI_GT_COLUMNS = ("truncated", "occluded", "bbox_top", "bbox_bottom")
+PROTOCOLS = ("auto", "kitti", "range", "st3d")
+# ground-truth classes that are ignored (neither miss nor false positive) for an evaluated class
+SIMILAR_CLASSES = {"car": ("van",), "pedestrian": ("person_sitting",)}
+NUM_SAMPLE_POINTS = 41
+# ST3D's target-domain evaluation: front field of view and the KITTI detection range
+ST3D_FOV_DEG = 90.0
+ST3D_RANGE_M = (0.0, -40.0, 70.4, 40.0)  # x_min, y_min, x_max, y_max of the box centre
+
+
+class EvaluationError(ValueError):
+    """Inputs that cannot be evaluated (the message names the frame and field)."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Inputs: frames, pairs and overlaps
+
+
+@dataclass
+class _Boxes:
+    """One side (predictions or ground truth), sorted by frame, table order kept within a frame."""
+
+    frame: np.ndarray  # (n,) int64 frame code
+    boxes: np.ndarray  # (n, 7) float64
+    score: np.ndarray  # (n,) float64
+    label: np.ndarray  # (n,) lower-case class names
+    columns: dict[str, np.ndarray]  # the table's other columns, same order
+
+
+def _prepare(table: BoxTable, universe: np.ndarray) -> _Boxes:
+    """Sort a table by frame; `universe` `(F,)` str lists the frames (their codes are indices)."""
+    ids = table.frame_id.astype(str)
+    sorter = np.argsort(universe)
+    position = np.minimum(np.searchsorted(universe[sorter], ids), max(len(universe) - 1, 0))
+    code = sorter[position] if len(universe) else np.zeros(0, np.int64)
+    order = np.argsort(code, kind="stable")
+    columns = {name: np.asarray(values)[order] for name, values in table.columns.items()}
+    names, inverse = np.unique(np.asarray(table["label"], dtype=str), return_inverse=True)
+    return _Boxes(
+        frame=code[order].astype(np.int64),
+        boxes=table.boxes[order],
+        score=np.asarray(table["score"], dtype=np.float64)[order],
+        label=np.char.lower(names)[inverse.reshape(-1)][order] if len(names) else ids[:0],
+        columns=columns,
+    )
+
+
+def _frame_pairs(pred: _Boxes, gt: _Boxes, num_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """(prediction, ground truth) index pairs `(E,)` in the same frame whose BEV circles touch."""
+    gt_count = np.bincount(gt.frame, minlength=num_frames)
+    gt_start = np.cumsum(gt_count) - gt_count
+    per_pred = gt_count[pred.frame]  # (n_pred,) candidate ground truths of each prediction
+    pred_index = np.repeat(np.arange(len(pred.frame)), per_pred)
+    run_start = np.repeat(np.cumsum(per_pred) - per_pred, per_pred)
+    gt_index = gt_start[pred.frame[pred_index]] + np.arange(len(pred_index)) - run_start
+    a, b = pred.boxes[pred_index], gt.boxes[gt_index]
+    reach = 0.5 * (np.hypot(a[:, 3], a[:, 4]) + np.hypot(b[:, 3], b[:, 4]))
+    near = np.hypot(a[:, 0] - b[:, 0], a[:, 1] - b[:, 1]) <= reach * (1 + 1e-9) + 1e-9
+    return pred_index[near], gt_index[near]
+
+
+# ---------------------------------------------------------------------------------------------
+# Ignore flags: -1 does not take part, 0 counts, 1 ignored (neither miss nor false positive)
+
+
+def _gt_class_flags(gt: _Boxes, class_name: str) -> np.ndarray:
+    """1 for the evaluated class, 0 for a similar class (Van for Car), -1 for any other."""
+    similar = SIMILAR_CLASSES.get(class_name, ())
+    return np.where(gt.label == class_name, 1, np.where(np.isin(gt.label, similar), 0, -1))
+
+
+def _combine_gt(valid_class: np.ndarray, ignore: np.ndarray) -> np.ndarray:
+    return np.where(
+        (valid_class == 1) & ~ignore, 0, np.where((valid_class == 0) | (valid_class == 1), 1, -1)
+    ).astype(np.int8)
+
+
+def _combine_pred(same_class: np.ndarray, ignore: np.ndarray) -> np.ndarray:
+    # the reference checks the size filter before the class: small boxes are ignored either way
+    return np.where(ignore, 1, np.where(same_class, 0, -1)).astype(np.int8)
+
+
+def _box_height_px(columns: dict[str, np.ndarray], count: int, absolute: bool) -> np.ndarray:
+    """2D box heights `(n,)` in pixels; the reference takes |h| for detections only."""
+    if "bbox_top" in columns and "bbox_bottom" in columns:
+        height = columns["bbox_bottom"].astype(np.float64) - columns["bbox_top"].astype(np.float64)
+        return np.abs(height) if absolute else height
+    return np.full(count, np.inf)  # no 2D boxes (LiDAR-only predictions): no size filter
+
+
+def _difficulty_flags(
+    pred: _Boxes, gt: _Boxes, class_name: str, level: int, few_points: np.ndarray
+):
+    valid_class = _gt_class_flags(gt, class_name)
+    height = _box_height_px(gt.columns, len(gt.frame), absolute=False)
+    ignore = (
+        (gt.columns["occluded"].astype(np.float64) > MAX_OCCLUSION[level])
+        | (gt.columns["truncated"].astype(np.float64) > MAX_TRUNCATION[level])
+        | (height <= MIN_HEIGHT_PX[level])
+        | few_points
+    )
+    pred_small = _box_height_px(pred.columns, len(pred.frame), True) < MIN_HEIGHT_PX[level]
+    return _combine_gt(valid_class, ignore), _combine_pred(pred.label == class_name, pred_small)
+
+
+def _band_flags(pred: _Boxes, gt: _Boxes, class_name: str, band: tuple, few_points: np.ndarray):
+    low, high = band
+    gt_range = np.hypot(gt.boxes[:, 0], gt.boxes[:, 1])
+    pred_range = np.hypot(pred.boxes[:, 0], pred.boxes[:, 1])
+    gt_out = (gt_range < low) | (gt_range >= high)
+    pred_out = (pred_range < low) | (pred_range >= high)
+    return (
+        _combine_gt(_gt_class_flags(gt, class_name), gt_out | few_points),
+        _combine_pred(pred.label == class_name, pred_out),
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Matching statistics
+
+
+def _sample_thresholds(tp_scores: np.ndarray, num_gt: int) -> np.ndarray:
+    """Score thresholds at (about) 41 evenly spaced recalls: the reference's get_thresholds."""
+    scores = np.sort(np.asarray(tp_scores, dtype=np.float64))[::-1]
+    count = len(scores)
+    if count == 0 or num_gt == 0:
+        return np.zeros(0)
+    left = (np.arange(count) + 1) / num_gt  # recall if this score is the threshold
+    right = np.r_[(np.arange(1, count) + 2) / num_gt, left[-1]]
+    chosen, current, start = [], 0.0, 0
+    while start < count and len(chosen) < NUM_SAMPLE_POINTS:
+        # first index at or after `start` whose recall is closest to the current target
+        accept = ~((right[start:] - current) < (current - left[start:]))
+        accept[-1] = True
+        index = start + int(np.argmax(accept))
+        chosen.append(scores[index])
+        current += 1 / (NUM_SAMPLE_POINTS - 1.0)  # accumulated like the reference, not k / 40
+        start = index + 1
+    return np.asarray(chosen)
+
+
+def _reference_frame(overlap, scores, ignored_gt, ignored_pred, min_overlap, threshold, compute_fp):
+    """The reference compute_statistics for one frame (BEV/3D metric): (tp, fp, fn, tp scores).
+
+    overlap `(n_pred, n_gt)`; a direct port, used for frames the vectorized path cannot take.
+    """
+    assigned = np.zeros(len(scores), dtype=bool)
+    below = scores < threshold if compute_fp else np.zeros(len(scores), dtype=bool)
+    tp = fp = fn = 0
+    tp_scores = []
+    for g in range(overlap.shape[1]):
+        if ignored_gt[g] == -1:
+            continue
+        chosen, found, best_overlap, chose_ignored = -1, False, 0.0, False
+        best_score = -math.inf
+        for d in range(len(scores)):
+            if ignored_pred[d] == -1 or assigned[d] or below[d]:
+                continue
+            value = overlap[d, g]
+            if value <= min_overlap:
+                continue
+            if not compute_fp:
+                if scores[d] > best_score:
+                    chosen, found, best_score = d, True, scores[d]
+            elif (value > best_overlap or chose_ignored) and ignored_pred[d] == 0:
+                chosen, found, best_overlap, chose_ignored = d, True, value, False
+            elif not found and ignored_pred[d] == 1:
+                chosen, found, chose_ignored = d, True, True
+        if not found:
+            fn += int(ignored_gt[g] == 0)
+        elif ignored_gt[g] == 1 or ignored_pred[chosen] == 1:
+            assigned[chosen] = True
+        else:
+            tp += 1
+            tp_scores.append(scores[chosen])
+            assigned[chosen] = True
+    if compute_fp:
+        fp = int(np.sum(~assigned & (ignored_pred == 0) & ~below))
+    return tp, fp, fn, tp_scores
+
+
+@dataclass
+class _Curve:
+    thresholds: np.ndarray  # (T,) descending scores
+    tp: np.ndarray  # (T,) counts at each threshold
+    fp: np.ndarray
+    fn: np.ndarray
+    num_gt: int
+    totals: dict  # tp, fp, fn with every prediction kept
+
+
+def _statistics(
+    pred: _Boxes,
+    gt: _Boxes,
+    pairs: tuple[np.ndarray, np.ndarray],
+    overlap: np.ndarray,
+    ignored_gt: np.ndarray,
+    ignored_pred: np.ndarray,
+    min_overlap: float,
+) -> _Curve:
+    """True/false positives and misses at every sampled threshold, over all frames at once."""
+    pred_index, gt_index = pairs
+    keep = (overlap > min_overlap) & (ignored_gt[gt_index] != -1) & (ignored_pred[pred_index] != -1)
+    pred_index, gt_index, overlap = pred_index[keep], gt_index[keep], overlap[keep]
+    num_gt = int(np.sum(ignored_gt == 0))
+    scores = pred.score
+
+    # a prediction matching several ground truths makes the greedy order matter: exact loop there
+    shared = np.bincount(pred_index, minlength=len(scores)) > 1
+    loop_frames = np.unique(pred.frame[shared])
+    in_loop_gt = np.isin(gt.frame, loop_frames)
+    in_loop_pred = np.isin(pred.frame, loop_frames)
+    fast = ~in_loop_pred[pred_index]
+    loop_pairs = (pred_index[~fast], gt_index[~fast], overlap[~fast])
+    pred_index, gt_index, overlap = pred_index[fast], gt_index[fast], overlap[fast]
+    loop_cases = [
+        _loop_frame(frame, pred, gt, loop_pairs, ignored_gt, ignored_pred) for frame in loop_frames
+    ]
+
+    # pass 1 (thresholds): each ground truth takes its highest-scoring candidate (first on ties)
+    order = np.lexsort((pred_index, -scores[pred_index], gt_index))
+    first = order[np.r_[True, gt_index[order][1:] != gt_index[order][:-1]]] if len(order) else order
+    is_tp = (ignored_gt[gt_index[first]] == 0) & (ignored_pred[pred_index[first]] == 0)
+    tp_scores = [scores[pred_index[first][is_tp]]]
+    for case in loop_cases:
+        tp_scores.append(np.asarray(_reference_frame(*case, min_overlap, 0.0, False)[3]))
+    thresholds = _sample_thresholds(np.concatenate(tp_scores), num_gt)
+
+    # pass 2: at each threshold (and once with every prediction) match by largest overlap,
+    # preferring non-ignored predictions, then the first ignored one
+    levels = np.r_[thresholds, -math.inf]  # (T + 1,)
+    pred_ignored = ignored_pred[pred_index]
+    rank = np.where(pred_ignored == 0, -overlap, 0.0)
+    order = np.lexsort((pred_index, rank, pred_ignored, gt_index))
+    pred_sorted, gt_sorted = pred_index[order], gt_index[order]
+    edges = len(order)
+    starts = np.flatnonzero(np.r_[True, gt_sorted[1:] != gt_sorted[:-1]]) if edges else order
+    group_gt = gt_sorted[starts]  # (G,) one group of candidate pairs per ground truth
+    active = scores[pred_sorted][None, :] >= levels[:, None]  # (T + 1, E)
+    position = np.where(active, np.arange(edges)[None, :], edges)
+    if edges:
+        chosen = np.minimum.reduceat(position, starts, axis=1)  # (T + 1, G) first active pair
+    else:
+        chosen = np.zeros((len(levels), 0), dtype=np.int64)
+    found = chosen < edges
+    chosen_pred = pred_sorted[np.minimum(chosen, edges - 1)] if edges else chosen
+    counted_gt = ignored_gt[group_gt] == 0  # (G,)
+    counted_pred = found & (ignored_pred[chosen_pred] == 0)  # (T + 1, G)
+    tp = np.sum(found & counted_gt[None, :] & counted_pred, axis=1)
+    fn = np.sum(~found & counted_gt[None, :], axis=1)
+    has_pair = np.zeros(len(gt.frame), dtype=bool)
+    has_pair[group_gt] = True
+    fn = fn + np.sum((ignored_gt == 0) & ~has_pair & ~in_loop_gt)
+    eligible = np.sort(scores[(ignored_pred == 0) & ~in_loop_pred])
+    kept = len(eligible) - np.searchsorted(eligible, levels, side="left")  # score >= level
+    fp = kept - np.sum(counted_pred, axis=1)
+    for case in loop_cases:
+        for k, level in enumerate(levels):
+            case_tp, case_fp, case_fn, _ = _reference_frame(*case, min_overlap, level, True)
+            tp[k] += case_tp
+            fp[k] += case_fp
+            fn[k] += case_fn
+    return _Curve(
+        thresholds=thresholds,
+        tp=tp[:-1],
+        fp=fp[:-1],
+        fn=fn[:-1],
+        num_gt=num_gt,
+        totals={"tp": int(tp[-1]), "fp": int(fp[-1]), "fn": int(fn[-1])},
+    )
+
+
+def _loop_frame(frame, pred, gt, loop_pairs, ignored_gt, ignored_pred):
+    """Dense inputs of the reference loop for one frame: (overlap, scores, flags...)."""
+    preds = np.flatnonzero(pred.frame == frame)
+    gts = np.flatnonzero(gt.frame == frame)
+    pred_index, gt_index, overlap = loop_pairs
+    here = pred.frame[pred_index] == frame
+    dense = np.zeros((len(preds), len(gts)))
+    dense[pred_index[here] - preds[0], gt_index[here] - gts[0]] = overlap[here]
+    return dense, pred.score[preds], ignored_gt[gts], ignored_pred[preds]
+
+
+def _average_precision(curve: _Curve, recall_positions: int) -> tuple[float | None, dict]:
+    """AP in percent (None without counted ground truth) and the interpolated curves."""
+    precision = np.zeros(NUM_SAMPLE_POINTS)
+    recall = np.zeros(NUM_SAMPLE_POINTS)
+    count = len(curve.thresholds)
+    if count:
+        tp = curve.tp.astype(np.float64)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            recall[:count] = np.nan_to_num(tp / (tp + curve.fn))
+            precision[:count] = np.nan_to_num(tp / (tp + curve.fp))
+    precision = np.maximum.accumulate(precision[::-1])[::-1]
+    recall = np.maximum.accumulate(recall[::-1])[::-1]
+    if curve.num_gt == 0:
+        value = None
+    elif recall_positions == 40:
+        value = float(precision[1:].sum() / 40 * 100)
+    else:
+        value = float(precision[::4].sum() / 11 * 100)
+    detail = {
+        "thresholds": [float(t) for t in curve.thresholds],
+        "precision": [float(p) for p in precision],
+        "recall": [float(r) for r in recall],
+    }
+    return value, detail
+
+
+# ---------------------------------------------------------------------------------------------
+# Public API
+
+
+def has_kitti_columns(table: BoxTable) -> bool:
+    """Whether a box table carries the KITTI label fields the difficulty filters need."""
+    return all(name in table.columns for name in KITTI_GT_COLUMNS)
+
+
+def _frame_universe(pred: BoxTable, gt: BoxTable, frame_ids) -> np.ndarray:
+    """The evaluated frame ids `(F,)` str; every box must belong to one of them."""
+    named = np.unique(np.r_[pred.frame_id.astype(str), gt.frame_id.astype(str)])
+    if frame_ids is None:
+        return named
+    universe = np.asarray([str(f) for f in frame_ids], dtype=str)
+    if len(np.unique(universe)) != len(universe):
+        raise EvaluationError("the list of evaluated frames has duplicates")
+    outside = named[~np.isin(named, universe)]
+    if len(outside):
+        raise EvaluationError(
+            f"boxes of frame '{outside[0]}' ({len(outside)} such frames) lie outside the evaluated frames"
+        )
+    return universe
+
+
+def _st3d_ground_truth(gt: BoxTable, fov_deg: float, range_m: tuple) -> BoxTable:
+    """ST3D's target ground truth: boxes outside the front FOV or the range are dropped, and
+    every box gets the 2D box [0, 0, 50, 50], no occlusion and no truncation."""
+    boxes = gt.boxes
+    angle = np.arctan2(boxes[:, 1], boxes[:, 0])
+    half = math.radians(fov_deg) / 2
+    x_min, y_min, x_max, y_max = range_m
+    keep = (
+        (angle > -half)
+        & (angle < half)
+        & (boxes[:, 0] >= x_min)
+        & (boxes[:, 0] <= x_max)
+        & (boxes[:, 1] >= y_min)
+        & (boxes[:, 1] <= y_max)
+    )
+    kept = gt.select(keep)
+    count = len(kept)
+    return kept.with_columns(
+        truncated=np.zeros(count, np.float32),
+        occluded=np.zeros(count, np.int32),
+        bbox_top=np.zeros(count, np.float32),
+        bbox_bottom=np.full(count, 50.0, np.float32),
+    )
+
+
+def evaluate(
+    pred: BoxTable,
+    gt: BoxTable,
+    iou: float = 0.7,
+    recall_positions: int = 40,
+    protocol: str = "auto",
+    class_name: str = "Car",
+    min_gt_points: int = 0,
+    frame_ids: list[str] | None = None,
+    st3d_fov_deg: float = ST3D_FOV_DEG,
+    st3d_range_m: tuple = ST3D_RANGE_M,
+) -> dict:
+    """AP_BEV and AP_3D (percent) of `pred` against `gt`, in the metrics.json shape.
+
+    protocol: "kitti" (easy/moderate/hard from the KITTI label columns), "range" (all boxes and
+    the bands 0-30, 30-50, 50-80 m of BEV distance), "st3d" (ST3D's target evaluation: ground
+    truth only in the front FOV and range, all boxes easy, so easy = moderate = hard), or "auto"
+    (kitti when `gt` has the KITTI columns, else range). Ground-truth boxes of the class with fewer
+    than `min_gt_points` points (column num_points) are ignored, not dropped. `frame_ids`: the
+    evaluated frames (default: every frame named by either table; frames without boxes count).
+    """
+    if recall_positions not in (11, 40):
+        raise EvaluationError(f"recall_positions must be 11 or 40, got {recall_positions}")
+    if protocol not in PROTOCOLS:
+        raise EvaluationError(f"unknown protocol '{protocol}' (choose from {', '.join(PROTOCOLS)})")
+    if not 0.0 <= iou < 1.0:
+        raise EvaluationError(f"iou must be in [0, 1), got {iou}")
+    if protocol == "auto":
+        protocol = "kitti" if has_kitti_columns(gt) else "range"
+    if protocol == "kitti" and not has_kitti_columns(gt):
+        missing = [name for name in KITTI_GT_COLUMNS if name not in gt.columns]
+        raise EvaluationError(f"ground truth lacks the KITTI columns {', '.join(missing)}")
+    if protocol == "st3d":
+        gt = _st3d_ground_truth(gt, st3d_fov_deg, st3d_range_m)
+        pred = pred.with_columns(
+            bbox_top=np.zeros(len(pred), np.float32),
+            bbox_bottom=np.full(len(pred), 50.0, np.float32),
+        )
+
+    universe = _frame_universe(pred, gt, frame_ids)
+    num_frames = len(universe)
+    class_key = class_name.lower()
+    pred_boxes, gt_boxes = _prepare(pred, universe), _prepare(gt, universe)
+    pairs = _frame_pairs(pred_boxes, gt_boxes, num_frames)
+    bev, volume = geometry.iou_pairs_bev_3d(pred_boxes.boxes[pairs[0]], gt_boxes.boxes[pairs[1]])
+    gt_points = np.asarray(gt_boxes.columns["num_points"])
+    if min_gt_points > 0 and len(gt_points) and not gt_points.any():
+        raise EvaluationError(
+            "min_gt_points needs ground-truth point counts, but num_points is all 0"
+        )
+    few_points = gt_points < min_gt_points
+
+    if protocol == "range":
+        groups = {
+            name: _band_flags(pred_boxes, gt_boxes, class_key, band, few_points)
+            for name, band in RANGE_BANDS_M.items()
+        }
+    else:  # st3d gives every box the same 2D box: the three levels coincide, compute one
+        levels = DIFFICULTIES[:1] if protocol == "st3d" else DIFFICULTIES
+        groups = {
+            name: _difficulty_flags(pred_boxes, gt_boxes, class_key, level, few_points)
+            for level, name in enumerate(levels)
+        }
+
+    result = {
+        "iou": float(iou),
+        "recall_positions": int(recall_positions),
+        "protocol": protocol,
+        "frames": int(num_frames),
+        "min_gt_points": int(min_gt_points),
+        "bev": {},
+        "3d": {},
+        "counts": {},
+        "curves": {"bev": {}, "3d": {}},
+    }
+    for name, (ignored_gt, ignored_pred) in groups.items():
+        counts = {
+            "gt": int(np.sum(ignored_gt == 0)),
+            "gt_ignored": int(np.sum(ignored_gt == 1)),
+            "pred": int(np.sum(ignored_pred == 0)),
+        }
+        for metric, overlap in (("bev", bev), ("3d", volume)):
+            curve = _statistics(pred_boxes, gt_boxes, pairs, overlap, ignored_gt, ignored_pred, iou)
+            value, detail = _average_precision(curve, recall_positions)
+            result[metric][name] = value
+            result["curves"][metric][name] = detail
+            counts[metric] = curve.totals
+        result["counts"][name] = counts
+    if protocol == "st3d":
+        for section in (result["bev"], result["3d"], result["counts"], *result["curves"].values()):
+            for name in DIFFICULTIES[1:]:
+                section[name] = section[DIFFICULTIES[0]]
+    return {class_name: result}
+
+
+def format_table(metrics: dict) -> str:
+    """A plain-text table: AP_BEV / AP_3D per difficulty or band, with the match counts."""
+    lines = []
+    for class_name, result in metrics.items():
+        lines.append(
+            f"{class_name} AP_R{result['recall_positions']} @ IoU {result['iou']:g} "
+            f"(protocol {result['protocol']}, {result['frames']} frames)"
+        )
+        header = f"{'':<10}{'AP_BEV':>8}{'AP_3D':>8}{'GT':>8}{'ign':>6}{'pred':>8}"
+        header += f"{'TP/FP/FN (BEV)':>22}{'TP/FP/FN (3D)':>22}"
+        lines.append(header)
+        for name in result["bev"]:
+            counts = result["counts"][name]
+            bev, volume = result["bev"][name], result["3d"][name]
+
+            def show(value):
+                return f"{value:8.2f}" if value is not None else f"{'-':>8}"
+
+            row = f"{name:<10}{show(bev)}{show(volume)}{counts['gt']:>8}{counts['gt_ignored']:>6}"
+            row += f"{counts['pred']:>8}"
+            for metric in ("bev", "3d"):
+                totals = counts[metric]
+                row += f"{totals['tp']:>10}/{totals['fp']}/{totals['fn']}".rjust(22)
+            lines.append(row)
+    return "\n".join(lines)
