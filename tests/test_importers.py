@@ -586,3 +586,33 @@ def test_nuscenes_tables_without_annotations_are_unlabeled(tmp_path):
     result = invoke("import", "nuscenes", tmp_path / "nuscenes", "--out", out)
     assert result.exit_code == 0, result.output
     assert len(FrameSet(out)) == 1 and not (out / "boxes.parquet").exists()
+
+
+@needs_fixtures
+def test_kitti_other_types_and_id_list(tmp_path):
+    root = kitti_copy(tmp_path)
+    training = root / "training"
+    for part, suffix in (("velodyne", ".bin"), ("calib", ".txt")):
+        shutil.copy(training / part / f"000008{suffix}", training / part / f"000009{suffix}")
+    car_line = (training / "label_2" / "000008.txt").read_text().splitlines()[3]
+    van_line = "Van" + car_line[3:]
+    (training / "label_2" / "000009.txt").write_text(
+        f"{van_line}\nPedestrian 0 0 0 1 2 3 4 1.7 0.6 0.8 2 1.6 9 0\n"
+    )
+    ids = tmp_path / "val.txt"
+    ids.write_text("000009\n")
+    out = tmp_path / "out"
+    result = invoke("import", "kitti", root, "--ids", ids, "--out", out)
+    assert result.exit_code == 0, result.output
+    assert FrameSet(out).frame_ids == ["000009"]
+    table = read_boxes(out)
+    assert table["label"].tolist() == ["Van", "Pedestrian"]
+    assert invoke("import", "kitti", root, "--out", tmp_path / "all").exit_code == 0
+    everything = read_boxes(tmp_path / "all")
+    same_car = everything.select(np.flatnonzero(everything["frame_id"] == "000008")[3:4])
+    np.testing.assert_allclose(table.boxes[0], same_car.boxes[0])  # a Van is converted like a Car
+    assert table["num_points"][0] == same_car["num_points"][0] > 0
+    ids.write_text("000009\n000010\n")
+    bad = tmp_path / "bad"
+    result = invoke("import", "kitti", root, "--ids", ids, "--out", bad)
+    assert result.exit_code == 1 and "000010" in result.output and not bad.exists()
