@@ -280,6 +280,12 @@ def _cast_prepared(
     return distance, np.where(hit, geometry, -1), np.where(hit, primitive, -1), normals
 
 
+def _apply(matrix: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """`matrix (3, 3) @ v` for each row of `vectors (N, 3)`. einsum, not `@`: a BLAS call with an
+    inner size of 3 is slow and spawns threads that fight over a loaded CPU."""
+    return np.einsum("kj,ij->ik", matrix, vectors)
+
+
 def _unit(vectors: np.ndarray) -> np.ndarray:
     norms = np.linalg.norm(vectors, axis=-1, keepdims=True)
     return (vectors / np.where(norms > 0, norms, 1.0)).astype(np.float32)
@@ -366,8 +372,8 @@ def cast_transformed(
     affine = np.asarray(affine, np.float64)
     linear, translation = affine[:3, :3], affine[:3, 3]
     inverse = np.linalg.inv(linear)
-    model_origins = (origins - translation) @ inverse.T  # (N, 3)
-    model_directions = directions @ inverse.T  # (N, 3)
+    model_origins = _apply(inverse, origins - translation)  # (N, 3)
+    model_directions = _apply(inverse, directions)  # (N, 3)
     # start each ray just before the model's bounding sphere (t is frame independent)
     center = bvh.bounds.mean(axis=0)
     radius = 0.5 * np.linalg.norm(bvh.bounds[1] - bvh.bounds[0]) * 1.01 + 1e-6
@@ -385,7 +391,7 @@ def cast_transformed(
     hit = geometry >= 0
     points = origins + np.where(hit, distance, 0.0)[:, None] * directions
     # normals are covectors: n_sensor ∝ A^-T n_model
-    world_normals = normals.astype(np.float64) @ inverse
+    world_normals = _apply(inverse.T, normals.astype(np.float64))
     return RayHits(
         hit=hit,
         distance=distance,
@@ -423,4 +429,4 @@ def cast_into_box(
 def transform_vertices(vertices: np.ndarray, affine: np.ndarray) -> np.ndarray:
     """Apply a `(4, 4)` affine to `(V, 3)` vertices → `(V, 3)` float64 (reference for tests)."""
     affine = np.asarray(affine, np.float64)
-    return np.asarray(vertices, np.float64) @ affine[:3, :3].T + affine[:3, 3]
+    return _apply(affine[:3, :3], np.asarray(vertices, np.float64)) + affine[:3, 3]
