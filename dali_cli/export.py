@@ -13,13 +13,13 @@ from pathlib import Path
 
 import numpy as np
 
+from dali_cli import kitti_label
 from dali_cli.artifacts import BoxTable
 from dali_cli.importers.common import ImportFormatError
 from dali_cli.importers.kitti import (
     DEFAULT_IMAGE_SIZE,
     IGNORE_TYPES,
     Calibration,
-    format_label_lines,
     image_boxes,
     lidar_boxes_to_camera,
     observation_angle,
@@ -27,6 +27,7 @@ from dali_cli.importers.kitti import (
     read_calib,
 )
 
+LABEL_DECIMALS = 4  # KITTI's own files have 2; 4 keep export -> import within 1e-4 m
 KITTI_COLUMNS = (
     "truncated",
     "occluded",
@@ -54,39 +55,42 @@ def frame_label_lines(
     reuse_columns: bool = True,
     with_score: bool = True,
 ) -> FrameExport:
-    """label_2 lines for the boxes of one frame (DontCare rows are skipped).
+    """label_2 lines for the boxes of one frame (LiDAR frame, through `calib`).
 
     reuse_columns: when the table has the KITTI columns (an imported label set), write its
-    truncated, occluded, alpha and 2D box as they are; otherwise compute alpha and the 2D box and
-    write -1 for truncation and occlusion, as OpenPCDet does for predictions.
+    truncated, occluded, alpha and 2D box as they are, DontCare rows included; otherwise compute
+    alpha and the 2D box, write -1 for truncation and occlusion (as OpenPCDet does for
+    predictions) and leave DontCare rows out.
     keep_outside: also write boxes behind the camera or outside the image (their 2D box is empty).
     """
-    table = table.select(~np.isin(table["label"].astype(str), IGNORE_TYPES))
+    reuse = reuse_columns and all(name in table.columns for name in KITTI_COLUMNS)
+    ignore = np.isin(table["label"].astype(str), IGNORE_TYPES)
+    if not reuse:
+        table, ignore = table.select(~ignore), ignore[~ignore]
     location, hwl, rotation_y = lidar_boxes_to_camera(table.boxes, calib)
     bbox, visible = image_boxes(location, hwl, rotation_y, calib, image_size)
     count = len(table)
-    if reuse_columns and all(name in table.columns for name in KITTI_COLUMNS):
-        truncated = table["truncated"]
-        occluded = table["occluded"]
-        alpha = table["alpha"]
-        bbox = np.stack([table[name] for name in KITTI_COLUMNS[3:]], axis=1)
+    if reuse:
+        columns = {name: table[name] for name in KITTI_COLUMNS}
     else:
-        truncated = np.full(count, -1.0)
-        occluded = np.full(count, -1)
-        alpha = observation_angle(location, rotation_y)
-    keep = np.ones(count, bool) if keep_outside else visible
+        columns = {
+            "truncated": np.full(count, -1.0, np.float32),
+            "occluded": np.full(count, -1, np.int32),
+            "alpha": observation_angle(location, rotation_y),
+            **{name: bbox[:, k] for k, name in enumerate(KITTI_COLUMNS[3:])},
+        }
+    keep = np.ones(count, bool) if keep_outside else visible | ignore
     rows = np.flatnonzero(keep)
-    lines = format_label_lines(
-        table["label"][rows],
-        truncated[rows],
-        occluded[rows],
-        alpha[rows],
-        bbox[rows],
-        hwl[rows],
-        location[rows],
-        rotation_y[rows],
-        score=table["score"][rows] if with_score else None,
+    # kitti_label writes label_2 lines from its calib-free pseudo-LiDAR frame: hand it the
+    # calib-correct camera boxes in that frame
+    camera = BoxTable.from_arrays(
+        table.frame_id[rows],
+        kitti_label.camera_to_pseudo_lidar(hwl[rows], location[rows], rotation_y[rows]),
+        score=table["score"][rows],
+        label=table["label"][rows],
+        **{name: np.asarray(values)[rows] for name, values in columns.items()},
     )
+    lines = kitti_label.format_label_lines(camera, with_score=with_score, decimals=LABEL_DECIMALS)
     return FrameExport(lines, int(count - len(rows)))
 
 

@@ -98,14 +98,19 @@ def test_export_reuses_label_columns_and_no_score(imported, tmp_path):
         == 0
     )
     lines = (exported / "data" / "000008.txt").read_text().splitlines()
-    assert all(len(line.split()) == 15 for line in lines)
+    assert len(lines) == 10 and all(len(line.split()) == 15 for line in lines)
+    # an imported label set is written back as it was read: every row, every field
     ours = parse(exported / "data" / "000008.txt")
     truth = parse(KITTI_FRAME / "label_2" / "000008.txt")
+    np.testing.assert_array_equal(ours.type, truth.type)
+    np.testing.assert_allclose(ours.bbox, truth.bbox, atol=0.01)
+    np.testing.assert_allclose(ours.alpha, truth.alpha, atol=1e-4)
+    np.testing.assert_array_equal(ours.occluded, truth.occluded)
+    np.testing.assert_allclose(ours.truncated, truth.truncated)
     cars = truth.type == "Car"
-    np.testing.assert_allclose(ours.bbox, truth.bbox[cars], atol=0.01)
-    np.testing.assert_allclose(ours.alpha, truth.alpha[cars], atol=1e-4)
-    np.testing.assert_array_equal(ours.occluded, truth.occluded[cars])
-    np.testing.assert_allclose(ours.truncated, truth.truncated[cars])
+    np.testing.assert_allclose(ours.location[cars], truth.location[cars], atol=1e-3)
+    np.testing.assert_allclose(ours.hwl[cars], truth.hwl[cars], atol=1e-4)
+    assert all(line.split()[8:] == "-1 -1 -1 -1000 -1000 -1000 -10".split() for line in lines[6:])
 
 
 def test_boxes_outside_the_image_and_empty_frames(tmp_path):

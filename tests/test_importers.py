@@ -245,9 +245,7 @@ def test_kitti_label_with_14_fields_is_an_error(tmp_path):
     lines[2] = " ".join(lines[2].split()[:14])
     label.write_text("\n".join(lines) + "\n")
     out = tmp_path / "out"
-    _expect_error(
-        invoke("import", "kitti", root, "--out", out), out, "000008.txt, line 3", "14 fields"
-    )
+    _expect_error(invoke("import", "kitti", root, "--out", out), out, "000008.txt:3", "got 14")
 
 
 @needs_fixtures
@@ -256,7 +254,7 @@ def test_kitti_bad_label_value_and_calib_key(tmp_path):
     label = root / "training" / "label_2" / "000008.txt"
     label.write_text(label.read_text().replace("3.23 -2.70", "3.23 abc", 1))
     out = tmp_path / "out"
-    _expect_error(invoke("import", "kitti", root, "--out", out), out, "line 1", "field 'x'")
+    _expect_error(invoke("import", "kitti", root, "--out", out), out, "000008.txt:1", "'abc'")
     label.write_text((KITTI_FRAME / "label_2" / "000008.txt").read_text())
     calib_path = root / "training" / "calib" / "000008.txt"
     text = calib_path.read_text().splitlines()
@@ -272,7 +270,7 @@ def test_failed_reimport_keeps_previous_output(tmp_path):
     before = read_manifest(out)["content_hash"]
     (root / "training" / "label_2" / "000008.txt").write_text("Car 0 0 0 1 2 3 4\n")
     result = invoke("import", "kitti", root, "--out", out)
-    assert result.exit_code == 1 and "line 1" in result.output
+    assert result.exit_code == 1 and "000008.txt:1" in result.output
     assert read_manifest(out)["content_hash"] == before
 
 

@@ -107,7 +107,8 @@ def kitti_command(
     Boxes go from the LiDAR frame to the rectified camera through each frame's calib
     (CALIB_ROOT/.../calib/<frame>.txt); the 2D box is the projection of the 8 corners clipped to
     the image; alpha = rotation_y - atan2(x, z). Lines have 16 fields (the score last) unless
-    --no-score. DontCare rows are not written. Score them with the KITTI devkit or OpenPCDet's
+    --no-score. An imported label set (with the KITTI columns) is written back as read,
+    DontCare rows included, unless --project-bbox. Score the files with the KITTI devkit or OpenPCDet's
     kitti_eval, or re-import them with `dali import kitti ROOT --label-dir OUT/data`.
     """
     from dali_cli.artifacts import FRAMES_NAME, read_boxes

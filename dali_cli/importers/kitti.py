@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dali_cli import kitti_label
 from dali_cli.artifacts import BoxTable
 from dali_cli.geometry import count_points_in_boxes, normalize_yaw
 from dali_cli.importers.common import ImportFormatError, read_float_records, write_imported
@@ -24,23 +25,6 @@ from dali_cli.manifest import BuildResult
 
 DEFAULT_IMAGE_SIZE = (1242, 375)  # width, height in pixels; KITTI images are 1224..1242 x 370..376
 IGNORE_TYPES = ("DontCare",)  # rows without a 3D box: kept for their 2D region only
-LABEL_FIELDS = (
-    "type",
-    "truncated",
-    "occluded",
-    "alpha",
-    "bbox_left",
-    "bbox_top",
-    "bbox_right",
-    "bbox_bottom",
-    "height",
-    "width",
-    "length",
-    "x",
-    "y",
-    "z",
-    "rotation_y",
-)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -201,58 +185,23 @@ class CameraObjects:
 
 
 def parse_label_file(path: str | Path) -> CameraObjects:
-    """Read one label_2 file: 15 fields per line, or 16 with a detection score.
-
-    Raises ImportFormatError naming the file, line and field on a wrong field count, a
-    non-numeric or non-finite value, or a negative size on a non-DontCare row.
-    """
-    path = Path(path)
-    try:
-        lines = path.read_text().splitlines()
-    except OSError as error:
-        raise ImportFormatError(f"{path}: cannot read label file ({error})") from None
-    rows: list[list[float]] = []
-    types: list[str] = []
-    for number, line in enumerate(lines, start=1):
-        fields = line.split()
-        if not fields:
-            continue
-        if len(fields) not in (15, 16):
-            raise ImportFormatError(
-                f"{path}, line {number}: {len(fields)} fields, expected 15 "
-                f"(type truncated occluded alpha x1 y1 x2 y2 h w l x y z rotation_y) or 16 (+ score)"
-            )
-        values = []
-        for index, text in enumerate(fields[1:], start=1):
-            name = LABEL_FIELDS[index] if index < len(LABEL_FIELDS) else "score"
-            try:
-                value = float(text)
-            except ValueError:
-                raise ImportFormatError(
-                    f"{path}, line {number}: field '{name}' is not a number: {text!r}"
-                ) from None
-            if not np.isfinite(value):
-                raise ImportFormatError(f"{path}, line {number}: field '{name}' is {text}")
-            values.append(value)
-        if len(values) == 14:
-            values.append(1.0)
-        if fields[0] not in IGNORE_TYPES and min(values[7:10]) < 0:
-            raise ImportFormatError(
-                f"{path}, line {number}: negative size (h w l) for a '{fields[0]}' object"
-            )
-        types.append(fields[0])
-        rows.append(values)
-    table = np.asarray(rows, dtype=np.float64).reshape(-1, 15)
+    """Read one label_2 file (15 fields per line, or 16 with a detection score) as raw camera
+    fields. Parsing is `dali_cli.kitti_label`'s: malformed lines raise ArtifactError naming the
+    file and line (`path:line: ...`); DontCare's placeholder size -1 becomes 0."""
+    table = kitti_label.read_label_file(path)
+    hwl, location, rotation_y = kitti_label.pseudo_lidar_to_camera(table.boxes)
     return CameraObjects(
-        type=np.asarray(types, dtype=object),
-        truncated=table[:, 0].astype(np.float32),
-        occluded=table[:, 1].astype(np.int32),
-        alpha=table[:, 2].copy(),
-        bbox=table[:, 3:7].astype(np.float32),
-        hwl=table[:, 7:10].copy(),
-        location=table[:, 10:13].copy(),
-        rotation_y=table[:, 13].copy(),
-        score=table[:, 14].astype(np.float32),
+        type=np.asarray(table["label"], dtype=object),
+        truncated=np.asarray(table["truncated"], np.float32),
+        occluded=np.asarray(table["occluded"], np.int32),
+        alpha=np.asarray(table["alpha"], np.float64),
+        bbox=np.stack([table[name] for name in kitti_label.BBOX_COLUMNS], axis=1).astype(
+            np.float32
+        ),
+        hwl=hwl,
+        location=location,
+        rotation_y=rotation_y,
+        score=np.asarray(table["score"], np.float32),
     )
 
 
@@ -356,39 +305,6 @@ def camera_fov_mask(
             & (pixels[:, 1] >= 0)
             & (pixels[:, 1] < height)
         )
-
-
-def format_label_lines(
-    types: np.ndarray,
-    truncated: np.ndarray,
-    occluded: np.ndarray,
-    alpha: np.ndarray,
-    bbox: np.ndarray,
-    hwl: np.ndarray,
-    location: np.ndarray,
-    rotation_y: np.ndarray,
-    score: np.ndarray | None = None,
-    decimals: int = 4,
-) -> list[str]:
-    """label_2 text lines (15 fields, 16 with score). More decimals than KITTI's own 2 so that an
-    export -> import round trip holds to 1e-3 m."""
-    lines = []
-    f = f"{{:.{decimals}f}}"
-    for i in range(len(types)):
-        values = [
-            str(types[i]),
-            f"{float(truncated[i]):.2f}",
-            str(int(occluded[i])),
-            f.format(alpha[i]),
-            *(f"{float(v):.2f}" for v in bbox[i]),
-            *(f.format(v) for v in hwl[i]),
-            *(f.format(v) for v in location[i]),
-            f.format(rotation_y[i]),
-        ]
-        if score is not None:
-            values.append(f"{float(score[i]):.4f}")
-        lines.append(" ".join(values))
-    return lines
 
 
 # ---------------------------------------------------------------------------------------------
