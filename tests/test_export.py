@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -189,36 +190,36 @@ def test_frame_label_lines_straddling_box_is_clipped():
     assert left == 0 and right == 1241 and bottom == 374 and 173 < top < 250
 
 
-def test_labels_and_exported_labels_score_100_ap(imported, tmp_path):
-    """The imported labels against themselves, and after export -> import as predictions, give
-    100 AP in every difficulty with ground truth. The KITTI protocol needs >= 41 ground-truth boxes
-    per level for R40 to reach 100, so the frame is repeated under 41 ids."""
-    evaluation = pytest.importorskip("dali_cli.evaluate", reason="dali_cli.evaluate not available")
-    exported, again = tmp_path / "exported", tmp_path / "again"
-    assert (
-        invoke(
-            "export", "kitti", imported, "--calib-root", KITTI, "--project-bbox", "--out", exported
-        ).exit_code
-        == 0
+def test_dali_eval_of_labels_and_exports_gives_100_ap(tmp_path):
+    """`dali eval` of the imported labels against themselves, and of the exported label_2 files
+    against the original label_2, give 100 AP at every difficulty. R40 reaches 100 only with >= 41
+    ground-truth boxes per level, so the fixture frame is repeated under 41 ids."""
+    training = tmp_path / "kitti" / "training"
+    for part in ("velodyne", "label_2", "calib"):
+        (training / part).mkdir(parents=True)
+        source = next((KITTI_FRAME / part).iterdir())
+        for i in range(41):
+            (training / part / f"{i:06d}{source.suffix}").symlink_to(source)
+    imported, exported = tmp_path / "imported", tmp_path / "exported"
+    assert invoke("import", "kitti", training.parent, "--out", imported).exit_code == 0
+    result = invoke(
+        "export",
+        "kitti",
+        imported,
+        "--calib-root",
+        training.parent,
+        "--project-bbox",
+        "--out",
+        exported,
     )
-    assert (
-        invoke("import", "kitti", KITTI, "--label-dir", exported / "data", "--out", again).exit_code
-        == 0
-    )
-
-    def repeated(table: BoxTable, times: int = 41) -> BoxTable:
-        return BoxTable.concat(
-            [
-                table.with_columns(frame_id=np.full(len(table), f"{i:06d}", dtype=object))
-                for i in range(times)
-            ]
-        )
-
-    labels = repeated(read_boxes(imported))
-    for predictions in (labels, repeated(read_boxes(again))):
-        metrics = evaluation.evaluate(predictions, labels)["Car"]
-        assert metrics["protocol"] == "kitti"
+    assert result.exit_code == 0, result.output
+    for pred, gt in ((imported, imported), (exported / "data", training / "label_2")):
+        metrics_path = tmp_path / "metrics.json"
+        result = invoke("eval", "--pred", pred, "--gt", gt, "--out", metrics_path)
+        assert result.exit_code == 0, result.output
+        metrics = json.loads(metrics_path.read_text())["Car"]
+        assert metrics["protocol"] == "kitti" and metrics["frames"] == 41
         assert metrics["counts"]["easy"]["gt"] == 41 and metrics["counts"]["moderate"]["gt"] == 164
         for level in ("easy", "moderate", "hard"):
-            assert metrics["bev"][level] == pytest.approx(100.0)
-            assert metrics["3d"][level] == pytest.approx(100.0)
+            assert metrics["bev"][level] == pytest.approx(100.0), (pred, level)
+            assert metrics["3d"][level] == pytest.approx(100.0), (pred, level)
