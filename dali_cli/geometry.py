@@ -420,7 +420,9 @@ def iou_pairs_bev_3d(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarr
     intersection = bev_intersection_pairs(a, b)
     bev = _ratio(intersection, a[:, 3] * a[:, 4], b[:, 3] * b[:, 4])
     volume = _ratio(
-        intersection * _height_overlap(a, b), a[:, 3] * a[:, 4] * a[:, 5], b[:, 3] * b[:, 4] * b[:, 5]
+        intersection * _height_overlap(a, b),
+        a[:, 3] * a[:, 4] * a[:, 5],
+        b[:, 3] * b[:, 4] * b[:, 5],
     )
     identical = np.all(a == b, axis=1)
     bev = np.where(identical & (a[:, 3] * a[:, 4] > 0), 1.0, bev)

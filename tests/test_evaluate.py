@@ -1,0 +1,593 @@
+"""KITTI-protocol AP: hand-computed cases, an independent port of the reference loop on random
+scenes, ignore rules, label_2 equivalence and the `dali eval` command."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import types
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from dali_cli import geometry
+from dali_cli.artifacts import BoxTable, write_boxes, write_frameset
+from dali_cli.cli import main
+from dali_cli.evaluate import EvaluationError, evaluate, format_table
+from dali_cli.kitti_label import read_label_dir, read_label_file, write_label_dir
+
+CAR = (3.9, 1.6, 1.5)
+
+
+def row_of_cars(count: int, spacing: float = 8.0) -> np.ndarray:
+    """`count` separated cars `(count, 7)` along +x, 5 m to the side."""
+    x = 5.0 + spacing * np.arange(count)
+    return np.c_[
+        x, np.full(count, 5.0), np.full(count, -0.9), np.tile(CAR, (count, 1)), np.zeros(count)
+    ]
+
+
+def table(boxes, frame="000000", score=None, label="Car", **extra) -> BoxTable:
+    boxes = np.asarray(boxes, float).reshape(-1, 7)
+    return BoxTable.from_arrays([frame] * len(boxes), boxes, score=score, label=label, **extra)
+
+
+def kitti_columns(count, height=100.0, occluded=0, truncated=0.0):
+    return {
+        "truncated": np.full(count, truncated, np.float32),
+        "occluded": np.full(count, occluded, np.int32),
+        "alpha": np.zeros(count),
+        "bbox_left": np.zeros(count, np.float32),
+        "bbox_top": np.zeros(count, np.float32),
+        "bbox_right": np.full(count, 50.0, np.float32),
+        "bbox_bottom": np.full(count, height, np.float32),
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# Hand-computed cases
+
+
+@pytest.mark.parametrize("count, expected", [(50, 100.0), (41, 100.0), (20, 100 * 19 / 40)])
+def test_perfect_predictions(count, expected):
+    cars = row_of_cars(count)
+    scores = np.linspace(0.9, 0.5, count)
+    metrics = evaluate(table(cars, score=scores), table(cars))["Car"]
+    assert metrics["protocol"] == "range"
+    assert metrics["bev"]["all"] == pytest.approx(expected)
+    assert metrics["3d"]["all"] == pytest.approx(expected)
+    assert metrics["counts"]["all"]["bev"] == {"tp": count, "fp": 0, "fn": 0}
+    r11 = evaluate(table(cars, score=scores), table(cars), recall_positions=11)["Car"]
+    assert r11["bev"]["all"] == pytest.approx(100.0 if count >= 41 else 100 * 5 / 11)
+
+
+def test_all_false_predictions_give_zero():
+    cars = row_of_cars(45)
+    wrong = cars + [0, 4.0, 0, 0, 0, 0, 0]  # 4 m to the side: no overlap
+    metrics = evaluate(table(wrong, score=np.full(45, 0.9)), table(cars))["Car"]
+    assert metrics["bev"]["all"] == 0.0 and metrics["3d"]["all"] == 0.0
+    assert metrics["counts"]["all"]["bev"] == {"tp": 0, "fp": 45, "fn": 45}
+
+
+def known_curve_scene():
+    """40 cars all found (scores 1.0 .. 0.61) and 10 false positives scored between the 20th
+    and the 21st true positive: precision 1 up to recall 20/40, then (k + 1) / (k + 11)."""
+    cars = row_of_cars(40)
+    tp_scores = 1.0 - 0.01 * np.arange(40)
+    false = row_of_cars(10) + [0, 30.0, 0, 0, 0, 0, 0]
+    pred = np.r_[cars, false]
+    scores = np.r_[tp_scores, np.full(10, 0.805)]
+    return pred, scores, cars
+
+
+def test_known_precision_recall_curve():
+    pred, scores, cars = known_curve_scene()
+    # interpolated precision: 1 at entries 0..19, max((k+1)/(k+11)) = 40/50 at 20..39, 0 at 40
+    r40 = (19 * 1.0 + 20 * 0.8) / 40 * 100
+    r11 = (5 * 1.0 + 5 * 0.8) / 11 * 100
+    metrics = evaluate(table(pred, score=scores), table(cars))["Car"]
+    assert metrics["bev"]["all"] == pytest.approx(r40)
+    assert metrics["3d"]["all"] == pytest.approx(r40)
+    curve = metrics["curves"]["bev"]["all"]
+    assert len(curve["thresholds"]) == 40
+    assert curve["precision"][19] == 1.0 and curve["precision"][20] == pytest.approx(0.8)
+    assert evaluate(table(pred, score=scores), table(cars), recall_positions=11)["Car"]["bev"][
+        "all"
+    ] == pytest.approx(r11)
+
+
+def test_overlap_test_is_strict():
+    gt = np.array([[10.0, 0, 0, 3.0, 2.0, 1.5, 0.0]] * 1)
+    pred = gt + [1.0, 0, 0, 0, 0, 0, 0]  # BEV overlap 2 x 2 over union 8: IoU exactly 0.5
+    assert geometry.bev_iou(pred, gt)[0, 0] == 0.5
+    at = evaluate(table(pred), table(gt), iou=0.5)["Car"]["counts"]["all"]["bev"]
+    below = evaluate(table(pred), table(gt), iou=0.49)["Car"]["counts"]["all"]["bev"]
+    assert at == {"tp": 0, "fp": 1, "fn": 1}
+    assert below == {"tp": 1, "fp": 0, "fn": 0}
+
+
+def test_ignored_ground_truth_changes_nothing():
+    pred, scores, cars = known_curve_scene()
+    base = evaluate(
+        table(pred, score=scores), table(cars, **kitti_columns(len(cars))), protocol="kitti"
+    )["Car"]
+    vans = row_of_cars(6) + [0, -20.0, 0, 0, 0, 0, 0]  # 3 detected, 3 missed
+    hard_cars = row_of_cars(4) + [0, -40.0, 0, 0, 0, 0, 0]  # occluded: not easy, detected
+    small_cars = row_of_cars(3) + [0, -60.0, 0, 0, 0, 0, 0]  # 2D height 30 px: not easy
+    dont_care = row_of_cars(2) + [0, 60.0, 0, 0, 0, 0, 0]
+    gt = BoxTable.concat(
+        [
+            table(cars, **kitti_columns(len(cars))),
+            table(vans, label="Van", **kitti_columns(6)),
+            table(hard_cars, **kitti_columns(4, occluded=2)),
+            table(small_cars, **kitti_columns(3, height=30.0)),
+            table(dont_care, label="DontCare", **kitti_columns(2)),
+        ]
+    )
+    extra_pred = np.r_[vans[:3], hard_cars, small_cars, dont_care[:0]]
+    all_pred = np.r_[pred, extra_pred]
+    all_scores = np.r_[scores, np.full(len(extra_pred), 0.95)]
+    metrics = evaluate(table(all_pred, score=all_scores), gt, protocol="kitti")["Car"]
+    assert metrics["bev"]["easy"] == pytest.approx(base["bev"]["easy"])
+    assert metrics["3d"]["easy"] == pytest.approx(base["3d"]["easy"])
+    assert metrics["counts"]["easy"]["gt"] == 40
+    assert metrics["counts"]["easy"]["gt_ignored"] == 6 + 4 + 3
+    # moderate admits 2D boxes of 30 px; occlusion 2 is admitted by hard only
+    assert metrics["counts"]["moderate"]["gt"] == 43
+    assert metrics["counts"]["hard"]["gt"] == 47
+
+
+def test_other_classes_do_not_absorb_detections():
+    cars = row_of_cars(45)
+    trucks = row_of_cars(5) + [0, 20.0, 0, 0, 0, 0, 0]
+    gt = BoxTable.concat([table(cars), table(trucks, label="Truck")])
+    pred = table(np.r_[cars, trucks], score=np.r_[np.full(45, 0.5), np.full(5, 0.9)])
+    counts = evaluate(pred, gt)["Car"]["counts"]["all"]["bev"]
+    assert counts == {"tp": 45, "fp": 5, "fn": 0}
+    # the same boxes labelled Van are ignored instead: no false positives
+    gt_van = BoxTable.concat([table(cars), table(trucks, label="Van")])
+    assert evaluate(pred, gt_van)["Car"]["counts"]["all"]["bev"] == {"tp": 45, "fp": 0, "fn": 0}
+
+
+def test_range_bands_separate_by_distance():
+    near = row_of_cars(1)  # one car at x = 5 in each of 45 frames
+    far = near + [40.0, 0, 0, 0, 0, 0, 0]  # at about 45 m
+    gt = BoxTable.concat(
+        [table(near, frame=f"{k:03d}") for k in range(45)] + [table(far, frame="far")]
+    )
+    pred = BoxTable.concat(
+        [table(near, frame=f"{k:03d}") for k in range(45)]
+        + [table(far + [0, 3.0, 0, 0, 0, 0, 0], frame="far", score=[0.99])]  # misses the far car
+    )
+    metrics = evaluate(pred, gt)["Car"]
+    assert metrics["counts"]["0-30"] == {
+        "gt": 45,
+        "gt_ignored": 1,
+        "pred": 45,
+        "bev": {"tp": 45, "fp": 0, "fn": 0},
+        "3d": {"tp": 45, "fp": 0, "fn": 0},
+    }
+    assert metrics["bev"]["0-30"] == pytest.approx(100.0)
+    assert metrics["counts"]["30-50"]["bev"] == {"tp": 0, "fp": 1, "fn": 1}
+    assert metrics["bev"]["50-80"] is None  # no ground truth in the band
+    assert metrics["counts"]["all"]["bev"] == {"tp": 45, "fp": 1, "fn": 1}
+
+
+def test_st3d_protocol_filters_the_field_of_view():
+    x, y = np.meshgrid(12.0 + 6 * np.arange(9), [-8.0, -4.0, 0.0, 4.0, 8.0])
+    front = np.c_[x.ravel(), y.ravel(), np.full(45, -0.9), np.tile(CAR, (45, 1)), np.zeros(45)]
+    behind = front[:5] * [-1, 1, 1, 1, 1, 1, 1]
+    gt = BoxTable.concat([table(front), table(behind)])
+    pred = table(np.r_[front, behind], score=np.r_[np.full(45, 0.5), np.full(5, 0.9)])
+    metrics = evaluate(pred, gt, protocol="st3d")["Car"]
+    assert metrics["bev"]["easy"] == metrics["bev"]["moderate"] == metrics["bev"]["hard"]
+    assert metrics["counts"]["easy"]["gt"] == 45
+    assert metrics["counts"]["easy"]["bev"] == {"tp": 45, "fp": 5, "fn": 0}
+
+
+def test_min_gt_points_ignores_instead_of_dropping():
+    cars = row_of_cars(45)
+    points = np.r_[np.full(40, 50), np.full(5, 2)]
+    gt = table(cars, num_points=points)
+    pred = table(cars[:40], score=np.full(40, 0.5))  # the 5 sparse cars are not detected
+    strict = evaluate(pred, gt, min_gt_points=5)["Car"]
+    assert strict["counts"]["all"]["gt"] == 40 and strict["counts"]["all"]["gt_ignored"] == 5
+    assert strict["bev"]["all"] == pytest.approx(100.0 * 39 / 40)
+    # a detection of a sparse car is not a false positive either
+    found = evaluate(table(cars, score=np.full(45, 0.5)), gt, min_gt_points=5)["Car"]
+    assert found["counts"]["all"]["bev"] == {"tp": 40, "fp": 0, "fn": 0}
+    with pytest.raises(EvaluationError):
+        evaluate(pred, table(cars), min_gt_points=5)  # no point counts at all
+
+
+# ---------------------------------------------------------------------------------------------
+# Random scenes against an independent port of OpenPCDet's eval loop
+
+
+def reference_flags(gt_rows: BoxTable, pred_rows: BoxTable, level: int):
+    """clean_data of kitti_object_eval_python for class Car."""
+    min_height, max_occ, max_trunc = (40, 25, 25)[level], (0, 1, 2)[level], (0.15, 0.3, 0.5)[level]
+    ignored_gt = []
+    for k in range(len(gt_rows)):
+        name = str(gt_rows["label"][k]).lower()
+        valid = 1 if name == "car" else 0 if name == "van" else -1
+        height = gt_rows["bbox_bottom"][k] - gt_rows["bbox_top"][k]
+        ignore = (
+            gt_rows["occluded"][k] > max_occ
+            or gt_rows["truncated"][k] > max_trunc
+            or height <= min_height
+        )
+        ignored_gt.append(
+            0 if valid == 1 and not ignore else 1 if valid == 0 or (ignore and valid == 1) else -1
+        )
+    ignored_dt = []
+    for k in range(len(pred_rows)):
+        height = abs(pred_rows["bbox_bottom"][k] - pred_rows["bbox_top"][k])
+        same = str(pred_rows["label"][k]).lower() == "car"
+        ignored_dt.append(1 if height < min_height else 0 if same else -1)
+    return ignored_gt, ignored_dt
+
+
+def reference_statistics(overlaps, scores, ignored_gt, ignored_dt, min_overlap, thresh, compute_fp):
+    no_detection = -10000000
+    assigned = [False] * len(scores)
+    below = [compute_fp and s < thresh for s in scores]
+    tp = fp = fn = 0
+    thresholds = []
+    for i in range(len(ignored_gt)):
+        if ignored_gt[i] == -1:
+            continue
+        det, valid, max_overlap, took_ignored = -1, no_detection, 0, False
+        for j in range(len(scores)):
+            if ignored_dt[j] == -1 or assigned[j] or below[j]:
+                continue
+            overlap = overlaps[j, i]
+            if not compute_fp and overlap > min_overlap and scores[j] > valid:
+                det, valid = j, scores[j]
+            elif (
+                compute_fp
+                and overlap > min_overlap
+                and (overlap > max_overlap or took_ignored)
+                and ignored_dt[j] == 0
+            ):
+                max_overlap, det, valid, took_ignored = overlap, j, 1, False
+            elif (
+                compute_fp
+                and overlap > min_overlap
+                and valid == no_detection
+                and ignored_dt[j] == 1
+            ):
+                det, valid, took_ignored = j, 1, True
+        if valid == no_detection and ignored_gt[i] == 0:
+            fn += 1
+        elif valid != no_detection and (ignored_gt[i] == 1 or ignored_dt[det] == 1):
+            assigned[det] = True
+        elif valid != no_detection:
+            tp += 1
+            thresholds.append(scores[det])
+            assigned[det] = True
+    if compute_fp:
+        fp = sum(
+            1
+            for j in range(len(scores))
+            if not (assigned[j] or ignored_dt[j] == -1 or ignored_dt[j] == 1 or below[j])
+        )
+    return tp, fp, fn, thresholds
+
+
+def reference_thresholds(scores, num_gt):
+    scores = sorted(scores, reverse=True)
+    current, chosen = 0.0, []
+    for i, score in enumerate(scores):
+        left = (i + 1) / num_gt
+        right = (i + 2) / num_gt if i < len(scores) - 1 else left
+        if (right - current) < (current - left) and i < len(scores) - 1:
+            continue
+        chosen.append(score)
+        current += 1 / 40.0
+    return chosen
+
+
+def reference_ap(frames, overlap_fn, level, min_overlap):
+    prepared = []
+    num_gt = 0
+    tp_scores = []
+    for gt_rows, pred_rows in frames:
+        ignored_gt, ignored_dt = reference_flags(gt_rows, pred_rows, level)
+        overlaps = overlap_fn(pred_rows.boxes, gt_rows.boxes)
+        scores = [float(s) for s in pred_rows["score"]]
+        num_gt += sum(1 for v in ignored_gt if v == 0)
+        tp_scores += reference_statistics(
+            overlaps, scores, ignored_gt, ignored_dt, min_overlap, 0.0, False
+        )[3]
+        prepared.append((overlaps, scores, ignored_gt, ignored_dt))
+    thresholds = reference_thresholds(tp_scores, num_gt)
+    precision = np.zeros(41)
+    for k, thresh in enumerate(thresholds):
+        tp = fp = fn = 0
+        for overlaps, scores, ignored_gt, ignored_dt in prepared:
+            a, b, c, _ = reference_statistics(
+                overlaps, scores, ignored_gt, ignored_dt, min_overlap, thresh, True
+            )
+            tp, fp, fn = tp + a, fp + b, fn + c
+        precision[k] = tp / (tp + fp)
+    precision = np.array([precision[k:].max() for k in range(41)])
+    return precision[1:].sum() / 40 * 100, precision[::4].sum() / 11 * 100
+
+
+def random_scene(seed: int, frames: int = 25, crowded: bool = False):
+    rng = np.random.default_rng(seed)
+    gt_tables, pred_tables = [], []
+    for index in range(frames):
+        frame = f"{index:04d}"
+        count = int(rng.integers(0, 9))
+        centre = rng.uniform([2, -20], [60, 20], (count, 2))
+        if crowded and count > 1:  # pile objects up so that one detection can hit two labels
+            centre[1:] = centre[0] + rng.normal(0, 1.2, (count - 1, 2))
+        boxes = np.c_[
+            centre,
+            rng.uniform(-1.2, -0.6, count),
+            rng.normal(CAR, 0.2, (count, 3)),
+            rng.uniform(-3.1, 3.1, count),
+        ]
+        labels = rng.choice(["Car", "Car", "Car", "Car", "Van", "Pedestrian", "DontCare"], count)
+        extra = {
+            "truncated": rng.uniform(0, 0.6, count).astype(np.float32),
+            "occluded": rng.integers(0, 4, count).astype(np.int32),
+            "alpha": np.zeros(count),
+            "bbox_left": np.zeros(count, np.float32),
+            "bbox_top": np.full(count, 100.0, np.float32),
+            "bbox_right": np.full(count, 50.0, np.float32),
+            "bbox_bottom": (100 + rng.choice([20.0, 25.0, 30.0, 40.0, 60.0, 120.0], count)).astype(
+                np.float32
+            ),
+        }
+        gt_tables.append(BoxTable.from_arrays([frame] * count, boxes, label=labels, **extra))
+        detected = rng.uniform(size=count) < 0.8
+        jitter = np.c_[
+            rng.normal(0, 0.25, (count, 3)),
+            rng.normal(0, 0.15, (count, 3)),
+            rng.normal(0, 0.1, count),
+        ]
+        found = (boxes + jitter)[detected]
+        spurious = int(rng.integers(0, 4))
+        fake = np.c_[
+            rng.uniform([2, -20], [60, 20], (spurious, 2)),
+            np.full(spurious, -0.9),
+            np.tile(CAR, (spurious, 1)),
+            rng.uniform(-3, 3, spurious),
+        ]
+        pred = np.r_[found, fake]
+        n = len(pred)
+        scores = np.round(rng.uniform(0.1, 1.0, n), 2)  # rounded: ties happen
+        pred_labels = rng.choice(["Car"] * 9 + ["Pedestrian"], n)
+        heights = rng.choice([20.0, 30.0, 45.0, 80.0], n).astype(np.float32)
+        pred_extra = {
+            "bbox_top": np.full(n, 10.0, np.float32),
+            "bbox_bottom": 10 + heights,
+        }
+        pred_tables.append(
+            BoxTable.from_arrays([frame] * n, pred, score=scores, label=pred_labels, **pred_extra)
+        )
+    return gt_tables, pred_tables
+
+
+@pytest.mark.parametrize(
+    "seed, iou, crowded", [(0, 0.7, False), (1, 0.5, False), (2, 0.3, True), (3, 0.1, True)]
+)
+def test_matches_reference_loop_on_random_scenes(seed, iou, crowded):
+    gt_tables, pred_tables = random_scene(seed, crowded=crowded)
+    gt, pred = BoxTable.concat(gt_tables), BoxTable.concat(pred_tables)
+    for positions, column in ((40, 0), (11, 1)):
+        metrics = evaluate(pred, gt, iou=iou, protocol="kitti", recall_positions=positions)["Car"]
+        for metric, overlap_fn in (("bev", geometry.bev_iou), ("3d", geometry.iou_3d)):
+            for level, name in enumerate(("easy", "moderate", "hard")):
+                expected = reference_ap(
+                    list(zip(gt_tables, pred_tables, strict=True)), overlap_fn, level, iou
+                )
+                assert metrics[metric][name] == pytest.approx(expected[column], abs=1e-9), (
+                    metric,
+                    name,
+                )
+
+
+def test_vectorized_path_handles_a_shared_detection():
+    # one wide detection overlapping two labels above IoU 0.3: the greedy label order decides
+    gt = np.array([[10.0, 0, 0, 4.0, 2.0, 1.5, 0.0], [10.0, 1.6, 0, 4.0, 2.0, 1.5, 0.0]])
+    pred = np.array([[10.0, 0.8, 0, 4.0, 3.0, 1.5, 0.0]])
+    assert (geometry.bev_iou(pred, gt) > 0.3).all()
+    counts = evaluate(table(pred), table(gt), iou=0.3)["Car"]["counts"]["all"]["bev"]
+    assert counts == {"tp": 1, "fp": 0, "fn": 1}
+
+
+# ---------------------------------------------------------------------------------------------
+# label_2 files and the command line
+
+
+def test_label_files_round_trip_and_evaluate_identically(tmp_path):
+    gt_tables, pred_tables = random_scene(5, frames=30)
+    gt, pred = BoxTable.concat(gt_tables), BoxTable.concat(pred_tables)
+    frames = [f"{k:04d}" for k in range(30)]
+    write_label_dir(tmp_path / "gt", gt, frame_ids=frames, with_score=False)
+    write_label_dir(tmp_path / "pred", pred, frame_ids=frames)
+    assert len(list((tmp_path / "gt").glob("*.txt"))) == 30
+    gt_back, pred_back = read_label_dir(tmp_path / "gt"), read_label_dir(tmp_path / "pred")
+    assert len(gt_back) == len(gt) and len(pred_back) == len(pred)
+    cars = gt["label"] != "DontCare"
+    order = np.lexsort((np.arange(len(gt)), gt.frame_id.astype(str)))
+    np.testing.assert_allclose(
+        gt_back.boxes[cars[order]][:, :6], gt.boxes[order][cars[order]][:, :6], atol=2e-6
+    )
+    yaw_error = geometry.normalize_yaw(gt_back.boxes[:, 6] - gt.boxes[order][:, 6])
+    assert np.abs(yaw_error[cars[order]]).max() < 2e-6
+    np.testing.assert_array_equal(
+        pred_back["score"],
+        pred["score"][np.lexsort((np.arange(len(pred)), pred.frame_id.astype(str)))],
+    )
+    direct = evaluate(pred, gt, protocol="kitti")
+    via_files = evaluate(pred_back, gt_back, protocol="kitti", frame_ids=frames)
+    for metric in ("bev", "3d"):
+        for name in ("easy", "moderate", "hard"):
+            assert via_files["Car"][metric][name] == pytest.approx(
+                direct["Car"][metric][name], abs=1e-9
+            )
+    assert via_files["Car"]["counts"] == direct["Car"]["counts"]
+
+
+def test_label_file_errors_name_the_line(tmp_path):
+    path = tmp_path / "000001.txt"
+    path.write_text(
+        "Car 0 0 0 0 0 50 50 1.5 1.6 3.9 1 1 10 0\nCar 0 0 0 0 0 50 x 1.5 1.6 3.9 1 1 10 0\n"
+    )
+    with pytest.raises(Exception, match=r"000001.txt:2: field 8"):
+        read_label_file(path)
+    path.write_text("Car 0 0 0 0 0 50 50 1.5 1.6\n")
+    with pytest.raises(Exception, match=r"000001.txt:1: expected 15 or 16 fields"):
+        read_label_file(path)
+
+
+def test_pseudo_lidar_conversion_preserves_iou():
+    rng = np.random.default_rng(7)
+    a = np.c_[rng.uniform(-10, 10, (200, 3)), rng.uniform(1, 5, (200, 3)), rng.uniform(-3, 3, 200)]
+    b = a + np.c_[rng.normal(0, 0.5, (200, 3)), np.zeros((200, 3)), rng.normal(0, 0.2, 200)]
+    from dali_cli.kitti_label import camera_to_pseudo_lidar, pseudo_lidar_to_camera
+
+    def converted(boxes):
+        # read the LiDAR boxes as if they were camera labels: another rigid frame
+        hwl, location, ry = pseudo_lidar_to_camera(boxes)
+        return camera_to_pseudo_lidar(hwl, location, ry)
+
+    np.testing.assert_allclose(converted(a)[:, :6], a[:, :6], atol=1e-12)
+    swapped = np.c_[a[:, [1, 2, 0]], a[:, 3:6], a[:, 6]]  # permute axes: a different rigid frame
+    hwl = swapped[:, [5, 4, 3]]
+    camera = camera_to_pseudo_lidar(hwl, swapped[:, :3], swapped[:, 6])
+    camera_b = camera_to_pseudo_lidar(b[:, [5, 4, 3]], b[:, [1, 2, 0]], b[:, 6])
+    assert np.isfinite(camera).all() and np.isfinite(camera_b).all()
+    np.testing.assert_allclose(
+        geometry.iou_3d_pairs(converted(a), converted(b)), geometry.iou_3d_pairs(a, b), atol=1e-12
+    )
+
+
+def write_dataset(directory, cars, sensor="kitti"):
+    directory.mkdir(parents=True, exist_ok=True)
+    frames = [(f"{k:03d}", np.zeros((3, 4), np.float32)) for k in range(len(cars))]
+    write_frameset(directory, frames, sensor=sensor)
+    write_boxes(
+        directory, BoxTable.concat([table(box, frame=f"{k:03d}") for k, box in enumerate(cars)])
+    )
+
+
+def test_cli_tables_labels_and_errors(tmp_path):
+    cars = row_of_cars(40)  # 30 of 40 found, precision 1: R40 = 29 / 40 (entry 0 is not used)
+    (tmp_path / "gt").mkdir()
+    (tmp_path / "pred").mkdir()
+    write_boxes(tmp_path / "gt", table(cars))
+    write_boxes(tmp_path / "pred", table(cars[:30], score=np.linspace(0.9, 0.2, 30)))
+    write_label_dir(tmp_path / "gt_labels", table(cars), with_score=False)
+    write_label_dir(tmp_path / "pred_labels", table(cars[:30], score=np.linspace(0.9, 0.2, 30)))
+    runner = CliRunner()
+    out = tmp_path / "metrics.json"
+    result = runner.invoke(
+        main,
+        ["eval", "--pred", str(tmp_path / "pred"), "--gt", str(tmp_path / "gt"), "--out", str(out)],
+    )
+    assert result.exit_code == 0, result.output
+    assert "AP_BEV" in result.output and "0-30" in result.output
+    metrics = json.loads(out.read_text())
+    assert metrics["Car"]["iou"] == 0.7 and metrics["Car"]["recall_positions"] == 40
+    assert metrics["Car"]["bev"]["all"] == pytest.approx(100 * 29 / 40)
+    from_labels = runner.invoke(
+        main,
+        [
+            "eval",
+            "--pred",
+            str(tmp_path / "pred_labels"),
+            "--gt",
+            str(tmp_path / "gt_labels"),
+            "--protocol",
+            "range",
+            "--out",
+            str(tmp_path / "m2.json"),
+        ],
+    )
+    assert from_labels.exit_code == 0, from_labels.output
+    assert json.loads((tmp_path / "m2.json").read_text())["Car"]["bev"] == metrics["Car"]["bev"]
+    # bad input: a usage error (2) for a wrong directory, no output file written
+    bad = runner.invoke(
+        main,
+        [
+            "eval",
+            "--pred",
+            str(tmp_path),
+            "--gt",
+            str(tmp_path / "gt"),
+            "--out",
+            str(tmp_path / "bad.json"),
+        ],
+    )
+    assert bad.exit_code == 2 and "--pred" in bad.output
+    assert not (tmp_path / "bad.json").exists()
+    assert runner.invoke(main, ["eval", "--gt", str(tmp_path / "gt")]).exit_code == 2
+    # kitti protocol on labels without KITTI fields: a clear failure (1)
+    no_kitti = runner.invoke(
+        main,
+        [
+            "eval",
+            "--pred",
+            str(tmp_path / "pred"),
+            "--gt",
+            str(tmp_path / "gt"),
+            "--protocol",
+            "kitti",
+        ],
+    )
+    assert no_kitti.exit_code == 1 and "KITTI columns" in no_kitti.output
+
+
+def test_cli_model_inference_uses_the_ptsn_scale(tmp_path, monkeypatch):
+    cars = [row_of_cars(1) + [0, k, 0, 0, 0, 0, 0] for k in range(45)]
+    write_dataset(tmp_path / "data", cars)
+    (tmp_path / "ptsn").mkdir()
+    (tmp_path / "ptsn" / "scale.json").write_text(json.dumps({"scale": 0.85}))
+    seen = {}
+
+    def predict_frameset(model_dir, data_dir, scale=1.0, score_min=0.0, progress=True):
+        seen.update(model=str(model_dir), scale=scale)
+        return BoxTable.concat(
+            [table(box, frame=f"{k:03d}", score=[0.8]) for k, box in enumerate(cars)]
+        )
+
+    fake = types.ModuleType("dali_cli.detector")
+    fake.predict_frameset = predict_frameset
+    monkeypatch.setitem(sys.modules, "dali_cli.detector", fake)
+    (tmp_path / "model").mkdir()
+    runner = CliRunner()
+    args = ["eval", "--model", str(tmp_path / "model"), "--data", str(tmp_path / "data")]
+    result = runner.invoke(
+        main, [*args, "--scale-from", str(tmp_path / "ptsn"), "--out", str(tmp_path / "m.json")]
+    )
+    assert result.exit_code == 0, result.output
+    assert seen["scale"] == 0.85
+    metrics = json.loads((tmp_path / "m.json").read_text())["Car"]
+    assert metrics["bev"]["all"] == pytest.approx(100.0) and metrics["source"]["scale"] == 0.85
+    assert (
+        runner.invoke(
+            main, [*args, "--scale", "1.1", "--scale-from", str(tmp_path / "ptsn")]
+        ).exit_code
+        == 2
+    )
+    (tmp_path / "ptsn" / "scale.json").write_text("{}")
+    broken = runner.invoke(main, [*args, "--scale-from", str(tmp_path / "ptsn")])
+    assert broken.exit_code == 1 and "scale" in broken.output
+    monkeypatch.setitem(sys.modules, "dali_cli.detector", None)  # import fails
+    missing = runner.invoke(main, args)
+    assert missing.exit_code == 1 and "detector is not available" in missing.output
+
+
+def test_format_table_lists_every_band():
+    cars = row_of_cars(45)
+    text = format_table(evaluate(table(cars), table(cars)))
+    assert all(band in text for band in ("all", "0-30", "30-50", "50-80"))
+    assert math.isclose(float(text.splitlines()[2].split()[1]), 100.0)
