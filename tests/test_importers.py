@@ -451,6 +451,16 @@ def test_nuscenes_json_tables_match_lidar_frame_boxes(tmp_path):
     assert (read_boxes(out2)["label"].astype(str) == "Car").sum() == sum(
         r["category"] == "pedestrian" for r in rows
     )
+    # scene selection by name
+    out3 = tmp_path / "nus_scene"
+    result = invoke(
+        "import", "nuscenes", tmp_path / "nuscenes", "--scenes", "scene-0001", "--out", out3
+    )
+    assert result.exit_code == 0 and len(FrameSet(out3)) == 1
+    result = invoke(
+        "import", "nuscenes", tmp_path / "nuscenes", "--scenes", "scene-9999", "--out", out3 / "x"
+    )
+    assert result.exit_code == 1 and "scene-9999" in result.output
 
 
 @needs_fixtures
