@@ -4,9 +4,10 @@ Camera-frame labels (rectified camera: x right, y down, z forward; `h w l`, bott
 rotation_y about camera y) become dali boxes (LiDAR frame, geometric centre, yaw CCW from +x)
 through the frame's calib: centre_rect = location - (0, h/2, 0), centre_lidar =
 (R0_rect · Tr_velo_to_cam)^-1 · centre_rect. The heading is carried as a direction vector through
-the same rotation, so the small yaw offset between velodyne and camera (about 0.4 degrees) is kept,
-rather than the usual approximation yaw = -rotation_y - pi/2. `lidar_boxes_to_camera` is the exact
-inverse (up to the camera tilt, below 1e-4 rad on KITTI).
+the same rotation rather than by the usual yaw = -rotation_y - pi/2, which assumes the velodyne and
+rectified camera axes are exactly aligned (on KITTI the two agree to about 1e-4 rad; the vector
+form stays right for any calib). `lidar_boxes_to_camera` is the inverse, up to the heading's
+component along the camera tilt (about 1e-4 rad on KITTI).
 """
 
 from __future__ import annotations
@@ -381,11 +382,10 @@ def objects_to_lidar_columns(objects: CameraObjects, calib: Calibration) -> tupl
 
 
 def load_frame(layout: KittiLayout, frame_id: str, crop_fov: bool = False):
-    """One frame: points `(n, 4)` float32 and a BoxTable (empty when the frame has no label file).
+    """One frame: points `(n, 4)` float32 and its BoxTable, or None when it has no label file.
 
     The calib file is required when the frame has labels or `crop_fov` is set.
     """
-
     points = read_velodyne(layout.velodyne_dir / f"{frame_id}.bin")
     label_path = layout.label_dir / f"{frame_id}.txt"
     has_labels = label_path.is_file()
