@@ -89,9 +89,12 @@ def _frame_pairs(pred: _Boxes, gt: _Boxes, num_frames: int) -> tuple[np.ndarray,
     pred_index = np.repeat(np.arange(len(pred.frame)), per_pred)
     run_start = np.repeat(np.cumsum(per_pred) - per_pred, per_pred)
     gt_index = gt_start[pred.frame[pred_index]] + np.arange(len(pred_index)) - run_start
-    a, b = pred.boxes[pred_index], gt.boxes[gt_index]
-    reach = 0.5 * (np.hypot(a[:, 3], a[:, 4]) + np.hypot(b[:, 3], b[:, 4]))
-    near = np.hypot(a[:, 0] - b[:, 0], a[:, 1] - b[:, 1]) <= reach * (1 + 1e-9) + 1e-9
+    pred_radius = 0.5 * np.hypot(pred.boxes[:, 3], pred.boxes[:, 4])  # bounding circles
+    gt_radius = 0.5 * np.hypot(gt.boxes[:, 3], gt.boxes[:, 4])
+    reach = pred_radius[pred_index] + gt_radius[gt_index]
+    dx = pred.boxes[:, 0][pred_index] - gt.boxes[:, 0][gt_index]
+    dy = pred.boxes[:, 1][pred_index] - gt.boxes[:, 1][gt_index]
+    near = dx * dx + dy * dy <= (reach * (1 + 1e-9) + 1e-9) ** 2
     return pred_index[near], gt_index[near]
 
 
