@@ -21,7 +21,6 @@ import threading
 from collections import OrderedDict
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -38,23 +37,44 @@ def available_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-@dataclass
 class RayHits:
     """First hits of N rays.
 
     hit: `(N,)` bool. distance: `(N,)` float64 ray parameter t of the hit (metres for unit
-    directions), inf on a miss. points: `(N, 3)` float32 hit points o + t d (computed in float64),
-    NaN on a miss. geometry_id / primitive_id: `(N,)` int32 mesh index in the scene / triangle
-    index in that mesh, -1 on a miss. normals: `(N, 3)` float32 unit geometric normals of the hit
-    triangles in the ray frame (sign: as the triangle winds), zero on a miss.
+    directions), inf on a miss. points: `(N, 3)` float32 hit points o + t d, NaN on a miss.
+    geometry_id / primitive_id: `(N,)` int32 mesh index in the scene / triangle index in that
+    mesh, -1 on a miss. normals: `(N, 3)` float32 unit geometric normals of the hit triangles in
+    the ray frame (sign: as the triangle winds), zero on a miss; computed on first access.
     """
 
-    hit: np.ndarray
-    distance: np.ndarray
-    points: np.ndarray
-    geometry_id: np.ndarray
-    primitive_id: np.ndarray
-    normals: np.ndarray
+    def __init__(
+        self,
+        hit: np.ndarray,
+        distance: np.ndarray,
+        points: np.ndarray,
+        geometry_id: np.ndarray,
+        primitive_id: np.ndarray,
+        normals: np.ndarray | None = None,
+        raw_normals: np.ndarray | None = None,
+    ):
+        self.hit = hit
+        self.distance = distance
+        self.points = points
+        self.geometry_id = geometry_id
+        self.primitive_id = primitive_id
+        self._normals = normals
+        self._raw_normals = raw_normals  # (N, 3) unnormalized, any value on a miss
+
+    @property
+    def normals(self) -> np.ndarray:
+        if self._normals is None:
+            raw = np.asarray(self._raw_normals, np.float32)
+            squared = np.einsum("ij,ij->i", raw, raw)
+            scale = np.zeros(len(raw), np.float32)
+            good = self.hit & (squared > 0)
+            scale[good] = 1.0 / np.sqrt(squared[good])
+            self._normals = raw * scale[:, None]
+        return self._normals
 
     def __len__(self) -> int:
         return len(self.hit)
@@ -73,10 +93,8 @@ class RayHits:
     def cosine_incidence(self, directions: np.ndarray) -> np.ndarray:
         """|cos| of the angle between each ray and the hit surface normal, `(N,)` float32 (0 on miss)."""
         directions = np.asarray(directions, dtype=np.float32)
-        lengths = np.linalg.norm(directions, axis=-1)
-        cosine = np.abs(
-            np.einsum("ij,ij->i", self.normals, np.broadcast_to(directions, self.normals.shape))
-        )
+        lengths = np.sqrt(np.einsum("ij,ij->i", directions, directions))
+        cosine = np.abs(np.einsum("ij,ij->i", self.normals, directions))
         return np.where(lengths > 0, cosine / np.maximum(lengths, 1e-30), 0.0).astype(np.float32)
 
 
@@ -280,15 +298,22 @@ def _cast_prepared(
     return distance, np.where(hit, geometry, -1), np.where(hit, primitive, -1), normals
 
 
+_zeros = np.zeros((0, 3), np.float32)
+
+
+def _zero_origins(count: int) -> np.ndarray:
+    """A read-only `(count, 3)` float32 zero array (Embree never writes origins), reused."""
+    global _zeros
+    if len(_zeros) < count:
+        _zeros = np.zeros((max(count, 2 * len(_zeros)), 3), np.float32)
+        _zeros.flags.writeable = False
+    return _zeros[:count]
+
+
 def _apply(matrix: np.ndarray, vectors: np.ndarray) -> np.ndarray:
     """`matrix (3, 3) @ v` for each row of `vectors (N, 3)`. einsum, not `@`: a BLAS call with an
     inner size of 3 is slow and spawns threads that fight over a loaded CPU."""
     return np.einsum("kj,ij->ik", matrix, vectors)
-
-
-def _unit(vectors: np.ndarray) -> np.ndarray:
-    norms = np.linalg.norm(vectors, axis=-1, keepdims=True)
-    return (vectors / np.where(norms > 0, norms, 1.0)).astype(np.float32)
 
 
 def cast(
@@ -303,28 +328,55 @@ def cast(
     origins: `(N, 3)` or `(3,)` float; directions: `(N, 3)` float (need not be unit; distances are
     in units of |d|). max_distance: scalar or `(N,)` limit on t (hits beyond are misses).
     threads: worker threads for large batches (default: cores available).
+    Float32 C-contiguous directions are passed to Embree without a copy; hit points are
+    computed in float64 from the original origins and directions.
     """
-    origins, directions = _rays(origins, directions)
-    count = len(directions)
+    directions32 = np.ascontiguousarray(directions, dtype=np.float32)
+    if directions32.ndim != 2 or directions32.shape[1] != 3:
+        raise ValueError(f"directions must be (N, 3), got {directions32.shape}")
+    count = len(directions32)
+    origins64 = np.asarray(origins, np.float64)
+    shared = origins64.shape == (3,)
+    if not shared and origins64.shape != directions32.shape:
+        raise ValueError(
+            f"origins {origins64.shape} and directions {directions32.shape} differ in shape"
+        )
+    if not (np.isfinite(origins64).all() and np.isfinite(directions32).all()):
+        raise ValueError("origins/directions contain NaN/inf")
     if count == 0:
         return RayHits.misses(0)
-    limit = np.broadcast_to(
-        np.inf if max_distance is None else np.asarray(max_distance, np.float64), (count,)
+    if shared and not origins64.any():
+        origins32 = _zero_origins(count)
+    elif shared:
+        origins32 = np.empty((count, 3), np.float32)
+        origins32[:] = origins64.astype(np.float32)
+    else:
+        origins32 = np.ascontiguousarray(origins64, dtype=np.float32)
+    if max_distance is None:
+        tfar = np.full(count, _FAR, np.float32)
+    else:
+        limit = np.broadcast_to(np.asarray(max_distance, np.float64), (count,))
+        tfar = np.where(np.isfinite(limit), limit, _FAR).astype(np.float32)
+    empty = tfar <= 0
+    tfar[empty] = np.float32(1e-30)
+    local, geometry, primitive, normals = _trace_chunked(
+        bvh, origins32, directions32, tfar, threads
     )
-    distance, geometry, primitive, normals = _cast_prepared(
-        bvh, origins, directions, 0.0, limit, threads
-    )
-    hit = geometry >= 0
-    points = np.where(
-        hit[:, None], origins + np.where(hit, distance, 0.0)[:, None] * directions, np.nan
-    )
+    hit = (geometry >= 0) & ~empty
+    distance = np.where(hit, local, np.inf).astype(np.float64)
+    if shared and not origins64.any():
+        # from the origin, float32 t * d is exact to float32 rounding of the point itself
+        points = directions32 * np.where(hit, local, np.float32(np.nan))[:, None]
+    else:
+        step = np.where(hit, distance, np.nan)[:, None] * np.asarray(directions, np.float64)
+        points = (step + origins64).astype(np.float32)
     return RayHits(
         hit=hit,
         distance=distance,
-        points=points.astype(np.float32),
-        geometry_id=geometry.astype(np.int32),
-        primitive_id=primitive.astype(np.int32),
-        normals=np.where(hit[:, None], _unit(normals), 0.0).astype(np.float32),
+        points=points,
+        geometry_id=np.where(hit, geometry, -1).astype(np.int32),
+        primitive_id=np.where(hit, primitive, -1).astype(np.int32),
+        raw_normals=normals,
     )
 
 
@@ -398,7 +450,7 @@ def cast_transformed(
         points=np.where(hit[:, None], points, np.nan).astype(np.float32),
         geometry_id=geometry.astype(np.int32),
         primitive_id=primitive.astype(np.int32),
-        normals=np.where(hit[:, None], _unit(world_normals), 0.0).astype(np.float32),
+        raw_normals=world_normals,
     )
 
 
