@@ -1,1 +1,219 @@
-"""Stage: pretrain (library call + artifact I/O). Filled in by its issue."""
+"""Stage: pretrain — train the detector on a labeled source frame set (optionally with SN or ROS)
+and write a checkpoint directory (model.pt, model.json, train_log.parquet, manifest.json).
+
+Also holds the pieces retrain shares: resume handling, checkpoint metadata, the training log."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import click
+import numpy as np
+
+from dali_cli.manifest import BuildResult, StageOutcome, content_hash, run_stage
+
+SIZE_NORMS = ("none", "sn", "ros")
+
+
+def resume_path_for(out: Path) -> Path:
+    """Where an interrupted training run keeps its state: beside the output, stable across runs."""
+    return out.parent / f"{out.name}.resume" / "state.pt"
+
+
+def resume_key(inputs: dict, params: dict) -> str:
+    """A run may resume only from a state written with the same inputs and parameters."""
+    hashes = {
+        name: [content_hash(p) for p in (value if isinstance(value, list | tuple) else [value])]
+        for name, value in inputs.items()
+        if value is not None
+    }
+    document = json.dumps({"inputs": hashes, "params": params}, sort_keys=True, default=str)
+    return hashlib.blake2b(document.encode(), digest_size=16).hexdigest()
+
+
+def write_train_log(directory: Path, rows: list[dict]) -> None:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    pq.write_table(pa.Table.from_pylist(rows), directory / "train_log.parquet")
+
+
+def training_summary(result, settings) -> dict:
+    tail = result.log[-5:]
+    return {
+        "steps": result.steps,
+        "frames": result.frames,
+        "seconds": round(result.seconds, 1),
+        "frames_per_s": round(result.frames / max(result.seconds, 1e-9), 2),
+        "resumed_from_step": result.resumed_from_step,
+        "final_loss": float(np.mean([r["loss"] for r in tail])) if tail else None,
+        "settings": asdict(settings),
+    }
+
+
+def run_training_stage(
+    stage: str,
+    out: Path,
+    inputs: dict,
+    params: dict,
+    train_fn,
+    force: bool,
+    dry_run: bool,
+    seed: int,
+) -> StageOutcome:
+    """run_stage around `train_fn(tmp_dir, resume_path, resume_key) -> BuildResult`, then drop
+    the resume state once the checkpoint is in place."""
+    resume = resume_path_for(out)
+
+    def build(tmp: Path) -> BuildResult:
+        key = resume_key(inputs, params)
+        return train_fn(tmp, resume, key)
+
+    outcome = run_stage(stage, out, inputs, params, build, force=force, dry_run=dry_run, seed=seed)
+    if outcome.status == "ran":
+        shutil.rmtree(resume.parent, ignore_errors=True)
+    return outcome
+
+
+def run_pretrain(
+    source: str | Path,
+    out: str | Path,
+    *,
+    boxes: str | Path | None = None,
+    size_norm: str = "none",
+    target_profile: str | None = None,
+    target_size: tuple[float, float, float] | None = None,
+    ros_range: tuple[float, float] = (0.75, 1.0),
+    epochs: float = 10.0,
+    minutes: float | None = None,
+    seed: int = 0,
+    batch_size: int = 2,
+    lr: float = 3e-3,
+    features: str = "xyz",
+    precision: str = "fp32",
+    threads: int | None = None,
+    augment: bool = True,
+    labels: tuple[str, ...] = ("Car",),
+    config_overrides: dict | None = None,
+    sensors_path: str | Path | None = None,
+    force: bool = False,
+    dry_run: bool = False,
+    progress: bool = True,
+) -> StageOutcome:
+    """Train on `source` (FrameSet + boxes.parquet) and write the checkpoint to `out`."""
+    from dali_cli.sensors import get_profile
+
+    source, out = Path(source), Path(out)
+    if size_norm not in SIZE_NORMS:
+        raise click.UsageError(
+            f"--size-norm must be one of {', '.join(SIZE_NORMS)}, got '{size_norm}'"
+        )
+    if size_norm == "sn" and target_profile is None and target_size is None:
+        raise click.UsageError("--size-norm sn needs --target-profile (or --target-size)")
+    if target_size is None and target_profile is not None and size_norm == "sn":
+        target_size = tuple(get_profile(target_profile, sensors_path).car_mean_lwh_m)
+    params = {
+        "size_norm": size_norm,
+        "target_profile": target_profile,
+        "target_size": list(target_size) if size_norm == "sn" else None,
+        "ros_range": list(ros_range) if size_norm == "ros" else None,
+        "epochs": None if minutes else epochs,
+        "minutes": minutes,
+        "seed": seed,
+        "batch_size": batch_size,
+        "lr": lr,
+        "features": features,
+        "precision": precision,
+        "augment": augment,
+        "labels": list(labels),
+        "config": config_overrides or {},
+    }
+    inputs = {"source": source, "boxes": Path(boxes) if boxes else None}
+
+    def train_fn(tmp: Path, resume: Path, key: str) -> BuildResult:
+        import torch
+
+        from dali_cli.detector import (
+            Augmentation,
+            DetectorConfig,
+            PillarCenterNet,
+            TrainSettings,
+            load_labeled,
+            save_checkpoint,
+            size_normalize,
+            train,
+        )
+        from dali_cli.detector.augment import ObjectDatabase
+
+        started = time.perf_counter()
+        config = DetectorConfig(features=features, **(config_overrides or {}))
+        data = load_labeled(
+            source, config, boxes_dir=boxes, labels=labels, sensors_path=sensors_path
+        )
+        config.sensor, config.mount_height_m = data.sensor, data.mount_height_m
+        if data.num_boxes == 0:
+            raise click.ClickException(
+                f"{boxes or source}: no '{'/'.join(labels)}' boxes with points to train on"
+            )
+        source_mean = data.mean_lwh()
+        delta = None
+        if size_norm == "sn":
+            delta = np.asarray(target_size) - source_mean
+            data = size_normalize(data, delta)
+        data.database = ObjectDatabase.build(data.points, data.boxes) if augment else None
+        augmentation = Augmentation() if augment else Augmentation.none()
+        if size_norm == "ros":
+            augmentation.object_scale = tuple(ros_range)
+        load_s = time.perf_counter() - started
+        torch.manual_seed(seed)
+        net = PillarCenterNet(config)
+        settings = TrainSettings(
+            epochs=epochs, minutes=minutes, batch_size=batch_size, lr=lr, seed=seed,
+            precision=precision, threads=threads,
+        )  # fmt: skip
+        result = train(net, [data], [augmentation], settings, resume, key, progress=progress)
+        meta = {
+            "provenance": {
+                "stage": "pretrain",
+                "source": str(source),
+                "source_hash": content_hash(source),
+                "source_sensor": data.sensor,
+                "size_norm": size_norm,
+                "target_profile": target_profile,
+                "sn_delta_lwh": None if delta is None else delta.tolist(),
+                "ros_range": list(ros_range) if size_norm == "ros" else None,
+                "seed": seed,
+            },
+            "train": training_summary(result, settings),
+            "metrics": {
+                "source_mean_lwh_m": source_mean.tolist(),
+                "trained_mean_lwh_m": data.mean_lwh().tolist(),
+                "frames": len(data),
+                "boxes": data.num_boxes,
+                "database_instances": 0 if data.database is None else len(data.database),
+            },
+        }
+        save_checkpoint(tmp, net, meta)
+        write_train_log(tmp, result.log)
+        notes = [
+            f"detector: pillar-centerpoint-iou (not the paper's SECOND-IoU), size_norm={size_norm}"
+        ]
+        if result.resumed_from_step:
+            notes.append(f"resumed from step {result.resumed_from_step}")
+        return BuildResult(
+            counts={
+                "frames": len(data),
+                "boxes": data.num_boxes,
+                "steps": result.steps,
+                "frames_seen": result.frames,
+            },
+            timings={"load_seconds": round(load_s, 2), "train_seconds": round(result.seconds, 2)},
+            notes=notes,
+        )
+
+    return run_training_stage("pretrain", out, inputs, params, train_fn, force, dry_run, seed)

@@ -1,0 +1,80 @@
+"""The detector's hyper-parameters in one dataclass, saved with every checkpoint (model.json)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+
+
+@dataclass
+class DetectorConfig:
+    """Geometry of the BEV grid, network widths, target and decoding parameters.
+
+    x and y ranges are in the sensor frame, z in the **ground frame** (sensor z + the frames' mount
+    height), metres: the network always sees the ground near z = 0, so sources and targets with
+    different mount heights (Waymo 2.0 m, KITTI 1.73 m) agree. (-1.27, 2.73) is KITTI's -3..1 m in
+    its sensor frame. The BEV grid has rows along y and columns along x; the heads run at
+    `out_stride` pillars per cell.
+    """
+
+    # input
+    x_range_m: tuple[float, float] = (0.0, 70.4)
+    y_range_m: tuple[float, float] = (-40.0, 40.0)
+    z_range_m: tuple[float, float] = (-1.27, 2.73)  # ground frame
+    pillar_m: float = 0.32
+    features: str = "xyz"  # "xyz" or "xyzi"
+    sensor: str = "kitti"  # profile of the (first) training frame set, for provenance
+    mount_height_m: float = 1.73  # its mount height: predict()'s default ground for PTSN scaling
+    # network
+    pfn_channels: int = 32
+    block_channels: tuple[int, int, int] = (32, 64, 128)  # strides 2, 4, 8 (in pillars)
+    block_layers: tuple[int, int, int] = (2, 3, 3)  # 3x3 convs after each strided conv
+    up_channels: int = 32  # per scale, after upsampling to out_stride
+    head_channels: int = 64
+    # targets and losses
+    min_radius_cells: int = 2
+    min_gaussian_overlap: float = 0.1
+    max_objects: int = 128
+    loss_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)  # heatmap, box regression, IoU
+    # decoding
+    top_k: int = 100
+    score_threshold: float = 0.05
+    nms_iou: float = 0.1
+    iou_alpha: float = 0.5  # score = heat^(1 - alpha) * iou^alpha (SECOND-IoU / CIA-SSD style)
+
+    @property
+    def out_stride(self) -> int:
+        return 2
+
+    @property
+    def grid_size(self) -> tuple[int, int]:
+        """(rows along y, columns along x) of the pillar grid, padded to a multiple of 8."""
+        rows = math.ceil((self.y_range_m[1] - self.y_range_m[0]) / self.pillar_m - 1e-6)
+        cols = math.ceil((self.x_range_m[1] - self.x_range_m[0]) / self.pillar_m - 1e-6)
+        return math.ceil(rows / 8) * 8, math.ceil(cols / 8) * 8
+
+    @property
+    def head_size(self) -> tuple[int, int]:
+        rows, cols = self.grid_size
+        return rows // self.out_stride, cols // self.out_stride
+
+    @property
+    def cell_m(self) -> float:
+        """Size of one head cell in metres."""
+        return self.pillar_m * self.out_stride
+
+    @property
+    def point_dims(self) -> int:
+        return 4 if self.features == "xyzi" else 3
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> DetectorConfig:
+        known = {f.name: f for f in fields(cls)}
+        unknown = sorted(set(values) - set(known))
+        if unknown:
+            raise ValueError(f"unknown detector config keys: {', '.join(unknown)}")
+        converted = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
+        return cls(**converted)

@@ -1,0 +1,202 @@
+"""Inference: decode head maps into boxes, the `Detector` (checkpoint load + predict with PTSN
+scaling), and `predict_frameset` for whole frame sets.
+
+Checkpoint directory: `model.pt` (state dict) + `model.json` (config, provenance, metrics) +
+`manifest.json` (written by the stage runner).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from dali_cli.artifacts import ArtifactError, BoxTable, FrameSet
+from dali_cli.detector.config import DetectorConfig
+from dali_cli.detector.model import PillarCenterNet
+from dali_cli.detector.targets import REGRESSION, gather_cells, regression_to_boxes
+
+WEIGHTS_NAME = "model.pt"
+META_NAME = "model.json"
+
+
+def decode(
+    maps: dict[str, torch.Tensor], config: DetectorConfig
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Head maps (B, dims, h, w) -> per frame (boxes (M, 7) float64 ground frame, scores (M,) float32).
+
+    Peaks of the heatmap (3x3 local maxima), top-k, score = heat^(1-a) * iou^a, threshold, BEV NMS.
+    """
+    from dali_cli.geometry import nms_bev
+
+    heat = torch.sigmoid(maps["heatmap"])  # (B, 1, h, w)
+    peaks = heat * (F.max_pool2d(heat, 3, stride=1, padding=1) == heat)  # (B, 1, h, w)
+    batch = heat.shape[0]
+    k = min(config.top_k, peaks[0].numel())
+    heat_score, index = peaks.reshape(batch, -1).topk(k, dim=1)  # (B, k), (B, k)
+    regression = gather_cells(torch.cat([maps[n] for n in REGRESSION], dim=1), index)  # (B, k, 8)
+    boxes = regression_to_boxes(regression.double(), index, config)  # (B, k, 7)
+    iou = torch.sigmoid(gather_cells(maps["iou"], index)[..., 0])  # (B, k)
+    alpha = config.iou_alpha
+    score = heat_score.pow(1 - alpha) * iou.pow(alpha)  # (B, k)
+    results = []
+    for b in range(batch):  # frames: a few per batch
+        keep = (score[b] >= config.score_threshold).numpy()
+        frame_boxes = boxes[b].numpy()[keep]
+        frame_scores = score[b].numpy()[keep].astype(np.float32)
+        frame_boxes[:, 6] = (frame_boxes[:, 6] + np.pi) % (2 * np.pi) - np.pi
+        kept = nms_bev(frame_boxes, frame_scores, config.nms_iou)
+        results.append((frame_boxes[kept], frame_scores[kept]))
+    return results
+
+
+def to_network_input(points_list: list[np.ndarray], mount_height_m: float, scale: float = 1.0):
+    """Sensor-frame points -> ground-frame, PTSN-scaled (x, y, z, i) tensor (P, 4), batch index (P,)."""
+    arrays = []
+    for points in points_list:
+        points = np.asarray(points, np.float32).reshape(-1, 4)
+        ground = points.copy()
+        ground[:, 2] += mount_height_m
+        ground[:, :3] *= scale
+        arrays.append(ground)
+    sizes = [len(a) for a in arrays]
+    stacked = np.concatenate(arrays) if arrays else np.zeros((0, 4), np.float32)
+    batch_index = np.repeat(np.arange(len(arrays)), sizes)
+    return torch.from_numpy(stacked), torch.from_numpy(batch_index)
+
+
+def ground_boxes_to_sensor(
+    boxes: np.ndarray, mount_height_m: float, scale: float = 1.0
+) -> np.ndarray:
+    """Undo `to_network_input`: (M, 7) ground-frame boxes on s-scaled points -> sensor frame, unscaled."""
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7).copy()
+    boxes[:, :6] /= scale
+    boxes[:, 2] -= mount_height_m
+    return boxes
+
+
+def sensor_boxes_to_ground(boxes: np.ndarray, mount_height_m: float) -> np.ndarray:
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7).copy()
+    boxes[:, 2] += mount_height_m
+    return boxes
+
+
+def save_checkpoint(directory: str | Path, net: PillarCenterNet, meta: dict) -> None:
+    """Write model.pt (weights) and model.json (config + meta) into `directory`."""
+    directory = Path(directory)
+    torch.save(net.state_dict(), directory / WEIGHTS_NAME)
+    document = {"detector": "pillar-centerpoint-iou", "config": net.config.to_dict(), **meta}
+    (directory / META_NAME).write_text(json.dumps(document, indent=2, default=str) + "\n")
+
+
+class Detector:
+    """A trained detector. `predict` takes sensor-frame points and returns sensor-frame boxes."""
+
+    def __init__(self, net: PillarCenterNet, meta: dict | None = None):
+        self.net = net.eval()
+        self.config = net.config
+        self.meta = meta or {}
+
+    @classmethod
+    def load(cls, model_dir: str | Path) -> Detector:
+        model_dir = Path(model_dir)
+        meta_path, weights_path = model_dir / META_NAME, model_dir / WEIGHTS_NAME
+        for path in (meta_path, weights_path):
+            if not path.is_file():
+                raise ArtifactError(f"{path}: not found (is {model_dir} a model directory?)")
+        try:
+            meta = json.loads(meta_path.read_text())
+            config = DetectorConfig.from_dict(meta["config"])
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as error:
+            raise ArtifactError(f"{meta_path}: invalid model description ({error})") from None
+        net = PillarCenterNet(config)
+        try:
+            net.load_state_dict(torch.load(weights_path, map_location="cpu", weights_only=True))
+        except (RuntimeError, OSError, EOFError) as error:
+            raise ArtifactError(f"{weights_path}: cannot load weights ({error})") from None
+        return cls(net, meta)
+
+    @torch.no_grad()
+    def predict(
+        self,
+        points_list: list[np.ndarray],
+        scale: float = 1.0,
+        mount_height_m: float | None = None,
+        batch_size: int = 4,
+    ) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Boxes and scores per frame: [(boxes (M, 7) float64, scores (M,) float32)].
+
+        points_list: sensor-frame (n, 4) float32 arrays. With scale s (PTSN), the points are scaled
+        by s about the ground (sensor z + mount_height_m, default the checkpoint's) before the
+        network and the boxes divided by s afterwards, so boxes are always in the original frame.
+        """
+        mount = self.config.mount_height_m if mount_height_m is None else float(mount_height_m)
+        if not scale > 0:
+            raise ValueError(f"scale must be positive, got {scale}")
+        results = []
+        for start in range(0, len(points_list), batch_size):
+            chunk = points_list[start : start + batch_size]
+            points, batch_index = to_network_input(chunk, mount, scale)
+            maps = self.net(points, batch_index, len(chunk))
+            for boxes, scores in decode(maps, self.config):
+                results.append((ground_boxes_to_sensor(boxes, mount, scale), scores))
+        return results
+
+
+def predict_frameset(
+    model_dir: str | Path,
+    data_dir: str | Path,
+    scale: float = 1.0,
+    score_min: float = 0.0,
+    progress: bool = True,
+    batch_size: int = 4,
+    sensors_path: str | Path | None = None,
+) -> BoxTable:
+    """Run the detector of `model_dir` on every frame of the FrameSet `data_dir`.
+
+    The ground (for the network and for PTSN scaling) is the frame set's sensor profile mount height.
+    Returns a BoxTable with score and num_points (points of the original frame inside each box).
+    """
+    from tqdm import tqdm
+
+    from dali_cli.geometry import count_points_in_boxes
+    from dali_cli.sensors import get_profile
+
+    detector = Detector.load(model_dir)
+    frames = FrameSet(data_dir)
+    mount = (
+        get_profile(frames.sensor, sensors_path).mount_height_m
+        if frames.sensor
+        else detector.config.mount_height_m
+    )
+    ids, all_boxes, all_scores, all_counts = [], [], [], []
+    bar = tqdm(total=len(frames), desc="predict", unit="frame", disable=not progress, leave=False)
+    buffer: list[tuple[str, np.ndarray]] = []
+    for item in (*frames.iter_frames(), None):
+        if item is not None:
+            buffer.append(item)
+        if buffer and (item is None or len(buffer) == batch_size):
+            predictions = detector.predict(
+                [p for _, p in buffer], scale=scale, mount_height_m=mount
+            )
+            for (frame_id, points), (boxes, scores) in zip(buffer, predictions, strict=True):
+                keep = scores >= score_min
+                boxes, scores = boxes[keep], scores[keep]
+                ids.extend([frame_id] * len(boxes))
+                all_boxes.append(boxes)
+                all_scores.append(scores)
+                all_counts.append(count_points_in_boxes(points, boxes))
+            bar.update(len(buffer))
+            buffer = []
+    bar.close()
+    if not ids:
+        return BoxTable.empty()
+    return BoxTable.from_arrays(
+        np.asarray(ids),
+        np.concatenate(all_boxes),
+        score=np.concatenate(all_scores),
+        num_points=np.concatenate(all_counts),
+    )

@@ -1,0 +1,182 @@
+"""Training targets and losses of the CenterPoint heads (heatmap, box regression, IoU score).
+
+Boxes here are in the ground frame (see config.py). The head grid has h rows (y) and w columns (x)
+of `config.cell_m` metres. Regression vector per object (8,): offset x, offset y (cell fractions),
+z (m), log l, log w, log h, sin 2yaw, cos 2yaw.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from dali_cli.detector.config import DetectorConfig
+from dali_cli.geometry import iou_3d_pairs
+
+REGRESSION = ("offset", "z", "size", "rot")  # head maps concatenated in this order -> 8 channels
+
+
+@dataclass
+class Targets:
+    """Batched targets. heatmap (B, 1, h, w) float32; index (B, K) int64 flat cell; mask (B, K)
+    bool; regression (B, K, 8) float32; boxes (B, K, 7) float64 ground truth (for the IoU target)."""
+
+    heatmap: torch.Tensor
+    index: torch.Tensor
+    mask: torch.Tensor
+    regression: torch.Tensor
+    boxes: np.ndarray
+
+
+def gaussian_radius(
+    length_cells: np.ndarray, width_cells: np.ndarray, min_overlap: float
+) -> np.ndarray:
+    """CenterNet's radius (cells) such that a center shifted by it keeps IoU >= min_overlap; (N,)."""
+    a, b = length_cells, width_cells
+    r1 = (b + a - np.sqrt((b + a) ** 2 - 4 * a * b * (1 - min_overlap) / (1 + min_overlap))) / 2
+    r2 = (2 * (b + a) - np.sqrt(4 * (b + a) ** 2 - 16 * (1 - min_overlap) * a * b)) / 4
+    r3 = (
+        -2 * min_overlap * (b + a)
+        + np.sqrt((2 * min_overlap * (b + a)) ** 2 - 16 * min_overlap * (min_overlap - 1) * a * b)
+    ) / 4
+    return np.minimum(np.minimum(r1, r2), r3)
+
+
+def box_cells(
+    boxes: np.ndarray, config: DetectorConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Head-grid position of box centers: col (N,) float64, row (N,) float64, inside (N,) bool."""
+    h, w = config.head_size
+    col = (boxes[:, 0] - config.x_range_m[0]) / config.cell_m
+    row = (boxes[:, 1] - config.y_range_m[0]) / config.cell_m
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    inside &= (boxes[:, 2] >= config.z_range_m[0]) & (boxes[:, 2] < config.z_range_m[1])
+    return col, row, inside
+
+
+def build_targets(boxes_list: list[np.ndarray], config: DetectorConfig) -> Targets:
+    """Targets for B frames; boxes_list[b] is (M_b, 7) float64 in the ground frame."""
+    h, w = config.head_size
+    batch, k = len(boxes_list), config.max_objects
+    heatmap = np.zeros((batch, 1, h, w), np.float32)
+    index = np.zeros((batch, k), np.int64)
+    mask = np.zeros((batch, k), bool)
+    regression = np.zeros((batch, k, 8), np.float32)
+    gt = np.zeros((batch, k, 7), np.float64)
+    rows_grid, cols_grid = np.arange(h)[:, None], np.arange(w)[None, :]
+    for b, boxes in enumerate(boxes_list):
+        boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+        col, row, inside = box_cells(boxes, config)
+        boxes, col, row = boxes[inside][:k], col[inside][:k], row[inside][:k]
+        radius = gaussian_radius(
+            boxes[:, 3] / config.cell_m, boxes[:, 4] / config.cell_m, config.min_gaussian_overlap
+        )
+        radius = np.maximum(config.min_radius_cells, np.floor(radius)).astype(int)
+        ci, ri = np.floor(col).astype(int), np.floor(row).astype(int)
+        for j in range(len(boxes)):  # loops over objects (tens), each a small window
+            r = radius[j]
+            sigma = (2 * r + 1) / 6
+            r0, r1 = max(ri[j] - r, 0), min(ri[j] + r + 1, h)
+            c0, c1 = max(ci[j] - r, 0), min(ci[j] + r + 1, w)
+            g = np.exp(
+                -((rows_grid[r0:r1] - ri[j]) ** 2 + (cols_grid[:, c0:c1] - ci[j]) ** 2)
+                / (2 * sigma**2)
+            )
+            np.maximum(heatmap[b, 0, r0:r1, c0:c1], g, out=heatmap[b, 0, r0:r1, c0:c1])
+        n = len(boxes)
+        index[b, :n] = ri * w + ci
+        mask[b, :n] = True
+        regression[b, :n] = np.stack(
+            [
+                col - ci,
+                row - ri,
+                boxes[:, 2],
+                np.log(np.maximum(boxes[:, 3], 1e-3)),
+                np.log(np.maximum(boxes[:, 4], 1e-3)),
+                np.log(np.maximum(boxes[:, 5], 1e-3)),
+                np.sin(2 * boxes[:, 6]),
+                np.cos(2 * boxes[:, 6]),
+            ],
+            axis=1,
+        )
+        gt[b, :n] = boxes
+    return Targets(
+        torch.from_numpy(heatmap),
+        torch.from_numpy(index),
+        torch.from_numpy(mask),
+        torch.from_numpy(regression),
+        gt,
+    )
+
+
+def regression_to_boxes(
+    regression: torch.Tensor, index: torch.Tensor, config: DetectorConfig
+) -> torch.Tensor:
+    """Decode (..., 8) regressions at flat cells (...) into (..., 7) boxes (ground frame)."""
+    w = config.head_size[1]
+    col = (index % w).to(regression.dtype) + regression[..., 0]
+    row = torch.div(index, w, rounding_mode="floor").to(regression.dtype) + regression[..., 1]
+    x = config.x_range_m[0] + col * config.cell_m
+    y = config.y_range_m[0] + row * config.cell_m
+    size = regression[..., 3:6].clamp(-5, 5).exp()  # (..., 3)
+    yaw = torch.atan2(regression[..., 6], regression[..., 7]) / 2  # in [-pi/2, pi/2]
+    return torch.cat(
+        [x[..., None], y[..., None], regression[..., 2:3], size, yaw[..., None]], dim=-1
+    )
+
+
+def focal_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """CenterNet's penalty-reduced focal loss on (B, 1, h, w) logits vs Gaussian targets."""
+    prob = torch.sigmoid(logits).clamp(1e-4, 1 - 1e-4)
+    positive = target.eq(1).float()
+    negative_weight = (1 - target).pow(4)
+    positive_loss = torch.log(prob) * (1 - prob).pow(2) * positive
+    negative_loss = torch.log(1 - prob) * prob.pow(2) * negative_weight * (1 - positive)
+    count = positive.sum().clamp(min=1)
+    return -(positive_loss.sum() + negative_loss.sum()) / count
+
+
+def gather_cells(maps: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """maps (B, C, h, w), index (B, K) -> (B, K, C)."""
+    batch, channels = maps.shape[:2]
+    flat = maps.reshape(batch, channels, -1)  # (B, C, h*w)
+    return flat.gather(2, index[:, None, :].expand(-1, channels, -1)).transpose(1, 2)  # (B, K, C)
+
+
+def detection_loss(
+    maps: dict[str, torch.Tensor],
+    targets: Targets,
+    config: DetectorConfig,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Total loss and its terms (floats, for the log). The IoU head learns the 3D IoU of the box
+    decoded at each object's center cell with that object (a soft BCE target)."""
+    heat = focal_loss(maps["heatmap"], targets.heatmap)
+    regression_maps = torch.cat([maps[name] for name in REGRESSION], dim=1)  # (B, 8, h, w)
+    predicted = gather_cells(regression_maps, targets.index)  # (B, K, 8)
+    mask = targets.mask  # (B, K)
+    count = mask.sum().clamp(min=1)
+    box = (
+        F.l1_loss(predicted, targets.regression, reduction="none") * mask[..., None]
+    ).sum() / count
+    iou_logits = gather_cells(maps["iou"], targets.index)[..., 0]  # (B, K)
+    with torch.no_grad():
+        predicted_boxes = regression_to_boxes(predicted.detach().double(), targets.index, config)
+        iou_target = np.zeros(mask.shape, np.float32)
+        selected = mask.numpy()
+        if selected.any():
+            iou_target[selected] = iou_3d_pairs(
+                predicted_boxes.numpy()[selected], targets.boxes[selected]
+            )
+    iou = (
+        F.binary_cross_entropy_with_logits(
+            iou_logits, torch.from_numpy(iou_target), reduction="none"
+        )
+        * mask
+    ).sum() / count
+    w_heat, w_box, w_iou = config.loss_weights
+    total = w_heat * heat + w_box * box + w_iou * iou
+    terms = {"loss": total, "heatmap": heat, "box": box, "iou": iou}
+    return total, {name: float(value.detach()) for name, value in terms.items()}
