@@ -146,7 +146,8 @@ def run_ppcg(
             total=len(frames), desc=f"ppcg-{mode}", unit="frame", file=sys.stderr,
             disable=not progress, leave=False,
         )  # fmt: skip
-        with FrameSetWriter(directory, attrs.pop("sensor"), attrs) as writer:
+        # raw chunks: zstd saves ~8% on LiDAR coordinates at about the cost of the whole RC step
+        with FrameSetWriter(directory, attrs.pop("sensor"), attrs, compress=False) as writer:
             results = run_frames(job, frame_boxes, workers, bank if workers <= 1 else None)
             for index, result in enumerate(results):
                 frame_rows = rows[index]

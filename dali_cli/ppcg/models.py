@@ -110,13 +110,14 @@ class ModelBank:
         )
 
     def bvh(self, index: int):
-        """The Embree BVH of mesh `index`, built on first use."""
+        """The Embree BVH of mesh `index`, built on first use (raycast's content cache keeps it
+        for other banks of the same process; this dict spares hashing the mesh on every call)."""
         bvh = self._bvhs.get(index)
         if bvh is None:
-            from dali_cli.raycast import MeshBVH
+            from dali_cli.raycast import get_bvh
 
             vertices, faces = self.meshes[index]
-            bvh = self._bvhs[index] = MeshBVH.from_mesh(vertices, faces)
+            bvh = self._bvhs[index] = get_bvh(vertices, faces)
         return bvh
 
     def cast(

@@ -1,0 +1,189 @@
+"""Benchmark: `dali ppcg-rc` / `ppcg-cf` seconds per frame (read + compute + write) on one core.
+
+KITTI-like and nuScenes-like synthetic frames (dali synth scenes), their labeled cars jittered into
+pseudo boxes (size +-6 %, centre +-0.15 m, yaw +-3 deg), a procedural CAD library and a point-model
+library built from synthetic Waymo-like source frames. Runs the stage functions exactly as the CLI
+does, pinned to one CPU core, and times the share spent inside Embree. The paper's reference
+(brute-force CUDA Moller-Trumbore on an RTX 3090): KITTI RC 0.40 s, CF 1.10 s; nuScenes 0.07 s,
+0.27 s per frame. Writes bench/results/ppcg.json.
+
+    .venv/bin/python bench/ppcg.py [--frames 40] [--library-cars 40] [--lod 20000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+RESULTS = Path(__file__).resolve().parent / "results" / "ppcg.json"
+PAPER_S = {"kitti": {"rc": 0.40, "cf": 1.10}, "nuscenes": {"rc": 0.07, "cf": 0.27}}
+
+
+class EmbreeTimer:
+    """Wraps raycast.Scene._trace (every Embree call PPCG makes) and sums its seconds."""
+
+    def __init__(self):
+        from dali_cli import raycast
+
+        self.scene = raycast.Scene
+        self.original = raycast.Scene._trace
+        self.seconds = 0.0
+        self.rays = 0
+
+    def __enter__(self):
+        timer, original = self, self.original
+
+        def timed(scene, origins, directions, tfar):
+            started = time.perf_counter()
+            result = original(scene, origins, directions, tfar)
+            timer.seconds += time.perf_counter() - started
+            timer.rays += len(origins)
+            return result
+
+        self.scene._trace = timed
+        return self
+
+    def __exit__(self, *exc):
+        self.scene._trace = self.original
+
+
+def make_frames(directory: Path, sensor: str, frames: int, seed: int) -> dict:
+    """Synthesize `frames` frames of `sensor` with jittered labels as pseudo boxes."""
+    from dali_cli.artifacts import BoxTable, write_boxes, write_frameset
+    from dali_cli.sensors import get_profile
+    from dali_cli.synth import synth_frame
+
+    profile = get_profile(sensor)
+    rng = np.random.default_rng(seed)
+    data, ids, boxes = [], [], []
+    for index in range(frames):
+        frame = synth_frame(seed, index, profile, profile)
+        keep = frame.num_points >= 5
+        jittered = frame.boxes[keep].copy()
+        count = len(jittered)
+        jittered[:, :2] += rng.normal(0, 0.15, (count, 2))
+        jittered[:, 3:6] *= rng.uniform(0.94, 1.06, (count, 3))
+        jittered[:, 6] += np.radians(rng.normal(0, 3, count))
+        jittered[:, 6] = (jittered[:, 6] + np.pi) % (2 * np.pi) - np.pi
+        data.append((frame.frame_id, frame.points))
+        ids += [frame.frame_id] * count
+        boxes.append(jittered)
+    write_frameset(directory, data, sensor=sensor)
+    write_boxes(directory, BoxTable.from_arrays(ids, np.concatenate(boxes)))
+    return {
+        "frames": frames,
+        "points_per_frame": float(np.mean([len(p) for _, p in data])),
+        "boxes_per_frame": float(np.mean([len(b) for b in boxes])),
+    }
+
+
+def make_library(directory: Path, cars: int, lod: int, source_frames: int) -> dict:
+    """Procedural meshes plus point models from synthetic Waymo-like labeled frames."""
+    from dali_cli.library import (
+        PointModels,
+        point_models_from_frame,
+        procedural_library,
+        write_library,
+    )
+    from dali_cli.sensors import get_profile
+    from dali_cli.synth import synth_frame
+
+    meshes = procedural_library(cars, seed=7, lod=lod)
+    waymo = get_profile("waymo")
+    parts = []
+    for index in range(source_frames):
+        frame = synth_frame(99, index, waymo, waymo)
+        parts.append(point_models_from_frame(frame.points, frame.boxes, frame.frame_id, "waymo"))
+    point_models = PointModels.concat(parts)
+    directory.mkdir(parents=True, exist_ok=True)
+    write_library(directory, meshes, point_models)
+    return {
+        "meshes": len(meshes),
+        "mean_triangles": float(np.mean([m.num_triangles for m in meshes])),
+        "point_models": len(point_models),
+        "mean_points_per_point_model": float(np.mean(point_models.num_points))
+        if len(point_models)
+        else 0.0,
+    }
+
+
+def run_stage(mode: str, target: Path, library: Path, out: Path, models: str) -> dict:
+    from dali_cli.manifest import read_manifest
+    from stages.ppcg_cf import ppcg_cf
+    from stages.ppcg_rc import ppcg_rc
+
+    function = ppcg_rc if mode == "rc" else ppcg_cf
+    with EmbreeTimer() as embree:
+        started = time.perf_counter()
+        function(target, target, library, out, models=models, force=True, progress=False)
+        wall = time.perf_counter() - started
+    manifest = read_manifest(out)
+    counts = manifest["outputs"]["counts"]
+    frames = counts["frames"]
+    stage_frames = manifest["timings"]["frames_seconds"]  # the frame loop: read, compute, write
+    return {
+        "seconds_per_frame": round(stage_frames / frames, 5),
+        "stage_wall_seconds_incl_library_load": round(wall, 3),
+        "compute_seconds_per_frame": manifest["timings"]["compute_seconds_per_frame_with_boxes"],
+        "embree_share_of_frame_loop": round(embree.seconds / stage_frames, 3),
+        "embree_seconds_per_frame": round(embree.seconds / frames, 5),
+        "rays_per_frame": round(embree.rays / frames, 1),
+        "counts": counts,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=40)
+    parser.add_argument("--library-cars", type=int, default=40)
+    parser.add_argument("--lod", type=int, default=20000, help="triangles per procedural car")
+    parser.add_argument("--source-frames", type=int, default=8, help="frames for point models")
+    parser.add_argument("--repeats", type=int, default=2, help="runs per stage; the best is kept")
+    args = parser.parse_args()
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})  # one core
+    results = {
+        "machine": {"cpu": platform.processor() or platform.machine(), "cores_used": 1},
+        "load_average_at_start": os.getloadavg() if hasattr(os, "getloadavg") else None,
+        "paper_seconds_per_frame_rtx3090": PAPER_S,
+        "targets_seconds_per_frame": {"rc": 0.01, "cf": 0.03},
+    }
+    with tempfile.TemporaryDirectory(prefix="dali-bench-ppcg-") as tmp:
+        root = Path(tmp)
+        results["library"] = make_library(
+            root / "library", args.library_cars, args.lod, args.source_frames
+        )
+        for sensor in ("kitti", "nuscenes"):
+            section = {"data": make_frames(root / sensor, sensor, args.frames, seed=5)}
+            for models in ("cad", "points"):
+                for mode in ("rc", "cf"):
+                    runs = [
+                        run_stage(
+                            mode, root / sensor, root / "library", root / f"{sensor}-{mode}", models
+                        )
+                        for _ in range(args.repeats)
+                    ]
+                    best = min(runs, key=lambda r: r["seconds_per_frame"])
+                    best["all_runs_seconds_per_frame"] = [r["seconds_per_frame"] for r in runs]
+                    section[f"{mode}_{models}"] = best
+                    print(
+                        f"{sensor:9s} {mode} {models:6s}: {best['seconds_per_frame'] * 1e3:6.2f} ms/frame "
+                        f"(paper {PAPER_S[sensor][mode] * 1e3:.0f} ms on a GPU), Embree "
+                        f"{best['embree_share_of_frame_loop'] * 100:.0f}%, {best['rays_per_frame']:.0f} rays/frame"
+                    )
+            results[sensor] = section
+    results["load_average_at_end"] = os.getloadavg() if hasattr(os, "getloadavg") else None
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(json.dumps(results, indent=2) + "\n")
+    print(f"wrote {RESULTS}")
+
+
+if __name__ == "__main__":
+    main()
