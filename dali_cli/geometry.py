@@ -192,22 +192,31 @@ def _clip_half_plane(poly, count, bound, coordinate, sign, capacity):
     side_next[:, :-1] = side[:, 1:]
     side_next[row_index, last] = side[:, 0]
     inside = side >= 0
+    keep = valid & inside
     crossing = valid & (inside != (side_next >= 0))
     t = side / np.where(crossing, side - side_next, 1.0)  # (P, K) in [0, 1] where crossing
-    candidates = np.empty((rows, slots, 2), dtype=np.complex128)
-    candidates[:, :, 0] = poly
-    candidates[:, :, 1] = poly + t * (poly_next - poly)
-    emit = np.empty((rows, slots, 2), dtype=bool)
-    emit[:, :, 0] = valid & inside
+    cut = poly_next - poly  # the crossing point poly + t (poly_next - poly), in place
+    cut *= t
+    cut += poly
+    # output order per vertex: the vertex (if kept), then its edge's crossing (if any)
+    emit = np.empty((rows, slots, 2), dtype=np.int32)
+    emit[:, :, 0] = keep
     emit[:, :, 1] = crossing
-    emit = emit.reshape(rows, 2 * slots)
-    position = np.cumsum(emit, axis=1)  # (P, 2K), 1-based slot of each emitted point
-    new_count = position[:, -1]
-    target = np.where(emit & (position <= capacity), position - 1, capacity)
-    target += row_index[:, None] * (capacity + 1)  # flat index; slot `capacity` is a dump
-    out = np.zeros(rows * (capacity + 1), dtype=np.complex128)
-    out[target.ravel()] = candidates.reshape(-1)
-    out = out.reshape(rows, capacity + 1)[:, :capacity]
+    position = np.cumsum(emit.reshape(rows, 2 * slots), axis=1).reshape(rows, slots, 2)
+    new_count = position[:, -1, -1]
+    width = capacity + 1  # one spare slot per row takes every unused or overflowing point
+    base = (row_index * width - 1)[:, None]
+    spare = (row_index * width + capacity)[:, None]
+    target_vertex = np.where(
+        keep & (position[:, :, 0] <= capacity), position[:, :, 0] + base, spare
+    )
+    target_cut = np.where(
+        crossing & (position[:, :, 1] <= capacity), position[:, :, 1] + base, spare
+    )
+    out = np.zeros(rows * width, dtype=np.complex128)
+    out[target_vertex.ravel()] = poly.ravel()
+    out[target_cut.ravel()] = cut.ravel()
+    out = out.reshape(rows, width)[:, :capacity]
     return out, np.minimum(new_count, capacity), new_count > capacity
 
 
