@@ -117,6 +117,13 @@ def run_pretrain(
         raise click.UsageError("--size-norm sn needs --target-profile (or --target-size)")
     if target_size is None and target_profile is not None and size_norm == "sn":
         target_size = tuple(get_profile(target_profile, sensors_path).car_mean_lwh_m)
+    if config_overrides:
+        from dali_cli.detector.config import DetectorConfig
+
+        try:
+            DetectorConfig.from_dict(config_overrides)
+        except (TypeError, ValueError) as error:
+            raise click.UsageError(f"detector config: {error}") from None
     params = {
         "size_norm": size_norm,
         "target_profile": target_profile,
@@ -151,7 +158,7 @@ def run_pretrain(
         from dali_cli.detector.augment import ObjectDatabase
 
         started = time.perf_counter()
-        config = DetectorConfig(features=features, **(config_overrides or {}))
+        config = DetectorConfig.from_dict({**(config_overrides or {}), "features": features})
         data = load_labeled(
             source, config, boxes_dir=boxes, labels=labels, sensors_path=sensors_path
         )

@@ -1,1 +1,189 @@
-"""Stage: retrain (library call + artifact I/O). Filled in by its issue."""
+"""Stage: retrain — train on the labeled source plus PPCG frame sets (pseudo points + pseudo boxes),
+alternating source and PPCG batches, from the previous model or from scratch (paper Alg. 1).
+Raw target frames are never read. Same checkpoint format as pretrain."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import click
+import numpy as np
+
+from dali_cli.manifest import BuildResult, StageOutcome, content_hash
+from stages.pretrain import run_training_stage, training_summary, write_train_log
+
+INIT_FROM = ("previous", "scratch")
+
+
+def parse_mix(text: str, ppcg_count: int) -> tuple[int, ...]:
+    """'1:1' -> source : all PPCG sets pooled; '2:1:1' -> source : each PPCG set separately."""
+    try:
+        parts = tuple(int(p) for p in text.split(":"))
+    except ValueError:
+        raise click.BadParameter(f"--mix must look like 1:1, got '{text}'") from None
+    if len(parts) not in (2, 1 + ppcg_count) or min(parts) < 1:
+        raise click.BadParameter(
+            f"--mix '{text}': give source:ppcg (pooled) or one positive weight per set "
+            f"(source + {ppcg_count} PPCG sets)"
+        )
+    return parts
+
+
+def pool(sets: list, name: str):
+    """Concatenate labeled sets into one (frame ids prefixed by their set's index)."""
+    from dali_cli.detector import LabeledFrames
+
+    first = sets[0]
+    return LabeledFrames(
+        name=name,
+        sensor=first.sensor,
+        mount_height_m=first.mount_height_m,
+        frame_ids=[f"{i}/{f}" for i, s in enumerate(sets) for f in s.frame_ids],
+        points=[p for s in sets for p in s.points],
+        boxes=[b for s in sets for b in s.boxes],
+    )
+
+
+def run_retrain(
+    init: str | Path,
+    source: str | Path,
+    ppcg: list[str | Path],
+    out: str | Path,
+    *,
+    init_from: str = "previous",
+    mix: str = "1:1",
+    epochs: float = 10.0,
+    minutes: float | None = None,
+    seed: int = 0,
+    batch_size: int = 2,
+    lr: float = 3e-3,
+    precision: str = "fp32",
+    threads: int | None = None,
+    augment: bool = True,
+    labels: tuple[str, ...] = ("Car",),
+    sensors_path: str | Path | None = None,
+    force: bool = False,
+    dry_run: bool = False,
+    progress: bool = True,
+) -> StageOutcome:
+    """Retrain the detector of `init` on `source` + the PPCG sets `ppcg`; write a checkpoint to `out`.
+
+    The source keeps the size normalization the initial model was trained with (SN delta or ROS
+    range, from its model.json), so source and pseudo labels agree on car sizes.
+    """
+    init, source, out = Path(init), Path(source), Path(out)
+    ppcg = [Path(p) for p in ppcg]
+    if not ppcg:
+        raise click.UsageError("--ppcg needs at least one PPCG frame set directory")
+    if init_from not in INIT_FROM:
+        raise click.UsageError(
+            f"--init-from must be one of {', '.join(INIT_FROM)}, got '{init_from}'"
+        )
+    weights = parse_mix(mix, len(ppcg))
+    params = {
+        "init_from": init_from,
+        "mix": list(weights),
+        "epochs": None if minutes else epochs,
+        "minutes": minutes,
+        "seed": seed,
+        "batch_size": batch_size,
+        "lr": lr,
+        "precision": precision,
+        "augment": augment,
+        "labels": list(labels),
+    }
+    inputs = {"init": init, "source": source, "ppcg": ppcg}
+
+    def train_fn(tmp: Path, resume: Path, key: str) -> BuildResult:
+        import torch
+
+        from dali_cli.detector import (
+            Augmentation,
+            Detector,
+            PillarCenterNet,
+            TrainSettings,
+            load_labeled,
+            save_checkpoint,
+            size_normalize,
+            train,
+        )
+        from dali_cli.detector.augment import ObjectDatabase
+
+        started = time.perf_counter()
+        previous = Detector.load(init)
+        config = previous.config
+        provenance = previous.meta.get("provenance", {})
+        load = dict(config=config, labels=labels, sensors_path=sensors_path)
+        source_data = load_labeled(source, **load)
+        source_augmentation = Augmentation() if augment else Augmentation.none()
+        if provenance.get("sn_delta_lwh") is not None:
+            source_data = size_normalize(source_data, np.asarray(provenance["sn_delta_lwh"]))
+        if provenance.get("ros_range") is not None:
+            source_augmentation.object_scale = tuple(provenance["ros_range"])
+        pseudo_sets = [load_labeled(p, **load) for p in ppcg]
+        for path, data in zip(ppcg, pseudo_sets, strict=True):
+            if len(data) == 0:
+                raise click.ClickException(f"{path}: PPCG frame set has no frames")
+        datasets = [
+            source_data,
+            *([pool(pseudo_sets, "ppcg")] if len(weights) == 2 else pseudo_sets),
+        ]
+        for data in datasets:
+            data.database = ObjectDatabase.build(data.points, data.boxes) if augment else None
+        augmentations = [source_augmentation] + [
+            Augmentation() if augment else Augmentation.none() for _ in datasets[1:]
+        ]
+        load_s = time.perf_counter() - started
+        torch.manual_seed(seed)
+        net = PillarCenterNet(config)
+        if init_from == "previous":
+            net.load_state_dict(previous.net.state_dict())
+        settings = TrainSettings(
+            epochs=epochs, minutes=minutes, batch_size=batch_size, lr=lr, seed=seed,
+            precision=precision, threads=threads, mix=weights,
+        )  # fmt: skip
+        result = train(net, datasets, augmentations, settings, resume, key, progress=progress)
+        meta = {
+            "provenance": {
+                "stage": "retrain",
+                "init": str(init),
+                "init_hash": content_hash(init),
+                "init_from": init_from,
+                "source": str(source),
+                "source_sensor": source_data.sensor,
+                "ppcg": [str(p) for p in ppcg],
+                "mix": list(weights),
+                "size_norm": provenance.get("size_norm", "none"),
+                "sn_delta_lwh": provenance.get("sn_delta_lwh"),
+                "ros_range": provenance.get("ros_range"),
+                "target_profile": provenance.get("target_profile"),
+                "seed": seed,
+            },
+            "train": training_summary(result, settings),
+            "metrics": {
+                "frames": {d.name: len(d) for d in datasets},
+                "boxes": {d.name: d.num_boxes for d in datasets},
+                "mean_lwh_m": {d.name: d.mean_lwh().tolist() for d in datasets},
+            },
+        }
+        save_checkpoint(tmp, net, meta)
+        write_train_log(tmp, result.log)
+        notes = [
+            "detector: pillar-centerpoint-iou (not the paper's SECOND-IoU)",
+            "raw target frames not used: source + PPCG frame sets only",
+        ]
+        if result.resumed_from_step:
+            notes.append(f"resumed from step {result.resumed_from_step}")
+        return BuildResult(
+            counts={
+                "source_frames": len(source_data),
+                "ppcg_frames": int(sum(len(d) for d in pseudo_sets)),
+                "steps": result.steps,
+                "frames_seen": result.frames,
+            },
+            timings={"load_seconds": round(load_s, 2), "train_seconds": round(result.seconds, 2)},
+            notes=notes,
+        )
+
+    return run_training_stage("retrain", out, inputs, params, train_fn, force, dry_run, seed)

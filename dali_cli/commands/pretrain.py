@@ -137,6 +137,12 @@ def training_options(function):
     help="Point features fed to the pillar encoder.",
 )
 @click.option(
+    "--detector-config",
+    type=click.Path(exists=True, dir_okay=False),
+    default=None,
+    help="JSON file of DetectorConfig fields to override (ranges, pillar size, widths; see docs/detector.md).",
+)
+@click.option(
     "--label",
     "labels",
     multiple=True,
@@ -147,7 +153,8 @@ def training_options(function):
 @training_options
 @sensors_option
 @stage_options
-def command(source, boxes, out, size_norm, target_profile, target_size, ros_range, features, labels,
+def command(source, boxes, out, size_norm, target_profile, target_size, ros_range, features,
+            detector_config, labels,
             epochs, minutes, seed, batch_size, lr, precision, threads, no_augment, quiet,
             sensors_path, force, dry_run):  # fmt: skip
     """Train the CPU detector (pillars + CenterPoint heads + IoU score) on a labeled source.
@@ -157,14 +164,24 @@ def command(source, boxes, out, size_norm, target_profile, target_size, ros_rang
     frames/s) and OUT/manifest.json. An interrupted run keeps its state in OUT.resume/ and the
     same command resumes it. Training is deterministic for a given --seed and thread count.
     """
+    import json
+
     from stages.pretrain import run_pretrain
 
+    overrides = None
+    if detector_config:
+        try:
+            overrides = json.loads(open(detector_config).read())
+        except json.JSONDecodeError as error:
+            raise click.BadParameter(
+                f"{detector_config}: not JSON ({error})", param_hint="--detector-config"
+            ) from None
     outcome = run_pretrain(
         source, out, boxes=boxes, size_norm=size_norm, target_profile=target_profile,
         target_size=target_size, ros_range=ros_range, epochs=epochs, minutes=minutes, seed=seed,
         batch_size=batch_size, lr=lr, features=features, precision=precision, threads=threads,
-        augment=not no_augment, labels=tuple(labels), sensors_path=sensors_path, force=force,
-        dry_run=dry_run, progress=not quiet,
+        augment=not no_augment, labels=tuple(labels), config_overrides=overrides,
+        sensors_path=sensors_path, force=force, dry_run=dry_run, progress=not quiet,
     )  # fmt: skip
     if outcome.status == "ran":
         train = (outcome.manifest or {}).get("outputs", {}).get("counts", {})

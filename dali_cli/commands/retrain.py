@@ -1,5 +1,102 @@
-"""`dali retrain` (placeholder until the retrain issue lands)."""
+"""`dali retrain`: retrain the detector on source + PPCG frame sets (paper Alg. 1)."""
 
-from dali_cli.commands.common import not_implemented
+from __future__ import annotations
 
-command = not_implemented("retrain", "retrain issue")
+import click
+
+from dali_cli.commands.common import report_outcome, sensors_option, stage_options
+from dali_cli.commands.pretrain import training_options
+
+
+class GreedyOption(click.Option):
+    """A `multiple` option that also takes every following value up to the next option, so
+    `--ppcg DIR1 DIR2` and `--ppcg DIR1 --ppcg DIR2` mean the same (click has no nargs=-1 options)."""
+
+    def add_to_parser(self, parser, ctx):
+        super().add_to_parser(parser, ctx)
+        for name in self.opts:
+            option = parser._long_opt.get(name) or parser._short_opt.get(name)
+            if option is None:
+                continue
+            original = option.process
+
+            def process(value, state, original=original, parser=parser):
+                values = [value]
+                while state.rargs and not state.rargs[0].startswith("-"):
+                    values.append(state.rargs.pop(0))
+                for item in values:  # a multiple option collects one value per call
+                    original(item, state)
+
+            option.process = process
+
+
+@click.command(name="retrain")
+@click.option(
+    "--init",
+    type=click.Path(exists=True, file_okay=False),
+    required=True,
+    help="Previous model directory (RUN/iterN/model): its config and, by default, weights.",
+)
+@click.option(
+    "--source",
+    type=click.Path(exists=True, file_okay=False),
+    required=True,
+    help="Labeled source FrameSet directory with boxes.parquet.",
+)
+@click.option(
+    "--ppcg",
+    cls=GreedyOption,
+    multiple=True,
+    required=True,
+    type=click.Path(exists=True, file_okay=False),
+    help="PPCG frame set directories (each a FrameSet + boxes.parquet): --ppcg RC CF.",
+)
+@click.option(
+    "--out", type=click.Path(file_okay=False), required=True, help="Checkpoint directory to write."
+)
+@click.option(
+    "--init-from",
+    type=click.Choice(["previous", "scratch"]),
+    default="previous",
+    show_default=True,
+    help="Start from the --init weights (paper) or from a fresh network (the authors' code).",
+)
+@click.option(
+    "--mix",
+    default="1:1",
+    show_default=True,
+    help="Batches source:PPCG (PPCG sets pooled), or source:set1:set2 for separate weights.",
+)
+@click.option(
+    "--label",
+    "labels",
+    multiple=True,
+    default=("Car",),
+    show_default=True,
+    help="Box labels to train on.",
+)
+@training_options
+@sensors_option
+@stage_options
+def command(init, source, ppcg, out, init_from, mix, labels, epochs, minutes, seed, batch_size, lr,
+            precision, threads, no_augment, quiet, sensors_path, force, dry_run):  # fmt: skip
+    """Retrain on the labeled source plus PPCG frame sets, alternating source and PPCG batches.
+
+    Reads INIT/model.pt + model.json, SOURCE (frames.zarr + boxes.parquet) and each PPCG directory
+    (frames.zarr + boxes.parquet); raw target frames are not used. The source keeps INIT's size
+    normalization (SN delta or ROS). An epoch is one pass over the source frames. Writes OUT/model.pt,
+    model.json, train_log.parquet and manifest.json (same format as pretrain); an interrupted run
+    resumes from OUT.resume/.
+    """
+    from stages.retrain import run_retrain
+
+    outcome = run_retrain(
+        init, source, list(ppcg), out, init_from=init_from, mix=mix, epochs=epochs, minutes=minutes,
+        seed=seed, batch_size=batch_size, lr=lr, precision=precision, threads=threads,
+        augment=not no_augment, labels=tuple(labels), sensors_path=sensors_path, force=force,
+        dry_run=dry_run, progress=not quiet,
+    )  # fmt: skip
+    if outcome.status == "ran":
+        counts = (outcome.manifest or {}).get("outputs", {}).get("counts", {})
+        click.echo(f"retrain: {counts.get('steps')} steps, {counts.get('frames_seen')} frames seen")
+    report_outcome(outcome)

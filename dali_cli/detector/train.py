@@ -180,7 +180,7 @@ def train(
         elapsed += took
         window_frames, window_time = window_frames + len(samples), window_time + took
         bar.update(1 if steps else round(elapsed) - bar.n)
-        if step % settings.log_every == 0 or step == 1:
+        if step % settings.log_every == 0 or step == 1 or step == steps:
             row = {
                 "step": step,
                 "dataset": d,

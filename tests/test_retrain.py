@@ -1,0 +1,150 @@
+"""Tests of `dali retrain`: source + PPCG sets, alternating batches, init from the previous model
+or from scratch, SN inherited from the initial model, CLI parsing of `--ppcg DIR1 DIR2`."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+import torch
+from click.testing import CliRunner
+
+from dali_cli.cli import main
+from dali_cli.detector import (
+    Augmentation,
+    DetectorConfig,
+    PillarCenterNet,
+    TrainSettings,
+    load_labeled,
+    train,
+)
+from dali_cli.detector.toy import write_toy_dataset
+from dali_cli.detector.train import batch_indices, interleave
+from dali_cli.manifest import read_manifest
+from dali_cli.sensors import get_profile
+
+SMALL = dict(
+    x_range_m=[0.0, 25.6],
+    y_range_m=[-12.8, 12.8],
+    pfn_channels=8,
+    block_channels=[8, 16, 16],
+    block_layers=[1, 1, 1],
+    up_channels=8,
+    head_channels=8,
+)
+TOY = dict(
+    frames=3,
+    cars_per_frame=3,
+    x_range_m=(6.0, 22.0),
+    y_range_m=(-9.0, 9.0),
+    beams=24,
+    points_per_beam=300,
+    azimuth_range_deg=(-60.0, 60.0),
+)
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    root = tmp_path_factory.mktemp("retrain")
+    write_toy_dataset(root / "source", get_profile("waymo"), seed=1, **TOY)
+    write_toy_dataset(root / "rc", get_profile("kitti"), seed=2, **TOY)
+    write_toy_dataset(root / "cf", get_profile("kitti"), seed=3, **TOY)
+    (root / "config.json").write_text(json.dumps(SMALL))
+    runner = CliRunner()
+    result = runner.invoke(
+        main,
+        ["pretrain", "--source", str(root / "source"), "--out", str(root / "iter0"), "--epochs", "1",
+         "--size-norm", "sn", "--target-profile", "kitti", "--detector-config", str(root / "config.json"),
+         "--quiet"],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    return root
+
+
+def test_interleave_and_batches():
+    assert interleave((1, 1)) == [0, 1]
+    assert sorted(interleave((2, 1))) == [0, 0, 1] and interleave((2, 1))[0] == 0
+    assert sorted(interleave((1, 2, 3))) == [0, 1, 1, 2, 2, 2]
+    seen = np.concatenate([batch_indices(5, b, 2, seed=0, dataset=0) for b in range(5)])
+    assert sorted(seen.tolist()) == sorted(list(range(5)) * 2)  # two passes, each a permutation
+
+
+def test_batches_alternate_between_sets(world):
+    config = DetectorConfig.from_dict(SMALL)
+    source = load_labeled(world / "source", config)
+    pseudo = load_labeled(world / "rc", config)
+    settings = TrainSettings(epochs=2, batch_size=1, mix=(1, 1), log_every=1)
+    net = PillarCenterNet(config)
+    result = train(net, [source, pseudo], [Augmentation.none()] * 2, settings, progress=False)
+    assert [row["dataset"] for row in result.log] == [0, 1] * 6  # epoch = 3 source batches
+    assert source.mount_height_m == 2.0 and pseudo.mount_height_m == 1.73  # each set's own ground
+
+
+def conv_weights(model_dir):
+    state = torch.load(model_dir / "model.pt", weights_only=True)
+    return {k: v for k, v in state.items() if k.endswith("weight") and v.ndim == 4}
+
+
+def test_retrain_cli_from_previous_and_scratch(world):
+    runner = CliRunner()
+    base = ["retrain", "--init", str(world / "iter0"), "--source", str(world / "source"),
+            "--ppcg", str(world / "rc"), str(world / "cf"), "--epochs", "1", "--quiet"]  # fmt: skip
+    out = world / "iter1"
+    result = runner.invoke(main, [*base, "--out", str(out), "--lr", "1e-12"])
+    assert result.exit_code == 0, result.output
+    for name in ("model.pt", "model.json", "train_log.parquet", "manifest.json"):
+        assert (out / name).is_file()
+    manifest = read_manifest(out)
+    assert [r["path"] for r in manifest["inputs"]["ppcg"]] == [str(world / "rc"), str(world / "cf")]
+    assert manifest["outputs"]["counts"]["ppcg_frames"] == 6
+    meta = json.loads((out / "model.json").read_text())
+    assert meta["provenance"]["size_norm"] == "sn" and meta["provenance"]["init_from"] == "previous"
+    # the source keeps the initial model's SN: its boxes are resized to the KITTI mean
+    assert np.allclose(
+        meta["metrics"]["mean_lwh_m"][str(world / "source")], get_profile("kitti").car_mean_lwh_m
+    )
+    log = pq.read_table(out / "train_log.parquet").to_pydict()
+    assert set(log["dataset"]) == {0, 1}
+    before, after = conv_weights(world / "iter0"), conv_weights(out)
+    assert all(
+        torch.allclose(before[k], after[k], atol=1e-6) for k in before
+    )  # lr ~ 0: same weights
+
+    scratch = world / "iter1-scratch"
+    result = runner.invoke(
+        main,
+        [*base, "--out", str(scratch), "--lr", "1e-12", "--init-from", "scratch", "--seed", "7"],
+    )
+    assert result.exit_code == 0, result.output
+    fresh = conv_weights(scratch)
+    assert not all(torch.allclose(before[k], fresh[k], atol=1e-6) for k in before)
+
+    again = runner.invoke(main, [*base, "--out", str(out), "--lr", "1e-12"])
+    assert again.exit_code == 0 and "up to date" in again.output
+
+
+def test_retrain_cli_errors(world, tmp_path):
+    runner = CliRunner()
+    base = [
+        "retrain",
+        "--init",
+        str(world / "iter0"),
+        "--source",
+        str(world / "source"),
+        "--out",
+        str(tmp_path / "m"),
+    ]
+    result = runner.invoke(main, [*base, "--ppcg", str(world / "rc"), "--mix", "1:x"])
+    assert result.exit_code == 2 and "--mix" in result.output
+    result = runner.invoke(main, [*base, "--ppcg", str(world / "rc"), "--mix", "1:1:1"])
+    assert result.exit_code == 2
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    result = runner.invoke(main, [*base, "--ppcg", str(empty)])
+    assert result.exit_code == 1 and "frames.zarr" in result.output
+    assert not (tmp_path / "m").exists()
+    result = runner.invoke(main, ["retrain", "--init", str(world / "source"), "--source", str(world / "source"),
+                                  "--ppcg", str(world / "rc"), "--out", str(tmp_path / "m")])  # fmt: skip
+    assert result.exit_code == 1 and "model.json" in result.output
