@@ -56,6 +56,7 @@ class RayHits:
         primitive_id: np.ndarray,
         normals: np.ndarray | None = None,
         raw_normals: np.ndarray | None = None,
+        normal_transform: np.ndarray | None = None,
     ):
         self.hit = hit
         self.distance = distance
@@ -64,11 +65,14 @@ class RayHits:
         self.primitive_id = primitive_id
         self._normals = normals
         self._raw_normals = raw_normals  # (N, 3) unnormalized, any value on a miss
+        self._normal_transform = normal_transform  # (3, 3) applied to raw normals, or None
 
     @property
     def normals(self) -> np.ndarray:
         if self._normals is None:
             raw = np.asarray(self._raw_normals, np.float32)
+            if self._normal_transform is not None:
+                raw = _apply(self._normal_transform, raw.astype(np.float64)).astype(np.float32)
             squared = np.einsum("ij,ij->i", raw, raw)
             scale = np.zeros(len(raw), np.float32)
             good = self.hit & (squared > 0)
@@ -143,6 +147,11 @@ class Scene:
                 np.max([v.max(axis=0) for v in self.vertices], axis=0),
             ]
         ).astype(np.float64)  # (2, 3) min, max corner
+        # bounding sphere (center (3,), radius) with 1% slack, for moving ray origins close
+        self.sphere = (
+            self.bounds.mean(axis=0),
+            0.5 * float(np.linalg.norm(self.bounds[1] - self.bounds[0])) * 1.01 + 1e-6,
+        )
 
     @classmethod
     def from_meshes(cls, meshes: Sequence[tuple[np.ndarray, np.ndarray]]) -> Scene:
@@ -220,23 +229,6 @@ def _pool(threads: int) -> ThreadPoolExecutor:
         return _pools[threads]
 
 
-def _rays(origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Validate and broadcast to float64 `(N, 3)` pairs; a `(3,)` origin is shared by all rays."""
-    directions = np.asarray(directions, dtype=np.float64)
-    if directions.ndim != 2 or directions.shape[1] != 3:
-        raise ValueError(f"directions must be (N, 3), got {directions.shape}")
-    origins = np.asarray(origins, dtype=np.float64)
-    if origins.shape == (3,):
-        origins = np.broadcast_to(origins, directions.shape)
-    if origins.shape != directions.shape:
-        raise ValueError(
-            f"origins {origins.shape} and directions {directions.shape} differ in shape"
-        )
-    if not (np.isfinite(origins).all() and np.isfinite(directions).all()):
-        raise ValueError("origins/directions contain NaN/inf")
-    return origins, directions
-
-
 def _trace_chunked(
     scene: Scene,
     origins: np.ndarray,
@@ -264,38 +256,6 @@ def _trace_chunked(
         np.concatenate([p["primID"] for p in parts]),
         np.concatenate([p["Ng"] for p in parts]),
     )
-
-
-def _cast_prepared(
-    scene: Scene,
-    origins: np.ndarray,
-    directions: np.ndarray,
-    start: np.ndarray | float,
-    limit: np.ndarray,
-    threads: int | None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Trace rays that start at parameter `start` (float64, moved origin) up to parameter `limit`.
-
-    Returns (distance (N,) float64 with inf on miss, geometry_id, primitive_id, Ng).
-    """
-    moved = (
-        origins + np.asarray(start, np.float64)[..., None] * directions
-        if np.any(start)
-        else origins
-    )
-    tfar = np.where(np.isfinite(limit), limit - start, _FAR).astype(np.float32)
-    empty = tfar <= 0
-    tfar[empty] = np.float32(1e-30)
-    local, geometry, primitive, normals = _trace_chunked(
-        scene,
-        np.ascontiguousarray(moved, dtype=np.float32),
-        np.ascontiguousarray(directions, dtype=np.float32),
-        np.ascontiguousarray(tfar),
-        threads,
-    )
-    hit = (geometry >= 0) & ~empty
-    distance = np.where(hit, start + local.astype(np.float64), np.inf)
-    return distance, np.where(hit, geometry, -1), np.where(hit, primitive, -1), normals
 
 
 _zeros = np.zeros((0, 3), np.float32)
@@ -417,40 +377,83 @@ def cast_transformed(
     first moved along their ray to near the model's bounding sphere so float32 tracing keeps
     sub-micrometre precision far from the sensor.
     """
-    origins, directions = _rays(origins, directions)
+    affine = np.asarray(affine, np.float64)
+    return _cast_model_frame(
+        bvh,
+        origins,
+        directions,
+        np.linalg.inv(affine[:3, :3]),
+        affine[:3, 3],
+        max_distance,
+        threads,
+    )
+
+
+def _cast_model_frame(
+    bvh: Scene,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    inverse: np.ndarray,
+    translation: np.ndarray,
+    max_distance: float | np.ndarray | None,
+    threads: int | None,
+) -> RayHits:
+    """cast_transformed given A^-1 `(3, 3)` and t `(3,)`; a `(3,)` origin is transformed once."""
+    directions = np.asarray(directions, np.float64)
+    if directions.ndim != 2 or directions.shape[1] != 3:
+        raise ValueError(f"directions must be (N, 3), got {directions.shape}")
     count = len(directions)
+    origins = np.asarray(origins, np.float64)
+    shared = origins.shape == (3,)
+    if not shared and origins.shape != directions.shape:
+        raise ValueError(
+            f"origins {origins.shape} and directions {directions.shape} differ in shape"
+        )
+    if not (np.isfinite(origins).all() and np.isfinite(directions).all()):
+        raise ValueError("origins/directions contain NaN/inf")
     if count == 0:
         return RayHits.misses(0)
-    affine = np.asarray(affine, np.float64)
-    linear, translation = affine[:3, :3], affine[:3, 3]
-    inverse = np.linalg.inv(linear)
-    model_origins = _apply(inverse, origins - translation)  # (N, 3)
+    # model frame; a shared origin is one vector
+    model_origins = (
+        inverse @ (origins - translation) if shared else _apply(inverse, origins - translation)
+    )
     model_directions = _apply(inverse, directions)  # (N, 3)
     # start each ray just before the model's bounding sphere (t is frame independent)
-    center = bvh.bounds.mean(axis=0)
-    radius = 0.5 * np.linalg.norm(bvh.bounds[1] - bvh.bounds[0]) * 1.01 + 1e-6
-    squared = np.einsum("ij,ij->i", model_directions, model_directions)
-    along = np.einsum("ij,ij->i", center - model_origins, model_directions) / np.maximum(
-        squared, 1e-300
+    center, radius = bvh.sphere
+    squared = np.maximum(np.einsum("ij,ij->i", model_directions, model_directions), 1e-300)
+    to_center = center - model_origins
+    along = (
+        model_directions @ to_center
+        if shared
+        else np.einsum("ij,ij->i", to_center, model_directions)
     )
-    start = np.maximum(0.0, along - radius / np.sqrt(np.maximum(squared, 1e-300)))
-    limit = np.broadcast_to(
-        np.inf if max_distance is None else np.asarray(max_distance, np.float64), (count,)
+    start = np.maximum(0.0, (along - radius * np.sqrt(squared)) / squared)  # (N,)
+    moved = model_origins + start[:, None] * model_directions
+    if max_distance is None:
+        tfar = np.full(count, _FAR, np.float32)
+    else:
+        limit = np.broadcast_to(np.asarray(max_distance, np.float64), (count,))
+        tfar = np.where(np.isfinite(limit), limit - start, _FAR).astype(np.float32)
+    empty = tfar <= 0
+    tfar[empty] = np.float32(1e-30)
+    local, geometry, primitive, normals = _trace_chunked(
+        bvh,
+        np.ascontiguousarray(moved, dtype=np.float32),
+        np.ascontiguousarray(model_directions, dtype=np.float32),
+        tfar,
+        threads,
     )
-    distance, geometry, primitive, normals = _cast_prepared(
-        bvh, model_origins, model_directions, start, limit, threads
-    )
-    hit = geometry >= 0
-    points = origins + np.where(hit, distance, 0.0)[:, None] * directions
-    # normals are covectors: n_sensor ∝ A^-T n_model
-    world_normals = _apply(inverse.T, normals.astype(np.float64))
+    hit = (geometry >= 0) & ~empty
+    distance = np.where(hit, start + local, np.inf)
+    points = origins + np.where(hit, distance, np.nan)[:, None] * directions
     return RayHits(
         hit=hit,
         distance=distance,
-        points=np.where(hit[:, None], points, np.nan).astype(np.float32),
-        geometry_id=geometry.astype(np.int32),
-        primitive_id=primitive.astype(np.int32),
-        raw_normals=world_normals,
+        points=points.astype(np.float32),
+        geometry_id=np.where(hit, geometry, -1).astype(np.int32),
+        primitive_id=np.where(hit, primitive, -1).astype(np.int32),
+        raw_normals=normals,
+        normal_transform=inverse.T,  # normals are covectors: n_sensor ∝ A^-T n_model
     )
 
 
@@ -468,14 +471,12 @@ def cast_into_box(
     box: `(7,)` x, y, z, l, w, h, yaw (sensor frame). The model is scaled anisotropically to the
     box's l, w, h. Equivalent to tracing the transformed mesh, without rebuilding any BVH.
     """
-    return cast_transformed(
-        bvh,
-        origins,
-        directions,
-        box_affine(box, model_lwh),
-        max_distance=max_distance,
-        threads=threads,
-    )
+    box = np.asarray(box, np.float64).reshape(7)
+    scale = box[3:6] / np.asarray(model_lwh, np.float64)
+    c, s = np.cos(box[6]), np.sin(box[6])
+    # (R diag(scale))^-1 = diag(1 / scale) R^T
+    inverse = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]]) / scale[:, None]
+    return _cast_model_frame(bvh, origins, directions, inverse, box[:3], max_distance, threads)
 
 
 def transform_vertices(vertices: np.ndarray, affine: np.ndarray) -> np.ndarray:
