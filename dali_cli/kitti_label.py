@@ -55,21 +55,14 @@ def pseudo_lidar_to_camera(boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
     return hwl, location, np.asarray(ry).reshape(-1)
 
 
-def read_label_file(path: str | Path, frame_id: str | None = None) -> BoxTable:
-    """One label file as a box table (frame id = the file's stem unless given).
-
-    Columns: the box, label (KITTI type), score (16th field, else 1), and the KITTI columns
-    truncated, occluded, alpha, bbox_left/top/right/bottom. DontCare's placeholder size -1
-    becomes 0. Raises ArtifactError naming the file, line and field on malformed input.
-    """
-    path = Path(path)
-    frame_id = path.stem if frame_id is None else str(frame_id)
+def _split_lines(path: Path) -> tuple[list[str], list[str], list[int]]:
+    """Names, numeric tokens (15 per line, the score defaulting to 1) and line numbers."""
     try:
         text = path.read_text()
     except OSError as error:
         raise ArtifactError(f"{path}: cannot read label file ({error.strerror})") from None
-    rows, names = [], []
-    for number, line in enumerate(text.splitlines(), start=1):
+    names, tokens, numbers = [], [], []
+    for number, line in enumerate(text.splitlines(), start=1):  # a loop over text lines
         fields = line.split()
         if not fields:
             continue
@@ -77,32 +70,48 @@ def read_label_file(path: str | Path, frame_id: str | None = None) -> BoxTable:
             raise ArtifactError(
                 f"{path}:{number}: expected {_FIELDS} or {_FIELDS + 1} fields, got {len(fields)}"
             )
-        try:
-            values = [float(v) for v in fields[1:]]
-        except ValueError:
-            bad = next(k for k, v in enumerate(fields[1:], start=2) if not _is_float(v))
-            raise ArtifactError(
-                f"{path}:{number}: field {bad} ('{fields[bad - 1]}') is not a number"
-            ) from None
-        if not np.isfinite(values).all():
-            raise ArtifactError(f"{path}:{number}: non-finite value")
         names.append(fields[0])
-        rows.append(values + ([1.0] if len(fields) == _FIELDS else []))
-    data = np.asarray(rows, dtype=np.float64).reshape(-1, _FIELDS)
+        tokens.extend(fields[1:])
+        if len(fields) == _FIELDS:
+            tokens.append("1")
+        numbers.append(number)
+    return names, tokens, numbers
+
+
+def _parse(files: list[Path], frame_ids: list[str]) -> BoxTable:
+    """Label lines of several files as one box table (see read_label_file)."""
+    names, tokens, origin, numbers = [], [], [], []
+    for index, path in enumerate(files):
+        file_names, file_tokens, file_numbers = _split_lines(path)
+        names += file_names
+        tokens += file_tokens
+        numbers += file_numbers
+        origin += [index] * len(file_names)
+    try:
+        data = np.asarray(tokens, dtype=np.float64).reshape(-1, _FIELDS)
+    except ValueError:  # find the offending line for the message
+        for row in range(len(names)):
+            for column, value in enumerate(tokens[row * _FIELDS : (row + 1) * _FIELDS]):
+                if not _is_float(value):
+                    raise ArtifactError(
+                        f"{files[origin[row]]}:{numbers[row]}: field {column + 2} ('{value}') "
+                        "is not a number"
+                    ) from None
+        raise
     names_array = np.asarray(names, dtype=object)
-    dont_care = (
-        np.char.lower(names_array.astype(str)) == "dontcare" if len(names) else np.zeros(0, bool)
-    )
+    dont_care = np.asarray([name.lower() == "dontcare" for name in names], dtype=bool)
     hwl = data[:, 7:10].copy()
-    negative = (hwl < 0).any(axis=1) & ~dont_care
-    if negative.any():
-        raise ArtifactError(
-            f"{path}:{int(np.flatnonzero(negative)[0]) + 1}: negative box dimension"
+    bad = ~np.isfinite(data).all(axis=1) | ((hwl < 0).any(axis=1) & ~dont_care)
+    if bad.any():
+        row = int(np.flatnonzero(bad)[0])
+        problem = (
+            "non-finite value" if not np.isfinite(data[row]).all() else "negative box dimension"
         )
+        raise ArtifactError(f"{files[origin[row]]}:{numbers[row]}: {problem}")
     hwl[dont_care] = np.maximum(hwl[dont_care], 0.0)
     boxes = camera_to_pseudo_lidar(hwl, data[:, 10:13], data[:, 13])
     return BoxTable.from_arrays(
-        np.full(len(data), frame_id, dtype=object),
+        np.asarray(frame_ids, dtype=object)[np.asarray(origin, dtype=np.int64)],
         boxes,
         score=data[:, 14].astype(np.float32),
         label=names_array,
@@ -111,6 +120,17 @@ def read_label_file(path: str | Path, frame_id: str | None = None) -> BoxTable:
         alpha=data[:, 2].astype(np.float64),
         **{name: data[:, 3 + k].astype(np.float32) for k, name in enumerate(BBOX_COLUMNS)},
     )
+
+
+def read_label_file(path: str | Path, frame_id: str | None = None) -> BoxTable:
+    """One label file as a box table (frame id = the file's stem unless given).
+
+    Columns: the box, label (KITTI type), score (16th field, else 1), and the KITTI columns
+    truncated, occluded, alpha, bbox_left/top/right/bottom. DontCare's placeholder size -1
+    becomes 0. Raises ArtifactError naming the file, line and field on malformed input.
+    """
+    path = Path(path)
+    return _parse([path], [path.stem if frame_id is None else str(frame_id)])
 
 
 def _is_float(text: str) -> bool:
@@ -139,7 +159,7 @@ def read_label_dir(directory: str | Path) -> BoxTable:
     files = label_files(directory)
     if not files:
         raise ArtifactError(f"{directory}: no {LABEL_SUFFIX} label files")
-    return BoxTable.concat([read_label_file(path) for path in files])
+    return _parse(files, [path.stem for path in files])
 
 
 def format_label_lines(table: BoxTable, with_score: bool = True, decimals: int = 6) -> list[str]:

@@ -591,3 +591,15 @@ def test_format_table_lists_every_band():
     text = format_table(evaluate(table(cars), table(cars)))
     assert all(band in text for band in ("all", "0-30", "30-50", "50-80"))
     assert math.isclose(float(text.splitlines()[2].split()[1]), 100.0)
+
+
+def test_empty_inputs():
+    cars = row_of_cars(3)
+    no_pred = evaluate(BoxTable.empty(), table(cars))["Car"]
+    assert no_pred["bev"]["all"] == 0.0 and no_pred["counts"]["all"]["bev"] == {"tp": 0, "fp": 0, "fn": 3}
+    no_gt = evaluate(table(cars), BoxTable.empty())["Car"]
+    assert no_gt["bev"]["all"] is None and no_gt["counts"]["all"]["bev"] == {"tp": 0, "fp": 3, "fn": 0}
+    nothing = evaluate(BoxTable.empty(), BoxTable.empty(), frame_ids=["a", "b"])["Car"]
+    assert nothing["frames"] == 2 and nothing["3d"]["all"] is None
+    with pytest.raises(EvaluationError, match="outside the evaluated frames"):
+        evaluate(table(cars, frame="c"), BoxTable.empty(), frame_ids=["a", "b"])
