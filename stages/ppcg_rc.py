@@ -141,7 +141,7 @@ def run_ppcg(
         attrs = {k: v for k, v in frames.attrs.items() if k not in ("count", "frame_convention")}
         attrs.update({"sensor": frames.sensor or sensor, "ppcg": mode, "ppcg_models": models})
         points_in = points_out = 0
-        started = time.perf_counter()
+        started, started_cpu = time.perf_counter(), time.process_time()
         bar = tqdm(
             total=len(frames), desc=f"ppcg-{mode}", unit="frame", file=sys.stderr,
             disable=not progress, leave=False,
@@ -164,7 +164,7 @@ def run_ppcg(
                 points_out += len(result.points)
                 bar.update(1)
         bar.close()
-        wall = time.perf_counter() - started
+        wall, cpu = time.perf_counter() - started, time.process_time() - started_cpu
         table = table.with_columns(
             ppcg=ppcg,
             ppcg_reason=reason,
@@ -192,6 +192,8 @@ def run_ppcg(
         timings = {
             "frames_seconds": round(wall, 4),
             "seconds_per_frame": round(wall / max(len(frames), 1), 6),
+            "frames_cpu_seconds": round(cpu, 4),  # all threads of this process (zarr I/O too)
+            "cpu_seconds_per_frame": round(cpu / max(len(frames), 1), 6),
             "compute_seconds_per_frame_with_boxes": {
                 "mean": round(float(busy.mean()), 6) if len(busy) else None,
                 "median": round(float(np.median(busy)), 6) if len(busy) else None,

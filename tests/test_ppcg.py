@@ -344,6 +344,13 @@ def test_stage_outputs_and_worker_independence(dataset):
         == read_manifest(dataset / "cf2")["content_hash"]
     )
     assert list(read_boxes(dataset / "cf1")["ppcg"]) == ["cf", "cf", "raw"]
+    # the before/after figure for `dali report` (paper Fig. 9)
+    from dali_cli.ppcg.figure import plot_ppcg_examples
+
+    png = plot_ppcg_examples(
+        dataset / "rc1", dataset / "cf1", dataset / "fig" / "ppcg.png", count=2
+    )
+    assert png is not None and png.stat().st_size > 10_000
 
 
 def test_cli_errors_name_the_file_frame_and_field(dataset, tmp_path):

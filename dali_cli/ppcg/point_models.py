@@ -72,30 +72,32 @@ def cast_point_model(
         model_cells = np.floor(units / cell).astype(np.int64) + size // 2
         ray_cells = np.floor(rays / cell).astype(np.int64) + size // 2
         model_keys = _grid_keys(model_cells, size)  # (M,)
-        order = np.argsort(model_keys, kind="stable")
+        order = np.argsort(model_keys, kind="stable")  # model points grouped by cell
         sorted_keys = model_keys[order]
-        query = _grid_keys(ray_cells[:, None, :] + _OFFSETS[None, :, :], size).reshape(
-            -1
-        )  # (N*27,)
-        lo = np.searchsorted(sorted_keys, query, side="left")
-        hi = np.searchsorted(sorted_keys, query, side="right")
-        counts = hi - lo  # (N*27,)
+        by_range = np.argsort(ranges, kind="stable")  # ties: the lower model index first
+        rank = np.empty(len(ranges), dtype=np.int64)
+        rank[by_range] = np.arange(len(ranges))
+        sorted_units, sorted_rank = units[order], rank[order]
+        query = _grid_keys(ray_cells[:, None, :] + _OFFSETS[None, :, :], size).reshape(-1)
+        lo = np.searchsorted(sorted_keys, query, side="left")  # (N*27,) candidate runs
+        counts = np.searchsorted(sorted_keys, query, side="right") - lo
         total = int(counts.sum())
         if total:
-            ray_of_pair = np.repeat(np.repeat(np.arange(count), 27), counts)  # (P,)
+            # candidate pairs come ray by ray: ray i owns per_ray[i] consecutive pairs
+            per_ray = counts.reshape(count, 27).sum(axis=1)  # (N,)
             first_of_run = np.cumsum(counts) - counts  # exclusive prefix sum, (N*27,)
             position = np.arange(total) - np.repeat(first_of_run - lo, counts)  # (P,)
-            model_of_pair = order[position]  # (P,)
-            cosine = np.einsum("ij,ij->i", rays[ray_of_pair], units[model_of_pair])
-            keep = cosine >= np.cos(theta_rad)
-            ray_of_pair, model_of_pair = ray_of_pair[keep], model_of_pair[keep]
-            if len(ray_of_pair):
-                best = np.lexsort((model_of_pair, ranges[model_of_pair], ray_of_pair))
-                ray_sorted = ray_of_pair[best]
-                first = np.r_[True, ray_sorted[1:] != ray_sorted[:-1]]
-                winners = best[first]
-                model_index[ray_of_pair[winners]] = model_of_pair[winners]
-                distance[ray_of_pair[winners]] = ranges[model_of_pair[winners]]
+            cosine = np.einsum(
+                "ij,ij->i", np.repeat(rays, per_ray, axis=0), sorted_units[position]
+            )  # (P,)
+            miss = len(ranges)
+            key = np.where(cosine >= np.cos(theta_rad), sorted_rank[position], miss)  # (P,)
+            has = per_ray > 0
+            best = np.full(count, miss, dtype=np.int64)
+            best[has] = np.minimum.reduceat(key, (np.cumsum(per_ray) - per_ray)[has])
+            found = best < miss
+            model_index[found] = by_range[best[found]]
+            distance[found] = ranges[model_index[found]]
     hit = model_index >= 0
     points = np.full((count, 3), np.nan)
     points[hit] = origin + distance[hit, None] * rays[hit]
