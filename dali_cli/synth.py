@@ -498,13 +498,17 @@ def box_ray_window(pattern: _Pattern, box: np.ndarray) -> np.ndarray:
     corners = bev_corners(box)[0]
     center_azimuth = np.arctan2(box[1], box[0])
     offsets = _wrap(np.arctan2(corners[:, 1], corners[:, 0]) - center_azimuth)
-    low = (center_azimuth + offsets.min() - pattern.azimuth_start) / pattern.azimuth_step
-    high = (center_azimuth + offsets.max() - pattern.azimuth_start) / pattern.azimuth_step
-    columns = np.arange(int(np.floor(low)) - 1, int(np.ceil(high)) + 2)
+    # azimuth of the center counted from the pattern's first column, in [0, 2 pi)
+    relative = np.mod(center_azimuth - pattern.azimuth_start, 2.0 * np.pi)
+    low = int(np.floor((relative + offsets.min()) / pattern.azimuth_step)) - 1
+    high = int(np.ceil((relative + offsets.max()) / pattern.azimuth_step)) + 1
+    columns = np.arange(low, high + 1)
     if pattern.full_circle:
         columns = np.unique(columns % pattern.columns)
-    else:
-        columns = columns[(columns >= 0) & (columns < pattern.columns)]
+    else:  # a partial field of view: the box may also straddle its start, one turn earlier
+        turn = int(round(2.0 * np.pi / pattern.azimuth_step))
+        columns = np.concatenate([columns, columns - turn])
+        columns = np.unique(columns[(columns >= 0) & (columns < pattern.columns)])
     c, s = np.cos(box[6]), np.sin(box[6])
     local = np.array(
         [-(c * box[0] + s * box[1]), -(-s * box[0] + c * box[1])]

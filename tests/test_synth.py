@@ -105,12 +105,15 @@ def test_cars_occlude_each_other_and_the_estimate_says_so():
     assert inside.sum() > 100 and (both.owner[inside] == 0).all()
 
 
-def test_ray_windows_hold_every_ray_that_can_hit_the_car():
-    profile = get_profile("nuscenes")
+@pytest.mark.parametrize("field_of_view", [(-180.0, 180.0), (90.0, 270.0), (-60.0, 60.0)])
+def test_ray_windows_hold_every_ray_that_can_hit_the_car(field_of_view):
+    profile = dataclasses.replace(
+        get_profile("nuscenes"), azimuth_min_deg=field_of_view[0], azimuth_max_deg=field_of_view[1]
+    )
     pattern = synth._pattern(profile)
     rng = np.random.default_rng(3)
     model = synth.pool_car(0)
-    for _ in range(8):
+    for _ in range(12):
         distance, azimuth = rng.uniform(3.5, 40), rng.uniform(-np.pi, np.pi)
         box = np.array(
             [
@@ -125,9 +128,20 @@ def test_ray_windows_hold_every_ray_that_can_hit_the_car():
         )
         window = synth.box_ray_window(pattern, box)
         hits = cast_into_box(model.bvh(), np.zeros(3), pattern.directions, box)
-        assert hits.hit.any()
         assert np.isin(np.flatnonzero(hits.hit), window).all()
         assert len(window) < 0.2 * len(pattern.directions)
+
+
+def test_footprint_overlap_matches_polygon_intersection():
+    shapely = pytest.importorskip("shapely")
+    rng = np.random.default_rng(8)
+    boxes = np.c_[rng.uniform(-6, 6, (200, 2)), np.zeros(200), rng.uniform(0.3, 5, (200, 2)),
+                  np.ones(200), rng.uniform(-np.pi, np.pi, 200)]  # fmt: skip
+    corners = synth.bev_corners(boxes)
+    polygons = [shapely.Polygon(c) for c in corners]
+    for k in range(0, 200, 10):
+        expected = np.array([polygons[k].intersection(p).area > 1e-9 for p in polygons])
+        np.testing.assert_array_equal(synth.footprints_overlap(corners[k], corners), expected)
 
 
 def test_frames_are_deterministic_per_seed_and_index():
