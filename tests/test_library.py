@@ -245,3 +245,22 @@ def test_build_command_errors(tmp_path):
     assert not (tmp_path / "x").exists()
     with pytest.raises(LibraryError, match="missing"):
         read_library(tmp_path)
+
+
+def test_cad_formats_glb_scene_ply_and_stl_load_as_one_normalized_mesh(tmp_path):
+    body = trimesh.creation.box(extents=[4.2, 1.8, 1.0])
+    body.apply_translation([0.0, 0.0, 0.7])
+    cabin = trimesh.creation.box(extents=[2.0, 1.6, 0.6])
+    cabin.apply_translation([-0.3, 0.0, 1.5])
+    scene = trimesh.Scene([body, cabin])
+    (tmp_path / "car.glb").write_bytes(scene.export(file_type="glb"))
+    merged = trimesh.util.concatenate([body, cabin])
+    merged.export(tmp_path / "car_ply.ply")
+    merged.export(tmp_path / "car_stl.stl")
+    models, skipped = load_cad_directory(tmp_path)
+    assert skipped == [] and sorted(m.model_id for m in models) == ["car", "car_ply", "car_stl"]
+    for model in models:
+        np.testing.assert_allclose(model.native_lwh, [4.2, 1.8, 1.6], rtol=1e-5)
+        np.testing.assert_allclose(model.vertices.min(axis=0), -0.5, atol=1e-6)
+        np.testing.assert_allclose(model.vertices.max(axis=0), 0.5, atol=1e-6)
+        assert len(model.faces) == 24
