@@ -470,6 +470,7 @@ def generate_scene(
 @dataclass(frozen=True)
 class _Pattern:
     directions: np.ndarray  # (B * P, 3) float64 unit, beam-major
+    directions32: np.ndarray  # the same as float32 C-contiguous (Embree's input, no copy)
     elevations: np.ndarray  # (B,) ascending rad
     azimuth_start: float
     azimuth_step: float
@@ -481,6 +482,7 @@ class _Pattern:
 def _pattern(sensor: SensorProfile) -> _Pattern:
     return _Pattern(
         directions=sensor.ray_pattern().directions.astype(np.float64),
+        directions32=sensor.ray_pattern().directions,
         elevations=sensor.elevations_rad(),
         azimuth_start=float(np.radians(sensor.azimuth_min_deg)),
         azimuth_step=sensor.azimuth_step_rad,
@@ -553,7 +555,11 @@ def scan_scene(
 
     static = Scene([(scene.clutter_vertices, scene.clutter_faces)])
     hits = cast(
-        static, np.zeros(3), directions, max_distance=np.minimum(distance, limit), threads=threads
+        static,
+        np.zeros(3),
+        pattern.directions32,
+        max_distance=np.minimum(distance, limit),
+        threads=threads,
     )
     closer = hits.hit & (hits.distance < distance)
     distance[closer] = hits.distance[closer]
@@ -584,7 +590,8 @@ def scan_scene(
     ground = owner == -1
     if ground.any():
         xy = distance[ground, None] * directions[ground, :2]
-        cosine[ground] = np.abs(directions[ground] @ scene.ground.normal())
+        normal = scene.ground.normal()
+        cosine[ground] = np.abs((directions[ground] * normal).sum(axis=1))
         lateral = _rotate(xy, -scene.road_heading)[:, 1]
         along = _rotate(xy, -scene.road_heading)[:, 0]
         marking = np.zeros(len(xy), bool)
