@@ -131,6 +131,10 @@ def run_stage(mode: str, target: Path, library: Path, out: Path, models: str) ->
     return {
         "seconds_per_frame": round(stage_frames / frames, 5),
         "cpu_seconds_per_frame": manifest["timings"]["cpu_seconds_per_frame"],
+        "read_compute_write_seconds_per_frame": [
+            manifest["timings"][f"{part}_seconds_per_frame"]
+            for part in ("read", "compute", "write")
+        ],
         "stage_wall_seconds_incl_library_load": round(wall, 3),
         "compute_seconds_per_frame": manifest["timings"]["compute_seconds_per_frame_with_boxes"],
         "embree_share_of_frame_loop": round(embree.seconds / stage_frames, 3),
@@ -176,7 +180,8 @@ def main() -> None:
                     section[f"{mode}_{models}"] = best
                     print(
                         f"{sensor:9s} {mode} {models:6s}: {best['seconds_per_frame'] * 1e3:6.2f} ms/frame "
-                        f"({best['cpu_seconds_per_frame'] * 1e3:.2f} ms CPU) "
+                        f"({best['cpu_seconds_per_frame'] * 1e3:.2f} ms CPU; read/compute/write "
+                        f"{'/'.join(f'{v * 1e3:.1f}' for v in best['read_compute_write_seconds_per_frame'])}) "
                         f"(paper {PAPER_S[sensor][mode] * 1e3:.0f} ms on a GPU), Embree "
                         f"{best['embree_share_of_frame_loop'] * 100:.0f}%, {best['rays_per_frame']:.0f} rays/frame"
                     )

@@ -138,6 +138,7 @@ def run_ppcg(
         model_id = np.full(count, "", dtype=object)
         num_points = np.asarray(table["num_points"], np.int32).copy()
         seconds = np.zeros(len(frames))
+        read_seconds = write_seconds = 0.0
         attrs = {k: v for k, v in frames.attrs.items() if k not in ("count", "frame_convention")}
         attrs.update({"sensor": frames.sensor or sensor, "ppcg": mode, "ppcg_models": models})
         points_in = points_out = 0
@@ -151,7 +152,10 @@ def run_ppcg(
             results = run_frames(job, frame_boxes, workers, bank if workers <= 1 else None)
             for index, result in enumerate(results):
                 frame_rows = rows[index]
+                write_started = time.perf_counter()
                 writer.append(result.frame_id, result.points)
+                write_seconds += time.perf_counter() - write_started
+                read_seconds += result.read_seconds
                 records = result.records
                 ppcg[frame_rows] = records.ppcg
                 reason[frame_rows] = records.reason
@@ -163,6 +167,8 @@ def run_ppcg(
                 points_in += int(frames.offsets[index + 1] - frames.offsets[index])
                 points_out += len(result.points)
                 bar.update(1)
+            close_started = time.perf_counter()
+        write_seconds += time.perf_counter() - close_started  # the last chunk and the index
         bar.close()
         wall, cpu = time.perf_counter() - started, time.process_time() - started_cpu
         table = table.with_columns(
@@ -194,6 +200,9 @@ def run_ppcg(
             "seconds_per_frame": round(wall / max(len(frames), 1), 6),
             "frames_cpu_seconds": round(cpu, 4),  # all threads of this process (zarr I/O too)
             "cpu_seconds_per_frame": round(cpu / max(len(frames), 1), 6),
+            "read_seconds_per_frame": round(read_seconds / max(len(frames), 1), 6),
+            "compute_seconds_per_frame": round(float(seconds.sum()) / max(len(frames), 1), 6),
+            "write_seconds_per_frame": round(write_seconds / max(len(frames), 1), 6),
             "compute_seconds_per_frame_with_boxes": {
                 "mean": round(float(busy.mean()), 6) if len(busy) else None,
                 "median": round(float(np.median(busy)), 6) if len(busy) else None,

@@ -38,12 +38,15 @@ class Job:
 
 @dataclass
 class FrameResult:
-    """One processed frame: new points `(n', 4)` float32, per-box records, compute seconds."""
+    """One processed frame: new points `(n', 4)` float32, per-box records, compute seconds and
+    the seconds spent reading it (blocks of frames are read at once: the first frame of a block
+    carries the block's read time)."""
 
     frame_id: str
     points: np.ndarray
     records: BoxRecords
     seconds: float
+    read_seconds: float = 0.0
 
 
 class _Worker:
@@ -77,13 +80,15 @@ class _Worker:
             )
         return FrameResult(frame_id, new, records, time.perf_counter() - started)
 
-    def run(self, indices: list[int], boxes: list[np.ndarray]) -> list[FrameResult]:
-        results = []
-        for (frame_id, points), frame_boxes in zip(
-            self.frames.iter_frames(indices), boxes, strict=True
-        ):
-            results.append(self.process(frame_id, points, frame_boxes))
-        return results
+    def run(self, indices: list[int] | None, boxes: list[np.ndarray]) -> Iterator[FrameResult]:
+        frames = self.frames.iter_frames(indices)
+        for frame_boxes in boxes:
+            started = time.perf_counter()
+            frame_id, points = next(frames)
+            read = time.perf_counter() - started
+            result = self.process(frame_id, points, frame_boxes)
+            result.read_seconds = read
+            yield result
 
 
 _state: _Worker | None = None
@@ -95,7 +100,7 @@ def _init_worker(job: Job) -> None:
 
 
 def _run_chunk(task: tuple[list[int], list[np.ndarray]]) -> list[FrameResult]:
-    return _state.run(*task)
+    return list(_state.run(*task))
 
 
 def run_frames(
@@ -112,10 +117,7 @@ def run_frames(
         worker = _Worker(job, bank)
         if len(worker.frames) != count:
             raise ValueError(f"{count} box lists for {len(worker.frames)} frames")
-        for (frame_id, points), frame_boxes in zip(
-            worker.frames.iter_frames(), boxes_by_frame, strict=True
-        ):
-            yield worker.process(frame_id, points, frame_boxes)
+        yield from worker.run(None, boxes_by_frame)
         return
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
