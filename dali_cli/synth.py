@@ -685,16 +685,22 @@ def synth_frame(
 # The stage
 
 
-def _frame_task(task: tuple[int, int, SensorProfile, SensorProfile]) -> SynthFrame:
-    seed, index, sensor, cars = task
-    return synth_frame(seed, index, sensor, cars)
+def _frame_task(task: tuple[int, int, SensorProfile, SensorProfile, int]) -> SynthFrame:
+    seed, index, sensor, cars, threads = task
+    return synth_frame(seed, index, sensor, cars, threads=threads)
 
 
 def iter_frames(
-    seed: int, frames: int, sensor: SensorProfile, cars: SensorProfile, workers: int = 1
+    seed: int,
+    frames: int,
+    sensor: SensorProfile,
+    cars: SensorProfile,
+    workers: int = 1,
+    threads: int = 1,
 ):
-    """Yield SynthFrames 0..frames-1 in order, computed by `workers` processes (spawned)."""
-    tasks = [(int(seed), index, sensor, cars) for index in range(int(frames))]
+    """Yield SynthFrames 0..frames-1 in order, computed by `workers` processes (spawned), each
+    tracing with `threads` Embree threads."""
+    tasks = [(int(seed), index, sensor, cars, int(threads)) for index in range(int(frames))]
     if workers <= 1 or frames <= 1:
         yield from map(_frame_task, tasks)
         return
@@ -715,6 +721,7 @@ def build_synth(
     seed: int,
     workers: int = 1,
     progress: bool = True,
+    threads: int = 1,
 ):
     """Write `frames` synthetic frames as a FrameSet + boxes.parquet into `out_dir`.
 
@@ -738,7 +745,7 @@ def build_synth(
     tables, total_points = [], 0
     with FrameSetWriter(out_dir, sensor.name, attrs) as writer:
         for frame in tqdm(
-            iter_frames(seed, frames, sensor, cars, workers),
+            iter_frames(seed, frames, sensor, cars, workers, threads),
             total=frames,
             desc=f"synth {sensor.name}",
             unit="frame",

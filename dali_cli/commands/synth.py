@@ -33,10 +33,19 @@ from dali_cli.commands.common import sensors_option, stage_options
     default=None,
     help="Worker processes (default: cores available). The output does not depend on it.",
 )
+@click.option(
+    "--threads",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Ray casting threads per worker (embreex releases the GIL). The output does not depend on it.",
+)
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="Output directory.")
 @sensors_option
 @stage_options
-def command(sensor, cars_profile, frames, seed, workers, out, sensors_path, force, dry_run):
+def command(
+    sensor, cars_profile, frames, seed, workers, threads, out, sensors_path, force, dry_run
+):
     """Synthesize a labeled LiDAR domain: street scenes of 5-30 procedural cars with clutter
     (walls, poles, trees, bushes, curbs, containers), scanned with the full --sensor pattern.
 
@@ -74,7 +83,7 @@ def command(sensor, cars_profile, frames, seed, workers, out, sensors_path, forc
         out,
         {},
         params,
-        lambda tmp: build_synth(tmp, sensor_profile, cars, frames, seed, workers),
+        lambda tmp: build_synth(tmp, sensor_profile, cars, frames, seed, workers, threads=threads),
         force=force,
         dry_run=dry_run,
         seed=seed,
