@@ -158,6 +158,12 @@ def _body(shape: CarShape, stations: int, around: int, rng: np.random.Generator)
         fraction, [0.0, 0.07, 0.93, 1.0], [bumper, shape.clearance, shape.clearance, bumper]
     )
     bottom = _smooth(bottom, fraction * L, 0.05)
+    # wheel arches: the sill rises over each axle so the wheels show from the side
+    arch = shape.wheel_radius + 0.05
+    for axle in (0.5 * shape.wheelbase, -0.5 * shape.wheelbase):
+        rise = shape.wheel_radius + 0.92 * np.sqrt(np.maximum(arch**2 - (x - axle) ** 2, 0.0))
+        bottom = np.where(np.abs(x - axle) < arch, np.maximum(bottom, rise), bottom)
+    bottom = np.minimum(bottom, top - 0.15)
     # plan view: round the corners near the bumpers
     end_distance = np.minimum(fraction, 1.0 - fraction) * L
     rounding = np.sqrt(1.0 - (1.0 - np.clip(end_distance / shape.end_radius, 0.0, 1.0)) ** 2)
