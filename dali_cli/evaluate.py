@@ -178,44 +178,80 @@ def _sample_thresholds(tp_scores: np.ndarray, num_gt: int) -> np.ndarray:
     return np.asarray(chosen)
 
 
-def _reference_frame(overlap, scores, ignored_gt, ignored_pred, min_overlap, threshold, compute_fp):
-    """The reference compute_statistics for one frame (BEV/3D metric): (tp, fp, fn, tp scores).
+def _edge_components(pred_index: np.ndarray, gt_index: np.ndarray, num_pred: int, num_gt: int):
+    """Connected-component label `(E,)` of each (prediction, ground truth) edge: label
+    propagation, a few vectorized rounds because components hold a handful of boxes."""
+    gt_label = np.arange(num_gt)
+    pred_label = np.full(num_pred, num_gt)
+    while True:
+        edge_label = np.minimum(gt_label[gt_index], pred_label[pred_index])
+        new_gt, new_pred = gt_label.copy(), pred_label.copy()
+        np.minimum.at(new_gt, gt_index, edge_label)
+        np.minimum.at(new_pred, pred_index, edge_label)
+        if np.array_equal(new_gt, gt_label) and np.array_equal(new_pred, pred_label):
+            return edge_label
+        gt_label, pred_label = new_gt, new_pred
 
-    overlap `(n_pred, n_gt)`; a direct port, used for frames the vectorized path cannot take.
-    """
-    assigned = np.zeros(len(scores), dtype=bool)
-    below = scores < threshold if compute_fp else np.zeros(len(scores), dtype=bool)
-    tp = fp = fn = 0
+
+@dataclass
+class _Component:
+    """Ground truths (ascending) with their candidate predictions, matched greedily in order."""
+
+    gts: list[int]
+    candidates: list[list[tuple[int, float]]]  # per ground truth: (prediction, overlap), ascending
+    preds: np.ndarray  # every prediction of the component
+
+
+def _match_sequentially(component, scores, ignored_gt, ignored_pred, level, compute_fp):
+    """The reference compute_statistics loop on one component: (tp, fp, fn, tp scores)."""
+    assigned: set[int] = set()
+    tp = fn = 0
     tp_scores = []
-    for g in range(overlap.shape[1]):
-        if ignored_gt[g] == -1:
-            continue
-        chosen, found, best_overlap, chose_ignored = -1, False, 0.0, False
+    for gt, candidates in zip(component.gts, component.candidates, strict=True):
+        chosen, best_overlap, chose_ignored = -1, 0.0, False
         best_score = -math.inf
-        for d in range(len(scores)):
-            if ignored_pred[d] == -1 or assigned[d] or below[d]:
-                continue
-            value = overlap[d, g]
-            if value <= min_overlap:
+        for pred, overlap in candidates:
+            if pred in assigned or (compute_fp and scores[pred] < level):
                 continue
             if not compute_fp:
-                if scores[d] > best_score:
-                    chosen, found, best_score = d, True, scores[d]
-            elif (value > best_overlap or chose_ignored) and ignored_pred[d] == 0:
-                chosen, found, best_overlap, chose_ignored = d, True, value, False
-            elif not found and ignored_pred[d] == 1:
-                chosen, found, chose_ignored = d, True, True
-        if not found:
-            fn += int(ignored_gt[g] == 0)
-        elif ignored_gt[g] == 1 or ignored_pred[chosen] == 1:
-            assigned[chosen] = True
-        else:
+                if scores[pred] > best_score:  # highest score, first on ties
+                    chosen, best_score = pred, scores[pred]
+            elif ignored_pred[pred] == 0 and (overlap > best_overlap or chose_ignored):
+                chosen, best_overlap, chose_ignored = pred, overlap, False
+            elif ignored_pred[pred] == 1 and chosen < 0:
+                chosen, chose_ignored = pred, True
+        if chosen < 0:
+            fn += int(ignored_gt[gt] == 0)
+            continue
+        assigned.add(chosen)
+        if ignored_gt[gt] == 0 and ignored_pred[chosen] == 0:
             tp += 1
             tp_scores.append(scores[chosen])
-            assigned[chosen] = True
+    fp = 0
     if compute_fp:
-        fp = int(np.sum(~assigned & (ignored_pred == 0) & ~below))
+        kept = component.preds[
+            (ignored_pred[component.preds] == 0) & (scores[component.preds] >= level)
+        ]
+        fp = len(kept) - len(assigned.intersection(kept.tolist()))
     return tp, fp, fn, tp_scores
+
+
+def _components(pred_index, gt_index, overlap, labels) -> list[_Component]:
+    order = np.lexsort((pred_index, gt_index, labels))
+    pred_index, gt_index, overlap, labels = (
+        v[order] for v in (pred_index, gt_index, overlap, labels)
+    )
+    result = []
+    bounds = np.flatnonzero(np.r_[True, labels[1:] != labels[:-1], True])
+    for start, stop in zip(bounds[:-1], bounds[1:], strict=True):  # a loop over components
+        gts, candidates = [], []
+        for k in range(start, stop):
+            if not gts or gts[-1] != gt_index[k]:
+                gts.append(int(gt_index[k]))
+                candidates.append([])
+            candidates[-1].append((int(pred_index[k]), float(overlap[k])))
+        result.append(_Component(gts, candidates, np.unique(pred_index[start:stop])))
+    return result
 
 
 @dataclass
@@ -244,25 +280,35 @@ def _statistics(
     num_gt = int(np.sum(ignored_gt == 0))
     scores = pred.score
 
-    # a prediction matching several ground truths makes the greedy order matter: exact loop there
+    # a prediction matching several ground truths makes the greedy order matter: the connected
+    # groups of boxes around such predictions are matched by the reference loop, the rest at once
+    in_loop_gt = np.zeros(len(gt.frame), dtype=bool)
+    in_loop_pred = np.zeros(len(scores), dtype=bool)
+    slow = np.zeros(len(pred_index), dtype=bool)
     shared = np.bincount(pred_index, minlength=len(scores)) > 1
-    loop_frames = np.unique(pred.frame[shared])
-    in_loop_gt = np.isin(gt.frame, loop_frames)
-    in_loop_pred = np.isin(pred.frame, loop_frames)
-    fast = ~in_loop_pred[pred_index]
-    loop_pairs = (pred_index[~fast], gt_index[~fast], overlap[~fast])
-    pred_index, gt_index, overlap = pred_index[fast], gt_index[fast], overlap[fast]
-    loop_cases = [
-        _loop_frame(frame, pred, gt, loop_pairs, ignored_gt, ignored_pred) for frame in loop_frames
-    ]
+    if shared.any():
+        labels = _edge_components(pred_index, gt_index, len(scores), len(gt.frame))
+        slow = np.isin(labels, labels[shared[pred_index]])
+        in_loop_gt[gt_index[slow]] = True
+        in_loop_pred[pred_index[slow]] = True
+    components = (
+        _components(pred_index[slow], gt_index[slow], overlap[slow], labels[slow])
+        if slow.any()
+        else []
+    )
+    pred_index, gt_index, overlap = pred_index[~slow], gt_index[~slow], overlap[~slow]
 
     # pass 1 (thresholds): each ground truth takes its highest-scoring candidate (first on ties)
     order = np.lexsort((pred_index, -scores[pred_index], gt_index))
     first = order[np.r_[True, gt_index[order][1:] != gt_index[order][:-1]]] if len(order) else order
     is_tp = (ignored_gt[gt_index[first]] == 0) & (ignored_pred[pred_index[first]] == 0)
     tp_scores = [scores[pred_index[first][is_tp]]]
-    for case in loop_cases:
-        tp_scores.append(np.asarray(_reference_frame(*case, min_overlap, 0.0, False)[3]))
+    for component in components:
+        tp_scores.append(
+            np.asarray(
+                _match_sequentially(component, scores, ignored_gt, ignored_pred, 0.0, False)[3]
+            )
+        )
     thresholds = _sample_thresholds(np.concatenate(tp_scores), num_gt)
 
     # pass 2: at each threshold (and once with every prediction) match by largest overlap,
@@ -293,12 +339,12 @@ def _statistics(
     eligible = np.sort(scores[(ignored_pred == 0) & ~in_loop_pred])
     kept = len(eligible) - np.searchsorted(eligible, levels, side="left")  # score >= level
     fp = kept - np.sum(counted_pred, axis=1)
-    for case in loop_cases:
+    for component in components:
         for k, level in enumerate(levels):
-            case_tp, case_fp, case_fn, _ = _reference_frame(*case, min_overlap, level, True)
-            tp[k] += case_tp
-            fp[k] += case_fp
-            fn[k] += case_fn
+            part = _match_sequentially(component, scores, ignored_gt, ignored_pred, level, True)
+            tp[k] += part[0]
+            fp[k] += part[1]
+            fn[k] += part[2]
     return _Curve(
         thresholds=thresholds,
         tp=tp[:-1],
@@ -307,17 +353,6 @@ def _statistics(
         num_gt=num_gt,
         totals={"tp": int(tp[-1]), "fp": int(fp[-1]), "fn": int(fn[-1])},
     )
-
-
-def _loop_frame(frame, pred, gt, loop_pairs, ignored_gt, ignored_pred):
-    """Dense inputs of the reference loop for one frame: (overlap, scores, flags...)."""
-    preds = np.flatnonzero(pred.frame == frame)
-    gts = np.flatnonzero(gt.frame == frame)
-    pred_index, gt_index, overlap = loop_pairs
-    here = pred.frame[pred_index] == frame
-    dense = np.zeros((len(preds), len(gts)))
-    dense[pred_index[here] - preds[0], gt_index[here] - gts[0]] = overlap[here]
-    return dense, pred.score[preds], ignored_gt[gts], ignored_pred[preds]
 
 
 def _average_precision(curve: _Curve, recall_positions: int) -> tuple[float | None, dict]:
