@@ -9,9 +9,9 @@ max-interpolated from the right; AP_R40 is the mean of precision entries 1..40, 
 points) and ignored detections (2D box too small, outside the band) neither count as misses nor
 as false positives. Overlaps are float64 (dali_cli.geometry), not OpenPCDet's float32 kernel.
 
-Everything is vectorized over frames. Frames where one detection overlaps several ground truths
-above the threshold (possible only below IoU 0.5 or with overlapping labels) are evaluated with
-a direct port of the reference loop, so results match it in every case.
+Everything is vectorized over frames. Where one detection overlaps several ground truths above the
+threshold (possible only below IoU 0.5 or with overlapping labels), the connected group of boxes
+around it is matched by a direct port of the reference loop, so results match it in every case.
 """
 
 from __future__ import annotations
