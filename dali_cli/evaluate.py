@@ -119,10 +119,24 @@ def _combine_pred(same_class: np.ndarray, ignore: np.ndarray) -> np.ndarray:
     return np.where(ignore, 1, np.where(same_class, 0, -1)).astype(np.int8)
 
 
+def _as_written(values: np.ndarray) -> np.ndarray:
+    """float64 of the decimal text that float32 KITTI fields came from (labels carry 2 decimals).
+
+    The reference parses label text as float64: truncation 0.15 must pass `<= 0.15`, which the
+    float32 value 0.150000006 would not.
+    """
+    values = np.asarray(values)
+    wide = values.astype(np.float64)
+    if values.dtype != np.float32:
+        return wide
+    rounded = np.round(wide, 2)
+    return np.where(rounded.astype(np.float32) == values, rounded, wide)
+
+
 def _box_height_px(columns: dict[str, np.ndarray], count: int, absolute: bool) -> np.ndarray:
     """2D box heights `(n,)` in pixels; the reference takes |h| for detections only."""
     if "bbox_top" in columns and "bbox_bottom" in columns:
-        height = columns["bbox_bottom"].astype(np.float64) - columns["bbox_top"].astype(np.float64)
+        height = _as_written(columns["bbox_bottom"]) - _as_written(columns["bbox_top"])
         return np.abs(height) if absolute else height
     return np.full(count, np.inf)  # no 2D boxes (LiDAR-only predictions): no size filter
 
@@ -134,7 +148,7 @@ def _difficulty_flags(
     height = _box_height_px(gt.columns, len(gt.frame), absolute=False)
     ignore = (
         (gt.columns["occluded"].astype(np.float64) > MAX_OCCLUSION[level])
-        | (gt.columns["truncated"].astype(np.float64) > MAX_TRUNCATION[level])
+        | (_as_written(gt.columns["truncated"]) > MAX_TRUNCATION[level])
         | (height <= MIN_HEIGHT_PX[level])
         | few_points
     )

@@ -596,10 +596,30 @@ def test_format_table_lists_every_band():
 def test_empty_inputs():
     cars = row_of_cars(3)
     no_pred = evaluate(BoxTable.empty(), table(cars))["Car"]
-    assert no_pred["bev"]["all"] == 0.0 and no_pred["counts"]["all"]["bev"] == {"tp": 0, "fp": 0, "fn": 3}
+    assert no_pred["bev"]["all"] == 0.0 and no_pred["counts"]["all"]["bev"] == {
+        "tp": 0,
+        "fp": 0,
+        "fn": 3,
+    }
     no_gt = evaluate(table(cars), BoxTable.empty())["Car"]
-    assert no_gt["bev"]["all"] is None and no_gt["counts"]["all"]["bev"] == {"tp": 0, "fp": 3, "fn": 0}
+    assert no_gt["bev"]["all"] is None and no_gt["counts"]["all"]["bev"] == {
+        "tp": 0,
+        "fp": 3,
+        "fn": 0,
+    }
     nothing = evaluate(BoxTable.empty(), BoxTable.empty(), frame_ids=["a", "b"])["Car"]
     assert nothing["frames"] == 2 and nothing["3d"]["all"] is None
     with pytest.raises(EvaluationError, match="outside the evaluated frames"):
         evaluate(table(cars, frame="c"), BoxTable.empty(), frame_ids=["a", "b"])
+
+
+def test_float32_label_fields_compare_like_the_decimal_text():
+    # truncation 0.15 and a 2D box 174.34..214.34 (40 px) stored as float32, as label files give
+    cars = row_of_cars(3)
+    extra = kitti_columns(3)
+    extra["truncated"] = np.array([0.15, 0.16, 0.0], np.float32)
+    extra["bbox_top"] = np.array([0.0, 0.0, 174.34], np.float32)
+    extra["bbox_bottom"] = np.array([100.0, 100.0, 214.34], np.float32)
+    counts = evaluate(table(cars), table(cars, **extra), protocol="kitti")["Car"]["counts"]
+    assert counts["easy"]["gt"] == 1  # 0.16 is too truncated, 40.0 px is not > 40
+    assert counts["moderate"]["gt"] == 3
