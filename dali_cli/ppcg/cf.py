@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dali_cli.ppcg.fitting import box_rng
+from dali_cli.ppcg.fitting import box_rng, box_uniform
 from dali_cli.ppcg.frame import CF, BoxRecords, assemble, car_points, ground_heights
 from dali_cli.ppcg.models import ModelBank
 from dali_cli.ppcg.window import box_windows, window_rays
@@ -62,14 +62,18 @@ def cf_frame(
     members, ground = car_points(points, boxes, ground_z)
     before = np.array([len(m) for m in members], dtype=np.int32)
     records = BoxRecords.raw(before, ground)
-    rngs = [box_rng(params.seed, frame_id, i) for i in range(len(boxes))]
     low, high = params.range_m
-    ranges = np.array([rng.uniform(low, high) for rng in rngs])  # first draw of each box's stream
+    ranges = low + (high - low) * np.array(
+        [box_uniform(params.seed, frame_id, i, "cf-range") for i in range(len(boxes))]
+    )
     shift = move_radially(boxes, ranges)  # (k, 3)
     moved = boxes.copy()
     moved[:, :3] += shift
     windows = box_windows(moved)
-    models = bank.select(boxes, params.top_k, rngs if params.top_k > 1 else None)
+    rngs = None
+    if params.top_k > 1:
+        rngs = [box_rng(params.seed, frame_id, i) for i in range(len(boxes))]
+    models = bank.select(boxes, params.top_k, rngs)
     removed, added = [], []
     for i, model in enumerate(models):  # loop over boxes; each casts only its window's rays
         rays = window_rays(

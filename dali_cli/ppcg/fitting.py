@@ -26,16 +26,35 @@ def box_rng(seed: int, frame_id: str, box_index: int) -> np.random.Generator:
     )
 
 
+def box_uniform(seed: int, frame_id: str, box_index: int, stream: str) -> float:
+    """One uniform draw in [0, 1) keyed by (run seed, frame id, box index, stream name).
+
+    A hash instead of a generator: ~50x cheaper than building a Generator per box, and a new
+    stream name never shifts the draws of another.
+    """
+    key = f"{int(seed)}\0{frame_id}\0{int(box_index)}\0{stream}".encode()
+    value = int.from_bytes(hashlib.blake2b(key, digest_size=8).digest(), "little")
+    return (value >> 11) * 2.0**-53
+
+
 # ---------------------------------------------------------------------------------------------
 # Placement
 
 
 def box_affine(box: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit-box model frame -> sensor frame for one box `(7,)`: `(A (3, 3), t (3,))` float64."""
-    x, y, z, length, width, height, yaw = np.asarray(box, dtype=np.float64)
+    x, y, z, length, width, height, yaw = (float(v) for v in box)
     cos, sin = np.cos(yaw), np.sin(yaw)
     rotation = np.array([[cos, -sin, 0.0], [sin, cos, 0.0], [0.0, 0.0, 1.0]])
     return rotation * np.array([length, width, height]), np.array([x, y, z])
+
+
+def box_affine_inverse(box: np.ndarray) -> np.ndarray:
+    """`A^-1` `(3, 3)` of `box_affine` in closed form: diag(1/l, 1/w, 1/h) R(yaw)^T."""
+    length, width, height, yaw = (float(v) for v in box[3:7])
+    cos, sin = np.cos(yaw), np.sin(yaw)
+    rotation_t = np.array([[cos, sin, 0.0], [-sin, cos, 0.0], [0.0, 0.0, 1.0]])
+    return rotation_t / np.array([[length], [width], [height]])
 
 
 def model_to_sensor(points_unit: np.ndarray, box: np.ndarray) -> np.ndarray:
@@ -46,8 +65,8 @@ def model_to_sensor(points_unit: np.ndarray, box: np.ndarray) -> np.ndarray:
 
 def sensor_to_model(points: np.ndarray, box: np.ndarray) -> np.ndarray:
     """Sensor-frame points `(M, 3)` -> unit-box model frame of `box` `(7,)`, `(M, 3)` float64."""
-    matrix, translation = box_affine(box)
-    return (np.asarray(points, dtype=np.float64) - translation) @ np.linalg.inv(matrix).T
+    translation = np.asarray(box[:3], dtype=np.float64)
+    return (np.asarray(points, dtype=np.float64) - translation) @ box_affine_inverse(box).T
 
 
 def rays_to_model(
@@ -58,8 +77,8 @@ def rays_to_model(
     Directions are not renormalized: a hit at parameter s in the model frame is at `o + s d` in
     the sensor frame. `origins` may be `(3,)` (one origin shared by all rays).
     """
-    matrix, translation = box_affine(box)
-    inverse = np.linalg.inv(matrix)
+    translation = np.asarray(box[:3], dtype=np.float64)
+    inverse = box_affine_inverse(box)
     origins = np.asarray(origins, dtype=np.float64)
     return (origins - translation) @ inverse.T, np.asarray(directions, np.float64) @ inverse.T
 

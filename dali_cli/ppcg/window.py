@@ -13,10 +13,11 @@ so the rays of a window are index ranges: no scan of the full pattern.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
-from dali_cli.sensors import SensorProfile, spherical_directions
+from dali_cli.sensors import SensorProfile
 
 _EPS = 1e-9  # rad: rays exactly on a window edge are kept
 
@@ -103,9 +104,16 @@ def window_columns(profile: SensorProfile, azimuth_lo: float, azimuth_hi: float)
     return np.unique(np.concatenate(parts)) if len(parts) > 1 else parts[0]
 
 
+@lru_cache(maxsize=16)
+def _tables(profile: SensorProfile) -> tuple[np.ndarray, ...]:
+    """Per profile, once: elevations `(B,)` and cos/sin of elevations `(B,)` and azimuths `(P,)`."""
+    elevation, azimuth = profile.elevations_rad(), profile.azimuths_rad()
+    return elevation, np.cos(elevation), np.sin(elevation), np.cos(azimuth), np.sin(azimuth)
+
+
 def window_beams(profile: SensorProfile, elevation_lo: float, elevation_hi: float) -> np.ndarray:
     """Beam indices `(B,)` int64 whose elevation lies in [lo, hi] (elevations are ascending)."""
-    elevations = profile.elevations_rad()
+    elevations = _tables(profile)[0]
     first = int(np.searchsorted(elevations, elevation_lo, side="left"))
     last = int(np.searchsorted(elevations, elevation_hi, side="right"))
     return np.arange(first, last, dtype=np.int64)
@@ -134,9 +142,15 @@ def window_rays(
     """The profile's rays inside one angular window, built from index ranges (see WindowRays)."""
     beams = window_beams(profile, elevation_lo, elevation_hi)
     columns = window_columns(profile, azimuth_lo, azimuth_hi)
-    beam, column = np.meshgrid(beams, columns, indexing="ij")  # (B, C)
-    beam, column = beam.reshape(-1), column.reshape(-1)
-    elevation = profile.elevations_rad()[beam]
-    azimuth = profile.azimuths_rad()[column]
-    directions = spherical_directions(elevation, azimuth).reshape(-1, 3)
-    return WindowRays(directions, beam, column, beam * profile.points_per_beam + column)
+    _, cos_el, sin_el, cos_az, sin_az = _tables(profile)
+    shape = (len(beams), len(columns))
+    cos_el, sin_el = cos_el[beams, None], sin_el[beams, None]  # (B, 1)
+    directions = np.empty(shape + (3,))  # (B, C, 3), as sensors.spherical_directions
+    directions[..., 0] = cos_el * cos_az[columns]
+    directions[..., 1] = cos_el * sin_az[columns]
+    directions[..., 2] = np.broadcast_to(sin_el, shape)
+    beam = np.repeat(beams, len(columns))
+    column = np.tile(columns, len(beams))
+    return WindowRays(
+        directions.reshape(-1, 3), beam, column, beam * profile.points_per_beam + column
+    )
