@@ -7,6 +7,7 @@ import json
 import math
 import sys
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -623,3 +624,26 @@ def test_float32_label_fields_compare_like_the_decimal_text():
     counts = evaluate(table(cars), table(cars, **extra), protocol="kitti")["Car"]["counts"]
     assert counts["easy"]["gt"] == 1  # 0.16 is too truncated, 40.0 px is not > 40
     assert counts["moderate"]["gt"] == 3
+
+
+KITTI_FIXTURE = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti" / "training"
+
+
+@pytest.mark.skipif(not KITTI_FIXTURE.is_dir(), reason="KITTI fixture (shared/data) not found")
+def test_real_kitti_label_file_difficulties():
+    # frame 000008: 6 cars, 4 DontCare. By hand from the label fields (trunc, occ, 2D height):
+    # car 1 trunc .88 and car 3 occ 3 are ignored at every level; car 2 (occ 1, 193 px) and
+    # car 4 (occ 1, 85 px) are moderate; car 5 (39.6 px) is moderate; car 6 (62 px) is easy.
+    labels = read_label_file(KITTI_FIXTURE / "label_2" / "000008.txt")
+    assert len(labels) == 10 and (labels["label"] == "DontCare").sum() == 4
+    assert labels.frame_id[0] == "000008"
+    metrics = evaluate(labels, labels, protocol="kitti")["Car"]
+    assert [metrics["counts"][name]["gt"] for name in ("easy", "moderate", "hard")] == [1, 4, 4]
+    assert [metrics["counts"][name]["gt_ignored"] for name in ("easy", "moderate", "hard")] == [
+        5,
+        2,
+        2,
+    ]
+    for name, valid in (("easy", 1), ("moderate", 4), ("hard", 4)):
+        assert metrics["counts"][name]["bev"] == {"tp": valid, "fp": 0, "fn": 0}
+        assert metrics["bev"][name] == pytest.approx(100 * (valid - 1) / 40)  # R40 with < 41 cars
