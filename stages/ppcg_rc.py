@@ -66,6 +66,19 @@ def boxes_by_frame(
     return rows, frame_boxes
 
 
+def library_mesh_count(library_dir: Path) -> int:
+    """Number of meshes of a library, from its index alone (no mesh is loaded)."""
+    import pyarrow.parquet as pq
+
+    from dali_cli.library import MESHES_INDEX, LibraryError
+
+    path = Path(library_dir) / MESHES_INDEX
+    try:
+        return int(pq.read_metadata(path).num_rows)
+    except (OSError, ValueError) as error:
+        raise LibraryError(f"{path}: cannot read the library index ({error})") from None
+
+
 def parse_range(text: str) -> tuple[float, float]:
     """'20:50' -> (20.0, 50.0); a usage error names the option."""
     try:
@@ -103,17 +116,10 @@ def run_ppcg(
     if not sensor:
         raise click.UsageError(f"{frames.path}: no 'sensor' attribute; give --sensor")
     profile = get_profile(sensor, sensors_path)
-    if bank is None:
-        from dali_cli.library import read_library
-
-        library = read_library(library_dir)
-        if models is None:
-            models = "cad" if library.meshes else "points"
-        try:
-            bank = ModelBank.from_library(library, models, str(library_dir))
-        except ValueError as error:
-            raise click.ClickException(str(error)) from None
-    models = bank.kind
+    if bank is not None:
+        models = bank.kind
+    elif models is None:
+        models = "cad" if library_mesh_count(library_dir) else "points"
     params_record = {
         **stage_params,
         "sensor": sensor,
@@ -127,6 +133,14 @@ def run_ppcg(
     def build(directory: Path) -> BuildResult:
         from tqdm import tqdm
 
+        nonlocal bank
+        if bank is None:  # loaded only when the stage runs (not for an up-to-date skip)
+            from dali_cli.library import read_library
+
+            try:
+                bank = ModelBank.from_library(read_library(library_dir), models, str(library_dir))
+            except ValueError as error:
+                raise click.ClickException(str(error)) from None
         table = read_boxes(boxes_dir)
         boxes_path = boxes_dir / "boxes.parquet" if boxes_dir.is_dir() else boxes_dir
         rows, frame_boxes = boxes_by_frame(table, frames, label, boxes_path)

@@ -319,6 +319,10 @@ def test_stage_outputs_and_worker_independence(dataset):
 
     target, library = dataset / "target", dataset / "library"
     ppcg_rc(target, target, library, dataset / "rc1", max_points=10**5, progress=False)
+    again = ppcg_rc(target, target, library, dataset / "rc1", max_points=10**5, progress=False)
+    assert again.status == "skipped"
+    dry = ppcg_rc(target, target, library, dataset / "rc9", dry_run=True, progress=False)
+    assert dry.status == "dry-run" and not (dataset / "rc9").exists()
     boxes = read_boxes(dataset / "rc1")
     assert list(boxes["ppcg"]) == ["rc", "rc", "raw"]
     assert list(boxes["ppcg_reason"]) == ["ok", "ok", "label"]
