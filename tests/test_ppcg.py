@@ -225,6 +225,31 @@ def test_rc_with_point_models_keeps_rays_and_uses_the_nearest_model_point():
     assert records.model_id[0] == bank.model_ids[bank.select(target)[0]]
 
 
+def test_cast_many_equals_one_cast_per_box():
+    rng = np.random.default_rng(4)
+    bank = bank_of(1, 2, 3)
+    boxes = np.array(
+        [on_ground(*rng.uniform(-30, 30, 2), (4.2, 1.8, 1.5), rng.uniform(-3, 3)) for _ in range(4)]
+    )
+    sizes = [50, 0, 120, 7]
+    directions = np.concatenate(
+        [
+            box[:3] + rng.normal(size=(n, 3)) * [1.5, 0.7, 0.5]
+            for box, n in zip(boxes, sizes, strict=True)
+        ]
+    )
+    bounds = np.r_[0, np.cumsum(sizes)]
+    models = np.array([2, 0, 1, 2])
+    hit, xyz = bank.cast_many(models, boxes, directions, bounds, THETA)
+    assert hit.any() and (~hit).any()
+    for b in range(len(boxes)):
+        one_hit, one_xyz = bank.cast(
+            int(models[b]), boxes[b], directions[bounds[b] : bounds[b + 1]], THETA
+        )
+        np.testing.assert_array_equal(hit[bounds[b] : bounds[b + 1]], one_hit)
+        np.testing.assert_allclose(xyz[bounds[b] : bounds[b + 1]], one_xyz, atol=1e-9)
+
+
 # ------------------------------------------------------------------------------------------ CF
 
 

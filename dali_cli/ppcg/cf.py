@@ -74,28 +74,36 @@ def cf_frame(
     if params.top_k > 1:
         rngs = [box_rng(params.seed, frame_id, i) for i in range(len(boxes))]
     models = bank.select(boxes, params.top_k, rngs)
-    removed, added = [], []
-    for i, model in enumerate(models):  # loop over boxes; each casts only its window's rays
-        rays = window_rays(
+    directions = [
+        window_rays(
             profile,
             windows.azimuth_lo[i],
             windows.azimuth_hi[i],
             windows.elevation_lo[i],
             windows.elevation_hi[i],
-        )
-        hit, xyz = bank.cast(int(model), moved[i], rays.directions, params.theta_rad)
-        distance = np.linalg.norm(np.where(hit[:, None], xyz, 0.0), axis=1)
-        hit &= (distance >= profile.min_range_m) & (distance <= profile.max_range_m)
-        xyz = xyz[hit] - shift[i]
-        xyz = xyz[xyz[:, 2] >= ground_z[i]]
-        if len(xyz) == 0:
-            records.reason[i] = "no_hits"
-            continue
-        raw = points[members[i], 3]
-        intensity = float(np.median(raw)) if len(raw) else profile.intensity_car
-        added.append(np.concatenate([xyz, np.full((len(xyz), 1), intensity)], axis=1))
-        removed.append(members[i])
-        records.ppcg[i] = CF
-        records.points_after[i] = len(xyz)
-        records.model_id[i] = bank.model_ids[int(model)]
-    return assemble(points, removed, [], added), records
+        ).directions
+        for i in range(len(boxes))
+    ]  # each box casts only its window's rays
+    bounds = np.r_[0, np.cumsum([len(d) for d in directions])]  # (k + 1,)
+    hit, xyz = bank.cast_many(models, moved, np.concatenate(directions), bounds, params.theta_rad)
+    box_of_ray = np.repeat(np.arange(len(boxes)), np.diff(bounds))  # (N,)
+    distance = np.linalg.norm(np.where(hit[:, None], xyz, 0.0), axis=1)
+    hit &= (distance >= profile.min_range_m) & (distance <= profile.max_range_m)
+    xyz = xyz[hit] - shift[box_of_ray[hit]]  # moved back
+    box_of_ray = box_of_ray[hit]
+    above = xyz[:, 2] >= ground_z[box_of_ray]
+    xyz, box_of_ray = xyz[above], box_of_ray[above]  # grouped by box, in box order
+    counts = np.bincount(box_of_ray, minlength=len(boxes))  # (k,)
+    records.reason[counts == 0] = "no_hits"
+    done = np.flatnonzero(counts > 0)
+    intensity = np.array(
+        [
+            np.median(points[members[i], 3]) if len(members[i]) else profile.intensity_car
+            for i in range(len(boxes))
+        ]
+    )
+    records.ppcg[done] = CF
+    records.points_after[done] = counts[done]
+    records.model_id[done] = np.asarray(bank.model_ids, dtype=object)[models[done]]
+    added = np.concatenate([xyz, intensity[box_of_ray, None]], axis=1)
+    return assemble(points, [members[i] for i in done], [], [added]), records

@@ -49,18 +49,21 @@ def rc_frame(
         return points, records
     rngs = [box_rng(params.seed, frame_id, int(i)) for i in eligible] if params.top_k > 1 else None
     models = bank.select(boxes[eligible], params.top_k, rngs)
-    removed, replaced = [], []
-    for box_index, model in zip(eligible, models, strict=True):  # loop over boxes, not points
-        index = members[box_index]
-        hit, xyz = bank.cast(int(model), boxes[box_index], points[index, :3], params.theta_rad)
-        keep = hit.copy()
-        keep[hit] = xyz[hit, 2] >= ground_z[box_index]
-        if keep.sum() < params.min_points:
-            records.reason[box_index] = "no_hits"
-            continue
-        replaced.append((index[keep], xyz[keep]))
-        removed.append(index[~keep])
-        records.ppcg[box_index] = RC
-        records.points_after[box_index] = int(keep.sum())
-        records.model_id[box_index] = bank.model_ids[int(model)]
-    return assemble(points, removed, replaced, []), records
+    index = [members[i] for i in eligible]
+    bounds = np.r_[0, np.cumsum([len(m) for m in index])]  # (B + 1,) rays of each box
+    index = np.concatenate(index)  # (N,) the car points of all eligible boxes
+    hit, xyz = bank.cast_many(models, boxes[eligible], points[index, :3], bounds, params.theta_rad)
+    keep = hit.copy()
+    box_of_ray = np.repeat(eligible, np.diff(bounds))
+    keep[hit] = xyz[hit, 2] >= ground_z[box_of_ray[hit]]
+    kept = np.add.reduceat(keep.astype(np.int64), bounds[:-1])  # (B,) segments are never empty
+    enough = kept >= params.min_points  # (B,)
+    records.reason[eligible[~enough]] = "no_hits"
+    done = eligible[enough]
+    records.ppcg[done] = RC
+    records.points_after[done] = kept[enough]
+    records.model_id[done] = np.asarray(bank.model_ids, dtype=object)[models[enough]]
+    used = np.repeat(enough, np.diff(bounds))  # (N,) rays of boxes that get their RC points
+    replace, remove = used & keep, used & ~keep
+    new = assemble(points, [index[remove]], [(index[replace], xyz[replace])], [])
+    return new, records
