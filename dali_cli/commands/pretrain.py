@@ -69,7 +69,7 @@ def training_options(function):
             "--threads",
             type=click.IntRange(min=1),
             default=None,
-            help="torch threads (default: all cores).",
+            help="torch threads (default: the cores idle at start, >= 1).",
         ),
         click.option(
             "--no-augment",
