@@ -162,10 +162,9 @@ def predict_frameset(
     """
     from tqdm import tqdm
 
+    from dali_cli.detector.train import idle_cores
     from dali_cli.geometry import count_points_in_boxes
     from dali_cli.sensors import get_profile
-
-    from dali_cli.detector.train import idle_cores
 
     torch.set_num_threads(idle_cores())
     detector = Detector.load(model_dir)
