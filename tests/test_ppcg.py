@@ -11,7 +11,7 @@ from click.testing import CliRunner
 
 from dali_cli.artifacts import BoxTable, FrameSet, read_boxes, write_boxes, write_frameset
 from dali_cli.geometry import bev_iou
-from dali_cli.library import PointModels, point_models_from_frame, procedural_car, write_library
+from dali_cli.library import point_models_from_frame, procedural_car, write_library
 from dali_cli.manifest import read_manifest
 from dali_cli.ppcg.cf import CfParams, cf_frame
 from dali_cli.ppcg.fitting import model_to_sensor, sensor_to_model
@@ -334,7 +334,9 @@ def dataset(tmp_path_factory):
     write_boxes(root / "target", table)
     library = root / "library"
     library.mkdir()
-    write_library(library, [car(3), car(1)], PointModels.empty())
+    point_models = point_models_from_frame(frames[0][1], boxes[0], frames[0][0], min_points=100)
+    assert len(point_models) == 2
+    write_library(library, [car(3), car(1)], point_models)
     return root
 
 
@@ -366,13 +368,21 @@ def test_stage_outputs_and_worker_independence(dataset):
     source, result = FrameSet(target), FrameSet(dataset / "rc1")
     np.testing.assert_array_equal(result.frame(1), source.frame(1))  # frames without boxes pass
     np.testing.assert_array_equal(result.frame(2), source.frame(2))  # only a Van there
-    ppcg_cf(target, target, library, dataset / "cf1", seed=3, progress=False)
-    ppcg_cf(target, target, library, dataset / "cf2", seed=3, workers=2, progress=False)
+    ppcg_cf(target, target, library, dataset / "cf1", seed=3, top_k=2, progress=False)
+    ppcg_cf(target, target, library, dataset / "cf2", seed=3, top_k=2, workers=2, progress=False)
     assert (
         read_manifest(dataset / "cf1")["content_hash"]
         == read_manifest(dataset / "cf2")["content_hash"]
     )
     assert list(read_boxes(dataset / "cf1")["ppcg"]) == ["cf", "cf", "raw"]
+    # point models from the same library
+    ppcg_rc(
+        target, target, library, dataset / "rcp", models="points", max_points=10**5, progress=False
+    )
+    points_table = read_boxes(dataset / "rcp")
+    assert list(points_table["ppcg"]) == ["rc", "rc", "raw"]
+    assert set(points_table["model_id"][:2]) <= {"000000#0", "000000#1"}
+    assert read_manifest(dataset / "rcp")["params"]["models"] == "points"
     # the before/after figure for `dali report` (paper Fig. 9)
     from dali_cli.ppcg.figure import plot_ppcg_examples
 
@@ -414,18 +424,13 @@ def test_cli_errors_name_the_file_frame_and_field(dataset, tmp_path):
         ],
     )
     assert result.exit_code == 2 and "--range-m" in result.output
+    meshes_only = tmp_path / "meshes_only"
+    meshes_only.mkdir()
+    write_library(meshes_only, [car(3)])
     result = runner.invoke(
         main,
-        [
-            "ppcg-rc",
-            *args,
-            "--boxes",
-            str(target),
-            "--models",
-            "points",
-            "--out",
-            str(tmp_path / "o"),
-        ],
+        ["ppcg-rc", "--target", str(target), "--library", str(meshes_only), "--boxes", str(target)]
+        + ["--models", "points", "--out", str(tmp_path / "o")],
     )
     assert result.exit_code == 1 and "no point models" in result.output
     assert not (tmp_path / "o").exists()
