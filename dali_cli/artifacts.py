@@ -186,6 +186,7 @@ class FrameSetWriter:
         self._written = 0
         self._offsets = [0]
         self._frame_ids: list[str] = []
+        self._seen: set[str] = set()  # duplicate check in O(1) (a list scan is O(F) per frame)
         self._attrs = {"sensor": sensor, "frame_convention": "sensor", **(attrs or {})}
         self._closed = False
 
@@ -197,9 +198,10 @@ class FrameSetWriter:
         if not np.isfinite(points).all():
             raise ValueError(f"frame '{frame_id}': points contain NaN/inf")
         frame_id = str(frame_id)
-        if frame_id in self._frame_ids:
+        if frame_id in self._seen:
             raise ValueError(f"frame '{frame_id}' appended twice")
         self._frame_ids.append(frame_id)
+        self._seen.add(frame_id)
         self._offsets.append(self._offsets[-1] + len(points))
         if len(points):
             self._pending.append(points)
