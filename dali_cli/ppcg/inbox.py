@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-_CELL_M = 1.0
+_CELL_M = 1.0  # grid cell (m) unless the boxes spread over more than _MAX_CELLS cells
+_MAX_CELLS = 2**20
 _NONE, _SHARED = -1, -2  # cell owners that are not a box index
 
 
@@ -24,16 +25,19 @@ def points_per_box(
     if len(boxes) == 0:
         return []
     half_diagonal = 0.5 * np.hypot(boxes[:, 3], boxes[:, 4]) + margin_m  # (k,)
-    # grid over the boxes' bounding squares plus one border cell on each side (index 0 and last)
-    lower = (boxes[:, :2] - half_diagonal[:, None]).min(axis=0) - _CELL_M  # (2,)
-    upper = (boxes[:, :2] + half_diagonal[:, None]).max(axis=0) + _CELL_M
-    shape = np.ceil((upper - lower) / _CELL_M).astype(np.int64) + 1  # (2,) cells
+    # grid over the boxes' bounding squares plus one border cell on each side (index 0 and last);
+    # cells grow when boxes are spread very far apart, so the grid stays small
+    span = (boxes[:, :2] + half_diagonal[:, None]).max(axis=0) - (
+        boxes[:, :2] - half_diagonal[:, None]
+    ).min(axis=0)
+    cell_m = max(_CELL_M, float(np.sqrt(np.prod(span + 2 * _CELL_M) / _MAX_CELLS)))
+    lower = (boxes[:, :2] - half_diagonal[:, None]).min(axis=0) - cell_m  # (2,)
+    upper = (boxes[:, :2] + half_diagonal[:, None]).max(axis=0) + cell_m
+    shape = np.ceil((upper - lower) / cell_m).astype(np.int64) + 1  # (2,) cells
     # cell -> the one box whose bounding square covers it, SHARED if several, NONE if none
     owner_of_cell = np.full((int(shape[0]), int(shape[1])), _NONE, dtype=np.int64)
-    first_cell = np.floor((boxes[:, :2] - half_diagonal[:, None] - lower) / _CELL_M).astype(
-        np.int64
-    )
-    last_cell = np.floor((boxes[:, :2] + half_diagonal[:, None] - lower) / _CELL_M).astype(np.int64)
+    first_cell = np.floor((boxes[:, :2] - half_diagonal[:, None] - lower) / cell_m).astype(np.int64)
+    last_cell = np.floor((boxes[:, :2] + half_diagonal[:, None] - lower) / cell_m).astype(np.int64)
     for box_index, (first, last) in enumerate(zip(first_cell, last_cell, strict=True)):
         block = owner_of_cell[first[0] : last[0] + 1, first[1] : last[1] + 1]  # a view
         block[block != _NONE] = _SHARED
@@ -42,7 +46,7 @@ def points_per_box(
     flat = None
     for axis in (0, 1):
         scaled = points[:, axis] - np.float32(lower[axis])  # (n,) float32
-        scaled *= np.float32(1.0 / _CELL_M)
+        scaled *= np.float32(1.0 / cell_m)
         np.clip(scaled, 0.0, float(shape[axis] - 1), out=scaled)
         index = scaled.astype(np.intp)
         if flat is None:
