@@ -33,6 +33,7 @@ from dali_cli.detector import (
     train,
 )
 from dali_cli.detector.augment import ObjectDatabase
+from dali_cli.detector.data import detection_region
 from dali_cli.detector.toy import place_cars, scan
 from dali_cli.sensors import get_profile
 
@@ -109,7 +110,7 @@ def bench_speed(args) -> dict:
             points,
             boxes,
         )
-    data.database = ObjectDatabase.build(data.points, data.boxes)
+    data.database = ObjectDatabase.build(data.points, data.boxes, region=detection_region(config))
     train_net = PillarCenterNet(config)
     settings = TrainSettings(epochs=1.0, batch_size=2, threads=args.threads, log_every=1)
     warm = TrainSettings(epochs=0.25, batch_size=2, threads=args.threads, log_every=1)
@@ -130,7 +131,7 @@ def bench_oracle(args) -> dict:
     started = time.perf_counter()
     data = load_labeled(args.train, config)
     config.sensor, config.mount_height_m = data.sensor, data.mount_height_m
-    data.database = ObjectDatabase.build(data.points, data.boxes)
+    data.database = ObjectDatabase.build(data.points, data.boxes, region=detection_region(config))
     load_s = time.perf_counter() - started
     val = FrameSet(args.val)
     val_frames = [points for _, points in val.iter_frames()]

@@ -156,6 +156,7 @@ def run_pretrain(
             train,
         )
         from dali_cli.detector.augment import ObjectDatabase
+        from dali_cli.detector.data import detection_region
 
         started = time.perf_counter()
         config = DetectorConfig.from_dict({**(config_overrides or {}), "features": features})
@@ -172,7 +173,11 @@ def run_pretrain(
         if size_norm == "sn":
             delta = np.asarray(target_size) - source_mean
             data = size_normalize(data, delta)
-        data.database = ObjectDatabase.build(data.points, data.boxes) if augment else None
+        data.database = (
+            ObjectDatabase.build(data.points, data.boxes, region=detection_region(config))
+            if augment
+            else None
+        )
         augmentation = Augmentation() if augment else Augmentation.none()
         if size_norm == "ros":
             augmentation.object_scale = tuple(ros_range)

@@ -109,6 +109,7 @@ def run_retrain(
             train,
         )
         from dali_cli.detector.augment import ObjectDatabase
+        from dali_cli.detector.data import detection_region
 
         started = time.perf_counter()
         previous = Detector.load(init)
@@ -130,7 +131,11 @@ def run_retrain(
             *([pool(pseudo_sets, "ppcg")] if len(weights) == 2 else pseudo_sets),
         ]
         for data in datasets:
-            data.database = ObjectDatabase.build(data.points, data.boxes) if augment else None
+            data.database = (
+                ObjectDatabase.build(data.points, data.boxes, region=detection_region(config))
+                if augment
+                else None
+            )
         augmentations = [source_augmentation] + [
             Augmentation() if augment else Augmentation.none() for _ in datasets[1:]
         ]

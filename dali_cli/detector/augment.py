@@ -121,17 +121,25 @@ class ObjectDatabase:
     boxes: np.ndarray
     points: np.ndarray
     offsets: np.ndarray
+    region: tuple[float, float, float, float] | None = None  # x0, x1, y0, y1 of the boxes kept
 
     def __len__(self) -> int:
         return len(self.boxes)
 
     @classmethod
     def build(
-        cls, frames: list[np.ndarray], boxes: list[np.ndarray], min_points: int = 5
+        cls,
+        frames: list[np.ndarray],
+        boxes: list[np.ndarray],
+        min_points: int = 5,
+        region: tuple[float, float, float, float] | None = None,
     ) -> ObjectDatabase:
-        """Collect every box with >= min_points points from a training set."""
+        """Collect every box with >= min_points points (and its center in `region`, the detection
+        range x0, x1, y0, y1, if given: pasting a car nobody sees is wasted work)."""
         kept_boxes, kept_points = [], []
         for points, frame_boxes in zip(frames, boxes, strict=True):  # frames, not points
+            if region is not None:
+                frame_boxes = frame_boxes[in_region(frame_boxes, region)]
             if len(frame_boxes) == 0:
                 continue
             owner = point_box_indices(points, frame_boxes)  # (n,)
@@ -146,7 +154,14 @@ class ObjectDatabase:
             boxes=np.asarray(kept_boxes, np.float64).reshape(-1, 7),
             points=np.concatenate(kept_points) if kept_points else np.zeros((0, 4), np.float32),
             offsets=np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
+            region=region,
         )
+
+
+def in_region(boxes: np.ndarray, region: tuple[float, float, float, float]) -> np.ndarray:
+    """(m,) bool: box centers inside x0 <= x < x1, y0 <= y < y1."""
+    x0, x1, y0, y1 = region
+    return (boxes[:, 0] >= x0) & (boxes[:, 0] < x1) & (boxes[:, 1] >= y0) & (boxes[:, 1] < y1)
 
 
 def sample_ground_truth(
@@ -157,9 +172,12 @@ def sample_ground_truth(
     target_count: int = 15,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Paste database instances (at their recorded positions) until the frame has about
-    `target_count` boxes; candidates overlapping any box in BEV are dropped, and scene points
+    `target_count` boxes (in the database's region, if it has one); candidates overlapping any box in BEV are dropped, and scene points
     inside a pasted box are removed (the pasted car replaces whatever was there)."""
-    wanted = target_count - len(boxes)
+    present = (
+        len(boxes) if database.region is None else int(in_region(boxes, database.region).sum())
+    )
+    wanted = target_count - present
     if wanted <= 0 or len(database) == 0:
         return points, boxes
     candidates = rng.choice(len(database), size=min(wanted, len(database)), replace=False)

@@ -66,8 +66,9 @@ def load_labeled(
 ) -> LabeledFrames:
     """Read a FrameSet and its boxes.parquet (same directory unless `boxes_dir`) into memory.
 
-    Points farther than the detection range's far corner (+10 m, room for rotation augmentation)
-    are dropped; boxes of other labels or with fewer than `min_points` points are not targets.
+    Points and boxes that global rotation (<= 45 deg) cannot bring into the detection range are
+    dropped (beyond its far corner + 10 m, or more than 135 deg off +x for a front range); boxes
+    of other labels or with fewer than `min_points` points are not targets.
     """
     from dali_cli.geometry import count_points_in_boxes
     from dali_cli.sensors import get_profile
@@ -88,14 +89,20 @@ def load_labeled(
     far = (
         np.hypot(max(abs(v) for v in config.x_range_m), max(abs(v) for v in config.y_range_m)) + 10
     )
+    reach = np.radians(135.0) if config.x_range_m[0] >= 0 else np.pi + 1e-9
     all_points, all_boxes = [], []
     for frame_id, points in frames.iter_frames():
-        points = points[np.hypot(points[:, 0], points[:, 1]) < far].copy()
+        # only what global rotation (<= 45 deg) can bring into the range: radius and azimuth
+        keep = (np.hypot(points[:, 0], points[:, 1]) < far) & (
+            np.abs(np.arctan2(points[:, 1], points[:, 0])) < reach
+        )
+        points = points[keep].copy()
         points[:, 2] += mount
         boxes = table.select(rows.get(frame_id, np.zeros(0, np.int64))).boxes
         boxes[:, 2] += mount
         if len(boxes):
-            boxes = boxes[count_points_in_boxes(points, boxes) >= min_points]
+            visible = np.abs(np.arctan2(boxes[:, 1], boxes[:, 0])) < reach
+            boxes = boxes[visible & (count_points_in_boxes(points, boxes) >= min_points)]
         all_points.append(points)
         all_boxes.append(boxes)
     return LabeledFrames(
@@ -115,6 +122,10 @@ def size_normalize(frames: LabeledFrames, delta_lwh: np.ndarray) -> LabeledFrame
     return LabeledFrames(
         frames.name, frames.sensor, frames.mount_height_m, frames.frame_ids, points, boxes
     )
+
+
+def detection_region(config: DetectorConfig) -> tuple[float, float, float, float]:
+    return (*config.x_range_m, *config.y_range_m)
 
 
 def augmented_sample(
