@@ -151,6 +151,9 @@ def main() -> None:
     parser.add_argument("--lod", type=int, default=20000, help="triangles per procedural car")
     parser.add_argument("--source-frames", type=int, default=8, help="frames for point models")
     parser.add_argument("--repeats", type=int, default=2, help="runs per stage; the best is kept")
+    parser.add_argument(
+        "--data", default=None, help="keep the generated frames and library here and reuse them"
+    )
     args = parser.parse_args()
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})  # one core
