@@ -10,6 +10,7 @@ number of points in the box in the new frame (rows of other labels keep theirs).
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -126,6 +127,7 @@ def run_ppcg(
         "models": models,
         "label": label,
         "theta_deg": float(np.degrees(angular_threshold_rad(profile.points_per_beam))),
+        "profile": dataclasses.asdict(profile),  # a changed --sensors file makes the output stale
     }
     inputs = {"target": target_dir, "boxes": boxes_dir, "library": library_dir}
     job = Job(mode, str(target_dir), str(library_dir), models, sensor, sensors_path, params)
