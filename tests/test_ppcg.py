@@ -72,6 +72,25 @@ def scan(boxes: np.ndarray, seeds) -> np.ndarray:
     return _scan(tuple(np.asarray(boxes, float).ravel().tolist()), tuple(seeds)).copy()
 
 
+def distance_to_mesh(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Reference: distance `(m,)` from points `(m, 3)` to the nearest of triangles `(t, 3, 3)`
+    among those whose plane projection of the point falls inside them (brute force, m x t)."""
+    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]  # (t, 3)
+    normal = np.cross(b - a, c - a)
+    area2 = np.linalg.norm(normal, axis=1)
+    keep = area2 > 1e-12
+    a, b, c, normal = a[keep], b[keep], c[keep], normal[keep] / area2[keep, None]
+    offset = points[:, None, :] - a[None]  # (m, t, 3)
+    height = np.einsum("mtk,tk->mt", offset, normal)
+    foot = points[:, None, :] - height[..., None] * normal[None]  # (m, t, 3)
+
+    def side(p, q):  # barycentric sign of the foot against edge p -> q
+        return np.einsum("mtk,tk->mt", np.cross(q - p, foot - p[None]), normal)
+
+    inside = (side(a, b) >= -1e-9) & (side(b, c) >= -1e-9) & (side(c, a) >= -1e-9)
+    return np.where(inside, np.abs(height), np.inf).min(axis=1)
+
+
 def rc_params(**overrides) -> RcParams:
     return RcParams(mount_height_m=PROFILE.mount_height_m, theta_rad=THETA, **overrides)
 
@@ -112,6 +131,10 @@ def test_rc_points_lie_on_the_fitted_mesh_and_on_their_rays():
         reference = cast_into_box(model.bvh(), np.zeros(3), out[mine, :3].astype(np.float64), box)
         assert reference.hit.all()
         assert np.abs(reference.points - out[mine, :3]).max() <= 1e-3
+        triangles = model_to_sensor(model.vertices[model.faces].reshape(-1, 3), box).reshape(
+            -1, 3, 3
+        )
+        assert distance_to_mesh(out[mine[:150], :3].astype(np.float64), triangles).max() <= 1e-3
     # every other point is untouched and in order
     unchanged = np.setdiff1d(np.arange(len(out)), moved)
     np.testing.assert_array_equal(out[unchanged], points[source[unchanged]])
