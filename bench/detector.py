@@ -127,7 +127,7 @@ def bench_oracle(args) -> dict:
     from dali_cli.evaluate import evaluate
 
     torch.set_num_threads(args.threads)
-    config = DetectorConfig()
+    config = DetectorConfig.from_dict(json.loads(args.config)) if args.config else DetectorConfig()
     started = time.perf_counter()
     data = load_labeled(args.train, config)
     config.sensor, config.mount_height_m = data.sensor, data.mount_height_m
@@ -157,14 +157,24 @@ def bench_oracle(args) -> dict:
             score=np.concatenate([s for _, s in predictions]),
         )
         point = {"minutes": round(elapsed_s / 60, 2), "val_infer_s_per_frame": round(infer_s, 4)}
-        for protocol in ("st3d", "range"):
+        variants = {"st3d": ("st3d", 0), "st3d_min10pts": ("st3d", 10), "range": ("range", 0)}
+        for name, (protocol, min_points) in variants.items():
             for iou in (0.7, 0.5):
                 metrics = evaluate(
-                    pred, gt, iou=iou, protocol=protocol, frame_ids=list(val.frame_ids)
+                    pred,
+                    gt,
+                    iou=iou,
+                    protocol=protocol,
+                    min_gt_points=min_points,
+                    frame_ids=list(val.frame_ids),
                 )["Car"]
                 band = "moderate" if protocol == "st3d" else "all"
-                point[f"{protocol}_bev@{iou}"] = metrics["bev"][band]
-                point[f"{protocol}_3d@{iou}"] = metrics["3d"][band]
+                point[f"{name}_bev@{iou}"] = round(metrics["bev"][band], 2)
+                point[f"{name}_3d@{iou}"] = round(metrics["3d"][band], 2)
+        sizes = pred.boxes[pred["score"] >= 0.3, 3:6]
+        point["pred_mean_lwh@0.3"] = (
+            [round(v, 3) for v in sizes.mean(axis=0).tolist()] if len(sizes) else None
+        )
         net.train()
         print(json.dumps(point), flush=True)
         return point
@@ -184,8 +194,18 @@ def bench_oracle(args) -> dict:
     )
     outcome = train(net, [data], [Augmentation()], settings, progress=True, on_log=on_log)
     curve.append(evaluate_now(outcome.seconds))
+    if args.save:
+        from dali_cli.detector import save_checkpoint
+
+        Path(args.save).mkdir(parents=True, exist_ok=True)
+        save_checkpoint(
+            args.save,
+            net,
+            {"provenance": {"stage": "bench/detector.py oracle", "train": str(args.train)}},
+        )
     return {
         "detector": "pillar-centerpoint-iou (dali), fp32",
+        "config_overrides": json.loads(args.config) if args.config else {},
         "train": str(args.train),
         "val": str(args.val),
         "train_frames": len(data),
@@ -224,6 +244,10 @@ def main() -> None:
     oracle.add_argument("--seed", type=int, default=0)
     oracle.add_argument("--threads", type=int, default=2)
     oracle.add_argument("--out", default=None)
+    oracle.add_argument("--config", default=None, help="JSON object of DetectorConfig overrides")
+    oracle.add_argument(
+        "--save", default=None, help="also write the trained model (model.pt + model.json) here"
+    )
     args = parser.parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)
     if args.mode == "speed":

@@ -36,6 +36,8 @@ class DetectorConfig:
     min_gaussian_overlap: float = 0.1
     max_objects: int = 128
     loss_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)  # heatmap, box regression, IoU
+    # per regression channel: offset x, y (cells), z (m), log l, w, h, sin 2yaw, cos 2yaw
+    regression_weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0)
     # decoding
     top_k: int = 100
     score_threshold: float = 0.05

@@ -158,9 +158,9 @@ def detection_loss(
     predicted = gather_cells(regression_maps, targets.index)  # (B, K, 8)
     mask = targets.mask  # (B, K)
     count = mask.sum().clamp(min=1)
-    box = (
-        F.l1_loss(predicted, targets.regression, reduction="none") * mask[..., None]
-    ).sum() / count
+    weights = torch.tensor(config.regression_weights, dtype=predicted.dtype)  # (8,)
+    l1 = F.l1_loss(predicted, targets.regression, reduction="none") * weights  # (B, K, 8)
+    box = (l1 * mask[..., None]).sum() / count
     iou_logits = gather_cells(maps["iou"], targets.index)[..., 0]  # (B, K)
     with torch.no_grad():
         predicted_boxes = regression_to_boxes(predicted.detach().double(), targets.index, config)

@@ -188,7 +188,7 @@ def train(
         took = time.perf_counter() - started
         elapsed += took
         window_frames, window_time = window_frames + len(samples), window_time + took
-        bar.update(1 if steps else round(elapsed) - bar.n)
+        bar.update(1 if steps else min(round(elapsed), bar.total) - bar.n)
         if step % settings.log_every == 0 or step == 1 or step == steps:
             row = {
                 "step": step,
