@@ -626,10 +626,10 @@ def test_float32_label_fields_compare_like_the_decimal_text():
     assert counts["moderate"]["gt"] == 3
 
 
-KITTI_FIXTURE = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti" / "training"
+KITTI_FIXTURE = Path(__file__).resolve().parent / "fixtures" / "real" / "kitti" / "training"
 
 
-@pytest.mark.skipif(not KITTI_FIXTURE.is_dir(), reason="KITTI fixture (shared/data) not found")
+@pytest.mark.skipif(not KITTI_FIXTURE.is_dir(), reason="KITTI fixture (tests/fixtures/real) not found")
 def test_real_kitti_label_file_difficulties():
     # frame 000008: 6 cars, 4 DontCare. By hand from the label fields (trunc, occ, 2D height):
     # car 1 trunc .88 and car 3 occ 3 are ignored at every level; car 2 (occ 1, 193 px) and

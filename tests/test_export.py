@@ -16,13 +16,13 @@ from dali_cli.export import frame_label_lines
 from dali_cli.importers import kitti
 from dali_cli.manifest import read_manifest
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = Path(__file__).resolve().parent / "fixtures" / "real"
 KITTI = DATA / "kitti"
 KITTI_FRAME = KITTI / "training"
 
 pytestmark = pytest.mark.skipif(
     not (KITTI_FRAME / "calib" / "000008.txt").is_file(),
-    reason=f"KITTI fixture not found under {DATA} (shared/ must sit beside the repository)",
+    reason=f"KITTI fixture not found under {DATA} (tests/fixtures/real)",
 )
 
 

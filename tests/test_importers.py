@@ -19,7 +19,7 @@ from dali_cli.geometry import box_corners, count_points_in_boxes
 from dali_cli.importers import kitti, nuscenes
 from dali_cli.manifest import read_manifest
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = Path(__file__).resolve().parent / "fixtures" / "real"
 KITTI = DATA / "kitti"
 KITTI_FRAME = KITTI / "training"
 NUSCENES = DATA / "nuscenes"
@@ -28,7 +28,7 @@ NUSCENES_ID = NUSCENES_SCAN.name.removesuffix(".pcd.bin")
 
 needs_fixtures = pytest.mark.skipif(
     not (KITTI_FRAME / "velodyne" / "000008.bin").is_file() or not NUSCENES_SCAN.is_file(),
-    reason=f"real-data fixtures not found under {DATA} (shared/ must sit beside the repository)",
+    reason=f"real-data fixtures not found under {DATA} (tests/fixtures/real)",
 )
 
 
