@@ -68,6 +68,9 @@ EXPECTED       ?= sn
 LIBRARY_MODELS ?= 24
 SYNTH_WORKERS  ?= 2
 VAL_FRAMES     ?= $(FRAMES)
+SCORE_MIN      ?= 0.3
+# evaluation on the target: ST3D's protocol (front 90 deg FOV, detection range), AP at IoU 0.7 and 0.5
+EVAL_FLAGS     ?= --protocol st3d --crop-predictions --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
 
 $(RUN)/data/source/manifest.json: | install
 	$(DALI) synth --sensor $(SOURCE_SENSOR) --cars $(SOURCE_SENSOR) --frames $(FRAMES) --seed $(SEED) --workers $(SYNTH_WORKERS) --out $(@D)
@@ -86,19 +89,19 @@ data: $(SOURCE)/manifest.json $(TARGET)/manifest.json $(TARGET_VAL)/manifest.jso
 $(RUN)/iter0/model/manifest.json: $(SOURCE)/manifest.json
 	$(DALI) pretrain --source $(SOURCE) --seed $(SEED) $(TRAIN_BUDGET) --out $(@D)
 $(RUN)/iter0/eval/metrics.json: $(RUN)/iter0/model/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale 1.0 --out $@
+	$(DALI) eval --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) --out $@
 $(RUN)/iter0/eval_ptsn/metrics.json: $(RUN)/iter1/ptsn/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale-from $(RUN)/iter1/ptsn --out $@
+	$(DALI) eval --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale-from $(RUN)/iter1/ptsn $(EVAL_FLAGS) --out $@
 iter0: $(RUN)/iter0/eval/metrics.json $(RUN)/iter0/eval_ptsn/metrics.json
 
 # ptsn-sweep N uses model N-1 (ITER_PTSN), iteration N builds model N (ITER)
 define ITER_PTSN
 $(RUN)/iter$(1)/ptsn/manifest.json: $(RUN)/iter$(2)/model/manifest.json $(TARGET)/manifest.json
-	$(DALI) ptsn-sweep --model $(RUN)/iter$(2)/model --target $(TARGET) --expected-size $(EXPECTED) --seed $(SEED) --out $$(@D)
+	$(DALI) ptsn-sweep --model $(RUN)/iter$(2)/model --target $(TARGET) --expected-size $(EXPECTED) --score-min $(SCORE_MIN) --seed $(SEED) --out $$(@D)
 endef
 define ITER
 $(RUN)/iter$(1)/pseudo/manifest.json: $(RUN)/iter$(1)/ptsn/manifest.json
-	$(DALI) pseudo-label --model $(RUN)/iter$(2)/model --target $(TARGET) --scale-from $(RUN)/iter$(1)/ptsn --out $$(@D)
+	$(DALI) pseudo-label --model $(RUN)/iter$(2)/model --target $(TARGET) --scale-from $(RUN)/iter$(1)/ptsn --score-min $(SCORE_MIN) --out $$(@D)
 $(RUN)/iter$(1)/rc/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
 	$(DALI) ppcg-rc --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) --out $$(@D)
 $(RUN)/iter$(1)/cf/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
@@ -106,7 +109,7 @@ $(RUN)/iter$(1)/cf/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY
 $(RUN)/iter$(1)/model/manifest.json: $(RUN)/iter$(1)/rc/manifest.json $(RUN)/iter$(1)/cf/manifest.json $(SOURCE)/manifest.json
 	$(DALI) retrain --init $(RUN)/iter$(2)/model --source $(SOURCE) --ppcg $(RUN)/iter$(1)/rc $(RUN)/iter$(1)/cf --seed $(SEED) $(TRAIN_BUDGET) --out $$(@D)
 $(RUN)/iter$(1)/eval/metrics.json: $(RUN)/iter$(3)/ptsn/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval --model $(RUN)/iter$(1)/model --data $(TARGET_VAL) --scale-from $(RUN)/iter$(3)/ptsn --out $$@
+	$(DALI) eval --model $(RUN)/iter$(1)/model --data $(TARGET_VAL) --scale-from $(RUN)/iter$(3)/ptsn $(EVAL_FLAGS) --out $$@
 iter$(1): iter$(2) $(RUN)/iter$(1)/eval/metrics.json
 .PHONY: iter$(1)
 endef
@@ -125,14 +128,14 @@ $(RUN)/baselines/rc_only/model/manifest.json: $(RUN)/iter1/rc/manifest.json $(SO
 $(RUN)/baselines/cf_only/model/manifest.json: $(RUN)/iter1/cf/manifest.json $(SOURCE)/manifest.json
 	$(DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/cf --seed $(SEED) $(TRAIN_BUDGET) --out $(@D)
 $(RUN)/baselines/%/eval/metrics.json: $(RUN)/baselines/%/model/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale 1.0 --out $@
+	$(DALI) eval --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) --out $@
 $(RUN)/baselines/%/ptsn/manifest.json: $(RUN)/baselines/%/model/manifest.json $(TARGET)/manifest.json
-	$(DALI) ptsn-sweep --model $(RUN)/baselines/$*/model --target $(TARGET) --expected-size $(EXPECTED) --seed $(SEED) --out $(@D)
+	$(DALI) ptsn-sweep --model $(RUN)/baselines/$*/model --target $(TARGET) --expected-size $(EXPECTED) --score-min $(SCORE_MIN) --seed $(SEED) --out $(@D)
 $(RUN)/baselines/%/eval_ptsn/metrics.json: $(RUN)/baselines/%/ptsn/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale-from $(RUN)/baselines/$*/ptsn --out $@
+	$(DALI) eval --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale-from $(RUN)/baselines/$*/ptsn $(EVAL_FLAGS) --out $@
 # cross-domain check: every model on the source validation set at s = 1
 $(RUN)/%/eval_source/metrics.json: $(RUN)/%/model/manifest.json $(RUN)/data/source_val/manifest.json
-	$(DALI) eval --model $(RUN)/$*/model --data $(RUN)/data/source_val --scale 1.0 --out $@
+	$(DALI) eval --model $(RUN)/$*/model --data $(RUN)/data/source_val --scale 1.0 $(EVAL_FLAGS) --out $@
 
 BASELINE_EVALS = $(addprefix $(RUN)/baselines/,sn/eval/metrics.json ros/eval/metrics.json \
     oracle/eval/metrics.json rc_only/eval_ptsn/metrics.json cf_only/eval_ptsn/metrics.json)

@@ -420,14 +420,13 @@ def _frame_universe(pred: BoxTable, gt: BoxTable, frame_ids) -> np.ndarray:
     return universe
 
 
-def _st3d_ground_truth(gt: BoxTable, fov_deg: float, range_m: tuple) -> BoxTable:
-    """ST3D's target ground truth: boxes outside the front FOV or the range are dropped, and
-    every box gets the 2D box [0, 0, 50, 50], no occlusion and no truncation."""
-    boxes = gt.boxes
+def _in_st3d_region(table: BoxTable, fov_deg: float, range_m: tuple) -> np.ndarray:
+    """`(N,)` bool: box centre inside the front FOV (|atan2(y, x)| < fov/2) and the range."""
+    boxes = table.boxes
     angle = np.arctan2(boxes[:, 1], boxes[:, 0])
     half = math.radians(fov_deg) / 2
     x_min, y_min, x_max, y_max = range_m
-    keep = (
+    return (
         (angle > -half)
         & (angle < half)
         & (boxes[:, 0] >= x_min)
@@ -435,7 +434,12 @@ def _st3d_ground_truth(gt: BoxTable, fov_deg: float, range_m: tuple) -> BoxTable
         & (boxes[:, 1] >= y_min)
         & (boxes[:, 1] <= y_max)
     )
-    kept = gt.select(keep)
+
+
+def _st3d_ground_truth(gt: BoxTable, fov_deg: float, range_m: tuple) -> BoxTable:
+    """ST3D's target ground truth: boxes outside the front FOV or the range are dropped, and
+    every box gets the 2D box [0, 0, 50, 50], no occlusion and no truncation."""
+    kept = gt.select(_in_st3d_region(gt, fov_deg, range_m))
     count = len(kept)
     return kept.with_columns(
         truncated=np.zeros(count, np.float32),
@@ -456,6 +460,7 @@ def evaluate(
     frame_ids: list[str] | None = None,
     st3d_fov_deg: float = ST3D_FOV_DEG,
     st3d_range_m: tuple = ST3D_RANGE_M,
+    st3d_crop_predictions: bool = False,
 ) -> dict:
     """AP_BEV and AP_3D (percent) of `pred` against `gt`, in the metrics.json shape.
 
@@ -465,6 +470,8 @@ def evaluate(
     (kitti when `gt` has the KITTI columns, else range). Ground-truth boxes of the class with fewer
     than `min_gt_points` points (column num_points) are ignored, not dropped. `frame_ids`: the
     evaluated frames (default: every frame named by either table; frames without boxes count).
+    `st3d_crop_predictions`: with st3d, also drop predictions centred outside the FOV and range,
+    as if the input clouds were FOV-cropped like KITTI's (360-degree synthetic frames).
     """
     if recall_positions not in (11, 40):
         raise EvaluationError(f"recall_positions must be 11 or 40, got {recall_positions}")
@@ -479,6 +486,8 @@ def evaluate(
         raise EvaluationError(f"ground truth lacks the KITTI columns {', '.join(missing)}")
     if protocol == "st3d":
         gt = _st3d_ground_truth(gt, st3d_fov_deg, st3d_range_m)
+        if st3d_crop_predictions:
+            pred = pred.select(_in_st3d_region(pred, st3d_fov_deg, st3d_range_m))
         pred = pred.with_columns(
             bbox_top=np.zeros(len(pred), np.float32),
             bbox_bottom=np.full(len(pred), 50.0, np.float32),

@@ -186,6 +186,11 @@ def test_st3d_protocol_filters_the_field_of_view():
     assert metrics["bev"]["easy"] == metrics["bev"]["moderate"] == metrics["bev"]["hard"]
     assert metrics["counts"]["easy"]["gt"] == 45
     assert metrics["counts"]["easy"]["bev"] == {"tp": 45, "fp": 5, "fn": 0}
+    # with FOV-cropped predictions (as from KITTI's FOV-only clouds) the 5 behind are gone
+    cropped = evaluate(pred, gt, protocol="st3d", st3d_crop_predictions=True)["Car"]
+    assert cropped["counts"]["easy"]["pred"] == 45
+    assert cropped["counts"]["easy"]["bev"] == {"tp": 45, "fp": 0, "fn": 0}
+    assert cropped["bev"]["easy"] > metrics["bev"]["easy"]
 
 
 def test_min_gt_points_ignores_instead_of_dropping():
@@ -629,7 +634,9 @@ def test_float32_label_fields_compare_like_the_decimal_text():
 KITTI_FIXTURE = Path(__file__).resolve().parent / "fixtures" / "real" / "kitti" / "training"
 
 
-@pytest.mark.skipif(not KITTI_FIXTURE.is_dir(), reason="KITTI fixture (tests/fixtures/real) not found")
+@pytest.mark.skipif(
+    not KITTI_FIXTURE.is_dir(), reason="KITTI fixture (tests/fixtures/real) not found"
+)
 def test_real_kitti_label_file_difficulties():
     # frame 000008: 6 cars, 4 DontCare. By hand from the label fields (trunc, occ, 2D height):
     # car 1 trunc .88 and car 3 occ 3 are ignored at every level; car 2 (occ 1, 193 px) and

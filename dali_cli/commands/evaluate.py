@@ -7,8 +7,9 @@ import os
 from pathlib import Path
 
 import click
+import numpy as np
 
-from dali_cli.artifacts import BOXES_NAME, ArtifactError, BoxTable, FrameSet, read_boxes
+from dali_cli.artifacts import BOXES_NAME, BoxTable, FrameSet, read_boxes
 
 EPILOG = """\b
 Inputs (--pred, --gt): a box-table directory (boxes.parquet), a .parquet file, or a KITTI
@@ -21,13 +22,16 @@ truth unless --gt is given.
 Protocols: kitti = easy/moderate/hard from the KITTI label fields (2D box height, occlusion,
 truncation); range = all boxes and BEV-distance bands 0-30, 30-50, 50-80 m; st3d = ST3D's
 target-domain evaluation (ground truth only in the front 90 deg FOV and the detection range,
-every box 'easy'); auto (default) = kitti when the ground truth has the KITTI fields, else range.
+every box 'easy'; --crop-predictions also drops predictions outside that region, as on KITTI's
+FOV-cropped clouds); auto (default) = kitti when the ground truth has the KITTI fields, else range.
 Van ground truths are ignored for Car; --min-gt-points marks ground-truth cars with fewer points
 as ignored (neither miss nor false positive), it never drops them.
 
 \b
 Output: the AP table on stdout; --out FILE writes metrics.json
-({"Car": {"iou", "recall_positions", "bev": {...}, "3d": {...}, "counts": {...}, "curves"}}).
+({"Car": {"iou", "recall_positions", "bev": {...}, "3d": {...}, "counts": {...}, "curves"}},
+one more block "Car@<iou>" per further --iou, "sizes": {"pred", "gt"} mean l/w/h in metres of
+the class (predictions: score >= --size-score-min) and, with --model, "scale").
 """
 
 
@@ -119,10 +123,19 @@ def _write_json(path: Path, document: dict) -> None:
 )
 @click.option(
     "--iou",
+    "ious",
     type=float,
-    default=0.7,
+    multiple=True,
+    default=(0.7,),
     show_default=True,
-    help="IoU threshold (a match needs IoU > this).",
+    help="IoU threshold (a match needs IoU > this); repeat for several (--iou 0.7 --iou 0.5).",
+)
+@click.option(
+    "--size-score-min",
+    type=click.FloatRange(0.0, 1.0),
+    default=0.3,
+    show_default=True,
+    help="Predictions with at least this score enter the mean predicted size in metrics.json.",
 )
 @click.option(
     "--recall-positions",
@@ -137,6 +150,13 @@ def _write_json(path: Path, document: dict) -> None:
     default="auto",
     show_default=True,
     help="Difficulty filters (see below).",
+)
+@click.option(
+    "--crop-predictions/--keep-predictions",
+    default=False,
+    show_default=True,
+    help="st3d: also drop predictions centred outside the FOV and range, as on KITTI's "
+    "FOV-cropped clouds (use with 360-degree frames such as dali synth's).",
 )
 @click.option("--class", "class_name", default="Car", show_default=True, help="Class to evaluate.")
 @click.option(
@@ -156,9 +176,11 @@ def command(
     data,
     scale,
     scale_from,
-    iou,
+    ious,
+    size_score_min,
     recall_positions,
     protocol,
+    crop_predictions,
     class_name,
     min_gt_points,
     out,
@@ -166,8 +188,11 @@ def command(
     """Average precision (KITTI protocol, BEV and 3D, float64 rotated IoU) of predictions."""
     from dali_cli.evaluate import EvaluationError, evaluate, format_table
 
-    if not 0.0 <= iou < 1.0:
-        raise click.BadParameter(f"must be in [0, 1), got {iou}", param_hint="--iou")
+    for iou in ious:
+        if not 0.0 <= iou < 1.0:
+            raise click.BadParameter(f"must be in [0, 1), got {iou}", param_hint="--iou")
+    if len(set(ious)) != len(ious):
+        raise click.BadParameter(f"repeated threshold in {list(ious)}", param_hint="--iou")
     frame_ids = None
     source: dict = {}
     if model is not None or data is not None:
@@ -192,25 +217,45 @@ def command(
     source["gt"] = str(gt_path)
     if frame_ids is None:
         frame_ids = label_frames
-    try:
-        metrics = evaluate(
-            pred,
-            gt,
-            iou=iou,
-            recall_positions=int(recall_positions),
-            protocol=protocol,
-            class_name=class_name,
-            min_gt_points=min_gt_points,
-            frame_ids=frame_ids,
-        )
-    except EvaluationError as error:
-        raise click.ClickException(
-            f"cannot evaluate {source.get('pred', model)} against {gt_path}: {error}"
-        ) from None
-    except ArtifactError:
-        raise
-    metrics[class_name]["source"] = source
+    metrics: dict = {}
+    for index, iou in enumerate(ious):
+        try:
+            result = evaluate(
+                pred,
+                gt,
+                iou=iou,
+                recall_positions=int(recall_positions),
+                protocol=protocol,
+                class_name=class_name,
+                min_gt_points=min_gt_points,
+                frame_ids=frame_ids,
+                st3d_crop_predictions=crop_predictions,
+            )
+        except EvaluationError as error:
+            raise click.ClickException(
+                f"cannot evaluate {source.get('pred', model)} against {gt_path}: {error}"
+            ) from None
+        block = result[class_name]
+        block["source"] = source
+        metrics[class_name if index == 0 else f"{class_name}@{iou:g}"] = block
     click.echo(format_table(metrics))
+    metrics["sizes"] = {
+        "pred": mean_box_size(pred, class_name, score_min=size_score_min),
+        "gt": mean_box_size(gt, class_name),
+    }
+    if "scale" in source:
+        metrics["scale"] = source["scale"]
     if out is not None:
         _write_json(out, metrics)
         click.echo(f"wrote {out}", err=True)
+
+
+def mean_box_size(table: BoxTable, class_name: str, score_min: float | None = None):
+    """Mean [l, w, h] in metres of the table's `class_name` boxes (score >= score_min), or None."""
+    keep = np.asarray(table["label"]) == class_name
+    if score_min is not None:
+        keep &= np.asarray(table["score"]) >= score_min
+    if not keep.any():
+        return None
+    lwh = table.boxes[keep, 3:6]
+    return [round(float(v), 4) for v in lwh.mean(axis=0)]
