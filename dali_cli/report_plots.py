@@ -42,11 +42,32 @@ def plot_ptsn_curves(run: Path, out: Path) -> Path | None:
         column = _volume_column(list(table))
         if column is None or "scale" not in table:
             continue
-        order = np.argsort(table["scale"])
-        scales = np.asarray(table["scale"], float)[order]
-        volumes = np.asarray(table[column], float)[order]
+        subset = np.asarray(table.get("subset", ["all"] * len(table["scale"])))
+        scales_all = np.asarray(table["scale"], float)
+        volumes_all = np.asarray(table[column], float)
         label = path.parent.parent.name
-        (line,) = axis.plot(scales, volumes, "o-", ms=3, label=f"{label} E_pred(s)")
+        # the bracket search evaluates a frame subsample first, then confirms on all frames:
+        # the two are different curves, so only "all" is joined by a line
+        whole = subset == "all"
+        order = np.argsort(scales_all[whole])
+        (line,) = axis.plot(
+            scales_all[whole][order],
+            volumes_all[whole][order],
+            "o-",
+            ms=3,
+            label=f"{label} E_pred(s)",
+        )
+        if (~whole).any():
+            axis.plot(
+                scales_all[~whole],
+                volumes_all[~whole],
+                "o",
+                ms=4,
+                mfc="none",
+                color=line.get_color(),
+                alpha=0.6,
+                label=f"{label} (frame subsample)",
+            )
         info_path = path.parent / "scale.json"
         if info_path.is_file():
             info = json.loads(info_path.read_text())
@@ -113,9 +134,29 @@ def plot_size_distributions(run: Path, out: Path, target: Path | None = None) ->
     return out
 
 
+def plot_ppcg(run: Path, out_dir: Path) -> list[Path]:
+    """Raw / RC / CF views of a few pseudo boxes (paper Fig. 9) for every iteration with both."""
+    from dali_cli.ppcg.figure import plot_ppcg_examples
+
+    drawn = []
+    for rc_dir in sorted(run.glob("iter*/rc")):
+        cf_dir = rc_dir.parent / "cf"
+        if (rc_dir / "manifest.json").is_file() and (cf_dir / "manifest.json").is_file():
+            path = plot_ppcg_examples(rc_dir, cf_dir, out_dir / f"ppcg_{rc_dir.parent.name}.png")
+            if path is not None:
+                drawn.append(Path(path))
+    return drawn
+
+
 def draw_plots(run: Path, out_dir: Path) -> list[Path]:
+    """Every plot the run's artifacts allow; [] (and no error) when matplotlib is missing."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        return []
     drawn = [
         plot_ptsn_curves(run, out_dir / "ptsn_curves.png"),
         plot_size_distributions(run, out_dir / "pseudo_sizes.png"),
+        *plot_ppcg(run, out_dir),
     ]
     return [path for path in drawn if path is not None]

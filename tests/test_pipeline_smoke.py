@@ -122,6 +122,9 @@ def test_report_reads_the_run(tiny_run):
     rows = {row["name"]: row for row in document["target"]}
     assert set(rows["PTSN + RC&CF (x1)"]["ap"]) == {"0.7", "0.5"}
     assert rows["Oracle"]["ap"] == {}  # not run in the smoke run: shown as missing, not invented
+    drawn = {Path(path).name for path in document["plots"]}
+    assert {"ptsn_curves.png", "pseudo_sizes.png", "ppcg_iter1.png"} <= drawn
+    assert all((tiny_run / "report" / "plots" / name).stat().st_size > 10_000 for name in drawn)
 
 
 def test_second_make_does_nothing(tiny_run):

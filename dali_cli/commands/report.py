@@ -35,6 +35,10 @@ def command(run: Path, out_dir: Path | None, plots: bool) -> None:
         from dali_cli.report_plots import draw_plots
 
         document["plots"] = [str(p) for p in draw_plots(run, out_dir / "plots")]
+        if not document["plots"]:
+            click.echo(
+                "no plots drawn (matplotlib missing, or no PTSN/PPCG artifacts yet)", err=True
+            )
     for name, content in (
         ("report.md", text),
         ("report.json", json.dumps(document, indent=2, default=str)),
