@@ -1,4 +1,5 @@
-"""Plots of a run for `dali report`: PTSN curves per iteration and pseudo-label size distributions.
+"""Plots of a run for `dali report`: PTSN curves, pseudo-label and predicted size distributions,
+bird's-eye views of predictions and PPCG examples.
 
 Each plot is drawn only from artifacts the run holds; a missing artifact means a missing plot.
 """
@@ -134,6 +135,124 @@ def plot_size_distributions(run: Path, out: Path, target: Path | None = None) ->
     return out
 
 
+# rows of the results table whose evaluation predictions are compared (paper Fig. 1a)
+SIZE_ROWS = (
+    ("Source only", "iter0/eval"),
+    ("SN", "baselines/sn/eval"),
+    ("PTSN only", "iter0/eval_ptsn"),
+    ("DALI x1", "iter1/eval"),
+    ("DALI x2", "iter2/eval"),
+)
+SIZE_SCORE_MIN = 0.3
+
+
+def _evaluation(run: Path, relative: str):
+    """(predictions BoxTable, metrics dict) of an evaluation directory, or None."""
+    from dali_cli.artifacts import read_boxes
+
+    directory = run / relative
+    if (
+        not (directory / "predictions.parquet").is_file()
+        or not (directory / "metrics.json").is_file()
+    ):
+        return None
+    metrics = json.loads((directory / "metrics.json").read_text())
+    return read_boxes(directory / "predictions.parquet"), metrics
+
+
+def _ground_truth(run: Path, metrics: dict):
+    """The evaluated frame set's directory and labels (the path recorded in metrics.json)."""
+    from dali_cli.artifacts import read_boxes
+
+    recorded = metrics.get("Car", {}).get("source", {}).get("data")
+    candidates = [Path(recorded)] if recorded else []
+    candidates += [run / "data" / "target_val"]
+    for directory in candidates:
+        if (directory / "boxes.parquet").is_file():
+            truth = read_boxes(directory)
+            return directory, truth.select(np.asarray(truth["label"]) == "Car")
+    return None, None
+
+
+def plot_method_sizes(run: Path, out: Path) -> Path | None:
+    """Predicted l, w, h (score >= 0.3) of each method row against the target ground truth."""
+    found = [(name, _evaluation(run, relative)) for name, relative in SIZE_ROWS]
+    found = [(name, result) for name, result in found if result is not None]
+    if not found:
+        return None
+    _, truth = _ground_truth(run, found[0][1][1])
+    plt = _pyplot()
+    figure, axes = plt.subplots(1, 3, figsize=(11, 3.4))
+    for index, name in enumerate(("length l (m)", "width w (m)", "height h (m)")):
+        axis = axes[index]
+        edges = np.linspace((1.0, 1.0, 0.8)[index], (6.5, 3.0, 2.4)[index], 45)
+        if truth is not None and len(truth):
+            values = truth.boxes[:, 3 + index]
+            axis.hist(values, bins=edges, density=True, alpha=0.3, color="k", label="ground truth")
+        for row, (pred, _) in found:
+            keep = np.asarray(pred["score"]) >= SIZE_SCORE_MIN
+            if keep.any():
+                values = pred.boxes[keep, 3 + index]
+                axis.hist(values, bins=edges, density=True, histtype="step", lw=1.4, label=row)
+        axis.set_xlabel(name)
+    axes[0].legend(fontsize=7)
+    figure.suptitle(
+        f"Predicted car sizes on the target (score >= {SIZE_SCORE_MIN}) vs ground truth"
+    )
+    figure.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(out, dpi=120)
+    plt.close(figure)
+    return out
+
+
+def plot_bev_views(run: Path, out: Path, frames: int = 2) -> Path | None:
+    """Bird's-eye views of target validation frames: points, ground truth and the predictions
+    (score >= 0.3) of the first and the last method row that was evaluated."""
+    from dali_cli.artifacts import FrameSet
+    from dali_cli.geometry import bev_corners
+
+    found = [(name, _evaluation(run, relative)) for name, relative in SIZE_ROWS]
+    found = [(name, result) for name, result in found if result is not None]
+    if not found:
+        return None
+    shown = [found[0]] if len(found) == 1 else [found[0], found[-1]]
+    data_dir, truth = _ground_truth(run, found[0][1][1])
+    if data_dir is None:
+        return None
+    frame_set = FrameSet(data_dir)
+    frame_ids = list(frame_set.frame_ids)[:frames]
+    plt = _pyplot()
+    figure, axes = plt.subplots(
+        len(frame_ids), len(shown), figsize=(5.5 * len(shown), 4.2 * len(frame_ids)), squeeze=False
+    )
+    for row_index, frame_id in enumerate(frame_ids):
+        points = frame_set.frame(frame_id)
+        ahead = (points[:, 0] > -5) & (points[:, 0] < 72) & (np.abs(points[:, 1]) < 42)
+        gt_boxes = truth.boxes[np.asarray(truth.frame_id) == frame_id] if truth is not None else []
+        for column, (name, (pred, _)) in enumerate(shown):
+            axis = axes[row_index, column]
+            axis.scatter(points[ahead, 0], points[ahead, 1], s=0.05, c="0.55", linewidths=0)
+            for corners in bev_corners(gt_boxes) if len(gt_boxes) else []:
+                axis.fill(corners[:, 0], corners[:, 1], fill=False, ec="g", lw=1.2)
+            mine = (np.asarray(pred.frame_id) == frame_id) & (
+                np.asarray(pred["score"]) >= SIZE_SCORE_MIN
+            )
+            for corners in bev_corners(pred.boxes[mine]) if mine.any() else []:
+                axis.fill(corners[:, 0], corners[:, 1], fill=False, ec="r", lw=0.9)
+            axis.set_title(f"{name}: frame {frame_id} (green: truth, red: predicted)", fontsize=9)
+            axis.set_xlim(-5, 72)
+            axis.set_ylim(-42, 42)
+            axis.set_aspect("equal")
+            axis.set_xlabel("x (m)")
+            axis.set_ylabel("y (m)")
+    figure.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(out, dpi=110)
+    plt.close(figure)
+    return out
+
+
 def plot_ppcg(run: Path, out_dir: Path) -> list[Path]:
     """Raw / RC / CF views of a few pseudo boxes (paper Fig. 9) for every iteration with both."""
     from dali_cli.ppcg.figure import plot_ppcg_examples
@@ -157,6 +276,8 @@ def draw_plots(run: Path, out_dir: Path) -> list[Path]:
     drawn = [
         plot_ptsn_curves(run, out_dir / "ptsn_curves.png"),
         plot_size_distributions(run, out_dir / "pseudo_sizes.png"),
+        plot_method_sizes(run, out_dir / "method_sizes.png"),
+        plot_bev_views(run, out_dir / "bev_views.png"),
         *plot_ppcg(run, out_dir),
     ]
     return [path for path in drawn if path is not None]

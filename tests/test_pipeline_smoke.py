@@ -15,6 +15,8 @@ from pathlib import Path
 
 import pytest
 
+from dali_cli.artifacts import read_boxes
+
 REPO = Path(__file__).resolve().parents[1]
 VENV = Path(sys.prefix)
 
@@ -108,6 +110,8 @@ def test_evaluations_have_both_iou_blocks_and_sizes(tiny_run):
         assert metrics["Car"]["frames"] == 4
         gt = metrics["sizes"]["gt"]
         assert gt is not None and 3.0 < gt[0] < 5.0  # KITTI-like target cars
+        predictions = read_boxes(tiny_run / relative.replace("metrics.json", "predictions.parquet"))
+        assert set(predictions.frame_id) <= {f"{i:06d}" for i in range(4)}
     ptsn_scale = json.loads((tiny_run / "iter1/ptsn/scale.json").read_text())["scale"]
     assert json.loads((tiny_run / EVALS[1]).read_text())["scale"] == pytest.approx(ptsn_scale)
     assert json.loads((tiny_run / EVALS[0]).read_text())["scale"] == 1.0
@@ -123,7 +127,8 @@ def test_report_reads_the_run(tiny_run):
     assert set(rows["PTSN + RC&CF (x1)"]["ap"]) == {"0.7", "0.5"}
     assert rows["Oracle"]["ap"] == {}  # not run in the smoke run: shown as missing, not invented
     drawn = {Path(path).name for path in document["plots"]}
-    assert {"ptsn_curves.png", "pseudo_sizes.png", "ppcg_iter1.png"} <= drawn
+    expected = {"ptsn_curves.png", "pseudo_sizes.png", "method_sizes.png", "bev_views.png"}
+    assert expected | {"ppcg_iter1.png"} <= drawn
     assert all((tiny_run / "report" / "plots" / name).stat().st_size > 10_000 for name in drawn)
 
 

@@ -169,6 +169,13 @@ def _write_json(path: Path, document: dict) -> None:
 @click.option(
     "--out", type=click.Path(dir_okay=False, path_type=Path), help="Write metrics.json here."
 )
+@click.option(
+    "--save-predictions/--no-save-predictions",
+    default=True,
+    show_default=True,
+    help="With --model and --out: also write the predictions (all scores) as "
+    "predictions.parquet beside metrics.json (read by `dali report` for size plots).",
+)
 def command(
     pred_path,
     gt_path,
@@ -184,6 +191,7 @@ def command(
     class_name,
     min_gt_points,
     out,
+    save_predictions,
 ):
     """Average precision (KITTI protocol, BEV and 3D, float64 rotated IoU) of predictions."""
     from dali_cli.evaluate import EvaluationError, evaluate, format_table
@@ -246,8 +254,23 @@ def command(
     if "scale" in source:
         metrics["scale"] = source["scale"]
     if out is not None:
+        if save_predictions and model is not None:
+            _write_predictions(out.parent / PREDICTIONS_NAME, pred)
         _write_json(out, metrics)
         click.echo(f"wrote {out}", err=True)
+
+
+PREDICTIONS_NAME = "predictions.parquet"
+
+
+def _write_predictions(path: Path, pred: BoxTable) -> None:
+    """The evaluated predictions as a box table file, written atomically."""
+    import pyarrow.parquet as pq
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(path.name + ".part")
+    pq.write_table(pred.to_arrow(), partial, compression="zstd")
+    os.replace(partial, path)
 
 
 def mean_box_size(table: BoxTable, class_name: str, score_min: float | None = None):
