@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.manifest import StageOutcome
-
 
 def stage_options(function):
     """--force and --dry-run, the two switches every stage command has."""
@@ -28,21 +26,26 @@ def sensors_option(function):
     )(function)
 
 
-def not_implemented(name: str, issue: str) -> click.Command:
-    """A placeholder command: exits 1 and says what is missing. No fake output."""
+def model_target_out_options(model_help: str):
+    """--model, --target and --out of the stages that run a model on the target frame set."""
 
-    @click.command(
-        name=name,
-        context_settings={"ignore_unknown_options": True, "allow_extra_args": True},
-        help=f"Not implemented yet ({issue}).",
-    )
-    def placeholder() -> None:
-        click.echo(f"dali {name}: not implemented yet ({issue})", err=True)
-        raise SystemExit(1)
+    def decorate(function):
+        function = click.option(
+            "--out", required=True, type=click.Path(file_okay=False), help="Output directory."
+        )(function)
+        function = click.option(
+            "--target",
+            "target_dir",
+            required=True,
+            type=click.Path(exists=True, file_okay=False),
+            help="Target frame set (frames.zarr). Its labels, if any, are never read.",
+        )(function)
+        return click.option(
+            "--model",
+            "model_dir",
+            required=True,
+            type=click.Path(exists=True, file_okay=False),
+            help=model_help,
+        )(function)
 
-    return placeholder
-
-
-def report_outcome(outcome: StageOutcome) -> None:
-    """Exit code 0 for ran/skipped/dry-run; the stage has already printed what it did."""
-    del outcome
+    return decorate

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import report_outcome, sensors_option, stage_options
+from dali_cli.commands.common import sensors_option, stage_options
 
 
 def parse_floats(count: int):
@@ -186,4 +186,3 @@ def command(source, boxes, out, size_norm, target_profile, target_size, ros_rang
     if outcome.status == "ran":
         train = (outcome.manifest or {}).get("outputs", {}).get("counts", {})
         click.echo(f"pretrain: {train.get('steps')} steps, {train.get('frames_seen')} frames seen")
-    report_outcome(outcome)

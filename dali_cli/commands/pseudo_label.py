@@ -4,25 +4,11 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import sensors_option, stage_options
+from dali_cli.commands.common import model_target_out_options, sensors_option, stage_options
 
 
 @click.command(name="pseudo-label")
-@click.option(
-    "--model",
-    "model_dir",
-    required=True,
-    type=click.Path(exists=True, file_okay=False),
-    help="Trained model directory (model.pt + model.json).",
-)
-@click.option(
-    "--target",
-    "target_dir",
-    required=True,
-    type=click.Path(exists=True, file_okay=False),
-    help="Target frame set (frames.zarr). Its labels, if any, are never read.",
-)
-@click.option("--out", required=True, type=click.Path(file_okay=False), help="Output directory.")
+@model_target_out_options("Trained model directory (model.pt + model.json).")
 @click.option(
     "--scale-from",
     type=click.Path(exists=True),

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import report_outcome, sensors_option, stage_options
+from dali_cli.commands.common import sensors_option, stage_options
 from dali_cli.commands.pretrain import training_options
 
 
@@ -99,4 +99,3 @@ def command(init, source, ppcg, out, init_from, mix, labels, epochs, minutes, se
     if outcome.status == "ran":
         counts = (outcome.manifest or {}).get("outputs", {}).get("counts", {})
         click.echo(f"retrain: {counts.get('steps')} steps, {counts.get('frames_seen')} frames seen")
-    report_outcome(outcome)
