@@ -14,7 +14,7 @@ import pytest
 from click.testing import CliRunner
 
 from dali_cli import geometry
-from dali_cli.artifacts import BoxTable, write_boxes, write_frameset
+from dali_cli.artifacts import BoxTable, read_boxes, write_boxes, write_frameset
 from dali_cli.cli import main
 from dali_cli.evaluate import EvaluationError, evaluate, format_table
 from dali_cli.kitti_label import read_label_dir, read_label_file, write_label_dir
@@ -654,3 +654,43 @@ def test_real_kitti_label_file_difficulties():
     for name, valid in (("easy", 1), ("moderate", 4), ("hard", 4)):
         assert metrics["counts"][name]["bev"] == {"tp": valid, "fp": 0, "fn": 0}
         assert metrics["bev"][name] == pytest.approx(100 * (valid - 1) / 40)  # R40 with < 41 cars
+
+
+def test_cli_several_ious_sizes_and_saved_predictions(tmp_path, monkeypatch):
+    cars = [row_of_cars(1) + [0, k, 0, 0, 0, 0, 0] for k in range(45)]
+    write_dataset(tmp_path / "data", cars)
+    # predictions 10 % too long: a true positive at IoU 0.5 (BEV IoU 1/1.1), at 0.7 too
+    grown = [np.asarray(box, float) * [1, 1, 1, 1.1, 1, 1, 1] for box in cars]
+    scores = np.r_[np.full(40, 0.8), np.full(5, 0.1)]
+
+    def predict_frameset(model_dir, data_dir, scale=1.0, score_min=0.0, progress=True):
+        return BoxTable.concat(
+            [table(box, frame=f"{k:03d}", score=[scores[k]]) for k, box in enumerate(grown)]
+        )
+
+    fake = types.ModuleType("dali_cli.detector")
+    fake.predict_frameset = predict_frameset
+    monkeypatch.setitem(sys.modules, "dali_cli.detector", fake)
+    (tmp_path / "model").mkdir()
+    out = tmp_path / "eval" / "metrics.json"
+    args = ["eval", "--model", str(tmp_path / "model"), "--data", str(tmp_path / "data")]
+    result = CliRunner().invoke(
+        main, [*args, "--iou", "0.7", "--iou", "0.95", "--scale", "1.2", "--out", str(out)]
+    )
+    assert result.exit_code == 0, result.output
+    metrics = json.loads(out.read_text())
+    assert metrics["Car"]["iou"] == 0.7 and metrics["Car"]["bev"]["all"] == pytest.approx(100.0)
+    assert metrics["Car@0.95"]["iou"] == 0.95 and metrics["Car@0.95"]["bev"]["all"] == 0.0
+    truth = np.asarray(cars, float).reshape(-1, 7)
+    assert metrics["sizes"]["gt"] == pytest.approx(truth[:, 3:6].mean(axis=0), abs=1e-4)
+    # only the 40 predictions with score >= 0.3 enter the mean predicted size
+    expected = (truth[:40, 3:6] * [1.1, 1, 1]).mean(axis=0)
+    assert metrics["sizes"]["pred"] == pytest.approx(expected, abs=1e-4)
+    assert metrics["scale"] == 1.2
+    saved = read_boxes(out.parent / "predictions.parquet")
+    assert len(saved) == 45 and np.allclose(saved.boxes, np.asarray(grown).reshape(-1, 7))
+    # a repeated threshold is a usage error and writes nothing
+    again = CliRunner().invoke(
+        main, [*args, "--iou", "0.7", "--iou", "0.7", "--out", str(tmp_path / "x" / "m.json")]
+    )
+    assert again.exit_code == 2 and not (tmp_path / "x").exists()
