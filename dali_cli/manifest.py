@@ -55,6 +55,26 @@ def content_hash(path: str | Path) -> str:
     return hash_tree(path)
 
 
+def check_made_from(artifact: str | Path, role: str, expected_input: str | Path) -> None:
+    """Refuse an artifact whose manifest says its `role` input was a different artifact.
+
+    E.g. pseudo boxes made for one target frame set, passed with another target that happens to
+    share frame ids. Artifacts without a manifest (imported or hand-made tables) pass unchecked.
+    """
+    artifact = Path(artifact)
+    manifest = read_manifest(artifact) if artifact.is_dir() else None
+    records = (manifest or {}).get("inputs", {}).get(role)
+    if not records:
+        return
+    expected = content_hash(expected_input)
+    if expected not in {record.get("hash") for record in records}:
+        made_from = ", ".join(str(record.get("path")) for record in records)
+        raise click.ClickException(
+            f"{artifact}: made from {role} {made_from}, not from {expected_input} "
+            f"(content hashes differ); pass the {role} it was made from"
+        )
+
+
 def read_manifest(directory: str | Path) -> dict | None:
     """The manifest of an artifact directory, or None when absent or unreadable."""
     path = Path(directory) / MANIFEST_NAME

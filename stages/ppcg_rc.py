@@ -19,7 +19,7 @@ import click
 import numpy as np
 
 from dali_cli.artifacts import BoxTable, FrameSet, FrameSetWriter, read_boxes, write_boxes
-from dali_cli.manifest import BuildResult, StageOutcome, run_stage
+from dali_cli.manifest import BuildResult, StageOutcome, check_made_from, run_stage
 from dali_cli.ppcg.cf import CfParams
 from dali_cli.ppcg.driver import Job, run_frames
 from dali_cli.ppcg.models import ModelBank
@@ -113,6 +113,7 @@ def run_ppcg(
     """The shared body of ppcg-rc and ppcg-cf (mode "rc" or "cf")."""
     target_dir, boxes_dir, library_dir = Path(target_dir), Path(boxes_dir), Path(library_dir)
     frames = FrameSet(target_dir)
+    check_made_from(boxes_dir, "target", target_dir)  # pseudo boxes of this very frame set
     sensor = sensor or frames.sensor
     if not sensor:
         raise click.UsageError(f"{frames.path}: no 'sensor' attribute; give --sensor")

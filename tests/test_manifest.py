@@ -9,7 +9,14 @@ import pytest
 
 from dali_cli import __version__
 from dali_cli.artifacts import BoxTable, read_boxes, write_boxes
-from dali_cli.manifest import BuildResult, content_hash, hash_tree, read_manifest, run_stage
+from dali_cli.manifest import (
+    BuildResult,
+    check_made_from,
+    content_hash,
+    hash_tree,
+    read_manifest,
+    run_stage,
+)
 
 
 def make_input(path, seed=0):
@@ -170,3 +177,16 @@ def test_hash_tree_sees_renames_and_content(tmp_path):
     assert len({first, second, third}) == 3
     (tmp_path / "a" / "manifest.json").write_text(json.dumps({"x": 1}))
     assert hash_tree(tmp_path / "a") == third  # the manifest itself is not content
+
+
+def test_check_made_from_refuses_an_artifact_of_another_input(tmp_path):
+    import click
+
+    target, other = make_input(tmp_path / "target", seed=1), make_input(tmp_path / "other", seed=2)
+    out = tmp_path / "pseudo"
+    run_stage("demo", out, {"target": target}, {}, CountingBuild(), echo=no_echo)
+    check_made_from(out, "target", target)  # the right one passes
+    with pytest.raises(click.ClickException, match="made from target .*target, not from .*other"):
+        check_made_from(out, "target", other)
+    check_made_from(out, "library", other)  # a role the manifest does not record: unchecked
+    check_made_from(target, "target", other)  # no manifest (hand-made table): unchecked

@@ -49,6 +49,9 @@ def test_second_iou_block_is_read(tmp_path):
 
 
 def test_report_command_writes_files(tmp_path):
+    empty = CliRunner().invoke(main, ["report", str(tmp_path)])
+    assert empty.exit_code == 1 and "no run artifacts" in empty.output
+    assert not (tmp_path / "report").exists()
     write_metrics(tmp_path / "iter0/eval/metrics.json", 60.0, 20.0)
     result = CliRunner().invoke(main, ["report", str(tmp_path)])
     assert result.exit_code == 0, result.output

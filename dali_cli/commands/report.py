@@ -29,6 +29,12 @@ def command(run: Path, out_dir: Path | None, plots: bool) -> None:
     Writes RUN/report/report.md, report.json and plots/*.png, and prints the markdown.
     """
     out_dir = out_dir or run / "report"
+    patterns = ("iter*/*/manifest.json", "iter*/*/metrics.json", "baselines/*/*/*.json")
+    if not any(next(run.glob(pattern), None) for pattern in patterns):
+        raise click.ClickException(
+            f"{run}: no run artifacts (iter*/<stage>/manifest.json, */eval/metrics.json): "
+            "is it a RUN directory of the Makefile (make iter1 RUN=...)?"
+        )
     text, document = build_report(run)
     out_dir.mkdir(parents=True, exist_ok=True)
     if plots:
