@@ -72,8 +72,9 @@ LIBRARY_MODELS ?= 24
 SYNTH_WORKERS  ?= 2
 VAL_FRAMES     ?= $(FRAMES)
 SCORE_MIN      ?= 0.3
-# evaluation on the target: ST3D's protocol (front 90 deg FOV, detection range), AP at IoU 0.7 and 0.5
-EVAL_FLAGS     ?= --protocol st3d --crop-predictions --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
+# evaluation: all boxes and range bands of the front region (90 deg FOV, detection range, as ST3D
+# evaluates KITTI), AP at IoU 0.7 and 0.5
+EVAL_FLAGS     ?= --protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
 
 $(RUN)/data/source/manifest.json: | install
 	$(DALI) synth --sensor $(SOURCE_SENSOR) --cars $(SOURCE_SENSOR) --frames $(FRAMES) --seed $(SEED) --workers $(SYNTH_WORKERS) --out $(@D)

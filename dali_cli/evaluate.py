@@ -460,7 +460,7 @@ def evaluate(
     frame_ids: list[str] | None = None,
     st3d_fov_deg: float = ST3D_FOV_DEG,
     st3d_range_m: tuple = ST3D_RANGE_M,
-    st3d_crop_predictions: bool = False,
+    front_only: bool = False,
 ) -> dict:
     """AP_BEV and AP_3D (percent) of `pred` against `gt`, in the metrics.json shape.
 
@@ -470,8 +470,9 @@ def evaluate(
     (kitti when `gt` has the KITTI columns, else range). Ground-truth boxes of the class with fewer
     than `min_gt_points` points (column num_points) are ignored, not dropped. `frame_ids`: the
     evaluated frames (default: every frame named by either table; frames without boxes count).
-    `st3d_crop_predictions`: with st3d, also drop predictions centred outside the FOV and range,
-    as if the input clouds were FOV-cropped like KITTI's (360-degree synthetic frames).
+    `front_only`: drop ground truth and predictions centred outside the st3d region (front FOV
+    and detection range) before any protocol, as if the clouds were FOV-cropped like KITTI's; with
+    "range" this gives the bands of the front region, with "st3d" it also drops predictions there.
     """
     if recall_positions not in (11, 40):
         raise EvaluationError(f"recall_positions must be 11 or 40, got {recall_positions}")
@@ -484,10 +485,11 @@ def evaluate(
     if protocol == "kitti" and not has_kitti_columns(gt):
         missing = [name for name in KITTI_GT_COLUMNS if name not in gt.columns]
         raise EvaluationError(f"ground truth lacks the KITTI columns {', '.join(missing)}")
+    if front_only:
+        gt = gt.select(_in_st3d_region(gt, st3d_fov_deg, st3d_range_m))
+        pred = pred.select(_in_st3d_region(pred, st3d_fov_deg, st3d_range_m))
     if protocol == "st3d":
         gt = _st3d_ground_truth(gt, st3d_fov_deg, st3d_range_m)
-        if st3d_crop_predictions:
-            pred = pred.select(_in_st3d_region(pred, st3d_fov_deg, st3d_range_m))
         pred = pred.with_columns(
             bbox_top=np.zeros(len(pred), np.float32),
             bbox_bottom=np.full(len(pred), 50.0, np.float32),
@@ -524,6 +526,7 @@ def evaluate(
         "protocol": protocol,
         "frames": int(num_frames),
         "min_gt_points": int(min_gt_points),
+        "front_only": bool(front_only),
         "bev": {},
         "3d": {},
         "counts": {},

@@ -39,6 +39,7 @@ class Row:
     ap: dict  # {"0.7": {"bev": x, "3d": y}, "0.5": {...}} in percent, missing → absent
     sizes: dict  # {"pred": [l, w, h], "gt": [l, w, h]} when recorded
     scale: float | None
+    bands: dict  # {"0-30": {"bev", "3d", "gt"}, ...} at IoU 0.7 with the range protocol, else {}
 
 
 def _summary_key(block: dict) -> str | None:
@@ -47,6 +48,25 @@ def _summary_key(block: dict) -> str | None:
         if key in block:
             return key
     return next(iter(block), None)
+
+
+BANDS = ("0-30", "30-50", "50-80")
+
+
+def read_bands(document: dict) -> dict:
+    """AP_BEV / AP_3D and ground-truth count per distance band of the IoU 0.7 block, if any."""
+    block = document.get("Car")
+    if not isinstance(block, dict):
+        return {}
+    bands = {}
+    for band in BANDS:
+        if band in block.get("bev", {}):
+            bands[band] = {
+                "bev": block["bev"][band],
+                "3d": block["3d"].get(band),
+                "gt": block.get("counts", {}).get(band, {}).get("gt"),
+            }
+    return bands
 
 
 def read_metrics(path: Path) -> tuple[dict, dict, float | None]:
@@ -80,9 +100,10 @@ def collect_rows(run: Path, rows=ROWS) -> list[Row]:
         path = run / relative
         if path.is_file():
             ap, sizes, scale = read_metrics(path)
+            bands = read_bands(json.loads(path.read_text()))
         else:
-            ap, sizes, scale = {}, {}, None
-        collected.append(Row(name, relative, ap, sizes, scale))
+            ap, sizes, scale, bands = {}, {}, None, {}
+        collected.append(Row(name, relative, ap, sizes, scale, bands))
     return collected
 
 
@@ -139,6 +160,25 @@ def markdown_table(rows: list[Row]) -> str:
     return "\n".join(lines)
 
 
+def bands_table(rows: list[Row]) -> str | None:
+    """AP_BEV / AP_3D @0.7 per distance band for the rows evaluated with range bands."""
+    shown = [row for row in rows if row.bands]
+    if not shown:
+        return None
+    counts = next(row.bands for row in shown)
+    header = "| method | " + " | ".join(
+        f"{band} m ({counts.get(band, {}).get('gt', '?')} cars)" for band in BANDS
+    )
+    lines = [header + " |", "|---|" + "---|" * len(BANDS)]
+    for row in shown:
+        cells = []
+        for band in BANDS:
+            entry = row.bands.get(band, {})
+            cells.append(f"{_cell(entry.get('bev'))} / {_cell(entry.get('3d'))}")
+        lines.append(f"| {row.name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def gap_closed(rows: list[Row], metric: str = "3d", iou: str = "0.7") -> float | None:
     """Share of the source-only → oracle gap closed by the last DALI iteration present."""
     by_name = {row.name: row.ap.get(iou, {}).get(metric) for row in rows}
@@ -165,6 +205,9 @@ def build_report(run: Path) -> tuple[str, dict]:
     closed = gap_closed(rows)
     if closed is not None:
         parts += ["", f"Gap from source only to oracle closed (AP_3D@0.7): {100 * closed:.0f}%"]
+    by_band = bands_table(rows)
+    if by_band is not None:
+        parts += ["", "### By distance (AP_BEV / AP_3D @0.7)", "", by_band]
     if any(row.ap for row in source_rows):
         parts += ["", "## Source validation (cross-domain check)", "", markdown_table(source_rows)]
     if scales:

@@ -187,10 +187,15 @@ def test_st3d_protocol_filters_the_field_of_view():
     assert metrics["counts"]["easy"]["gt"] == 45
     assert metrics["counts"]["easy"]["bev"] == {"tp": 45, "fp": 5, "fn": 0}
     # with FOV-cropped predictions (as from KITTI's FOV-only clouds) the 5 behind are gone
-    cropped = evaluate(pred, gt, protocol="st3d", st3d_crop_predictions=True)["Car"]
+    cropped = evaluate(pred, gt, protocol="st3d", front_only=True)["Car"]
     assert cropped["counts"]["easy"]["pred"] == 45
     assert cropped["counts"]["easy"]["bev"] == {"tp": 45, "fp": 0, "fn": 0}
     assert cropped["bev"]["easy"] > metrics["bev"]["easy"]
+    # range bands of the front region: the 5 cars behind take no part at all
+    front = evaluate(pred, gt, protocol="range", front_only=True)["Car"]
+    assert front["counts"]["all"]["gt"] == 45 and front["counts"]["all"]["pred"] == 45
+    assert front["bev"]["all"] == cropped["bev"]["easy"]
+    assert front["counts"]["0-30"]["gt"] == 15  # x = 12, 18, 24 m (5 each, all within 25.3 m)
 
 
 def test_min_gt_points_ignores_instead_of_dropping():

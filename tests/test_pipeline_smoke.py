@@ -106,7 +106,7 @@ def test_evaluations_have_both_iou_blocks_and_sizes(tiny_run):
     for relative in EVALS:
         metrics = json.loads((tiny_run / relative).read_text())
         assert metrics["Car"]["iou"] == 0.7 and metrics["Car@0.5"]["iou"] == 0.5, relative
-        assert metrics["Car"]["protocol"] == "st3d"
+        assert metrics["Car"]["protocol"] == "range" and metrics["Car"]["front_only"]
         assert metrics["Car"]["frames"] == 4
         gt = metrics["sizes"]["gt"]
         assert gt is not None and 3.0 < gt[0] < 5.0  # KITTI-like target cars

@@ -60,3 +60,22 @@ def test_report_command_writes_files(tmp_path):
         json.loads((tmp_path / "report/report.json").read_text())["target"][0]["ap"]["0.7"]["bev"]
         == 60.0
     )
+
+
+def test_distance_bands_table(tmp_path):
+    path = tmp_path / "iter1/eval/metrics.json"
+    path.parent.mkdir(parents=True)
+    block = {
+        "iou": 0.7,
+        "recall_positions": 40,
+        "bev": {"all": 50.0, "0-30": 80.0, "30-50": 40.0, "50-80": 10.0},
+        "3d": {"all": 30.0, "0-30": 60.0, "30-50": 20.0, "50-80": None},
+        "counts": {"0-30": {"gt": 12}, "30-50": {"gt": 7}, "50-80": {"gt": 3}},
+    }
+    path.write_text(json.dumps({"Car": block}))
+    text, document = build_report(tmp_path)
+    assert "0-30 m (12 cars)" in text and "50-80 m (3 cars)" in text
+    assert "| PTSN + RC&CF (x1) | 80.00 / 60.00 | 40.00 / 20.00 | 10.00 / — |" in text
+    rows = {row["name"]: row for row in document["target"]}
+    assert rows["PTSN + RC&CF (x1)"]["bands"]["30-50"] == {"bev": 40.0, "3d": 20.0, "gt": 7}
+    assert rows["Source only"]["bands"] == {}

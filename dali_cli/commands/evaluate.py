@@ -22,10 +22,11 @@ truth unless --gt is given.
 Protocols: kitti = easy/moderate/hard from the KITTI label fields (2D box height, occlusion,
 truncation); range = all boxes and BEV-distance bands 0-30, 30-50, 50-80 m; st3d = ST3D's
 target-domain evaluation (ground truth only in the front 90 deg FOV and the detection range,
-every box 'easy'; --crop-predictions also drops predictions outside that region, as on KITTI's
-FOV-cropped clouds); auto (default) = kitti when the ground truth has the KITTI fields, else range.
-Van ground truths are ignored for Car; --min-gt-points marks ground-truth cars with fewer points
-as ignored (neither miss nor false positive), it never drops them.
+every box 'easy'); auto (default) = kitti when the ground truth has the KITTI fields, else range.
+--front-only restricts any protocol to that front region, ground truth and predictions alike
+(KITTI's clouds are FOV-cropped; dali synth's are 360 degrees). Van ground truths are ignored
+for Car; --min-gt-points marks ground-truth cars with fewer points as ignored (neither miss nor
+false positive), it never drops them.
 
 \b
 Output: the AP table on stdout; --out FILE writes metrics.json
@@ -152,11 +153,13 @@ def _write_json(path: Path, document: dict) -> None:
     help="Difficulty filters (see below).",
 )
 @click.option(
-    "--crop-predictions/--keep-predictions",
-    default=False,
-    show_default=True,
-    help="st3d: also drop predictions centred outside the FOV and range, as on KITTI's "
-    "FOV-cropped clouds (use with 360-degree frames such as dali synth's).",
+    "--front-only",
+    "--crop-predictions",
+    "front_only",
+    is_flag=True,
+    help="Keep only ground truth and predictions centred in the front 90 deg FOV and the detection "
+    "range (x 0..70.4, |y| <= 40 m), as on KITTI's FOV-cropped clouds; for 360-degree frames "
+    "such as dali synth's.",
 )
 @click.option("--class", "class_name", default="Car", show_default=True, help="Class to evaluate.")
 @click.option(
@@ -187,7 +190,7 @@ def command(
     size_score_min,
     recall_positions,
     protocol,
-    crop_predictions,
+    front_only,
     class_name,
     min_gt_points,
     out,
@@ -237,7 +240,7 @@ def command(
                 class_name=class_name,
                 min_gt_points=min_gt_points,
                 frame_ids=frame_ids,
-                st3d_crop_predictions=crop_predictions,
+                front_only=front_only,
             )
         except EvaluationError as error:
             raise click.ClickException(
