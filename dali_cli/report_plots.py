@@ -21,6 +21,15 @@ def _pyplot():
     return plt
 
 
+def _save(plt, figure, out: Path, dpi: int) -> Path:
+    """Lay out, write the PNG (creating its directory) and free the figure."""
+    figure.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(out, dpi=dpi)
+    plt.close(figure)
+    return out
+
+
 def _volume_column(names: list[str]) -> str | None:
     for candidate in ("mean_volume", "mean_volume_m3", "volume"):
         if candidate in names:
@@ -84,11 +93,7 @@ def plot_ptsn_curves(run: Path, out: Path) -> Path | None:
     axis.set_ylabel("mean predicted car volume (m³)")
     axis.set_title("PTSN sweep")
     axis.legend(fontsize=8)
-    figure.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(out, dpi=120)
-    plt.close(figure)
-    return out
+    return _save(plt, figure, out, dpi=120)
 
 
 def plot_size_distributions(run: Path, out: Path, target: Path | None = None) -> Path | None:
@@ -128,11 +133,7 @@ def plot_size_distributions(run: Path, out: Path, target: Path | None = None) ->
         axis.set_xlabel(name)
     axes[0].legend(fontsize=8)
     figure.suptitle("Pseudo-label sizes vs target ground truth")
-    figure.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(out, dpi=120)
-    plt.close(figure)
-    return out
+    return _save(plt, figure, out, dpi=120)
 
 
 # rows of the results table whose evaluation predictions are compared (paper Fig. 1a)
@@ -199,11 +200,7 @@ def plot_method_sizes(run: Path, out: Path) -> Path | None:
     figure.suptitle(
         f"Predicted car sizes on the target (score >= {SIZE_SCORE_MIN}) vs ground truth"
     )
-    figure.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(out, dpi=120)
-    plt.close(figure)
-    return out
+    return _save(plt, figure, out, dpi=120)
 
 
 def plot_bev_views(run: Path, out: Path, frames: int = 2) -> Path | None:
@@ -246,11 +243,7 @@ def plot_bev_views(run: Path, out: Path, frames: int = 2) -> Path | None:
             axis.set_aspect("equal")
             axis.set_xlabel("x (m)")
             axis.set_ylabel("y (m)")
-    figure.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(out, dpi=110)
-    plt.close(figure)
-    return out
+    return _save(plt, figure, out, dpi=110)
 
 
 def plot_ppcg(run: Path, out_dir: Path) -> list[Path]:
