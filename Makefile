@@ -137,6 +137,14 @@ $(RUN)/baselines/%/ptsn/manifest.json: $(RUN)/baselines/%/model/manifest.json $(
 	$(DALI) ptsn-sweep --model $(RUN)/baselines/$*/model --target $(TARGET) --expected-size $(EXPECTED) --score-min $(SCORE_MIN) --seed $(SEED) --out $(@D)
 $(RUN)/baselines/%/eval_ptsn/metrics.json: $(RUN)/baselines/%/ptsn/manifest.json $(TARGET_VAL)/manifest.json
 	$(DALI) eval --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale-from $(RUN)/baselines/$*/ptsn $(EVAL_FLAGS) --out $@
+# controls: as many training frames as DALI's models saw (pretrain E epochs, each retrain 2 x RE
+# epochs of source + PPCG): source only with x1's budget (+ test-time PTSN), oracle with x2's
+X1_BUDGET = $(if $(MINUTES),--minutes $$(( 2 * $(MINUTES) )),--epochs $$(( $(EPOCHS) + 2 * $(RETRAIN_EPOCHS) )))
+X2_BUDGET = $(if $(MINUTES),--minutes $$(( 3 * $(MINUTES) )),--epochs $$(( $(EPOCHS) + 4 * $(RETRAIN_EPOCHS) )))
+$(RUN)/baselines/source_x1_budget/model/manifest.json: $(SOURCE)/manifest.json
+	$(DALI) pretrain --source $(SOURCE) --seed $(SEED) $(X1_BUDGET) --out $(@D)
+$(RUN)/baselines/oracle_x2_budget/model/manifest.json: $(TARGET)/manifest.json
+	$(DALI) pretrain --source $(TARGET) --seed $(SEED) $(X2_BUDGET) --out $(@D)
 # cross-domain check: every model on the source validation set at s = 1
 $(RUN)/%/eval_source/metrics.json: $(RUN)/%/model/manifest.json $(RUN)/data/source_val/manifest.json
 	$(DALI) eval --model $(RUN)/$*/model --data $(RUN)/data/source_val --scale 1.0 $(EVAL_FLAGS) --out $@
@@ -149,7 +157,9 @@ ablation-rc: $(RUN)/baselines/rc_only/eval_ptsn/metrics.json
 ablation-cf: $(RUN)/baselines/cf_only/eval_ptsn/metrics.json
 baselines: baseline-sn baseline-ros baseline-oracle ablation-rc ablation-cf
 cross-domain: $(RUN)/iter0/eval_source/metrics.json $(RUN)/iter2/eval_source/metrics.json
-.PHONY: baseline-sn baseline-ros baseline-oracle ablation-rc ablation-cf baselines cross-domain
+controls: $(RUN)/baselines/source_x1_budget/eval_ptsn/metrics.json \
+    $(RUN)/baselines/oracle_x2_budget/eval/metrics.json
+.PHONY: baseline-sn baseline-ros baseline-oracle ablation-rc ablation-cf baselines cross-domain controls
 
 report: | install
 	$(DALI) report $(RUN)

@@ -24,6 +24,11 @@ ROWS: tuple[tuple[str, str], ...] = (
     ("x2", "iter2/eval/metrics.json"),
     ("Oracle", "baselines/oracle/eval/metrics.json"),
 )
+# the same training frames as DALI's models saw: does the gain come from more training?
+CONTROL_ROWS: tuple[tuple[str, str], ...] = (
+    ("Source only, x1's budget + PTSN", "baselines/source_x1_budget/eval_ptsn/metrics.json"),
+    ("Oracle, x2's budget", "baselines/oracle_x2_budget/eval/metrics.json"),
+)
 SOURCE_ROWS: tuple[tuple[str, str], ...] = (
     ("Source only", "iter0/eval_source/metrics.json"),
     ("DALI x2", "iter2/eval_source/metrics.json"),
@@ -179,10 +184,12 @@ def bands_table(rows: list[Row]) -> str | None:
     return "\n".join(lines)
 
 
-def gap_closed(rows: list[Row], metric: str = "3d", iou: str = "0.7") -> float | None:
+def gap_closed(
+    rows: list[Row], metric: str = "3d", iou: str = "0.7", oracle_row: str = "Oracle"
+) -> float | None:
     """Share of the source-only → oracle gap closed by the last DALI iteration present."""
     by_name = {row.name: row.ap.get(iou, {}).get(metric) for row in rows}
-    source, oracle = by_name.get("Source only"), by_name.get("Oracle")
+    source, oracle = by_name.get("Source only"), by_name.get(oracle_row)
     final = by_name.get("x2") if by_name.get("x2") is not None else by_name.get("PTSN + RC&CF (x1)")
     if source is None or oracle is None or final is None or np.isclose(oracle, source):
         return None
@@ -205,6 +212,27 @@ def build_report(run: Path) -> tuple[str, dict]:
     closed = gap_closed(rows)
     if closed is not None:
         parts += ["", f"Gap from source only to oracle closed (AP_3D@0.7): {100 * closed:.0f}%"]
+    closed_bev = gap_closed(rows, "bev", "0.7")
+    if closed_bev is not None:
+        parts += [
+            "",
+            f"Gap from source only to oracle closed (AP_BEV@0.7): {100 * closed_bev:.0f}%",
+        ]
+    controls = collect_rows(run, CONTROL_ROWS)
+    if any(row.ap for row in controls):
+        parts += [
+            "",
+            "### Controls: equal training frames",
+            "",
+            markdown_table([row for row in rows if row.name in ("PTSN only", "x2")] + controls),
+        ]
+        for metric, iou in (("3d", "0.7"), ("bev", "0.7")):
+            closed_long = gap_closed(rows + controls, metric, iou, oracle_row=CONTROL_ROWS[1][0])
+            if closed_long is not None:
+                parts.append(
+                    f"\nGap closed against the oracle with x2's budget "
+                    f"(AP_{metric.upper()}@{iou}): {100 * closed_long:.0f}%"
+                )
     by_band = bands_table(rows)
     if by_band is not None:
         parts += ["", "### By distance (AP_BEV / AP_3D @0.7)", "", by_band]
@@ -245,6 +273,8 @@ def build_report(run: Path) -> tuple[str, dict]:
         "target": [row.__dict__ for row in rows],
         "source": [row.__dict__ for row in source_rows],
         "gap_closed_3d_0.7": closed,
+        "gap_closed_bev_0.7": gap_closed(rows, "bev", "0.7"),
+        "controls": [row.__dict__ for row in controls],
         "ptsn": scales,
         "timings": timings,
     }
