@@ -25,7 +25,7 @@ from dali_cli.detector import (
     size_normalize,
     train,
 )
-from dali_cli.detector.infer import decode
+from dali_cli.detector.infer import decode, inference_config
 from dali_cli.detector.targets import REGRESSION, build_targets
 from dali_cli.detector.toy import place_cars, scan, write_toy_dataset
 from dali_cli.geometry import count_points_in_boxes, iou_3d, point_box_indices
@@ -112,13 +112,13 @@ class BoundingBoxNet(torch.nn.Module):
         super().__init__()
         self.config = config
 
-    def forward(self, points, batch_index, batch_size):
+    def forward(self, points, batch_index, batch_size, grid=None):
         boxes_list = []
         for b in range(batch_size):
             xyz = points[batch_index == b, :3].double().numpy()
             low, high = xyz.min(axis=0), xyz.max(axis=0)
             boxes_list.append(np.array([[*(low + high) / 2, *(high - low), 0.0]]))
-        return perfect_maps(boxes_list, self.config)
+        return perfect_maps(boxes_list, grid or self.config)
 
 
 @pytest.mark.parametrize("scale", [0.8, 1.0, 1.25])
@@ -134,6 +134,28 @@ def test_predict_descaling_is_exact(scale, kitti):
     (found, scores), = detector.predict([points], scale=scale)  # fmt: skip
     assert len(found) == 1
     assert np.allclose(found[0], box, atol=2e-5)  # float32 points
+
+
+def test_ptsn_scaling_keeps_cars_near_the_range_end(kitti):
+    """A car at 22 m of a 25.6 m grid, scaled by 1.25, lies at 27.5 m: the grid grows with s."""
+    config = DetectorConfig(**SMALL, mount_height_m=kitti.mount_height_m)
+    detector = Detector(BoundingBoxNet(config))
+    box = np.array([22.0, -9.0, -kitti.mount_height_m + 0.8, 4.0, 1.8, 1.6, 0.0])
+    corners = np.array(np.meshgrid([-0.5, 0.5], [-0.5, 0.5], [-0.5, 0.5])).reshape(3, -1).T
+    xyz = box[:3] + corners * box[3:6]
+    points = np.concatenate([xyz, np.zeros((len(xyz), 1))], axis=1).astype(np.float32)
+    for scale in (1.25, 1.4):
+        (found, _), = detector.predict([points], scale=scale)  # fmt: skip
+        assert len(found) == 1 and np.allclose(found[0], box, atol=2e-5)
+    grown = inference_config(config, 1.25)
+    assert grown.x_range_m == (0.0, 32.0) and grown.y_range_m == (-16.0, 16.0)
+    assert grown.pillar_m == config.pillar_m and inference_config(config, 0.9) == config
+    net = PillarCenterNet(config)
+    points = torch.rand(300, 4) * torch.tensor([32.0, 32.0, 3.0, 1.0]) - torch.tensor(
+        [0, 16.0, 1.0, 0]
+    )
+    maps = net.eval()(points, torch.zeros(300, dtype=torch.long), 1, grid=grown)
+    assert maps["heatmap"].shape[-2:] == grown.head_size != config.head_size
 
 
 @pytest.fixture(scope="module")

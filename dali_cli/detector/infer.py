@@ -7,6 +7,7 @@ Checkpoint directory: `model.pt` (state dict) + `model.json` (config, provenance
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -136,14 +137,29 @@ class Detector:
         mount = self.config.mount_height_m if mount_height_m is None else float(mount_height_m)
         if not scale > 0:
             raise ValueError(f"scale must be positive, got {scale}")
+        config = inference_config(self.config, scale)
         results = []
         for start in range(0, len(points_list), batch_size):
             chunk = points_list[start : start + batch_size]
             points, batch_index = to_network_input(chunk, mount, scale)
-            maps = self.net(points, batch_index, len(chunk))
-            for boxes, scores in decode(maps, self.config):
+            maps = self.net(points, batch_index, len(chunk), grid=config)
+            for boxes, scores in decode(maps, config):
                 results.append((ground_boxes_to_sensor(boxes, mount, scale), scores))
         return results
+
+
+def inference_config(config: DetectorConfig, scale: float) -> DetectorConfig:
+    """The grid for points scaled by `scale` (PTSN): for s > 1 the x, y ranges grow by s, so the
+    scaled cloud still covers the trained range in original coordinates (a car at 65 m scaled by
+    1.18 lies at 77 m, beyond a 70.4 m grid). The network is fully convolutional, so the larger
+    grid runs the same weights; only the area (and time) grows, by s^2. For s <= 1 the grid is
+    kept: the scaled cloud already fits, and points from beyond the range come into view."""
+    if scale <= 1.0:
+        return config
+    (x0, x1), (y0, y1) = config.x_range_m, config.y_range_m
+    return dataclasses.replace(
+        config, x_range_m=(x0 * scale, x1 * scale), y_range_m=(y0 * scale, y1 * scale)
+    )
 
 
 def predict_frameset(

@@ -64,11 +64,19 @@ class PillarEncoder(nn.Module):
         self.linear = nn.Linear(in_dims, config.pfn_channels, bias=False)
         self.norm = nn.BatchNorm1d(config.pfn_channels)
 
-    def forward(self, points: torch.Tensor, batch_index: torch.Tensor, batch_size: int):
-        """points (P, 4), batch_index (P,) -> BEV canvas (B, C, H, W)."""
-        rows, cols = self.config.grid_size
+    def forward(
+        self,
+        points: torch.Tensor,
+        batch_index: torch.Tensor,
+        batch_size: int,
+        grid: DetectorConfig | None = None,
+    ):
+        """points (P, 4), batch_index (P,) -> BEV canvas (B, C, H, W) of `grid`'s ranges (default:
+        the trained config; the weights do not depend on the grid's extent)."""
+        grid = grid or self.config
+        rows, cols = grid.grid_size
         channels = self.config.pfn_channels
-        features, pillar_of_point, pillar_cell = pillarize(points, batch_index, self.config)
+        features, pillar_of_point, pillar_cell = pillarize(points, batch_index, grid)
         features = F.relu(self.norm(self.linear(features)))  # (P', C)
         pillars = torch.zeros(
             len(pillar_cell), channels, dtype=features.dtype, device=features.device
@@ -156,7 +164,14 @@ class PillarCenterNet(nn.Module):
         self.backbone = Backbone(config)
         self.head = CenterHead(config)
 
-    def forward(self, points: torch.Tensor, batch_index: torch.Tensor, batch_size: int):
-        canvas = self.encoder(points, batch_index, batch_size)  # (B, C, H, W)
+    def forward(
+        self,
+        points: torch.Tensor,
+        batch_index: torch.Tensor,
+        batch_size: int,
+        grid: DetectorConfig | None = None,
+    ):
+        """`grid`: a config with other x/y ranges (same pillar size) to run on, e.g. a larger area."""
+        canvas = self.encoder(points, batch_index, batch_size, grid)  # (B, C, H, W)
         maps = self.head(self.backbone(canvas))
         return {name: value.float() for name, value in maps.items()}
