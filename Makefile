@@ -64,6 +64,8 @@ bench: install
 #   iterN: ptsn-sweep (model N-1) -> pseudo-label -> ppcg-rc -> ppcg-cf -> retrain -> eval (PTSN)
 MINUTES        ?=
 RETRAIN_EPOCHS ?= $(EPOCHS)
+# extra pretrain/retrain flags, e.g. TRAIN_FLAGS="--threads 1" for `make -j2` on a 2-core machine
+TRAIN_FLAGS    ?=
 # --minutes makes results depend on the machine and its load; epochs (the default) do not
 TRAIN_BUDGET    = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(EPOCHS))
 RETRAIN_BUDGET  = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(RETRAIN_EPOCHS))
@@ -91,7 +93,7 @@ data: $(SOURCE)/manifest.json $(TARGET)/manifest.json $(TARGET_VAL)/manifest.jso
 
 # iteration 0: the source-only detector
 $(RUN)/iter0/model/manifest.json: $(SOURCE)/manifest.json
-	$(DALI) pretrain --source $(SOURCE) --seed $(SEED) $(TRAIN_BUDGET) --out $(@D)
+	$(DALI) pretrain --source $(SOURCE) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) --out $(@D)
 $(RUN)/iter0/eval/metrics.json: $(RUN)/iter0/model/manifest.json $(TARGET_VAL)/manifest.json
 	$(DALI) eval --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) --out $@
 $(RUN)/iter0/eval_ptsn/metrics.json: $(RUN)/iter1/ptsn/manifest.json $(TARGET_VAL)/manifest.json
@@ -111,7 +113,7 @@ $(RUN)/iter$(1)/rc/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY
 $(RUN)/iter$(1)/cf/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
 	$(DALI) ppcg-cf --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) --out $$(@D)
 $(RUN)/iter$(1)/model/manifest.json: $(RUN)/iter$(1)/rc/manifest.json $(RUN)/iter$(1)/cf/manifest.json $(SOURCE)/manifest.json
-	$(DALI) retrain --init $(RUN)/iter$(2)/model --source $(SOURCE) --ppcg $(RUN)/iter$(1)/rc $(RUN)/iter$(1)/cf --seed $(SEED) $(RETRAIN_BUDGET) --out $$(@D)
+	$(DALI) retrain --init $(RUN)/iter$(2)/model --source $(SOURCE) --ppcg $(RUN)/iter$(1)/rc $(RUN)/iter$(1)/cf --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/eval/metrics.json: $(RUN)/iter$(3)/ptsn/manifest.json $(TARGET_VAL)/manifest.json
 	$(DALI) eval --model $(RUN)/iter$(1)/model --data $(TARGET_VAL) --scale-from $(RUN)/iter$(3)/ptsn $(EVAL_FLAGS) --out $$@
 iter$(1): iter$(2) $(RUN)/iter$(1)/eval/metrics.json
@@ -122,15 +124,15 @@ $(foreach n,1 2 3 4 5,$(eval $(call ITER,$(n),$(shell echo $$(( $(n) - 1 ))),$(s
 
 # Baselines and ablations for the results table (make experiment)
 $(RUN)/baselines/sn/model/manifest.json: $(SOURCE)/manifest.json
-	$(DALI) pretrain --source $(SOURCE) --size-norm sn --target-profile $(SENSOR) --seed $(SEED) $(TRAIN_BUDGET) --out $(@D)
+	$(DALI) pretrain --source $(SOURCE) --size-norm sn --target-profile $(SENSOR) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) --out $(@D)
 $(RUN)/baselines/ros/model/manifest.json: $(SOURCE)/manifest.json
-	$(DALI) pretrain --source $(SOURCE) --size-norm ros --seed $(SEED) $(TRAIN_BUDGET) --out $(@D)
+	$(DALI) pretrain --source $(SOURCE) --size-norm ros --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) --out $(@D)
 $(RUN)/baselines/oracle/model/manifest.json: $(TARGET)/manifest.json
-	$(DALI) pretrain --source $(TARGET) --seed $(SEED) $(TRAIN_BUDGET) --out $(@D)
+	$(DALI) pretrain --source $(TARGET) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) --out $(@D)
 $(RUN)/baselines/rc_only/model/manifest.json: $(RUN)/iter1/rc/manifest.json $(SOURCE)/manifest.json
-	$(DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/rc --seed $(SEED) $(RETRAIN_BUDGET) --out $(@D)
+	$(DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/rc --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) --out $(@D)
 $(RUN)/baselines/cf_only/model/manifest.json: $(RUN)/iter1/cf/manifest.json $(SOURCE)/manifest.json
-	$(DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/cf --seed $(SEED) $(RETRAIN_BUDGET) --out $(@D)
+	$(DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/cf --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) --out $(@D)
 $(RUN)/baselines/%/eval/metrics.json: $(RUN)/baselines/%/model/manifest.json $(TARGET_VAL)/manifest.json
 	$(DALI) eval --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) --out $@
 $(RUN)/baselines/%/ptsn/manifest.json: $(RUN)/baselines/%/model/manifest.json $(TARGET)/manifest.json
@@ -142,9 +144,9 @@ $(RUN)/baselines/%/eval_ptsn/metrics.json: $(RUN)/baselines/%/ptsn/manifest.json
 X1_BUDGET = $(if $(MINUTES),--minutes $$(( 2 * $(MINUTES) )),--epochs $$(( $(EPOCHS) + 2 * $(RETRAIN_EPOCHS) )))
 X2_BUDGET = $(if $(MINUTES),--minutes $$(( 3 * $(MINUTES) )),--epochs $$(( $(EPOCHS) + 4 * $(RETRAIN_EPOCHS) )))
 $(RUN)/baselines/source_x1_budget/model/manifest.json: $(SOURCE)/manifest.json
-	$(DALI) pretrain --source $(SOURCE) --seed $(SEED) $(X1_BUDGET) --out $(@D)
+	$(DALI) pretrain --source $(SOURCE) --seed $(SEED) $(X1_BUDGET) $(TRAIN_FLAGS) --out $(@D)
 $(RUN)/baselines/oracle_x2_budget/model/manifest.json: $(TARGET)/manifest.json
-	$(DALI) pretrain --source $(TARGET) --seed $(SEED) $(X2_BUDGET) --out $(@D)
+	$(DALI) pretrain --source $(TARGET) --seed $(SEED) $(X2_BUDGET) $(TRAIN_FLAGS) --out $(@D)
 # cross-domain check: every model on the source validation set at s = 1
 $(RUN)/%/eval_source/metrics.json: $(RUN)/%/model/manifest.json $(RUN)/data/source_val/manifest.json
 	$(DALI) eval --model $(RUN)/$*/model --data $(RUN)/data/source_val --scale 1.0 $(EVAL_FLAGS) --out $@
