@@ -169,7 +169,7 @@ report: | install
 DEMO_FRAMES ?= 48
 DEMO_EPOCHS ?= 6
 demo: install
-	$(MAKE) --no-print-directory iter2 baseline-sn baseline-oracle RUN=runs/demo FRAMES=$(DEMO_FRAMES) EPOCHS=$(DEMO_EPOCHS)
+	$(MAKE) --no-print-directory iter2 baseline-sn RUN=runs/demo FRAMES=$(DEMO_FRAMES) EPOCHS=$(DEMO_EPOCHS)
 	$(DALI) report runs/demo
 	@echo
 	@echo "This was the small demo (runs/demo). The full synthetic benchmark: make experiment"

@@ -147,6 +147,28 @@ def _write_json_atomic(path: Path, document: dict) -> None:
     os.replace(temporary, path)
 
 
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
+
+
+def remove_stale_temporaries(out: Path) -> list[Path]:
+    """Delete `<out>.tmp-<pid>` directories left by killed runs (their process is gone); a
+    directory of a live process (a concurrent run) is left alone. Returns what was removed."""
+    removed = []
+    for path in out.parent.glob(f"{out.name}.tmp-*"):
+        pid = path.name.rsplit("-", 1)[-1]
+        if path.is_dir() and pid.isdigit() and not _process_alive(int(pid)):
+            shutil.rmtree(path, ignore_errors=True)
+            removed.append(path)
+    return removed
+
+
 def run_stage(
     stage: str,
     out: str | Path,
@@ -178,6 +200,7 @@ def run_stage(
         return StageOutcome("dry-run", reason)
 
     out.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(out)
     temporary = out.parent / f"{out.name}.tmp-{os.getpid()}"
     if temporary.exists():
         shutil.rmtree(temporary)

@@ -190,3 +190,25 @@ def test_check_made_from_refuses_an_artifact_of_another_input(tmp_path):
         check_made_from(out, "target", other)
     check_made_from(out, "library", other)  # a role the manifest does not record: unchecked
     check_made_from(target, "target", other)  # no manifest (hand-made table): unchecked
+
+
+def test_stale_temporaries_of_dead_runs_are_removed(tmp_path):
+    import os
+
+    source = make_input(tmp_path / "in")
+    out = tmp_path / "out"
+    dead = _dead_pid()
+    stale = tmp_path / f"out.tmp-{dead}"
+    (stale / "frames.zarr").mkdir(parents=True)
+    live = tmp_path / f"out.tmp-{os.getppid()}"  # a live process: a concurrent run, kept
+    live.mkdir()
+    run_stage("demo", out, {"source": source}, {}, CountingBuild(), echo=no_echo)
+    assert not stale.exists() and live.is_dir() and (out / "manifest.json").is_file()
+
+
+def _dead_pid() -> int:
+    import subprocess
+
+    child = subprocess.Popen(["true"])
+    child.wait()
+    return child.pid  # reaped: no process has this pid now (pids are not reused this fast)
