@@ -227,7 +227,10 @@ def build_report(run: Path) -> tuple[str, dict]:
             "",
             "### Controls: equal training frames",
             "",
-            markdown_table([row for row in rows if row.name in ("PTSN only", "x2")] + controls),
+            markdown_table(
+                [row for row in rows if row.name in ("PTSN only", "PTSN + RC&CF (x1)", "x2")]
+                + controls
+            ),
         ]
         for metric, iou in (("3d", "0.7"), ("bev", "0.7")):
             closed_long = gap_closed(rows + controls, metric, iou, oracle_row=CONTROL_ROWS[1][0])
