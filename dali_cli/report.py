@@ -74,9 +74,10 @@ def read_bands(document: dict) -> dict:
     return bands
 
 
-def read_metrics(path: Path) -> tuple[dict, dict, float | None]:
-    """AP per IoU ({iou: {"bev", "3d"}}), sizes and scale from one metrics.json."""
-    document = json.loads(path.read_text())
+def read_metrics(path: Path, document: dict | None = None) -> tuple[dict, dict, float | None]:
+    """AP per IoU ({iou: {"bev", "3d"}}), sizes and scale from one metrics.json (or its parsed
+    `document`)."""
+    document = json.loads(path.read_text()) if document is None else document
     blocks = [
         value
         for key, value in document.items()
@@ -104,8 +105,9 @@ def collect_rows(run: Path, rows=ROWS) -> list[Row]:
     for name, relative in rows:
         path = run / relative
         if path.is_file():
-            ap, sizes, scale = read_metrics(path)
-            bands = read_bands(json.loads(path.read_text()))
+            document = json.loads(path.read_text())
+            ap, sizes, scale = read_metrics(path, document)
+            bands = read_bands(document)
         else:
             ap, sizes, scale, bands = {}, {}, None, {}
         collected.append(Row(name, relative, ap, sizes, scale, bands))

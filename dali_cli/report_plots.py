@@ -175,10 +175,15 @@ def _ground_truth(run: Path, metrics: dict):
     return None, None
 
 
-def plot_method_sizes(run: Path, out: Path) -> Path | None:
-    """Predicted l, w, h (score >= 0.3) of each method row against the target ground truth."""
+def evaluations(run: Path) -> list[tuple[str, tuple]]:
+    """(row name, (predictions, metrics)) of every SIZE_ROWS evaluation the run holds."""
     found = [(name, _evaluation(run, relative)) for name, relative in SIZE_ROWS]
-    found = [(name, result) for name, result in found if result is not None]
+    return [(name, result) for name, result in found if result is not None]
+
+
+def plot_method_sizes(run: Path, out: Path, found: list | None = None) -> Path | None:
+    """Predicted l, w, h (score >= 0.3) of each method row against the target ground truth."""
+    found = evaluations(run) if found is None else found
     if not found:
         return None
     _, truth = _ground_truth(run, found[0][1][1])
@@ -203,14 +208,13 @@ def plot_method_sizes(run: Path, out: Path) -> Path | None:
     return _save(plt, figure, out, dpi=120)
 
 
-def plot_bev_views(run: Path, out: Path, frames: int = 2) -> Path | None:
+def plot_bev_views(run: Path, out: Path, frames: int = 2, found: list | None = None) -> Path | None:
     """Bird's-eye views of target validation frames: points, ground truth and the predictions
     (score >= 0.3) of the first and the last method row that was evaluated."""
     from dali_cli.artifacts import FrameSet
     from dali_cli.geometry import bev_corners
 
-    found = [(name, _evaluation(run, relative)) for name, relative in SIZE_ROWS]
-    found = [(name, result) for name, result in found if result is not None]
+    found = evaluations(run) if found is None else found
     if not found:
         return None
     shown = [found[0]] if len(found) == 1 else [found[0], found[-1]]
@@ -266,11 +270,12 @@ def draw_plots(run: Path, out_dir: Path) -> list[Path]:
         import matplotlib  # noqa: F401
     except ImportError:
         return []
+    found = evaluations(run)  # predictions are read once for both plots that use them
     drawn = [
         plot_ptsn_curves(run, out_dir / "ptsn_curves.png"),
         plot_size_distributions(run, out_dir / "pseudo_sizes.png"),
-        plot_method_sizes(run, out_dir / "method_sizes.png"),
-        plot_bev_views(run, out_dir / "bev_views.png"),
+        plot_method_sizes(run, out_dir / "method_sizes.png", found),
+        plot_bev_views(run, out_dir / "bev_views.png", found=found),
         *plot_ppcg(run, out_dir),
     ]
     return [path for path in drawn if path is not None]

@@ -84,11 +84,18 @@ def _predict(model: str, data: str, scale: float) -> BoxTable:
     return predict_frameset(model, data, scale=scale, score_min=0.0, progress=True)
 
 
-def _write_json(path: Path, document: dict) -> None:
+def _write_atomically(path: Path, write) -> None:
+    """`write(partial_path)`, then rename onto `path`: a reader never sees half a file."""
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(path.name + ".part")
-    partial.write_text(json.dumps(document, indent=2) + "\n")
+    write(partial)
     os.replace(partial, path)
+
+
+def _write_json(path: Path, document: dict) -> None:
+    _write_atomically(
+        path, lambda partial: partial.write_text(json.dumps(document, indent=2) + "\n")
+    )
 
 
 @click.command(name="eval", epilog=EPILOG)
@@ -270,10 +277,9 @@ def _write_predictions(path: Path, pred: BoxTable) -> None:
     """The evaluated predictions as a box table file, written atomically."""
     import pyarrow.parquet as pq
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(path.name + ".part")
-    pq.write_table(pred.to_arrow(), partial, compression="zstd")
-    os.replace(partial, path)
+    _write_atomically(
+        path, lambda partial: pq.write_table(pred.to_arrow(), partial, compression="zstd")
+    )
 
 
 def mean_box_size(table: BoxTable, class_name: str, score_min: float | None = None):
