@@ -4,10 +4,13 @@
           -> bench/results/detector.json
   oracle  train on labeled KITTI-like frames for a wall-clock budget, evaluating on held-out
           frames along the way (AP vs minutes) -> bench/results/detector_oracle.json
+  errors  where a checkpoint's 3D boxes miss: per-parameter errors of matched detections and the
+          share above 3D IoU 0.7 with each parameter set to the truth -> detector_errors.json
 
 Usage:
   .venv/bin/python bench/detector.py speed [--data DIR] [--threads 2]
   .venv/bin/python bench/detector.py oracle --train DIR --val DIR --minutes 15 [--eval-every 2.5]
+  .venv/bin/python bench/detector.py errors --model DIR --val DIR
 """
 
 from __future__ import annotations
@@ -112,12 +115,16 @@ def bench_speed(args) -> dict:
         )
     data.database = ObjectDatabase.build(data.points, data.boxes, region=detection_region(config))
     train_net = PillarCenterNet(config)
-    settings = TrainSettings(epochs=1.0, batch_size=2, threads=args.threads, log_every=1)
-    warm = TrainSettings(epochs=0.25, batch_size=2, threads=args.threads, log_every=1)
+    parallel = dict(
+        batch_size=args.batch_size, threads=args.train_threads or args.threads, log_every=1
+    )  # fmt: skip
+    settings = TrainSettings(epochs=args.epochs, **parallel)
+    warm = TrainSettings(epochs=0.25, **parallel)
     train(train_net, [data], [Augmentation()], warm, progress=False)
     outcome = train(train_net, [data], [Augmentation()], settings, progress=False)
     result["train_frames_per_s"] = outcome.frames / outcome.seconds
     result["train_frames"] = outcome.frames
+    result["train_setup"] = {k: v for k, v in parallel.items() if k != "log_every"}
     result["peak_rss_mb"] = peak_rss_mb()
     result["load_average_1min_end"] = os.getloadavg()[0]
     return result
@@ -192,7 +199,8 @@ def bench_oracle(args) -> dict:
         seed=args.seed,
         threads=args.threads,
     )
-    outcome = train(net, [data], [Augmentation()], settings, progress=True, on_log=on_log)
+    augmentation = Augmentation(**json.loads(args.augment)) if args.augment else Augmentation()
+    outcome = train(net, [data], [augmentation], settings, progress=True, on_log=on_log)
     curve.append(evaluate_now(outcome.seconds))
     if args.save:
         from dali_cli.detector import save_checkpoint
@@ -206,6 +214,7 @@ def bench_oracle(args) -> dict:
     return {
         "detector": "pillar-centerpoint-iou (dali), fp32",
         "config_overrides": json.loads(args.config) if args.config else {},
+        "augmentation_overrides": json.loads(args.augment) if args.augment else {},
         "train": str(args.train),
         "val": str(args.val),
         "train_frames": len(data),
@@ -224,6 +233,110 @@ def bench_oracle(args) -> dict:
     }
 
 
+def match_detections(
+    predictions: list[tuple[np.ndarray, np.ndarray]], truth: list[np.ndarray], min_bev_iou: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Greedy one-to-one matches (best BEV IoU first) per frame: matched ground truth (N, 7),
+    predictions (N, 7), their scores (N,) and the index (N,) of each match's ground truth in the
+    concatenated truth."""
+    from dali_cli.geometry import bev_iou
+
+    gt_rows, pred_rows, scores_kept, gt_index, offset = [], [], [], [], 0
+    for (boxes, scores), gt in zip(predictions, truth, strict=True):
+        if len(gt) and len(boxes):
+            iou = bev_iou(gt, boxes)  # (G, P)
+            used = np.zeros(len(boxes), bool)
+            for g in np.argsort(-iou.max(axis=1)):
+                p = int(np.argmax(np.where(used, -1.0, iou[g])))
+                if iou[g, p] > min_bev_iou and not used[p]:
+                    used[p] = True
+                    gt_rows.append(gt[g])
+                    pred_rows.append(boxes[p])
+                    scores_kept.append(scores[p])
+                    gt_index.append(offset + g)
+        offset += len(gt)
+    return (
+        np.asarray(gt_rows).reshape(-1, 7),
+        np.asarray(pred_rows).reshape(-1, 7),
+        np.asarray(scores_kept, np.float64),
+        np.asarray(gt_index, np.int64),
+    )
+
+
+def bench_errors(args) -> dict:
+    """Error breakdown of matched detections (score >= --score-min) in the st3d region."""
+    from dali_cli.evaluate import ST3D_FOV_DEG, ST3D_RANGE_M
+    from dali_cli.geometry import iou_3d_pairs
+
+    torch.set_num_threads(args.threads)
+    detector = Detector.load(args.model)
+    val, gt = FrameSet(args.val), read_boxes(args.val)
+    rows = gt.rows_by_frame()
+    predictions, truth, points_on_car = [], [], []
+    for frame_id, points in val.iter_frames():
+        boxes, scores = detector.predict([points])[0]
+        predictions.append((boxes[scores >= args.score_min], scores[scores >= args.score_min]))
+        table = gt.select(rows.get(frame_id, np.zeros(0, np.int64)))
+        table = table.select(table["label"].astype(str) == "Car")
+        b = table.boxes
+        x_min, y_min, x_max, y_max = ST3D_RANGE_M
+        inside = (np.abs(np.degrees(np.arctan2(b[:, 1], b[:, 0]))) < ST3D_FOV_DEG / 2) & (
+            (b[:, 0] >= x_min) & (b[:, 0] < x_max) & (b[:, 1] >= y_min) & (b[:, 1] < y_max)
+        )
+        truth.append(b[inside])
+        points_on_car.append(np.asarray(table["num_points"])[inside])
+    gt_boxes, pred_boxes, scores, index = match_detections(predictions, truth, 0.3)
+    if len(index) < 2:
+        raise SystemExit(f"{args.model}: fewer than 2 detections match the ground truth")
+    counts = np.concatenate(points_on_car)[index]
+    error = pred_boxes - gt_boxes
+    yaw = (error[:, 6] + np.pi / 2) % np.pi - np.pi / 2  # a box turned by 180 deg is the same
+    radius = np.hypot(gt_boxes[:, 0], gt_boxes[:, 1])
+    ux, uy = gt_boxes[:, 0] / radius, gt_boxes[:, 1] / radius
+    parts = {
+        "radial_m": error[:, 0] * ux + error[:, 1] * uy,
+        "tangential_m": -error[:, 0] * uy + error[:, 1] * ux,
+        "z_m": error[:, 2],
+        "l_m": error[:, 3],
+        "w_m": error[:, 4],
+        "h_m": error[:, 5],
+        "yaw_deg": np.degrees(yaw),
+    }
+    iou = iou_3d_pairs(pred_boxes, gt_boxes)
+    with_truth = {}
+    for name, columns in {
+        "xy": [0, 1], "z": [2], "lw": [3, 4], "h": [5], "zh": [2, 5], "yaw": [6], "lwh": [3, 4, 5],
+    }.items():  # fmt: skip
+        fixed = pred_boxes.copy()
+        fixed[:, columns] = gt_boxes[:, columns]
+        with_truth[name] = round(float((iou_3d_pairs(fixed, gt_boxes) >= 0.7).mean()), 3)
+    bands = {}
+    for low, high in ((0, 10), (10, 30), (30, 100), (100, None)):
+        band = (counts >= low) & (counts < (high or np.inf))
+        bands[f"{low}-{high or 'inf'} points"] = {
+            "matches": int(band.sum()),
+            "share_iou3d_ge_0.7": round(float((iou[band] >= 0.7).mean()), 3)
+            if band.any()
+            else None,
+            "mean_abs_z_m": round(float(np.abs(error[band, 2]).mean()), 3) if band.any() else None,
+            "mean_abs_h_m": round(float(np.abs(error[band, 5]).mean()), 3) if band.any() else None,
+        }
+    return {
+        "model": str(args.model),
+        "val": str(args.val),
+        "score_min": args.score_min,
+        "ground_truth": int(sum(len(t) for t in truth)),
+        "matches": len(iou),
+        "mean": {k: round(float(v.mean()), 3) for k, v in parts.items()},
+        "mean_abs": {k: round(float(np.abs(v).mean()), 3) for k, v in parts.items()},
+        "median_abs": {k: round(float(np.median(np.abs(v))), 3) for k, v in parts.items()},
+        "share_iou3d_ge_0.7": round(float((iou >= 0.7).mean()), 3),
+        "share_iou3d_ge_0.7_with_true": with_truth,
+        "score_iou_correlation": round(float(np.corrcoef(scores, iou)[0, 1]), 3),
+        "by_points_on_car": bands,
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -232,6 +345,10 @@ def main() -> None:
     speed = sub.add_parser("speed")
     speed.add_argument("--data", default=None, help="KITTI-like FrameSet (default: toy scans)")
     speed.add_argument("--threads", type=int, default=2)
+    speed.add_argument("--train-threads", type=int, default=None, help="(default: --threads)")
+    speed.add_argument("--batch-size", type=int, default=2)
+    speed.add_argument("--epochs", type=float, default=4.0, help="passes over the 16 frames")
+    speed.add_argument("--out", default=None)
     oracle = sub.add_parser("oracle")
     oracle.add_argument("--train", required=True)
     oracle.add_argument("--val", required=True)
@@ -242,16 +359,29 @@ def main() -> None:
     oracle.add_argument("--batch-size", type=int, default=2)
     oracle.add_argument("--lr", type=float, default=3e-3)
     oracle.add_argument("--seed", type=int, default=0)
-    oracle.add_argument("--threads", type=int, default=2)
+    oracle.add_argument("--threads", type=int, default=2, help="torch threads per process")
     oracle.add_argument("--out", default=None)
     oracle.add_argument("--config", default=None, help="JSON object of DetectorConfig overrides")
     oracle.add_argument(
+        "--augment",
+        default=None,
+        help="JSON object of Augmentation overrides, e.g. gt_sample_count",
+    )
+    oracle.add_argument(
         "--save", default=None, help="also write the trained model (model.pt + model.json) here"
     )
+    errors = sub.add_parser("errors")
+    errors.add_argument("--model", required=True, help="checkpoint directory")
+    errors.add_argument("--val", required=True, help="labeled KITTI-like FrameSet")
+    errors.add_argument("--score-min", type=float, default=0.3)
+    errors.add_argument("--threads", type=int, default=2)
+    errors.add_argument("--out", default=None)
     args = parser.parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)
     if args.mode == "speed":
         result, name = bench_speed(args), "detector.json"
+    elif args.mode == "errors":
+        result, name = bench_errors(args), "detector_errors.json"
     else:
         result, name = bench_oracle(args), "detector_oracle.json"
     path = Path(args.out) if getattr(args, "out", None) else RESULTS / name

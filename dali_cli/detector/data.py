@@ -18,7 +18,7 @@ class Augmentation:
     """Which augmentations run, with their ranges. `object_scale` is ROS (None = off)."""
 
     gt_sampling: bool = True
-    gt_sample_count: int = 15  # paste cars until a frame has about this many
+    gt_sample_count: int = 30  # paste cars until a frame has about this many (15: -11 AP_3D)
     flip: bool = True
     rotation_rad: float = np.pi / 4  # global rotation U(-r, r)
     scaling: tuple[float, float] = (0.95, 1.05)  # global scaling about the ground
