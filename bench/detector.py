@@ -115,16 +115,14 @@ def bench_speed(args) -> dict:
         )
     data.database = ObjectDatabase.build(data.points, data.boxes, region=detection_region(config))
     train_net = PillarCenterNet(config)
-    parallel = dict(
-        batch_size=args.batch_size, threads=args.train_threads or args.threads, log_every=1
-    )  # fmt: skip
-    settings = TrainSettings(epochs=args.epochs, **parallel)
-    warm = TrainSettings(epochs=0.25, **parallel)
+    setup = dict(batch_size=args.batch_size, threads=args.train_threads or args.threads)
+    settings = TrainSettings(epochs=args.epochs, log_every=1, **setup)
+    warm = TrainSettings(epochs=0.25, log_every=1, **setup)
     train(train_net, [data], [Augmentation()], warm, progress=False)
     outcome = train(train_net, [data], [Augmentation()], settings, progress=False)
     result["train_frames_per_s"] = outcome.frames / outcome.seconds
     result["train_frames"] = outcome.frames
-    result["train_setup"] = {k: v for k, v in parallel.items() if k != "log_every"}
+    result["train_setup"] = setup
     result["peak_rss_mb"] = peak_rss_mb()
     result["load_average_1min_end"] = os.getloadavg()[0]
     return result
@@ -235,7 +233,7 @@ def bench_oracle(args) -> dict:
 
 def match_detections(
     predictions: list[tuple[np.ndarray, np.ndarray]], truth: list[np.ndarray], min_bev_iou: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Greedy one-to-one matches (best BEV IoU first) per frame: matched ground truth (N, 7),
     predictions (N, 7), their scores (N,) and the index (N,) of each match's ground truth in the
     concatenated truth."""
@@ -265,7 +263,7 @@ def match_detections(
 
 def bench_errors(args) -> dict:
     """Error breakdown of matched detections (score >= --score-min) in the st3d region."""
-    from dali_cli.evaluate import ST3D_FOV_DEG, ST3D_RANGE_M
+    from dali_cli.evaluate import in_st3d_region
     from dali_cli.geometry import iou_3d_pairs
 
     torch.set_num_threads(args.threads)
@@ -277,14 +275,9 @@ def bench_errors(args) -> dict:
         boxes, scores = detector.predict([points])[0]
         predictions.append((boxes[scores >= args.score_min], scores[scores >= args.score_min]))
         table = gt.select(rows.get(frame_id, np.zeros(0, np.int64)))
-        table = table.select(table["label"].astype(str) == "Car")
-        b = table.boxes
-        x_min, y_min, x_max, y_max = ST3D_RANGE_M
-        inside = (np.abs(np.degrees(np.arctan2(b[:, 1], b[:, 0]))) < ST3D_FOV_DEG / 2) & (
-            (b[:, 0] >= x_min) & (b[:, 0] < x_max) & (b[:, 1] >= y_min) & (b[:, 1] < y_max)
-        )
-        truth.append(b[inside])
-        points_on_car.append(np.asarray(table["num_points"])[inside])
+        table = table.select((table["label"].astype(str) == "Car") & in_st3d_region(table))
+        truth.append(table.boxes)
+        points_on_car.append(np.asarray(table["num_points"]))
     gt_boxes, pred_boxes, scores, index = match_detections(predictions, truth, 0.3)
     if len(index) < 2:
         raise SystemExit(f"{args.model}: fewer than 2 detections match the ground truth")
@@ -359,7 +352,7 @@ def main() -> None:
     oracle.add_argument("--batch-size", type=int, default=2)
     oracle.add_argument("--lr", type=float, default=3e-3)
     oracle.add_argument("--seed", type=int, default=0)
-    oracle.add_argument("--threads", type=int, default=2, help="torch threads per process")
+    oracle.add_argument("--threads", type=int, default=2)
     oracle.add_argument("--out", default=None)
     oracle.add_argument("--config", default=None, help="JSON object of DetectorConfig overrides")
     oracle.add_argument(

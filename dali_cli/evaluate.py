@@ -420,7 +420,9 @@ def _frame_universe(pred: BoxTable, gt: BoxTable, frame_ids) -> np.ndarray:
     return universe
 
 
-def _in_st3d_region(table: BoxTable, fov_deg: float, range_m: tuple) -> np.ndarray:
+def in_st3d_region(
+    table: BoxTable, fov_deg: float = ST3D_FOV_DEG, range_m: tuple = ST3D_RANGE_M
+) -> np.ndarray:
     """`(N,)` bool: box centre inside the front FOV (|atan2(y, x)| < fov/2) and the range."""
     boxes = table.boxes
     angle = np.arctan2(boxes[:, 1], boxes[:, 0])
@@ -439,7 +441,7 @@ def _in_st3d_region(table: BoxTable, fov_deg: float, range_m: tuple) -> np.ndarr
 def _st3d_ground_truth(gt: BoxTable, fov_deg: float, range_m: tuple) -> BoxTable:
     """ST3D's target ground truth: boxes outside the front FOV or the range are dropped, and
     every box gets the 2D box [0, 0, 50, 50], no occlusion and no truncation."""
-    kept = gt.select(_in_st3d_region(gt, fov_deg, range_m))
+    kept = gt.select(in_st3d_region(gt, fov_deg, range_m))
     count = len(kept)
     return kept.with_columns(
         truncated=np.zeros(count, np.float32),
@@ -486,8 +488,8 @@ def evaluate(
         missing = [name for name in KITTI_GT_COLUMNS if name not in gt.columns]
         raise EvaluationError(f"ground truth lacks the KITTI columns {', '.join(missing)}")
     if front_only:
-        gt = gt.select(_in_st3d_region(gt, st3d_fov_deg, st3d_range_m))
-        pred = pred.select(_in_st3d_region(pred, st3d_fov_deg, st3d_range_m))
+        gt = gt.select(in_st3d_region(gt, st3d_fov_deg, st3d_range_m))
+        pred = pred.select(in_st3d_region(pred, st3d_fov_deg, st3d_range_m))
     if protocol == "st3d":
         gt = _st3d_ground_truth(gt, st3d_fov_deg, st3d_range_m)
         pred = pred.with_columns(
