@@ -246,7 +246,7 @@ def match_detections(
             used = np.zeros(len(boxes), bool)
             for g in np.argsort(-iou.max(axis=1)):
                 p = int(np.argmax(np.where(used, -1.0, iou[g])))
-                if iou[g, p] > min_bev_iou and not used[p]:
+                if iou[g, p] > min_bev_iou and not used[p]:  # all used: argmax hits a used one
                     used[p] = True
                     gt_rows.append(gt[g])
                     pred_rows.append(boxes[p])
@@ -306,14 +306,12 @@ def bench_errors(args) -> dict:
     bands = {}
     for low, high in ((0, 10), (10, 30), (30, 100), (100, None)):
         band = (counts >= low) & (counts < (high or np.inf))
-        bands[f"{low}-{high or 'inf'} points"] = {
-            "matches": int(band.sum()),
-            "share_iou3d_ge_0.7": round(float((iou[band] >= 0.7).mean()), 3)
-            if band.any()
-            else None,
-            "mean_abs_z_m": round(float(np.abs(error[band, 2]).mean()), 3) if band.any() else None,
-            "mean_abs_h_m": round(float(np.abs(error[band, 5]).mean()), 3) if band.any() else None,
-        }
+        stats = {"matches": int(band.sum())}
+        if band.any():
+            stats["share_iou3d_ge_0.7"] = round(float((iou[band] >= 0.7).mean()), 3)
+            stats["mean_abs_z_m"] = round(float(np.abs(error[band, 2]).mean()), 3)
+            stats["mean_abs_h_m"] = round(float(np.abs(error[band, 5]).mean()), 3)
+        bands[f"{low}-{high or 'inf'} points"] = stats
     return {
         "model": str(args.model),
         "val": str(args.val),
