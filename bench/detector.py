@@ -213,6 +213,9 @@ def bench_oracle(args) -> dict:
         "detector": "pillar-centerpoint-iou (dali), fp32",
         "config_overrides": json.loads(args.config) if args.config else {},
         "augmentation_overrides": json.loads(args.augment) if args.augment else {},
+        "batch_size": args.batch_size,
+        "lr": args.lr,
+        "seed": args.seed,
         "train": str(args.train),
         "val": str(args.val),
         "train_frames": len(data),
@@ -337,7 +340,7 @@ def main() -> None:
     speed.add_argument("--data", default=None, help="KITTI-like FrameSet (default: toy scans)")
     speed.add_argument("--threads", type=int, default=2)
     speed.add_argument("--train-threads", type=int, default=None, help="(default: --threads)")
-    speed.add_argument("--batch-size", type=int, default=2)
+    speed.add_argument("--batch-size", type=int, default=1)
     speed.add_argument("--epochs", type=float, default=4.0, help="passes over the 16 frames")
     speed.add_argument("--out", default=None)
     oracle = sub.add_parser("oracle")
@@ -347,8 +350,8 @@ def main() -> None:
     oracle.add_argument(
         "--eval-every", type=float, default=2.5, help="minutes of training between evaluations"
     )
-    oracle.add_argument("--batch-size", type=int, default=2)
-    oracle.add_argument("--lr", type=float, default=3e-3)
+    oracle.add_argument("--batch-size", type=int, default=1)
+    oracle.add_argument("--lr", type=float, default=5e-3)
     oracle.add_argument("--seed", type=int, default=0)
     oracle.add_argument("--threads", type=int, default=2)
     oracle.add_argument("--out", default=None)

@@ -92,10 +92,11 @@ def run_pretrain(
     epochs: float = 10.0,
     minutes: float | None = None,
     seed: int = 0,
-    batch_size: int = 2,
-    lr: float = 3e-3,
+    batch_size: int = 1,
+    lr: float = 5e-3,
     features: str = "xyz",
     precision: str = "fp32",
+    compile_net: bool = False,
     threads: int | None = None,
     augment: bool = True,
     labels: tuple[str, ...] = ("Car",),
@@ -136,6 +137,7 @@ def run_pretrain(
         "lr": lr,
         "features": features,
         "precision": precision,
+        "compile": compile_net,
         "augment": augment,
         "labels": list(labels),
         "config": config_overrides or {},
@@ -186,7 +188,7 @@ def run_pretrain(
         net = PillarCenterNet(config)
         settings = TrainSettings(
             epochs=epochs, minutes=minutes, batch_size=batch_size, lr=lr, seed=seed,
-            precision=precision, threads=threads,
+            precision=precision, compile=compile_net, threads=threads,
         )  # fmt: skip
         result = train(net, [data], [augmentation], settings, resume, key, progress=progress)
         meta = {

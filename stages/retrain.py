@@ -56,9 +56,10 @@ def run_retrain(
     epochs: float = 10.0,
     minutes: float | None = None,
     seed: int = 0,
-    batch_size: int = 2,
-    lr: float = 3e-3,
+    batch_size: int = 1,
+    lr: float = 5e-3,
     precision: str = "fp32",
+    compile_net: bool = False,
     threads: int | None = None,
     augment: bool = True,
     labels: tuple[str, ...] = ("Car",),
@@ -90,6 +91,7 @@ def run_retrain(
         "batch_size": batch_size,
         "lr": lr,
         "precision": precision,
+        "compile": compile_net,
         "augment": augment,
         "labels": list(labels),
     }
@@ -146,7 +148,7 @@ def run_retrain(
             net.load_state_dict(previous.net.state_dict())
         settings = TrainSettings(
             epochs=epochs, minutes=minutes, batch_size=batch_size, lr=lr, seed=seed,
-            precision=precision, threads=threads, mix=weights,
+            precision=precision, compile=compile_net, threads=threads, mix=weights,
         )  # fmt: skip
         result = train(net, datasets, augmentations, settings, resume, key, progress=progress)
         meta = {

@@ -26,7 +26,7 @@ from dali_cli.detector import (
     train,
 )
 from dali_cli.detector.infer import decode, inference_config
-from dali_cli.detector.targets import REGRESSION, build_targets
+from dali_cli.detector.targets import REGRESSION, build_targets, regression_to_boxes
 from dali_cli.detector.toy import place_cars, scan, write_toy_dataset
 from dali_cli.geometry import count_points_in_boxes, iou_3d, point_box_indices
 from dali_cli.sensors import get_profile
@@ -91,8 +91,9 @@ def perfect_maps(boxes_list, config):
     return {**maps, **split}
 
 
-def test_targets_decode_round_trip(kitti):
-    config = DetectorConfig(**SMALL)
+@pytest.mark.parametrize("radius", [0, 1])
+def test_targets_decode_round_trip(kitti, radius):
+    config = DetectorConfig(**SMALL, regression_radius_cells=radius)
     rng = np.random.default_rng(0)
     boxes_list = [
         toy_place(rng, kitti, 5) + [0, 0, kitti.mount_height_m, 0, 0, 0, 0] for _ in range(2)
@@ -103,6 +104,36 @@ def test_targets_decode_round_trip(kitti):
         assert (scores > 0.99).all()
         iou = iou_3d(boxes, found)
         assert np.allclose(iou.max(axis=1), 1.0, atol=1e-6)  # yaw is decoded modulo pi
+
+
+def test_every_regressing_cell_decodes_to_its_nearest_object():
+    """Around-centre regression: each cell once, owned by the nearest centre, decoding exactly."""
+    config = DetectorConfig(**SMALL, regression_radius_cells=1)
+    # two cars 0.9 m apart side by side (windows of 3x3 cells of 0.64 m overlap), one on the edge
+    boxes = np.array(
+        [
+            [10.0, 0.0, 0.8, 4.0, 1.7, 1.5, 0.3],
+            [10.1, 0.9, 0.8, 4.2, 1.8, 1.5, -0.2],
+            [0.1, -12.7, 0.8, 3.9, 1.6, 1.5, 1.0],
+        ]
+    )
+    targets = build_targets([boxes], config)
+    valid = targets.mask[0].numpy()
+    index = targets.index[0].numpy()[valid]
+    assert len(index) == len(np.unique(index))  # no cell regresses two objects
+    decoded = regression_to_boxes(targets.regression[0][valid].double(), targets.index[0][valid], config)
+    truth = targets.boxes[0][valid]
+    assert np.allclose(decoded[:, :6].numpy(), truth[:, :6], atol=1e-5)
+    assert np.allclose(np.cos(2 * (decoded[:, 6].numpy() - truth[:, 6])), 1.0, atol=1e-6)
+    w = config.head_size[1]
+    cell_centre = np.stack([(index % w + 0.5), (index // w + 0.5)], 1) * config.cell_m
+    cell_centre += [config.x_range_m[0], config.y_range_m[0]]
+    distance = np.linalg.norm(cell_centre[:, None, :] - boxes[None, :, :2], axis=2)  # (C, 3)
+    owner = np.argmin(distance, axis=1)
+    assert np.allclose(truth, boxes[owner])
+    weight = targets.weight[0].numpy()[valid]
+    assert weight.max() == 1.0 and (weight == 1.0).sum() == 3  # the three centre cells
+    assert 3 < len(index) < 27  # the edge car's window is cut, the overlap is shared
 
 
 class BoundingBoxNet(torch.nn.Module):
@@ -346,3 +377,25 @@ def test_pretrain_cli(toy_dir, tmp_path):
         main, ["pretrain", "--source", str(tmp_path), "--out", str(tmp_path / "x")]
     )
     assert missing.exit_code == 1 and "frames.zarr" in missing.output
+
+
+def test_compiled_forward_matches_eager():
+    """--compile: the compiled backbone + heads give the eager network's maps, and the network
+    itself stays eager (same parameters, same state-dict keys)."""
+    from dali_cli.detector.train import compiled_forward
+
+    config = DetectorConfig(**SMALL)
+    torch.manual_seed(0)
+    net = PillarCenterNet(config).eval()
+    keys = set(net.state_dict())
+    points = torch.rand(800, 4) * torch.tensor([25.6, 25.6, 3.0, 1.0]) - torch.tensor(
+        [0, 12.8, 1.0, 0]
+    )
+    batch_index = torch.arange(2).repeat_interleave(400)
+    with torch.no_grad():
+        eager = net(points, batch_index, 2)
+        compiled = compiled_forward(net)(points, batch_index, 2)
+    for name, value in eager.items():
+        assert torch.allclose(compiled[name], value, atol=1e-4), name
+    assert set(net.state_dict()) == keys
+

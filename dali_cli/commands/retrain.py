@@ -79,7 +79,7 @@ class GreedyOption(click.Option):
 @sensors_option
 @stage_options
 def command(init, source, ppcg, out, init_from, mix, labels, epochs, minutes, seed, batch_size, lr,
-            precision, threads, no_augment, quiet, sensors_path, force, dry_run):  # fmt: skip
+            precision, compile_net, threads, no_augment, quiet, sensors_path, force, dry_run):  # fmt: skip
     """Retrain on the labeled source plus PPCG frame sets, alternating source and PPCG batches.
 
     Reads INIT/model.pt + model.json, SOURCE (frames.zarr + boxes.parquet) and each PPCG directory
@@ -93,7 +93,7 @@ def command(init, source, ppcg, out, init_from, mix, labels, epochs, minutes, se
     outcome = run_retrain(
         init, source, list(ppcg), out, init_from=init_from, mix=mix, epochs=epochs, minutes=minutes,
         seed=seed, batch_size=batch_size, lr=lr, precision=precision, threads=threads,
-        augment=not no_augment, labels=tuple(labels), sensors_path=sensors_path, force=force,
+        compile_net=compile_net, augment=not no_augment, labels=tuple(labels), sensors_path=sensors_path, force=force,
         dry_run=dry_run, progress=not quiet,
     )  # fmt: skip
     if outcome.status == "ran":

@@ -35,6 +35,7 @@ class DetectorConfig:
     min_radius_cells: int = 2
     min_gaussian_overlap: float = 0.1
     max_objects: int = 128
+    regression_radius_cells: int = 0  # box + IoU heads learn at the (2r+1)^2 cells around a centre
     loss_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)  # heatmap, box regression, IoU
     # per regression channel: offset x, y (cells), z (m), log l, w, h, sin 2yaw, cos 2yaw
     regression_weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0)

@@ -22,13 +22,19 @@ REGRESSION = ("offset", "z", "size", "rot")  # head maps concatenated in this or
 @dataclass
 class Targets:
     """Batched targets. heatmap (B, 1, h, w) float32; index (B, K) int64 flat cell; mask (B, K)
-    bool; regression (B, K, 8) float32; boxes (B, K, 7) float64 ground truth (for the IoU target)."""
+    bool; regression (B, K, 8) float32 relative to that cell; boxes (B, K, 7) float64 ground truth
+    (for the IoU target); weight (B, K) float32 (1 at an object's centre cell, less around it).
+
+    With `config.regression_radius_cells` r > 0 each object supervises the (2r+1)^2 cells around
+    its centre cell (a cell near two objects belongs to the nearer centre), so K is up to
+    max_objects * (2r+1)^2."""
 
     heatmap: torch.Tensor
     index: torch.Tensor
     mask: torch.Tensor
     regression: torch.Tensor
     boxes: np.ndarray
+    weight: torch.Tensor
 
 
 def gaussian_radius(
@@ -57,20 +63,52 @@ def box_cells(
     return col, row, inside
 
 
+def regression_cells(
+    col: np.ndarray, row: np.ndarray, config: DetectorConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Cells that regress each object: object (C,) int64, cell col (C,), row (C,) int64, and
+    weight (C,) float64 = exp(-d^2 / 2) of the cell's offset d (cells) from the centre cell.
+
+    col, row (N,) float64: object centres on the head grid. The (2r+1)^2 window around each centre
+    cell, cut to the grid; a cell claimed by several objects goes to the one whose centre is nearest.
+    """
+    h, w = config.head_size
+    r = config.regression_radius_cells
+    steps = np.arange(-r, r + 1)
+    d_row, d_col = (a.ravel() for a in np.meshgrid(steps, steps, indexing="ij"))  # (S,)
+    ci, ri = np.floor(col).astype(np.int64), np.floor(row).astype(np.int64)  # (N,)
+    cell_col = (ci[:, None] + d_col[None, :]).ravel()  # (N*S,)
+    cell_row = (ri[:, None] + d_row[None, :]).ravel()
+    obj = np.repeat(np.arange(len(col)), len(steps) ** 2)
+    weight = np.tile(np.exp(-(d_row**2 + d_col**2) / 2.0), len(col))
+    inside = (cell_col >= 0) & (cell_col < w) & (cell_row >= 0) & (cell_row < h)
+    obj, cell_col, cell_row, weight = obj[inside], cell_col[inside], cell_row[inside], weight[inside]
+    distance = np.hypot(cell_col + 0.5 - col[obj], cell_row + 0.5 - row[obj])
+    order = np.lexsort((distance, cell_row * w + cell_col))  # by cell, nearest centre first
+    first = np.ones(len(order), bool)
+    flat = (cell_row * w + cell_col)[order]
+    first[1:] = flat[1:] != flat[:-1]
+    keep = np.sort(order[first])  # back to object-major order
+    return obj[keep], cell_col[keep], cell_row[keep], weight[keep]
+
+
 def build_targets(boxes_list: list[np.ndarray], config: DetectorConfig) -> Targets:
     """Targets for B frames; boxes_list[b] is (M_b, 7) float64 in the ground frame."""
     h, w = config.head_size
-    batch, k = len(boxes_list), config.max_objects
+    batch = len(boxes_list)
+    k = config.max_objects * (2 * config.regression_radius_cells + 1) ** 2
     heatmap = np.zeros((batch, 1, h, w), np.float32)
     index = np.zeros((batch, k), np.int64)
     mask = np.zeros((batch, k), bool)
     regression = np.zeros((batch, k, 8), np.float32)
     gt = np.zeros((batch, k, 7), np.float64)
+    weight = np.zeros((batch, k), np.float32)
     rows_grid, cols_grid = np.arange(h)[:, None], np.arange(w)[None, :]
     for b, boxes in enumerate(boxes_list):
         boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
         col, row, inside = box_cells(boxes, config)
-        boxes, col, row = boxes[inside][:k], col[inside][:k], row[inside][:k]
+        boxes = boxes[inside][: config.max_objects]
+        col, row = col[inside][: config.max_objects], row[inside][: config.max_objects]
         radius = gaussian_radius(
             boxes[:, 3] / config.cell_m, boxes[:, 4] / config.cell_m, config.min_gaussian_overlap
         )
@@ -86,29 +124,33 @@ def build_targets(boxes_list: list[np.ndarray], config: DetectorConfig) -> Targe
                 / (2 * sigma**2)
             )
             np.maximum(heatmap[b, 0, r0:r1, c0:c1], g, out=heatmap[b, 0, r0:r1, c0:c1])
-        n = len(boxes)
-        index[b, :n] = ri * w + ci
+        obj, cell_col, cell_row, cell_weight = regression_cells(col, row, config)
+        n = len(obj)
+        index[b, :n] = cell_row * w + cell_col
         mask[b, :n] = True
+        weight[b, :n] = cell_weight
+        chosen = boxes[obj]
         regression[b, :n] = np.stack(
             [
-                col - ci,
-                row - ri,
-                boxes[:, 2],
-                np.log(np.maximum(boxes[:, 3], 1e-3)),
-                np.log(np.maximum(boxes[:, 4], 1e-3)),
-                np.log(np.maximum(boxes[:, 5], 1e-3)),
-                np.sin(2 * boxes[:, 6]),
-                np.cos(2 * boxes[:, 6]),
+                col[obj] - cell_col,
+                row[obj] - cell_row,
+                chosen[:, 2],
+                np.log(np.maximum(chosen[:, 3], 1e-3)),
+                np.log(np.maximum(chosen[:, 4], 1e-3)),
+                np.log(np.maximum(chosen[:, 5], 1e-3)),
+                np.sin(2 * chosen[:, 6]),
+                np.cos(2 * chosen[:, 6]),
             ],
             axis=1,
         )
-        gt[b, :n] = boxes
+        gt[b, :n] = chosen
     return Targets(
         torch.from_numpy(heatmap),
         torch.from_numpy(index),
         torch.from_numpy(mask),
         torch.from_numpy(regression),
         gt,
+        torch.from_numpy(weight),
     )
 
 
@@ -152,15 +194,16 @@ def detection_loss(
     config: DetectorConfig,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Total loss and its terms (floats, for the log). The IoU head learns the 3D IoU of the box
-    decoded at each object's center cell with that object (a soft BCE target)."""
+    decoded at each regressing cell with its object (a soft BCE target), weighted like the box loss."""
     heat = focal_loss(maps["heatmap"], targets.heatmap)
     regression_maps = torch.cat([maps[name] for name in REGRESSION], dim=1)  # (B, 8, h, w)
     predicted = gather_cells(regression_maps, targets.index)  # (B, K, 8)
     mask = targets.mask  # (B, K)
-    count = mask.sum().clamp(min=1)
+    cell_weight = targets.weight * mask  # (B, K)
+    count = cell_weight.sum().clamp(min=1e-6)
     weights = torch.tensor(config.regression_weights, dtype=predicted.dtype)  # (8,)
     l1 = F.l1_loss(predicted, targets.regression, reduction="none") * weights  # (B, K, 8)
-    box = (l1 * mask[..., None]).sum() / count
+    box = (l1 * cell_weight[..., None]).sum() / count
     iou_logits = gather_cells(maps["iou"], targets.index)[..., 0]  # (B, K)
     with torch.no_grad():
         predicted_boxes = regression_to_boxes(predicted.detach().double(), targets.index, config)
@@ -174,7 +217,7 @@ def detection_loss(
         F.binary_cross_entropy_with_logits(
             iou_logits, torch.from_numpy(iou_target), reduction="none"
         )
-        * mask
+        * cell_weight
     ).sum() / count
     w_heat, w_box, w_iou = config.loss_weights
     total = w_heat * heat + w_box * box + w_iou * iou

@@ -30,14 +30,15 @@ class TrainSettings:
 
     epochs: float = 10.0
     minutes: float | None = None
-    batch_size: int = 2
-    lr: float = 3e-3
+    batch_size: int = 1
+    lr: float = 5e-3
     weight_decay: float = 0.01
     pct_start: float = 0.3
     grad_clip: float = 10.0
     seed: int = 0
     precision: str = "fp32"  # "bf16" autocast pays off only on CPUs with AMX / AVX512-BF16
     threads: int | None = None
+    compile: bool = False  # torch.compile the backbone and heads (~1 min cold start)
     mix: tuple[int, ...] = (1,)
     log_every: int = 5
     checkpoint_every_s: float = 120.0
@@ -141,6 +142,7 @@ def train(
             step, elapsed, log = state["step"], state["elapsed_s"], state["log"]
     resumed_from = step
     net.train()
+    forward = compiled_forward(net) if settings.compile else net
     bar = tqdm(
         total=steps if steps else round(budget_s),
         initial=step if steps else round(elapsed),
@@ -178,7 +180,7 @@ def train(
         )
         targets = build_targets([b for _, b in samples], config)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=settings.precision == "bf16"):
-            maps = net(points, batch_index, len(samples))
+            maps = forward(points, batch_index, len(samples))
         loss, terms = detection_loss(maps, targets, config)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -214,6 +216,20 @@ def train(
     return TrainResult(
         steps=step, frames=frames, seconds=elapsed, log=log, resumed_from_step=resumed_from
     )
+
+
+def compiled_forward(net: PillarCenterNet) -> Callable:
+    """`net`'s forward with the backbone and heads under torch.compile (their shapes are fixed;
+    the pillar encoder's vary with the point count and stay eager). The compiled modules share
+    `net`'s parameters, so `net` itself stays eager for inference after training.
+    Measured on this 2-core AVX2 VM: 8.0 vs 8.2 frames/s eager, after a 36 s compile (no gain)."""
+    backbone, head = torch.compile(net.backbone), torch.compile(net.head)
+
+    def forward(points: torch.Tensor, batch_index: torch.Tensor, batch_size: int):
+        maps = head(backbone(net.encoder(points, batch_index, batch_size)))
+        return {name: value.float() for name, value in maps.items()}
+
+    return forward
 
 
 def save_resume_state(
