@@ -196,6 +196,7 @@ def bench_oracle(args) -> dict:
         lr=args.lr,
         seed=args.seed,
         threads=args.threads,
+        pct_start=args.pct_start,
     )
     augmentation = Augmentation(**json.loads(args.augment)) if args.augment else Augmentation()
     outcome = train(net, [data], [augmentation], settings, progress=True, on_log=on_log)
@@ -216,6 +217,7 @@ def bench_oracle(args) -> dict:
         "batch_size": args.batch_size,
         "lr": args.lr,
         "seed": args.seed,
+        "pct_start": args.pct_start,
         "train": str(args.train),
         "val": str(args.val),
         "train_frames": len(data),
@@ -353,6 +355,9 @@ def main() -> None:
     oracle.add_argument("--batch-size", type=int, default=1)
     oracle.add_argument("--lr", type=float, default=5e-3)
     oracle.add_argument("--seed", type=int, default=0)
+    oracle.add_argument(
+        "--pct-start", type=float, default=0.3, help="warm-up share of the one-cycle schedule"
+    )
     oracle.add_argument("--threads", type=int, default=2)
     oracle.add_argument("--out", default=None)
     oracle.add_argument("--config", default=None, help="JSON object of DetectorConfig overrides")
