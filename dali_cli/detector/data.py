@@ -18,7 +18,7 @@ class Augmentation:
     """Which augmentations run, with their ranges. `object_scale` is ROS (None = off)."""
 
     gt_sampling: bool = True
-    gt_sample_count: int = 30  # paste cars until a frame has about this many (15: -11 AP_3D)
+    gt_sample_count: int = 45  # paste cars until a frame has about this many (see docs: Ablations)
     flip: bool = True
     rotation_rad: float = np.pi / 8  # global rotation U(-r, r); pi/4: -1.6 / -8.0 AP_3D (2 seeds)
     scaling: tuple[float, float] = (0.95, 1.05)  # global scaling about the ground
