@@ -121,7 +121,9 @@ def test_every_regressing_cell_decodes_to_its_nearest_object():
     valid = targets.mask[0].numpy()
     index = targets.index[0].numpy()[valid]
     assert len(index) == len(np.unique(index))  # no cell regresses two objects
-    decoded = regression_to_boxes(targets.regression[0][valid].double(), targets.index[0][valid], config)
+    decoded = regression_to_boxes(
+        targets.regression[0][valid].double(), targets.index[0][valid], config
+    )
     truth = targets.boxes[0][valid]
     assert np.allclose(decoded[:, :6].numpy(), truth[:, :6], atol=1e-5)
     assert np.allclose(np.cos(2 * (decoded[:, 6].numpy() - truth[:, 6])), 1.0, atol=1e-6)
@@ -398,4 +400,3 @@ def test_compiled_forward_matches_eager():
     for name, value in eager.items():
         assert torch.allclose(compiled[name], value, atol=1e-4), name
     assert set(net.state_dict()) == keys
-

@@ -82,7 +82,12 @@ def regression_cells(
     obj = np.repeat(np.arange(len(col)), len(steps) ** 2)
     weight = np.tile(np.exp(-(d_row**2 + d_col**2) / 2.0), len(col))
     inside = (cell_col >= 0) & (cell_col < w) & (cell_row >= 0) & (cell_row < h)
-    obj, cell_col, cell_row, weight = obj[inside], cell_col[inside], cell_row[inside], weight[inside]
+    obj, cell_col, cell_row, weight = (
+        obj[inside],
+        cell_col[inside],
+        cell_row[inside],
+        weight[inside],
+    )
     distance = np.hypot(cell_col + 0.5 - col[obj], cell_row + 0.5 - row[obj])
     order = np.lexsort((distance, cell_row * w + cell_col))  # by cell, nearest centre first
     first = np.ones(len(order), bool)
