@@ -4,6 +4,7 @@ a resumable state file, and a log row per logged step."""
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import time
@@ -223,13 +224,7 @@ def compiled_forward(net: PillarCenterNet) -> Callable:
     the pillar encoder's vary with the point count and stay eager). The compiled modules share
     `net`'s parameters, so `net` itself stays eager for inference after training.
     Measured on this 2-core AVX2 VM: 8.0 vs 8.2 frames/s eager, after a 36 s compile (no gain)."""
-    backbone, head = torch.compile(net.backbone), torch.compile(net.head)
-
-    def forward(points: torch.Tensor, batch_index: torch.Tensor, batch_size: int):
-        maps = head(backbone(net.encoder(points, batch_index, batch_size)))
-        return {name: value.float() for name, value in maps.items()}
-
-    return forward
+    return functools.partial(net.forward_with, torch.compile(net.backbone), torch.compile(net.head))
 
 
 def save_resume_state(
