@@ -10,6 +10,7 @@ from click.testing import CliRunner
 
 from dali_cli import synth
 from dali_cli.artifacts import FrameSet, read_boxes
+from dali_cli.camera import kitti_label_columns
 from dali_cli.cli import main
 from dali_cli.raycast import cast_into_box
 from dali_cli.sensors import get_profile
@@ -199,6 +200,11 @@ def test_synth_command_output_independent_of_frame_count_and_workers(tmp_path):
     np.testing.assert_array_equal(boxes_a.boxes[in_first_two], boxes_b.boxes)
     for column in ("num_points", "occlusion", "kind", "car_model"):
         assert column in boxes_a.columns
+    # KITTI label fields of the virtual camera, from the boxes and occlusion alone
+    expected = kitti_label_columns(boxes_a.boxes, boxes_a["occlusion"])
+    for column, values in expected.items():
+        np.testing.assert_array_equal(boxes_a[column], values)
+        assert boxes_a[column].dtype == values.dtype
     assert a.sensor == "nuscenes" and a.attrs["cars_profile"] == "nuscenes"
     rerun = runner.invoke(
         main,

@@ -23,6 +23,8 @@ Protocols: kitti = easy/moderate/hard from the KITTI label fields (2D box height
 truncation); range = all boxes and BEV-distance bands 0-30, 30-50, 50-80 m; st3d = ST3D's
 target-domain evaluation (ground truth only in the front 90 deg FOV and the detection range,
 every box 'easy'); auto (default) = kitti when the ground truth has the KITTI fields, else range.
+dali synth labels carry the KITTI fields (2D box, truncation, occlusion level of a virtual KITTI
+camera at the sensor), so --protocol kitti gives easy/moderate/hard on synthetic data too.
 --front-only restricts any protocol to that front region, ground truth and predictions alike
 (KITTI's clouds are FOV-cropped; dali synth's are 360 degrees). Van ground truths are ignored
 for Car; --min-gt-points marks ground-truth cars with fewer points as ignored (neither miss nor

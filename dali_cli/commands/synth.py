@@ -53,7 +53,9 @@ def command(
     `--cars kitti` give the size gap of the DALI paper, and the sensor pattern gives the density
     gap. Writes OUT/frames.zarr (points x, y, z, intensity in the sensor frame; ground at
     z = -mount_height under the sensor), OUT/boxes.parquet (every car with >= 1 point: geometric
-    center box, yaw, num_points, occlusion, kind, car_model) and OUT/manifest.json.
+    center box, yaw, num_points, occlusion, kind, car_model, and the KITTI label fields truncated,
+    occluded, alpha, bbox_left/top/right/bottom of a virtual KITTI camera at the sensor, so
+    `dali eval --protocol kitti` gives easy/moderate/hard) and OUT/manifest.json.
     """
     import dataclasses
     import hashlib
