@@ -4,6 +4,7 @@
           -> bench/results/detector.json
   oracle  train on labeled KITTI-like frames for a wall-clock budget, evaluating on held-out
           frames along the way (AP vs minutes) -> bench/results/detector_oracle.json
+  decode  one checkpoint scored with several decoding settings -> detector_decode.json
   errors  where a checkpoint's 3D boxes miss: per-parameter errors of matched detections and the
           share above 3D IoU 0.7 with each parameter set to the truth -> detector_errors.json
 
@@ -128,9 +129,86 @@ def bench_speed(args) -> dict:
     return result
 
 
-def bench_oracle(args) -> dict:
-    from dali_cli.evaluate import evaluate
+def score_val_set(detector, val, val_frames, gt, mount_height_m: float) -> dict:
+    """AP_BEV / AP_3D at IoU 0.7 and 0.5 on a labeled val set (protocols st3d, st3d with >= 10
+    points, range, and kitti's moderate when the labels carry KITTI difficulty fields), the
+    inference time per frame and the mean predicted size at score >= 0.3."""
+    from dali_cli.evaluate import evaluate, has_kitti_columns
 
+    started = time.perf_counter()
+    predictions = detector.predict(val_frames, mount_height_m=mount_height_m)
+    infer_s = (time.perf_counter() - started) / len(val_frames)
+    ids = [
+        fid for fid, (b, _) in zip(val.frame_ids, predictions, strict=True) for _ in range(len(b))
+    ]
+    pred = BoxTable.from_arrays(
+        np.asarray(ids, dtype=str),
+        np.concatenate([b for b, _ in predictions]),
+        score=np.concatenate([s for _, s in predictions]),
+    )
+    point = {"val_infer_s_per_frame": round(infer_s, 4)}
+    variants = {"st3d": ("st3d", 0), "st3d_min10pts": ("st3d", 10), "range": ("range", 0)}
+    if has_kitti_columns(gt):
+        variants["kitti"] = ("kitti", 0)
+    for name, (protocol, min_points) in variants.items():
+        for iou in (0.7, 0.5):
+            metrics = evaluate(
+                pred,
+                gt,
+                iou=iou,
+                protocol=protocol,
+                min_gt_points=min_points,
+                frame_ids=list(val.frame_ids),
+                front_only=protocol == "kitti",
+            )["Car"]
+            band = "moderate" if protocol in ("st3d", "kitti") else "all"
+            point[f"{name}_bev@{iou}"] = round(metrics["bev"][band], 2)
+            point[f"{name}_3d@{iou}"] = round(metrics["3d"][band], 2)
+    sizes = pred.boxes[pred["score"] >= 0.3, 3:6]
+    point["pred_mean_lwh@0.3"] = (
+        [round(v, 3) for v in sizes.mean(axis=0).tolist()] if len(sizes) else None
+    )
+    point["boxes@0.3"] = int(len(sizes))
+    point["boxes@0.3_on_no_label"] = unlabeled_detections(pred.select(pred["score"] >= 0.3), gt)
+    return point
+
+
+def unlabeled_detections(pred: BoxTable, gt: BoxTable) -> int:
+    """Predictions that overlap no label of their frame at all (BEV IoU 0): what a pseudo-label
+    threshold would pass on as false cars."""
+    from dali_cli.geometry import bev_iou
+
+    rows = gt.rows_by_frame()
+    count = 0
+    for frame_id, index in pred.rows_by_frame().items():
+        boxes = pred.select(index).boxes
+        labels = gt.select(rows.get(frame_id, np.zeros(0, np.int64))).boxes
+        overlap = bev_iou(boxes, labels).max(axis=1) if len(labels) else np.zeros(len(boxes))
+        count += int((overlap <= 0).sum())
+    return count
+
+
+def bench_decode(args) -> dict:
+    """One checkpoint scored with several decoding settings (e.g. iou_alpha, flip_test)."""
+    import dataclasses
+
+    torch.set_num_threads(args.threads)
+    detector = Detector.load(args.model)
+    base = detector.config
+    val = FrameSet(args.val)
+    val_frames = [points for _, points in val.iter_frames()]
+    gt = read_boxes(args.val)
+    mount = get_profile(val.sensor).mount_height_m
+    rows = []
+    for overrides in json.loads(args.variants):
+        detector.config = dataclasses.replace(base, **overrides)
+        row = {"overrides": overrides, **score_val_set(detector, val, val_frames, gt, mount)}
+        print(json.dumps(row), flush=True)
+        rows.append(row)
+    return {"model": str(args.model), "val": str(args.val), "variants": rows}
+
+
+def bench_oracle(args) -> dict:
     torch.set_num_threads(args.threads)
     config = DetectorConfig.from_dict(json.loads(args.config)) if args.config else DetectorConfig()
     started = time.perf_counter()
@@ -148,38 +226,8 @@ def bench_oracle(args) -> dict:
 
     def evaluate_now(elapsed_s: float) -> dict:
         net.eval()
-        started = time.perf_counter()
-        predictions = detector.predict(val_frames, mount_height_m=data.mount_height_m)
-        infer_s = (time.perf_counter() - started) / len(val_frames)
-        ids = [
-            fid
-            for fid, (b, _) in zip(val.frame_ids, predictions, strict=True)
-            for _ in range(len(b))
-        ]
-        pred = BoxTable.from_arrays(
-            np.asarray(ids, dtype=str),
-            np.concatenate([b for b, _ in predictions]),
-            score=np.concatenate([s for _, s in predictions]),
-        )
-        point = {"minutes": round(elapsed_s / 60, 2), "val_infer_s_per_frame": round(infer_s, 4)}
-        variants = {"st3d": ("st3d", 0), "st3d_min10pts": ("st3d", 10), "range": ("range", 0)}
-        for name, (protocol, min_points) in variants.items():
-            for iou in (0.7, 0.5):
-                metrics = evaluate(
-                    pred,
-                    gt,
-                    iou=iou,
-                    protocol=protocol,
-                    min_gt_points=min_points,
-                    frame_ids=list(val.frame_ids),
-                )["Car"]
-                band = "moderate" if protocol == "st3d" else "all"
-                point[f"{name}_bev@{iou}"] = round(metrics["bev"][band], 2)
-                point[f"{name}_3d@{iou}"] = round(metrics["3d"][band], 2)
-        sizes = pred.boxes[pred["score"] >= 0.3, 3:6]
-        point["pred_mean_lwh@0.3"] = (
-            [round(v, 3) for v in sizes.mean(axis=0).tolist()] if len(sizes) else None
-        )
+        point = {"minutes": round(elapsed_s / 60, 2)}
+        point.update(score_val_set(detector, val, val_frames, gt, data.mount_height_m))
         net.train()
         print(json.dumps(point), flush=True)
         return point
@@ -191,7 +239,8 @@ def bench_oracle(args) -> dict:
             next_eval += args.eval_every * 60
 
     settings = TrainSettings(
-        minutes=args.minutes,
+        minutes=None if args.epochs else args.minutes,
+        epochs=args.epochs or 0.0,
         batch_size=args.batch_size,
         lr=args.lr,
         seed=args.seed,
@@ -223,7 +272,8 @@ def bench_oracle(args) -> dict:
         "train_frames": len(data),
         "train_boxes": data.num_boxes,
         "val_frames": len(val),
-        "minutes_budget": args.minutes,
+        "minutes_budget": None if args.epochs else args.minutes,
+        "epochs_budget": args.epochs,
         "steps": outcome.steps,
         "frames_seen": outcome.frames,
         "train_seconds": round(outcome.seconds, 1),
@@ -350,6 +400,13 @@ def main() -> None:
     oracle.add_argument("--val", required=True)
     oracle.add_argument("--minutes", type=float, default=15.0)
     oracle.add_argument(
+        "--epochs",
+        type=float,
+        default=None,
+        help="a step budget instead of --minutes (passes over the training set): results that do "
+        "not depend on the machine's load, for ablations",
+    )
+    oracle.add_argument(
         "--eval-every", type=float, default=2.5, help="minutes of training between evaluations"
     )
     oracle.add_argument("--batch-size", type=int, default=1)
@@ -369,6 +426,16 @@ def main() -> None:
     oracle.add_argument(
         "--save", default=None, help="also write the trained model (model.pt + model.json) here"
     )
+    decode = sub.add_parser("decode")
+    decode.add_argument("--model", required=True, help="checkpoint directory")
+    decode.add_argument("--val", required=True, help="labeled KITTI-like FrameSet")
+    decode.add_argument(
+        "--variants",
+        default='[{}, {"iou_alpha": 0.8}, {"flip_test": true}]',
+        help="JSON list of DetectorConfig overrides, one evaluation each",
+    )
+    decode.add_argument("--threads", type=int, default=2)
+    decode.add_argument("--out", default=None)
     errors = sub.add_parser("errors")
     errors.add_argument("--model", required=True, help="checkpoint directory")
     errors.add_argument("--val", required=True, help="labeled KITTI-like FrameSet")
@@ -379,6 +446,8 @@ def main() -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
     if args.mode == "speed":
         result, name = bench_speed(args), "detector.json"
+    elif args.mode == "decode":
+        result, name = bench_decode(args), "detector_decode.json"
     elif args.mode == "errors":
         result, name = bench_errors(args), "detector_errors.json"
     else:

@@ -3,6 +3,7 @@ overfit, checkpoint round trip, resume, augmentations and SN/ROS consistency, th
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -25,8 +26,14 @@ from dali_cli.detector import (
     size_normalize,
     train,
 )
-from dali_cli.detector.infer import decode, inference_config
-from dali_cli.detector.targets import REGRESSION, build_targets, regression_to_boxes
+from dali_cli.detector.infer import average_mirrored, decode, inference_config, run_network
+from dali_cli.detector.targets import (
+    REGRESSION,
+    build_targets,
+    detection_loss,
+    peak_iou_loss,
+    regression_to_boxes,
+)
 from dali_cli.detector.toy import place_cars, scan, write_toy_dataset
 from dali_cli.geometry import count_points_in_boxes, iou_3d, point_box_indices
 from dali_cli.sensors import get_profile
@@ -400,3 +407,92 @@ def test_compiled_forward_matches_eager():
     for name, value in eager.items():
         assert torch.allclose(compiled[name], value, atol=1e-4), name
     assert set(net.state_dict()) == keys
+
+
+def mirror_boxes(boxes: np.ndarray, middle_y: float) -> np.ndarray:
+    """Boxes (M, 7) mirrored about the plane y = middle_y: y -> 2 middle - y, yaw -> -yaw."""
+    mirrored = boxes.copy()
+    mirrored[:, 1] = 2 * middle_y - mirrored[:, 1]
+    mirrored[:, 6] = -mirrored[:, 6]
+    return mirrored
+
+
+def test_flip_test_averaging_recovers_boxes_from_mirrored_maps(kitti):
+    """Maps of a scene and (exact) maps of its mirror image average back to the scene's boxes:
+    un-mirroring must reverse the rows, turn the y offset o into 1 - o and negate sin 2yaw."""
+    config = DetectorConfig(**SMALL, flip_test=True)
+    rows = config.grid_size[0]
+    padded = dataclasses.replace(
+        config, y_range_m=(config.y_range_m[0], config.y_range_m[0] + rows * config.pillar_m)
+    )
+    middle = config.y_range_m[0] + rows * config.pillar_m / 2
+    rng = np.random.default_rng(5)
+    boxes = toy_place(rng, kitti, 5) + [0, 0, kitti.mount_height_m, 0, 0, 0, 0]
+    boxes[:, 6] = rng.uniform(-1.4, 1.4, len(boxes))  # headings that sin 2yaw tells apart
+    direct = perfect_maps([boxes], padded)
+    mirrored = perfect_maps([mirror_boxes(boxes, middle)], padded)
+    averaged = {
+        name: average_mirrored(name, torch.cat([direct[name], mirrored[name]]), 1)
+        for name in direct
+    }
+    (found, scores), = decode(averaged, padded)  # fmt: skip
+    assert len(found) == len(boxes) and (scores > 0.99).all()
+    assert np.allclose(iou_3d(boxes, found).max(axis=1), 1.0, atol=1e-5)
+
+
+def test_flip_test_predictions_are_mirror_equivariant(kitti):
+    """With flip_test the detector's output on a mirrored cloud is the mirror of its output."""
+    config = DetectorConfig(**SMALL, flip_test=True, score_threshold=0.0, nms_iou=0.5)
+    torch.manual_seed(0)
+    net = PillarCenterNet(config).eval()
+    rows = config.grid_size[0]
+    middle = config.y_range_m[0] + rows * config.pillar_m / 2
+    rng = np.random.default_rng(6)
+    cars = toy_place(rng, kitti, 4)
+    points = scan(cars, kitti, **SCAN)
+    points[:, 2] += kitti.mount_height_m  # ground frame
+    points = points[(points[:, 1] > -12.0) & (points[:, 1] < 12.0)]  # inside both grids
+    mirrored = points.copy()
+    mirrored[:, 1] = 2 * middle - mirrored[:, 1]
+    batch_index = torch.zeros(len(points), dtype=torch.long)
+    with torch.no_grad():
+        maps = run_network(net, torch.from_numpy(points), batch_index, 1, config)
+        maps_mirrored = run_network(net, torch.from_numpy(mirrored), batch_index, 1, config)
+    (found, scores), = decode(maps, config)  # fmt: skip
+    (found_m, scores_m), = decode(maps_mirrored, config)  # fmt: skip
+    assert len(found) > 0
+    order, order_m = np.argsort(-scores, kind="stable"), np.argsort(-scores_m, kind="stable")
+    assert np.allclose(scores[order], scores_m[order_m], atol=1e-4)
+    expected = mirror_boxes(found[order], middle)
+    assert np.allclose(found_m[order_m][:, :6], expected[:, :6], atol=1e-3)
+    assert np.allclose(np.sin(2 * found_m[order_m][:, 6]), np.sin(2 * expected[:, 6]), atol=1e-3)
+
+
+def test_peak_iou_loss_teaches_background_peaks_a_low_iou(kitti):
+    """The IoU head's loss at heatmap peaks: ~0 when it says 1 at the objects and 0 elsewhere,
+    large when it says 1 everywhere (background peaks have IoU 0 with every object)."""
+    config = DetectorConfig(**SMALL, iou_peak_cells=32)
+    rng = np.random.default_rng(7)
+    boxes = toy_place(rng, kitti, 4) + [0, 0, kitti.mount_height_m, 0, 0, 0, 0]
+    targets = build_targets([boxes], config)
+    maps = perfect_maps([boxes], config)
+    centres = torch.zeros(config.head_size).flatten()
+    centres[targets.index[0][targets.mask[0]]] = 1.0
+    maps["iou"] = (centres.view(1, 1, *config.head_size) * 40 - 20).float()
+    assert peak_iou_loss(maps, targets, config) < 1e-3
+    maps["iou"] = torch.full_like(maps["iou"], 20.0)
+    assert peak_iou_loss(maps, targets, config) > 1.0
+    total, terms = detection_loss(maps, targets, config)
+    assert "iou_peaks" in terms and terms["loss"] >= terms["iou_peaks"]
+
+
+def test_checkpoint_without_refine_key_loads_as_one_stage(tmp_path):
+    """model.json written before the second stage existed has no "refine": it loads without one."""
+    config = DetectorConfig(**SMALL, refine=False)
+    net = PillarCenterNet(config)
+    save_checkpoint(tmp_path, net, {"provenance": {"stage": "test"}})
+    meta = json.loads((tmp_path / "model.json").read_text())
+    del meta["config"]["refine"]
+    (tmp_path / "model.json").write_text(json.dumps(meta))
+    loaded = Detector.load(tmp_path)
+    assert loaded.config.refine is False and loaded.net.refiner is None

@@ -18,6 +18,7 @@ import torch.nn.functional as F
 from dali_cli.artifacts import ArtifactError, BoxTable, FrameSet
 from dali_cli.detector.config import DetectorConfig
 from dali_cli.detector.model import PillarCenterNet
+from dali_cli.detector.refine import BoxRefiner, refine_boxes
 from dali_cli.detector.targets import REGRESSION, gather_cells, regression_to_boxes
 
 WEIGHTS_NAME = "model.pt"
@@ -25,11 +26,17 @@ META_NAME = "model.json"
 
 
 def decode(
-    maps: dict[str, torch.Tensor], config: DetectorConfig
+    maps: dict[str, torch.Tensor],
+    config: DetectorConfig,
+    refiner: BoxRefiner | None = None,
+    points_list: list[np.ndarray] | None = None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Head maps (B, dims, h, w) -> per frame (boxes (M, 7) float64 ground frame, scores (M,) float32).
 
     Peaks of the heatmap (3x3 local maxima), top-k, score = heat^(1-a) * iou^a, threshold, BEV NMS.
+    With a `refiner` (second stage) and the frames' network-input points (P_b, >=3), the kept boxes
+    are refined, scored score^(1-a2) * refined IoU^a2 (a2 = config.refine_alpha), thresholded and
+    suppressed again.
     """
     from dali_cli.geometry import nms_bev
 
@@ -50,8 +57,35 @@ def decode(
         frame_scores = score[b].numpy()[keep].astype(np.float32)
         frame_boxes[:, 6] = (frame_boxes[:, 6] + np.pi) % (2 * np.pi) - np.pi
         kept = nms_bev(frame_boxes, frame_scores, config.nms_iou)
-        results.append((frame_boxes[kept], frame_scores[kept]))
+        frame_boxes, frame_scores = frame_boxes[kept], frame_scores[kept]
+        if refiner is not None:
+            frame_boxes, frame_scores = rescore_refined(
+                refiner, points_list[b], frame_boxes, frame_scores, config
+            )
+        results.append((frame_boxes, frame_scores))
     return results
+
+
+def rescore_refined(
+    refiner: BoxRefiner,
+    points: np.ndarray,
+    boxes: np.ndarray,
+    scores: np.ndarray,
+    config: DetectorConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One frame's first-stage boxes (M, 7) and scores (M,) -> refined, rescored, thresholded and
+    suppressed boxes and scores (see refine.py)."""
+    from dali_cli.geometry import nms_bev
+
+    refined = boxes
+    for _ in range(config.refine_passes):
+        refined, iou = refine_boxes(refiner, points, refined, config)
+    alpha = config.refine_alpha
+    rescored = (scores ** (1 - alpha) * iou**alpha).astype(np.float32)
+    keep = np.flatnonzero(rescored >= config.score_threshold)
+    refined, rescored = refined[keep], rescored[keep]
+    kept = nms_bev(refined, rescored, config.nms_iou)
+    return refined[kept], rescored[kept]
 
 
 def to_network_input(points_list: list[np.ndarray], mount_height_m: float, scale: float = 1.0):
@@ -110,7 +144,10 @@ class Detector:
                 raise ArtifactError(f"{path}: not found (is {model_dir} a model directory?)")
         try:
             meta = json.loads(meta_path.read_text())
-            config = DetectorConfig.from_dict(meta["config"])
+            values = dict(meta["config"])
+            # checkpoints from before the second stage existed have no refiner weights
+            values.setdefault("refine", False)
+            config = DetectorConfig.from_dict(values)
         except (json.JSONDecodeError, KeyError, TypeError, ValueError) as error:
             raise ArtifactError(f"{meta_path}: invalid model description ({error})") from None
         net = PillarCenterNet(config)
@@ -142,10 +179,55 @@ class Detector:
         for start in range(0, len(points_list), batch_size):
             chunk = points_list[start : start + batch_size]
             points, batch_index = to_network_input(chunk, mount, scale)
-            maps = self.net(points, batch_index, len(chunk), grid=config)
-            for boxes, scores in decode(maps, config):
+            maps = run_network(self.net, points, batch_index, len(chunk), config)
+            frames_points = [points[batch_index == b].numpy() for b in range(len(chunk))]
+            refiner = getattr(self.net, "refiner", None) if config.refine else None
+            for boxes, scores in decode(maps, config, refiner, frames_points):
                 results.append((ground_boxes_to_sensor(boxes, mount, scale), scores))
         return results
+
+
+def run_network(
+    net: PillarCenterNet,
+    points: torch.Tensor,
+    batch_index: torch.Tensor,
+    batch_size: int,
+    grid: DetectorConfig,
+) -> dict[str, torch.Tensor]:
+    """Head maps for ground-frame points (P, 4) on `grid`; with `grid.flip_test` the average of the
+    maps of the cloud and of its mirror image (y -> 2c - y about the grid's middle row, so the
+    mirrored cloud fills the same cells), un-mirrored: test-time flip augmentation."""
+    if not grid.flip_test:
+        return net(points, batch_index, batch_size, grid=grid)
+    rows = grid.grid_size[0]
+    y0 = grid.y_range_m[0]
+    padded = dataclasses.replace(grid, y_range_m=(y0, y0 + rows * grid.pillar_m))
+    middle = y0 + rows * grid.pillar_m / 2
+    mirrored = points.clone()
+    mirrored[:, 1] = 2 * middle - mirrored[:, 1]
+    both = net(
+        torch.cat([points, mirrored]),
+        torch.cat([batch_index, batch_index + batch_size]),
+        2 * batch_size,
+        grid=padded,
+    )
+    return {name: average_mirrored(name, value, batch_size) for name, value in both.items()}
+
+
+def average_mirrored(name: str, maps: torch.Tensor, batch_size: int) -> torch.Tensor:
+    """(2B, C, h, w) maps of B clouds then their mirror images -> (B, C, h, w) averages.
+
+    Un-mirroring reverses the rows, turns the cell's y offset o into 1 - o and sin 2yaw into
+    -sin 2yaw; heatmap and IoU logits are averaged as probabilities."""
+    direct, mirrored = maps[:batch_size], maps[batch_size:].flip(dims=[2]).clone()
+    if name == "offset":
+        mirrored[:, 1] = 1 - mirrored[:, 1]
+    elif name == "rot":
+        mirrored[:, 0] = -mirrored[:, 0]
+    if name in ("heatmap", "iou"):
+        mean = (torch.sigmoid(direct) + torch.sigmoid(mirrored)) / 2
+        return torch.logit(mean, eps=1e-6)
+    return (direct + mirrored) / 2
 
 
 def inference_config(config: DetectorConfig, scale: float) -> DetectorConfig:

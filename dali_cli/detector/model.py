@@ -12,6 +12,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from dali_cli.detector.config import DetectorConfig
+from dali_cli.detector.refine import BoxRefiner
 
 # head name -> output channels; "rot" is (sin 2yaw, cos 2yaw): a car turned by 180 deg is the same box
 HEADS = {"heatmap": 1, "offset": 2, "z": 1, "size": 3, "rot": 2, "iou": 1}
@@ -163,6 +164,7 @@ class PillarCenterNet(nn.Module):
         self.encoder = PillarEncoder(config)
         self.backbone = Backbone(config)
         self.head = CenterHead(config)
+        self.refiner = BoxRefiner(config) if config.refine else None
 
     def forward(
         self,

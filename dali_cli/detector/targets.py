@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 
 from dali_cli.detector.config import DetectorConfig
-from dali_cli.geometry import iou_3d_pairs
+from dali_cli.geometry import iou_3d, iou_3d_pairs
 
 REGRESSION = ("offset", "z", "size", "rot")  # head maps concatenated in this order -> 8 channels
 
@@ -35,6 +35,7 @@ class Targets:
     regression: torch.Tensor
     boxes: np.ndarray
     weight: torch.Tensor
+    objects: list[np.ndarray] | None = None  # per frame (M_b, 7) float64: every target box
 
 
 def gaussian_radius(
@@ -108,11 +109,13 @@ def build_targets(boxes_list: list[np.ndarray], config: DetectorConfig) -> Targe
     regression = np.zeros((batch, k, 8), np.float32)
     gt = np.zeros((batch, k, 7), np.float64)
     weight = np.zeros((batch, k), np.float32)
+    objects = []
     rows_grid, cols_grid = np.arange(h)[:, None], np.arange(w)[None, :]
     for b, boxes in enumerate(boxes_list):
         boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
         col, row, inside = box_cells(boxes, config)
         boxes = boxes[inside][: config.max_objects]
+        objects.append(boxes)
         col, row = col[inside][: config.max_objects], row[inside][: config.max_objects]
         radius = gaussian_radius(
             boxes[:, 3] / config.cell_m, boxes[:, 4] / config.cell_m, config.min_gaussian_overlap
@@ -156,6 +159,7 @@ def build_targets(boxes_list: list[np.ndarray], config: DetectorConfig) -> Targe
         torch.from_numpy(regression),
         gt,
         torch.from_numpy(weight),
+        objects,
     )
 
 
@@ -193,6 +197,39 @@ def gather_cells(maps: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     return flat.gather(2, index[:, None, :].expand(-1, channels, -1)).transpose(1, 2)  # (B, K, C)
 
 
+def peak_boxes(
+    maps: dict[str, torch.Tensor], config: DetectorConfig, count: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The `count` strongest 3x3 heatmap peaks of each frame, (B, k) flat cells, and the boxes
+    decoded there, (B, k, 7) float64 ground frame, detached (no threshold, no NMS)."""
+    heat = torch.sigmoid(maps["heatmap"].detach())  # (B, 1, h, w)
+    peaks = heat * (F.max_pool2d(heat, 3, stride=1, padding=1) == heat)
+    batch = heat.shape[0]
+    k = min(count, peaks[0].numel())
+    index = peaks.reshape(batch, -1).topk(k, dim=1).indices  # (B, k)
+    regression_maps = torch.cat([maps[name].detach() for name in REGRESSION], dim=1)
+    boxes = regression_to_boxes(gather_cells(regression_maps, index).double(), index, config)
+    return index, boxes
+
+
+def peak_iou_loss(
+    maps: dict[str, torch.Tensor], targets: Targets, config: DetectorConfig
+) -> torch.Tensor:
+    """BCE of the IoU head at the `config.iou_peak_cells` strongest heatmap peaks of each frame
+    (what decoding will score), against the best 3D IoU of the box decoded there with any target
+    box (0 on background). Without it the IoU head is trained only at object centres and says
+    anything elsewhere, so a score that leans on it (iou_alpha) lifts background peaks."""
+    index, boxes = peak_boxes(maps, config, config.iou_peak_cells)
+    batch, k = index.shape
+    target = np.zeros((batch, k), np.float32)
+    for b in range(batch):  # frames: one or a few per batch
+        objects = targets.objects[b] if targets.objects is not None else np.zeros((0, 7))
+        if len(objects):
+            target[b] = iou_3d(boxes[b].numpy(), objects).max(axis=1)
+    logits = gather_cells(maps["iou"], index)[..., 0]  # (B, k)
+    return F.binary_cross_entropy_with_logits(logits, torch.from_numpy(target))
+
+
 def detection_loss(
     maps: dict[str, torch.Tensor],
     targets: Targets,
@@ -227,4 +264,8 @@ def detection_loss(
     w_heat, w_box, w_iou = config.loss_weights
     total = w_heat * heat + w_box * box + w_iou * iou
     terms = {"loss": total, "heatmap": heat, "box": box, "iou": iou}
+    if config.iou_peak_cells > 0:
+        peak = peak_iou_loss(maps, targets, config)
+        total = total + w_iou * peak
+        terms.update(loss=total, iou_peaks=peak)
     return total, {name: float(value.detach()) for name, value in terms.items()}

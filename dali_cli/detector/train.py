@@ -18,7 +18,10 @@ import torch
 from dali_cli.detector.config import DetectorConfig
 from dali_cli.detector.data import Augmentation, LabeledFrames, augmented_sample
 from dali_cli.detector.model import PillarCenterNet
-from dali_cli.detector.targets import build_targets, detection_loss
+from dali_cli.detector.refine import refine_loss
+from dali_cli.detector.targets import build_targets, detection_loss, peak_boxes
+
+REFINE_STREAM = 7_919  # random stream of the refiner's jittered boxes, apart from the samples'
 
 
 @dataclass
@@ -183,6 +186,10 @@ def train(
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=settings.precision == "bf16"):
             maps = forward(points, batch_index, len(samples))
         loss, terms = detection_loss(maps, targets, config)
+        if net.refiner is not None:
+            loss, terms = add_refine_loss(
+                net, maps, [p for p, _ in samples], targets, loss, terms, settings.seed, step
+            )
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(net.parameters(), settings.grad_clip)
@@ -217,6 +224,24 @@ def train(
     return TrainResult(
         steps=step, frames=frames, seconds=elapsed, log=log, resumed_from_step=resumed_from
     )
+
+
+def add_refine_loss(net, maps, points_list, targets, loss, terms, seed: int, step: int):
+    """`loss` plus the second stage's losses on the heads' strongest peaks (see refine.py)."""
+    config = net.config
+    _, boxes = peak_boxes(maps, config, config.refine_train_peaks)  # (B, k, 7)
+    rng = np.random.default_rng([seed, step, REFINE_STREAM])
+    box, iou = refine_loss(
+        net.refiner, points_list, list(boxes.numpy()), targets.objects, config, rng
+    )
+    w_box, w_iou = config.refine_weights
+    total = loss + w_box * box + w_iou * iou
+    return total, {
+        **terms,
+        "loss": float(total.detach()),
+        "refine_box": float(box),
+        "refine_iou": float(iou),
+    }
 
 
 def compiled_forward(net: PillarCenterNet) -> Callable:

@@ -1,0 +1,271 @@
+"""Second stage: refine each first-stage box from the raw points around it (LiDAR R-CNN style).
+
+The BEV heads see the scene through 0.32 m pillars and a max over each pillar's points, which is
+enough to find cars but loses the exact roof, bottom and sides that a 3D IoU of 0.7 needs. The
+refiner looks again at the points themselves: for each proposal it takes up to `refine_points`
+points inside the box grown by `refine_margin_m` (ground points under the car included, so the
+bottom is visible), expresses them in the proposal's frame, runs a small PointNet and predicts a
+residual box and the 3D IoU of the refined box (the score's IoU factor).
+
+Shapes: K proposals, N points per proposal, D = 9 point features (local x, y, z and the distances
+to the six faces, metres). Boxes (K, 7) in the ground frame, yaw modulo pi (the heads' heading).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from dali_cli.detector.config import DetectorConfig
+from dali_cli.geometry import bev_iou, iou_3d, point_box_pairs
+
+POINT_FEATURES = 9
+CROP_CELL_M = 1.0  # cell of the coarse grid that crops a frame's points to the proposals' areas
+PROPOSAL_SIZE_M = (0.2, 8.0)  # proposals' l, w, h are clipped to this before refinement: an
+# untrained head's boxes can be 100 m long and would gather every point of the frame
+
+
+def wrap_half_turn(angle: np.ndarray | torch.Tensor):
+    """Angles (radians) wrapped to [-pi/2, pi/2): a box turned by pi is the same box."""
+    return (angle + np.pi / 2) % np.pi - np.pi / 2
+
+
+def near_boxes(points: np.ndarray, boxes: np.ndarray, margin_m: float) -> np.ndarray:
+    """Indices (P',) of the points (P, >=2) whose 1 m BEV cell lies within reach of some box.
+
+    A coarse pre-filter before the exact containment test: one integer lookup per point instead of
+    a candidate search over the whole frame."""
+    if len(points) == 0 or len(boxes) == 0:
+        return np.zeros(0, np.int64)
+    reach = 0.5 * np.hypot(boxes[:, 3], boxes[:, 4]) + margin_m + CROP_CELL_M  # (K,)
+    low = np.floor((boxes[:, :2] - reach[:, None]) / CROP_CELL_M).astype(np.int64)  # (K, 2)
+    high = np.floor((boxes[:, :2] + reach[:, None]) / CROP_CELL_M).astype(np.int64)
+    origin = low.min(axis=0)
+    shape = high.max(axis=0) - origin + 1
+    grid = np.zeros(shape, bool)
+    for k in range(len(boxes)):  # boxes: tens; each marks a small block
+        grid[low[k, 0] - origin[0] : high[k, 0] - origin[0] + 1,
+             low[k, 1] - origin[1] : high[k, 1] - origin[1] + 1] = True  # fmt: skip
+    cell = np.floor(np.asarray(points[:, :2], np.float64) / CROP_CELL_M).astype(np.int64) - origin
+    inside = np.all((cell >= 0) & (cell < shape), axis=1)
+    candidates = np.flatnonzero(inside)
+    return candidates[grid[cell[candidates, 0], cell[candidates, 1]]]
+
+
+def box_point_features(
+    points: np.ndarray, boxes: np.ndarray, count: int, margin_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Point features of each proposal: (K, count, 9) float32 and the points found (K,) int64.
+
+    points (P, >=3) ground frame; boxes (K, 7). The points inside each box grown by `margin_m` are
+    subsampled at evenly spaced positions of their (scan) order, repeated when fewer than `count`
+    (deterministic: no random draw). Features: x, y, z in the box frame and the distances to the
+    faces at -l/2, +l/2, -w/2, +w/2, -h/2, +h/2 (negative outside). A box without points gets zeros.
+    """
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    features = np.zeros((len(boxes), count, POINT_FEATURES), np.float32)
+    found = np.zeros(len(boxes), np.int64)
+    if len(boxes) == 0 or len(points) == 0:
+        return features, found
+    near = near_boxes(points, boxes, margin_m)
+    point_index, box_index = point_box_pairs(points[near, :3], boxes, margin_m)
+    if len(point_index) == 0:
+        return features, found
+    order = np.argsort(box_index, kind="stable")
+    point_index, box_index = near[point_index[order]], box_index[order]
+    found = np.bincount(box_index, minlength=len(boxes)).astype(np.int64)
+    start = np.cumsum(found) - found  # (K,)
+    has = np.flatnonzero(found > 0)
+    slots = (np.arange(count) + 0.5) / count  # (N,)
+    pick = start[has, None] + np.floor(slots[None, :] * found[has, None]).astype(np.int64)
+    chosen = np.asarray(points[point_index[pick], :3], np.float64)  # (K', N, 3)
+    box = boxes[has]
+    offset = chosen - box[:, None, :3]
+    c, s = np.cos(box[:, 6])[:, None], np.sin(box[:, 6])[:, None]
+    local = np.stack(
+        [
+            c * offset[..., 0] + s * offset[..., 1],
+            -s * offset[..., 0] + c * offset[..., 1],
+            offset[..., 2],
+        ],
+        axis=-1,
+    )  # (K', N, 3)
+    half = box[:, None, 3:6] / 2  # (K', 1, 3)
+    faces = np.concatenate([local + half, half - local], axis=-1)  # (K', N, 6)
+    features[has] = np.concatenate([local, faces], axis=-1).astype(np.float32)
+    return features, found
+
+
+def clip_proposals(boxes: np.ndarray) -> np.ndarray:
+    """Proposals (K, 7) with l, w, h clipped to PROPOSAL_SIZE_M (a copy)."""
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7).copy()
+    boxes[:, 3:6] = np.clip(boxes[:, 3:6], *PROPOSAL_SIZE_M)
+    return boxes
+
+
+def encode_residuals(proposals: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Regression targets (K, 7) from proposals to their ground truth (both (K, 7)): the centre
+    shift in the proposal's frame over its BEV diagonal (x, y) and height (z), log size ratios,
+    and the heading difference modulo pi."""
+    offset = truth[:, :3] - proposals[:, :3]
+    c, s = np.cos(proposals[:, 6]), np.sin(proposals[:, 6])
+    diagonal = np.hypot(proposals[:, 3], proposals[:, 4])
+    return np.stack(
+        [
+            (c * offset[:, 0] + s * offset[:, 1]) / diagonal,
+            (-s * offset[:, 0] + c * offset[:, 1]) / diagonal,
+            offset[:, 2] / proposals[:, 5],
+            np.log(truth[:, 3] / proposals[:, 3]),
+            np.log(truth[:, 4] / proposals[:, 4]),
+            np.log(truth[:, 5] / proposals[:, 5]),
+            wrap_half_turn(truth[:, 6] - proposals[:, 6]),
+        ],
+        axis=1,
+    )
+
+
+def apply_residuals(proposals: np.ndarray, residuals: np.ndarray) -> np.ndarray:
+    """The inverse of `encode_residuals`: refined boxes (K, 7), yaw in [-pi, pi)."""
+    c, s = np.cos(proposals[:, 6]), np.sin(proposals[:, 6])
+    diagonal = np.hypot(proposals[:, 3], proposals[:, 4])
+    dx, dy = residuals[:, 0] * diagonal, residuals[:, 1] * diagonal
+    refined = proposals.copy()
+    refined[:, 0] += c * dx - s * dy
+    refined[:, 1] += s * dx + c * dy
+    refined[:, 2] += residuals[:, 2] * proposals[:, 5]
+    refined[:, 3:6] *= np.exp(np.clip(residuals[:, 3:6], -1.0, 1.0))
+    refined[:, 6] = (proposals[:, 6] + residuals[:, 6] + np.pi) % (2 * np.pi) - np.pi
+    return refined
+
+
+class BoxRefiner(nn.Module):
+    """PointNet over each proposal's points -> residual (K, 7) and IoU logit (K,).
+
+    No batch norm: a batch is a few dozen boxes whose points repeat (boxes with few points are
+    padded by repetition), and on toy scans BN's statistics made the refiner learn slower and its
+    IoU head not at all (0.64 vs 0.72 mean refined IoU after 400 steps). Point features are the 9
+    metric ones plus the local coordinates and face distances over the half sizes (15)."""
+
+    def __init__(self, config: DetectorConfig):
+        super().__init__()
+        c = config.refine_channels
+        widths = (POINT_FEATURES + 6, c // 2, c, 2 * c)
+        self.point_mlp = nn.Sequential(
+            *(
+                layer
+                for a, b in zip(widths[:-1], widths[1:], strict=True)
+                for layer in (nn.Linear(a, b), nn.ReLU(inplace=True))
+            )
+        )
+        self.box_mlp = nn.Sequential(
+            nn.Linear(2 * c + 3, 2 * c),
+            nn.ReLU(inplace=True),
+            nn.Linear(2 * c, 2 * c),
+            nn.ReLU(inplace=True),
+        )
+        self.residual = nn.Linear(2 * c, 7)
+        self.iou = nn.Linear(2 * c, 1)
+        nn.init.zeros_(self.residual.weight)  # start as the identity refinement
+        nn.init.zeros_(self.residual.bias)
+
+    def forward(self, features: torch.Tensor, sizes: torch.Tensor):
+        """features (K, N, 9), sizes (K, 3) proposal l, w, h -> residuals (K, 7), IoU logits (K,)."""
+        half = sizes[:, None, :] / 2  # (K, 1, 3)
+        relative = torch.cat([features[..., :3] / half, features[..., 3:6] / half], dim=-1)
+        x = self.point_mlp(torch.cat([features, relative], dim=-1))  # (K, N, 2c)
+        pooled = x.amax(dim=1)  # (K, 2c)
+        hidden = self.box_mlp(torch.cat([pooled, sizes], dim=1))
+        return self.residual(hidden), self.iou(hidden)[:, 0]
+
+
+def refine_boxes(
+    refiner: BoxRefiner, points: np.ndarray, proposals: np.ndarray, config: DetectorConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Refined boxes (K, 7) float64 and their predicted 3D IoU (K,) float32, one frame.
+
+    points (P, >=3) and proposals (K, 7) in the network's (ground, PTSN-scaled) frame."""
+    if len(proposals) == 0:
+        return np.zeros((0, 7)), np.zeros(0, np.float32)
+    proposals = clip_proposals(proposals)
+    features, _ = box_point_features(
+        points, proposals, config.refine_points, config.refine_margin_m
+    )
+    residuals, iou_logits = refiner(
+        torch.from_numpy(features), torch.from_numpy(proposals[:, 3:6].astype(np.float32))
+    )
+    refined = apply_residuals(proposals, residuals.double().numpy())
+    return refined, torch.sigmoid(iou_logits).numpy().astype(np.float32)
+
+
+def jitter_boxes(boxes: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Ground-truth boxes (M, 7) disturbed like first-stage boxes: positives for the refiner
+    from the first step on (the heads' own proposals are poor early in training)."""
+    noisy = boxes.copy()
+    m = len(boxes)
+    noisy[:, :2] += rng.normal(0.0, 0.3, size=(m, 2))
+    noisy[:, 2] += rng.normal(0.0, 0.15, size=m)
+    noisy[:, 3:6] *= np.exp(rng.normal(0.0, 0.1, size=(m, 3)))
+    noisy[:, 6] += rng.normal(0.0, 0.1, size=m)
+    return noisy
+
+
+def refine_loss(
+    refiner: BoxRefiner,
+    points_list: list[np.ndarray],
+    proposals_list: list[np.ndarray],
+    objects_list: list[np.ndarray],
+    config: DetectorConfig,
+    rng: np.random.Generator,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Residual (L1, on proposals with BEV IoU >= 0.4 with a target box) and IoU (BCE against
+    the refined box's best 3D IoU with any target box) losses over a batch of frames.
+
+    points_list[b] (P_b, >=3), proposals_list[b] (K_b, 7) (detached first-stage boxes) and
+    objects_list[b] (M_b, 7) target boxes, all in the ground frame."""
+    features, sizes, proposals, truth, positive, objects_of = [], [], [], [], [], []
+    for b, (points, found, objects) in enumerate(
+        zip(points_list, proposals_list, objects_list, strict=True)
+    ):
+        found = clip_proposals(found)
+        boxes = np.concatenate([found, jitter_boxes(objects, rng)]) if len(objects) else found
+        if len(boxes) == 0:
+            continue
+        frame_features, _ = box_point_features(
+            points, boxes, config.refine_points, config.refine_margin_m
+        )
+        features.append(frame_features)
+        sizes.append(boxes[:, 3:6])
+        proposals.append(boxes)
+        objects_of.extend([b] * len(boxes))
+        if len(objects):
+            overlap = bev_iou(boxes, objects)  # (K, M)
+            best = overlap.argmax(axis=1)
+            truth.append(objects[best])
+            positive.append(overlap.max(axis=1) >= 0.4)
+        else:
+            truth.append(boxes.copy())
+            positive.append(np.zeros(len(boxes), bool))
+    if not proposals:
+        zero = torch.zeros(())
+        return zero, zero
+    proposals_all, truth_all = np.concatenate(proposals), np.concatenate(truth)
+    positive_all = torch.from_numpy(np.concatenate(positive))
+    residuals, iou_logits = refiner(
+        torch.from_numpy(np.concatenate(features)),
+        torch.from_numpy(np.concatenate(sizes).astype(np.float32)),
+    )
+    target = torch.from_numpy(encode_residuals(proposals_all, truth_all).astype(np.float32))
+    l1 = F.l1_loss(residuals, target, reduction="none").sum(dim=1)  # (K,)
+    box = (l1 * positive_all).sum() / positive_all.sum().clamp(min=1)
+    with torch.no_grad():
+        refined = apply_residuals(proposals_all, residuals.detach().double().numpy())
+    iou_target = np.zeros(len(refined), np.float32)
+    frame_of = np.asarray(objects_of)
+    for b, objects in enumerate(objects_list):
+        rows = np.flatnonzero(frame_of == b)
+        if len(rows) and len(objects):
+            iou_target[rows] = iou_3d(refined[rows], objects).max(axis=1)
+    iou = F.binary_cross_entropy_with_logits(iou_logits, torch.from_numpy(iou_target))
+    return box, iou

@@ -1,0 +1,110 @@
+"""Tests of the second stage (dali_cli/detector/refine.py): residual round trip, point gathering
+against a brute-force containment test, and a refiner that learns to fix disturbed boxes."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from dali_cli.detector import DetectorConfig
+from dali_cli.detector.refine import (
+    BoxRefiner,
+    apply_residuals,
+    box_point_features,
+    encode_residuals,
+    jitter_boxes,
+    refine_boxes,
+    refine_loss,
+)
+from dali_cli.detector.toy import place_cars, scan
+from dali_cli.geometry import count_points_in_boxes, iou_3d_pairs
+from dali_cli.sensors import get_profile
+
+
+def random_boxes(rng, count):
+    return np.c_[
+        rng.uniform(5, 60, count),
+        rng.uniform(-30, 30, count),
+        rng.uniform(0.5, 1.0, count),
+        rng.uniform(3.5, 5.0, count),
+        rng.uniform(1.5, 2.0, count),
+        rng.uniform(1.3, 1.8, count),
+        rng.uniform(-np.pi, np.pi, count),
+    ]
+
+
+def test_residuals_round_trip():
+    rng = np.random.default_rng(0)
+    proposals, truth = random_boxes(rng, 50), random_boxes(rng, 50)
+    truth[:, :3] = proposals[:, :3] + rng.normal(0, 0.5, (50, 3))
+    back = apply_residuals(proposals, encode_residuals(proposals, truth))
+    assert np.allclose(back[:, :6], truth[:, :6], atol=1e-9)
+    assert np.allclose(np.sin(2 * back[:, 6]), np.sin(2 * truth[:, 6]), atol=1e-9)  # modulo pi
+    assert np.allclose(apply_residuals(proposals, np.zeros((50, 7)))[:, :6], proposals[:, :6])
+
+
+def test_point_features_gather_every_point_in_the_grown_box():
+    """The coarse crop loses nothing: counts equal a brute-force containment test, and the local
+    coordinates map back onto points of the frame inside the grown box."""
+    rng = np.random.default_rng(1)
+    points = np.c_[rng.uniform(0, 70, (40_000, 2)) - [0, 35], rng.uniform(-0.5, 2.5, 40_000)]
+    boxes = random_boxes(rng, 12)
+    boxes[0, :3] = [200.0, 0.0, 1.0]  # far from every point: no features
+    margin = 0.4
+    features, found = box_point_features(points, boxes, 64, margin)
+    assert features.shape == (12, 64, 9) and found[0] == 0 and not features[0].any()
+    assert np.array_equal(found, count_points_in_boxes(points, boxes, margin_m=margin))
+    for k in np.flatnonzero(found):
+        local = features[k, :, :3].astype(np.float64)
+        c, s = np.cos(boxes[k, 6]), np.sin(boxes[k, 6])
+        world = (
+            np.c_[c * local[:, 0] - s * local[:, 1], s * local[:, 0] + c * local[:, 1], local[:, 2]]
+            + boxes[k, :3]
+        )
+        distance = np.linalg.norm(points[None, :, :] - world[:, None, :], axis=2).min(axis=1)
+        assert distance.max() < 1e-4  # float32 features
+        faces = features[k, :, 3:]
+        assert faces.min() >= -margin - 1e-4  # inside the grown box
+        assert np.allclose(faces[:, :3] + faces[:, 3:], boxes[k, 3:6], atol=1e-4)
+
+
+def test_refiner_learns_to_correct_disturbed_boxes():
+    """Trained on toy scans of box-shaped cars with disturbed ground truth as proposals, the
+    refiner raises the 3D IoU of new disturbed boxes and its IoU head ranks them."""
+    config = DetectorConfig(refine=True, refine_points=64)
+    kitti = get_profile("kitti")
+    rng = np.random.default_rng(2)
+    frames = []
+    for _ in range(6):
+        cars = place_cars(
+            rng, 6, kitti.car_mean_lwh_m, kitti.mount_height_m, (6.0, 30.0), (-10.0, 10.0)
+        )
+        points = scan(cars, kitti, beams=64, points_per_beam=1000, azimuth_range_deg=(-60.0, 60.0))
+        points[:, 2] += kitti.mount_height_m
+        cars[:, 2] += kitti.mount_height_m
+        frames.append((points, cars))
+    torch.manual_seed(0)
+    refiner = BoxRefiner(config)
+    optimizer = torch.optim.Adam(refiner.parameters(), lr=1e-3)
+    for step in range(400):
+        points, cars = frames[step % 5]
+        box, iou = refine_loss(
+            refiner,
+            [points],
+            [np.zeros((0, 7))],
+            [np.repeat(cars, 4, axis=0)],  # four disturbed copies of each car per step
+            config,
+            np.random.default_rng(step),
+        )
+        optimizer.zero_grad()
+        (box + iou).backward()
+        optimizer.step()
+    refiner.eval()
+    points, cars = frames[5]  # held out
+    proposals = jitter_boxes(np.repeat(cars, 4, axis=0), np.random.default_rng(99))
+    truth = np.repeat(cars, 4, axis=0)
+    with torch.no_grad():
+        refined, predicted_iou = refine_boxes(refiner, points, proposals, config)
+    before, after = iou_3d_pairs(proposals, truth), iou_3d_pairs(refined, truth)
+    assert after.mean() > before.mean() + 0.1  # measured: 0.59 -> 0.74
+    assert np.corrcoef(predicted_iou, after)[0, 1] > 0.25  # measured: 0.37
