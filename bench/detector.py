@@ -260,7 +260,7 @@ def bench_oracle(args) -> dict:
             {"provenance": {"stage": "bench/detector.py oracle", "train": str(args.train)}},
         )
     return {
-        "detector": "pillar-centerpoint-iou (dali), fp32",
+        "detector": f"{config.name} (dali), fp32",
         "config_overrides": json.loads(args.config) if args.config else {},
         "augmentation_overrides": json.loads(args.augment) if args.augment else {},
         "batch_size": args.batch_size,

@@ -214,9 +214,7 @@ def run_pretrain(
         }
         save_checkpoint(tmp, net, meta)
         write_train_log(tmp, result.log)
-        notes = [
-            f"detector: pillar-centerpoint-iou (not the paper's SECOND-IoU), size_norm={size_norm}"
-        ]
+        notes = [f"detector: {net.config.name} (not the paper's SECOND-IoU), size_norm={size_norm}"]
         if result.resumed_from_step:
             notes.append(f"resumed from step {result.resumed_from_step}")
         return BuildResult(

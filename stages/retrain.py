@@ -177,7 +177,7 @@ def run_retrain(
         save_checkpoint(tmp, net, meta)
         write_train_log(tmp, result.log)
         notes = [
-            "detector: pillar-centerpoint-iou (not the paper's SECOND-IoU)",
+            f"detector: {net.config.name} (not the paper's SECOND-IoU)",
             "raw target frames not used: source + PPCG frame sets only",
         ]
         if result.resumed_from_step:

@@ -83,6 +83,11 @@ class DetectorConfig:
     def point_dims(self) -> int:
         return 4 if self.features == "xyzi" else 3
 
+    @property
+    def name(self) -> str:
+        """The detector's name for reports: the one-stage net, or with its second stage."""
+        return "pillar-centerpoint-iou" + ("-refine" if self.refine else "")
+
     def to_dict(self) -> dict:
         return asdict(self)
 

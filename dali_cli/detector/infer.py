@@ -123,7 +123,7 @@ def save_checkpoint(directory: str | Path, net: PillarCenterNet, meta: dict) -> 
     """Write model.pt (weights) and model.json (config + meta) into `directory`."""
     directory = Path(directory)
     torch.save(net.state_dict(), directory / WEIGHTS_NAME)
-    document = {"detector": "pillar-centerpoint-iou", "config": net.config.to_dict(), **meta}
+    document = {"detector": net.config.name, "config": net.config.to_dict(), **meta}
     (directory / META_NAME).write_text(json.dumps(document, indent=2, default=str) + "\n")
 
 
