@@ -239,8 +239,8 @@ def add_refine_loss(net, maps, points_list, targets, loss, terms, seed: int, ste
     return total, {
         **terms,
         "loss": float(total.detach()),
-        "refine_box": float(box),
-        "refine_iou": float(iou),
+        "refine_box": float(box.detach()),
+        "refine_iou": float(iou.detach()),
     }
 
 
