@@ -8,7 +8,8 @@ bottom is visible), expresses them in the proposal's frame, runs a small PointNe
 residual box and the 3D IoU of the refined box (the score's IoU factor).
 
 Shapes: K proposals, N points per proposal, D = 9 point features (local x, y, z and the distances
-to the six faces, metres). Boxes (K, 7) in the ground frame, yaw modulo pi (the heads' heading).
+to the six faces, metres; the network adds the same six over the half sizes). Boxes (K, 7) in the
+ground frame, yaw modulo pi (the heads' heading).
 """
 
 from __future__ import annotations
@@ -61,8 +62,9 @@ def box_point_features(
 
     points (P, >=3) ground frame; boxes (K, 7). The points inside each box grown by `margin_m` are
     subsampled at evenly spaced positions of their (scan) order, repeated when fewer than `count`
-    (deterministic: no random draw). Features: x, y, z in the box frame and the distances to the
-    faces at -l/2, +l/2, -w/2, +w/2, -h/2, +h/2 (negative outside). A box without points gets zeros.
+    (deterministic: no random draw). Features: x, y, z in the box frame, then the distances to
+    the faces at -l/2, -w/2, -h/2 (local + half size) and at +l/2, +w/2, +h/2 (half size - local),
+    negative outside. A box without points gets zeros.
     """
     boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
     features = np.zeros((len(boxes), count, POINT_FEATURES), np.float32)
