@@ -175,13 +175,17 @@ class Detector:
         if not scale > 0:
             raise ValueError(f"scale must be positive, got {scale}")
         config = inference_config(self.config, scale)
+        refiner = getattr(self.net, "refiner", None) if config.refine else None
         results = []
         for start in range(0, len(points_list), batch_size):
             chunk = points_list[start : start + batch_size]
             points, batch_index = to_network_input(chunk, mount, scale)
             maps = run_network(self.net, points, batch_index, len(chunk), config)
-            frames_points = [points[batch_index == b].numpy() for b in range(len(chunk))]
-            refiner = getattr(self.net, "refiner", None) if config.refine else None
+            frames_points = (  # the second stage's input: network-frame points per frame
+                [points[batch_index == b].numpy() for b in range(len(chunk))]
+                if refiner is not None
+                else None
+            )
             for boxes, scores in decode(maps, config, refiner, frames_points):
                 results.append((ground_boxes_to_sensor(boxes, mount, scale), scores))
         return results
