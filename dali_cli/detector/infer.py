@@ -13,13 +13,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from dali_cli.artifacts import ArtifactError, BoxTable, FrameSet
 from dali_cli.detector.config import DetectorConfig
 from dali_cli.detector.model import PillarCenterNet
 from dali_cli.detector.refine import BoxRefiner, refine_boxes
-from dali_cli.detector.targets import REGRESSION, gather_cells, regression_to_boxes
+from dali_cli.detector.targets import gather_cells, peaks_and_boxes
 
 WEIGHTS_NAME = "model.pt"
 META_NAME = "model.json"
@@ -40,14 +39,9 @@ def decode(
     """
     from dali_cli.geometry import nms_bev
 
-    heat = torch.sigmoid(maps["heatmap"])  # (B, 1, h, w)
-    peaks = heat * (F.max_pool2d(heat, 3, stride=1, padding=1) == heat)  # (B, 1, h, w)
-    batch = heat.shape[0]
-    k = min(config.top_k, peaks[0].numel())
-    heat_score, index = peaks.reshape(batch, -1).topk(k, dim=1)  # (B, k), (B, k)
-    regression = gather_cells(torch.cat([maps[n] for n in REGRESSION], dim=1), index)  # (B, k, 8)
-    boxes = regression_to_boxes(regression.double(), index, config)  # (B, k, 7)
-    iou = torch.sigmoid(gather_cells(maps["iou"], index)[..., 0])  # (B, k)
+    heat_score, index, boxes = peaks_and_boxes(maps, config, config.top_k)  # (B, k), (B, k, 7)
+    batch = heat_score.shape[0]
+    iou = torch.sigmoid(gather_cells(maps["iou"].detach(), index)[..., 0])  # (B, k)
     alpha = config.iou_alpha
     score = heat_score.pow(1 - alpha) * iou.pow(alpha)  # (B, k)
     results = []
@@ -77,8 +71,8 @@ def rescore_refined(
     suppressed boxes and scores (see refine.py)."""
     from dali_cli.geometry import nms_bev
 
-    refined = boxes
-    for _ in range(config.refine_passes):
+    refined, iou = refine_boxes(refiner, points, boxes, config)
+    for _ in range(config.refine_passes - 1):  # further passes refine the refined boxes
         refined, iou = refine_boxes(refiner, points, refined, config)
     alpha = config.refine_alpha
     rescored = (scores ** (1 - alpha) * iou**alpha).astype(np.float32)

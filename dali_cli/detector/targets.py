@@ -197,18 +197,27 @@ def gather_cells(maps: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     return flat.gather(2, index[:, None, :].expand(-1, channels, -1)).transpose(1, 2)  # (B, K, C)
 
 
-def peak_boxes(
+def peaks_and_boxes(
     maps: dict[str, torch.Tensor], config: DetectorConfig, count: int
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """The `count` strongest 3x3 heatmap peaks of each frame, (B, k) flat cells, and the boxes
-    decoded there, (B, k, 7) float64 ground frame, detached (no threshold, no NMS)."""
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The `count` strongest 3x3 heatmap peaks of each frame: their heat (B, k), flat cells
+    (B, k) and the boxes decoded there, (B, k, 7) float64 ground frame; detached, no threshold,
+    no NMS (decoding and the peak losses both start here)."""
     heat = torch.sigmoid(maps["heatmap"].detach())  # (B, 1, h, w)
     peaks = heat * (F.max_pool2d(heat, 3, stride=1, padding=1) == heat)
     batch = heat.shape[0]
     k = min(count, peaks[0].numel())
-    index = peaks.reshape(batch, -1).topk(k, dim=1).indices  # (B, k)
+    heat_score, index = peaks.reshape(batch, -1).topk(k, dim=1)  # (B, k), (B, k)
     regression_maps = torch.cat([maps[name].detach() for name in REGRESSION], dim=1)
     boxes = regression_to_boxes(gather_cells(regression_maps, index).double(), index, config)
+    return heat_score, index, boxes
+
+
+def peak_boxes(
+    maps: dict[str, torch.Tensor], config: DetectorConfig, count: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """`peaks_and_boxes` without the heat: flat cells (B, k) and boxes (B, k, 7)."""
+    _, index, boxes = peaks_and_boxes(maps, config, count)
     return index, boxes
 
 
