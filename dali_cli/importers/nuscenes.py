@@ -15,10 +15,17 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.artifacts import BoxTable
+from dali_cli.artifacts import BoxTable, TableValueError, int32_column
 from dali_cli.geometry import count_points_in_boxes, normalize_yaw
-from dali_cli.importers.common import ImportFormatError, read_float_records, write_imported
+from dali_cli.importers.common import (
+    ImportFormatError,
+    check_id,
+    read_float_records,
+    write_imported,
+)
 from dali_cli.manifest import BuildResult
+
+_INT32 = np.iinfo(np.int32)
 
 DEFAULT_CAR_CATEGORIES = ("vehicle.car", "car")
 INTENSITY_MAX = 255.0  # nuScenes intensities are 0..255
@@ -197,6 +204,7 @@ class JsonSource:
                 raise ImportFormatError(f"{path}: record {index} refers to a missing ego_pose")
             filename = Path(_field(sample_data, index, "filename", path))
             frame_id = filename.name.removesuffix(".bin").removesuffix(".pcd")
+            check_id(frame_id, f"{path}, record {index} (field 'filename')")
             poses[sample_token] = (
                 np.asarray(pose["translation"], np.float64),
                 np.asarray(pose["rotation"], np.float64),
@@ -266,7 +274,17 @@ class JsonSource:
                 [self._category_of_instance.get(r.get("instance_token"), "unknown") for r in rows],
                 dtype=object,
             )
-            lidar_pts = np.array([r.get("num_lidar_pts", -1) for r in rows], np.int32)
+            try:
+                lidar_pts = int32_column(
+                    np.array([r.get("num_lidar_pts", -1) for r in rows], dtype=object).astype(
+                        np.float64
+                    ),
+                    "num_lidar_pts",
+                )
+            except (TableValueError, ValueError, TypeError) as error:
+                raise ImportFormatError(
+                    f"{path}: annotation of sample '{sample.key}': field 'num_lidar_pts' ({error})"
+                ) from None
         if x_forward:
             points, boxes = to_x_forward(points, boxes)
         if boxes is None:
@@ -296,7 +314,12 @@ class CsvSource:
         if not files:
             raise ImportFormatError(f"{path}: no .pcd.bin files")
         samples = [
-            Sample(f.name.removesuffix(".bin").removesuffix(".pcd"), f, f.name) for f in files
+            Sample(
+                check_id(f.name.removesuffix(".bin").removesuffix(".pcd"), f"{f}: file name"),
+                f,
+                f.name,
+            )
+            for f in files
         ]
         ids = {s.frame_id for s in samples}
         frame_of_row, boxes, categories, lidar_pts = read_boxes_csv(csv_path)
@@ -368,13 +391,20 @@ def read_boxes_csv(path: str | Path):
                     raise ImportFormatError(f"{path}, line {line}: negative size")
                 values.append(numbers)
                 categories.append(row["category"])
+                if "frame_id" in row:
+                    check_id(row["frame_id"], f"{path}, line {line}, column 'frame_id'")
                 frames.append(row.get("frame_id"))
                 try:
-                    lidar_pts.append(int(row["num_lidar_pts"]) if "num_lidar_pts" in row else -1)
+                    count = int(row["num_lidar_pts"]) if "num_lidar_pts" in row else -1
                 except ValueError:
                     raise ImportFormatError(
                         f"{path}, line {line}: column 'num_lidar_pts' is not an integer"
                     ) from None
+                if not _INT32.min <= count <= _INT32.max:
+                    raise ImportFormatError(
+                        f"{path}, line {line}: column 'num_lidar_pts' = {count} is out of the int32 range"
+                    )
+                lidar_pts.append(count)
     except OSError as error:
         raise ImportFormatError(f"{path}: cannot read CSV ({error})") from None
     boxes = np.asarray(values, np.float64).reshape(-1, 7)
