@@ -63,15 +63,13 @@ class FrameSet:
             group = zarr.open_group(str(self.path), mode="r")
         except Exception as error:  # zarr raises several types for a broken group
             raise ArtifactError(f"{self.path}: cannot open Zarr group ({error})") from None
-        for name in ("points", "offsets", "frame_ids"):
-            if name not in group:
-                raise ArtifactError(f"{self.path}: missing array '{name}'")
-        self._points = group["points"]
+        arrays = {name: self._array(group, name) for name in ("points", "offsets", "frame_ids")}
+        self._points = arrays["points"]
         if self._points.dtype != np.float32 or self._points.ndim != 2 or self._points.shape[1] != 4:
             raise ArtifactError(
                 f"{self.path}/points: expected float32 (N, 4), got {self._points.dtype} {self._points.shape}"
             )
-        offsets = np.asarray(group["offsets"][:])
+        offsets = self._small(arrays["offsets"])
         if offsets.dtype != np.int64 or offsets.ndim != 1 or offsets.size < 1:
             raise ArtifactError(
                 f"{self.path}/offsets: expected int64 (F + 1,), got {offsets.dtype} {offsets.shape}"
@@ -82,7 +80,13 @@ class FrameSet:
             raise ArtifactError(
                 f"{self.path}/offsets: last offset {offsets[-1]} != number of points {self._points.shape[0]}"
             )
-        frame_ids = [str(f) for f in np.asarray(group["frame_ids"][:]).tolist()]
+        ids = arrays["frame_ids"]
+        if ids.nchunks_initialized != ids.nchunks:  # Zarr would read a missing chunk as ""
+            raise ArtifactError(
+                f"{self.path}/frame_ids: {ids.nchunks - ids.nchunks_initialized} of "
+                f"{ids.nchunks} chunks missing"
+            )
+        frame_ids = [str(f) for f in self._small(ids).tolist()]
         if len(frame_ids) != offsets.size - 1:
             raise ArtifactError(
                 f"{self.path}/frame_ids: {len(frame_ids)} ids for {offsets.size - 1} frames"
@@ -99,6 +103,25 @@ class FrameSet:
         self._index = {fid: i for i, fid in enumerate(frame_ids)}
         self._chunk = int(self._points.chunks[0])
         self._chunks_present: set[int] = set()  # chunk files already seen on disk
+
+    def _array(self, group, name: str):
+        """Array `name` of the group; ArtifactError when absent or its metadata is unreadable."""
+        try:
+            if name not in group:
+                raise ArtifactError(f"{self.path}: missing array '{name}'")
+            return group[name]
+        except ArtifactError:
+            raise
+        except Exception as error:  # broken zarr.json: JSON, key or value errors
+            raise ArtifactError(f"{self.path}/{name}: cannot open array ({error})") from None
+
+    def _small(self, array) -> np.ndarray:
+        """All of a small array (offsets, frame ids); ArtifactError when a chunk cannot decode."""
+        try:
+            return np.asarray(array[:])
+        except Exception as error:
+            name = array.path if hasattr(array, "path") else "array"
+            raise ArtifactError(f"{self.path}/{name}: cannot be read ({error})") from None
 
     def __len__(self) -> int:
         return len(self.frame_ids)

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.artifacts import ArtifactError, BoxTable
-from dali_cli.frame_ids import child_path
+from dali_cli.frame_ids import check_name, child_path
 from dali_cli.geometry import normalize_yaw
 
 LABEL_SUFFIX = ".txt"
@@ -150,11 +150,15 @@ def _is_float(text: str) -> bool:
 
 
 def label_files(directory: str | Path) -> list[Path]:
-    """The `<frame>.txt` files of a label directory, sorted by name."""
+    """The `<frame>.txt` files of a label directory, sorted by name; each stem must be a valid
+    frame id (dali_cli.frame_ids), FrameIdError naming the file otherwise."""
     directory = Path(directory)
     if not directory.is_dir():
         raise ArtifactError(f"{directory}: label directory not found")
-    return sorted(p for p in directory.iterdir() if p.suffix == LABEL_SUFFIX and p.is_file())
+    files = sorted(p for p in directory.iterdir() if p.suffix == LABEL_SUFFIX and p.is_file())
+    for path in files:
+        check_name(path.stem, f"{path}: file name")
+    return files
 
 
 def list_label_frames(directory: str | Path) -> list[str]:

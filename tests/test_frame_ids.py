@@ -245,3 +245,13 @@ def test_absolute_id_would_land_outside_without_the_guard(tmp_path):
     with pytest.raises(FrameIdError):
         child_path(tmp_path / "out", str(target), ".txt")
     assert not os.path.exists(f"{target}.txt")
+
+
+def test_label_dir_reader_refuses_a_file_name_that_is_no_frame_id(tmp_path):
+    from dali_cli.kitti_label import read_label_dir
+
+    line = "Car 0.00 0 -1.57 600 150 650 200 1.5 1.6 3.9 1.0 1.7 10.0 0.0\n"
+    (tmp_path / "000001.txt").write_text(line)
+    (tmp_path / "a\x01b.txt").write_text(line)
+    with pytest.raises(FrameIdError, match=r"a\x01b.txt: file name: frame id .*control character"):
+        read_label_dir(tmp_path)

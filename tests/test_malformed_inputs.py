@@ -114,6 +114,18 @@ def damage_frames(world: Path, case: Path, how: str) -> tuple[Path, tuple[str, .
     if how == "garbage-chunk":
         chunk.write_bytes(b"\x28\xb5\x2f\xfd" + bytes(range(256)) * 4)
         return target, ("frames.zarr", "c/0/0", "cannot be decoded", "'000000'")
+    if how == "missing-offsets":
+        shutil.rmtree(store / "offsets" / "c")
+        return target, ("frames.zarr/offsets", "last offset 0")
+    if how == "missing-frame-ids":
+        shutil.rmtree(store / "frame_ids" / "c")
+        return target, ("frames.zarr/frame_ids", "chunks missing")
+    if how == "truncated-offsets":
+        (store / "offsets" / "c" / "0").write_bytes(b"\x28\xb5\x2f\xfd\x00")
+        return target, ("frames.zarr/offsets", "cannot be read")
+    if how == "garbage-metadata":
+        (store / "points" / "zarr.json").write_text('{"zarr_format": 3, "node_type": "arr')
+        return target, ("frames.zarr/points", "cannot open array")
     group = zarr.open_group(str(store), mode="r+")
     if how == "nan-points":
         points = group["points"]
@@ -188,6 +200,10 @@ FRAME_DAMAGE = [
     "missing-chunk",
     "truncated-chunk",
     "garbage-chunk",
+    "missing-offsets",
+    "missing-frame-ids",
+    "truncated-offsets",
+    "garbage-metadata",
     "nan-points",
     "float64-points",
     *(f"id-{name}" for name in HOSTILE),
