@@ -233,6 +233,11 @@ FRAME_STAGES: dict[str, Callable[[Path, Path, Path], list]] = {
     "ppcg-rc": lambda w, c, t: [
         "ppcg-rc", "--target", t, "--boxes", w / "target", "--library", w / "library", "--out",
         out_of(c), "--no-progress"],
+    "ppcg-cf": lambda w, c, t: [
+        "ppcg-cf", "--target", t, "--boxes", w / "target", "--library", w / "library", "--out",
+        out_of(c), "--no-progress"],
+    "ptsn-sweep": lambda w, c, t: [
+        "ptsn-sweep", "--model", w / "model", "--target", t, "--out", out_of(c), "--no-progress"],
     "eval-model": lambda w, c, t: [
         "eval", "--model", w / "model", "--data", t, "--scale", "1",
         "--out", out_of(c) / "metrics.json"],
@@ -245,6 +250,9 @@ FRAME_STAGES: dict[str, Callable[[Path, Path, Path], list]] = {
 BOX_STAGES: dict[str, Callable[[Path, Path, Path], list]] = {
     "ppcg-rc": lambda w, c, b: [
         "ppcg-rc", "--target", w / "target", "--boxes", b, "--library", w / "library", "--out",
+        out_of(c), "--no-progress"],
+    "ppcg-cf": lambda w, c, b: [
+        "ppcg-cf", "--target", w / "target", "--boxes", b, "--library", w / "library", "--out",
         out_of(c), "--no-progress"],
     "eval-pred": lambda w, c, b: [
         "eval", "--pred", b, "--gt", w / "target", "--out", out_of(c) / "metrics.json"],
