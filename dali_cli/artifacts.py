@@ -531,14 +531,12 @@ class BoxTable:
 
 def write_boxes(directory: str | Path, table: BoxTable) -> Path:
     """Write `<directory>/boxes.parquet`; validates values first (TableValueError, a ValueError,
-    on NaN/inf boxes, frame ids that cannot name a file, int32 columns out of range)."""
+    on NaN/inf boxes or scores, negative sizes, frame ids that cannot name a file, int32 columns
+    out of range): what read_boxes would refuse is never written."""
     path = Path(directory) / BOXES_NAME
-    boxes = table.boxes
-    if not np.isfinite(boxes).all():
-        row = int(np.flatnonzero(~np.isfinite(boxes).all(axis=1))[0])
-        raise TableValueError(
-            f"{path}: box row {row} (frame '{table.frame_id[row]}') has NaN/inf values"
-        )
+    problem = _value_problem(table)
+    if problem is not None:  # what read_boxes would refuse is never written
+        raise TableValueError(f"{path}: {problem}")
     arrow = table.to_arrow()
     _check_frame_ids(arrow.column("frame_id"), path, TableValueError)
     pq.write_table(arrow, path, compression="zstd")
@@ -622,17 +620,24 @@ def read_boxes(directory: str | Path) -> BoxTable:
         columns[name] = values
     _check_frame_ids(table.column("frame_id"), path)
     result = BoxTable(columns)
-    boxes = result.boxes
-    finite = np.isfinite(boxes).all(axis=1)
-    if not finite.all():
-        row = int(np.flatnonzero(~finite)[0])
-        raise ArtifactError(
-            f"{path}: row {row} (frame '{result.frame_id[row]}') has NaN/inf box values"
-        )
-    negative = (boxes[:, 3:6] < 0).any(axis=1)
-    if negative.any():
-        row = int(np.flatnonzero(negative)[0])
-        raise ArtifactError(
-            f"{path}: row {row} (frame '{result.frame_id[row]}') has a negative size"
-        )
+    problem = _value_problem(result)
+    if problem is not None:
+        raise ArtifactError(f"{path}: {problem}")
     return result
+
+
+def _value_problem(table: BoxTable) -> str | None:
+    """The first row with NaN/inf box values, a negative size or a NaN/inf score, described
+    with its frame; None when every row is fine."""
+    boxes = table.boxes
+    score = np.asarray(table["score"], np.float64)
+    checks = (
+        (~np.isfinite(boxes).all(axis=1), "has NaN/inf box values"),
+        ((boxes[:, 3:6] < 0).any(axis=1), "has a negative size"),
+        (~np.isfinite(score), "has a NaN/inf score"),
+    )
+    for bad, problem in checks:
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            return f"row {row} (frame '{table.frame_id[row]}') {problem}"
+    return None

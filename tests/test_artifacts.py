@@ -396,3 +396,20 @@ def test_int32_column_keeps_what_fits():
     assert int32_column(np.array([True, False]), "n").dtype == np.int32
     with pytest.raises(TableValueError, match="expected integers"):
         int32_column(np.array(["1"]), "n")
+
+
+@pytest.mark.parametrize(
+    ("column", "value", "problem"),
+    [("score", np.nan, "NaN/inf score"), ("score", np.inf, "NaN/inf score"),
+     ("w", -1.0, "negative size")],
+)  # fmt: skip
+def test_write_refuses_what_read_would_refuse(tmp_path, column, value, problem):
+    table = sample_boxes()
+    table.columns[column] = table.columns[column].copy()
+    table.columns[column][2] = value
+    with pytest.raises(TableValueError, match=f"row 2 \\(frame '.*'\\) has a {problem}"):
+        write_boxes(tmp_path, table)
+    assert not (tmp_path / "boxes.parquet").exists()
+    pq.write_table(table.to_arrow(), tmp_path / "boxes.parquet")  # another tool wrote it
+    with pytest.raises(ArtifactError, match=f"boxes.parquet: row 2 .*{problem}"):
+        read_boxes(tmp_path)

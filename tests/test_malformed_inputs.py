@@ -169,6 +169,11 @@ def damage_boxes(world: Path, case: Path, how: str) -> tuple[Path, tuple[str, ..
         x[2] = np.nan
         table = replaced("x", x)
         need = ("boxes.parquet", "row 2", "NaN/inf")
+    elif how == "nan-score":
+        score = arrow.column("score").to_numpy().copy()
+        score[1] = np.nan
+        table = replaced("score", score)
+        need = ("boxes.parquet", "row 1", "NaN/inf score")
     elif how == "negative-size":
         length = arrow.column("l").to_numpy().copy()
         length[1] = -4.0
@@ -212,6 +217,7 @@ BOX_DAMAGE = [
     "garbage",
     "empty-file",
     "nan-box",
+    "nan-score",
     "negative-size",
     "num-points-2**40",
     "frame-id-int",
