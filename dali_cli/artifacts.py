@@ -28,7 +28,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-from dali_cli.frame_ids import check_name, first_bad_name
+from dali_cli.frame_ids import FrameIdError, check_name, first_bad_name
 
 FRAMES_NAME = "frames.zarr"
 BOXES_NAME = "boxes.parquet"
@@ -292,7 +292,9 @@ class FrameSetWriter:
         if not np.isfinite(points).all():
             raise ValueError(f"frame '{frame_id}': points contain NaN/inf")
         if frame_id in self._seen:
-            raise ValueError(f"frame '{frame_id}' appended twice")
+            raise FrameIdError(
+                f"{self.path}, frame {len(self._frame_ids)}: frame id '{frame_id}' appended twice"
+            )
         self._frame_ids.append(frame_id)
         self._seen.add(frame_id)
         self._offsets.append(self._offsets[-1] + len(points))

@@ -531,9 +531,12 @@ def test_import_nuscenes_csv_refuses_malformed_files(tmp_path, how):
     expect_refused(tmp_path, args, *needles)
 
 
-def nuscenes_tables(case: Path, filename: str, annotation: dict | None = None) -> Path:
+def nuscenes_tables(
+    case: Path, filename: str, annotation: dict | None = None, second: str | None = None
+) -> Path:
     """A minimal one-sample v1.0 table set whose LIDAR_TOP sample_data record names
-    `filename`; `annotation` overrides fields of its one box."""
+    `filename`; `annotation` overrides fields of its one box; `second` adds a second key frame
+    (another sample) whose record names that file."""
     root = case / "nuscenes"
     (root / "samples" / "LIDAR_TOP").mkdir(parents=True)
     shutil.copy(NUSCENES_SCAN, root / "samples" / "LIDAR_TOP" / NUSCENES_SCAN.name)
@@ -554,6 +557,11 @@ def nuscenes_tables(case: Path, filename: str, annotation: dict | None = None) -
         "instance": [{"token": "i0", "category_token": "c0"}],
         "sample_annotation": [box],
     }  # fmt: skip
+    if second is not None:
+        tables["sample_data"].append(
+            {**tables["sample_data"][0], "token": "sd1", "sample_token": "s1", "filename": second}
+        )
+        tables["sample"].append({"token": "s1", "scene_token": "sc", "timestamp": 2})
     (root / "v1.0-mini").mkdir()
     for name, rows in tables.items():
         (root / "v1.0-mini" / f"{name}.json").write_text(json.dumps(rows))
@@ -572,6 +580,8 @@ NUSCENES_JSON_DAMAGE = {
                                        ("sample_annotation.json", "num_lidar_pts")),
     "annotation-num-lidar-pts-text": ({"annotation": {"num_lidar_pts": "many"}},
                                       ("sample_annotation.json", "num_lidar_pts")),
+    "duplicate-frame": ({"second": f"sweeps/LIDAR_TOP/{getattr(NUSCENES_SCAN, 'name', '')}"},
+                        ("sample_data.json", "record 1", "already used by record 0")),
     "annotation-size-missing": ({"annotation": {"size": [1.8, 4.2]}},
                                 ("sample_annotation.json", "malformed annotation")),
 }  # fmt: skip
@@ -582,7 +592,7 @@ NUSCENES_JSON_DAMAGE = {
 def test_import_nuscenes_tables_refuse_malformed_records(tmp_path, how):
     change, needles = NUSCENES_JSON_DAMAGE[how]
     filename = change.get("filename", f"samples/LIDAR_TOP/{NUSCENES_SCAN.name}")
-    root = nuscenes_tables(tmp_path, filename, change.get("annotation"))
+    root = nuscenes_tables(tmp_path, filename, change.get("annotation"), change.get("second"))
     expect_refused(tmp_path, ["import", "nuscenes", root, "--out", out_of(tmp_path)], *needles)
 
 

@@ -188,6 +188,7 @@ class JsonSource:
                 raise ImportFormatError(f"{table_dir / 'scene.json'}: unknown scene '{unknown[0]}'")
         path = table_dir / "sample_data.json"
         chosen: list[tuple] = []
+        record_of_frame: dict[str, int] = {}
         poses: dict[str, tuple] = {}
         for index, row in enumerate(sample_data):
             calib = calib_by_token.get(row.get("calibrated_sensor_token"))
@@ -205,6 +206,12 @@ class JsonSource:
             filename = Path(_field(sample_data, index, "filename", path))
             frame_id = filename.name.removesuffix(".bin").removesuffix(".pcd")
             check_id(frame_id, f"{path}, record {index} (field 'filename')")
+            if frame_id in record_of_frame:
+                raise ImportFormatError(
+                    f"{path}, record {index}: frame id '{frame_id}' (field 'filename') already "
+                    f"used by record {record_of_frame[frame_id]}"
+                )
+            record_of_frame[frame_id] = index
             poses[sample_token] = (
                 np.asarray(pose["translation"], np.float64),
                 np.asarray(pose["rotation"], np.float64),
