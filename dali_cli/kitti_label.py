@@ -62,6 +62,8 @@ def _split_lines(path: Path) -> tuple[list[str], list[str], list[int]]:
         text = path.read_text()
     except OSError as error:
         raise ArtifactError(f"{path}: cannot read label file ({error.strerror})") from None
+    except UnicodeDecodeError as error:
+        raise ArtifactError(f"{path}: label file is not UTF-8 text (byte {error.start})") from None
     names, tokens, numbers = [], [], []
     for number, line in enumerate(text.splitlines(), start=1):  # a loop over text lines
         fields = line.split()

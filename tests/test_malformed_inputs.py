@@ -423,6 +423,12 @@ def kitti_case(case: Path, how: str) -> tuple[list, tuple[str, ...]]:
     elif how == "label-occluded-2**40":
         _edit_line(label, lambda f: f[:2] + [str(2**40)] + f[3:])
         need = ("000008.txt:1", "occluded")
+    elif how == "label-binary":
+        label.write_bytes(b"\xff\xfe\x00Car 0 0")
+        need = ("000008.txt", "not UTF-8")
+    elif how == "calib-binary":
+        calib.write_bytes(b"P2: \xff\xfe")
+        need = ("calib/000008.txt", "not UTF-8")
     elif how == "calib-missing-matrix":
         _drop_calib_key(calib, "Tr_velo_to_cam")
         need = ("calib/000008.txt", "Tr_velo_to_cam", "missing")
@@ -458,6 +464,8 @@ KITTI_DAMAGE = [
     "label-nan",
     "label-inf-size",
     "label-occluded-2**40",
+    "label-binary",
+    "calib-binary",
     "calib-missing-matrix",
     "calib-short-matrix",
     "calib-nan",
@@ -497,6 +505,9 @@ def nuscenes_csv_case(case: Path, how: str) -> tuple[list, tuple[str, ...]]:
     elif how == "short-row":
         rows[1] = ",".join(rows[1].split(",")[:5])
         need = ("boxes.csv", "line 3", "fields")
+    elif how == "binary":
+        rows[1] = "car,\udcff\udcfe"
+        need = ("boxes.csv", "cannot read CSV")
     elif how == "truncated-scan":
         scan.write_bytes(scan.read_bytes()[:-3])
         need = (NUSCENES_SCAN.name, "not a multiple of 20")
@@ -509,7 +520,7 @@ def nuscenes_csv_case(case: Path, how: str) -> tuple[list, tuple[str, ...]]:
         need = ("boxes.csv", "line 4", "frame_id", "frame id")
     else:
         raise ValueError(how)
-    csv.write_text("\n".join([header, *rows]) + "\n")
+    csv.write_bytes(("\n".join([header, *rows]) + "\n").encode("utf-8", "surrogateescape"))
     return ["import", "nuscenes", path_arg, "--boxes-csv", csv, "--out", out_of(case)], need
 
 
@@ -519,6 +530,7 @@ NUSCENES_CSV_DAMAGE = [
     "num-lidar-pts-2**40",
     "missing-column",
     "short-row",
+    "binary",
     "truncated-scan",
     *(f"id-{name}" for name in HOSTILE),
 ]
@@ -629,6 +641,9 @@ def openpcdet_case(world: Path, case: Path, how: str) -> tuple[list, tuple[str, 
     elif how == "label-nan":
         label.write_text("10 0 -1 4 1.8 1.5 0 Car\n10 nan -1 4 1.8 1.5 0 Car\n")
         need = ("000000.txt", "line 2", "'y'")
+    elif how == "label-binary":
+        label.write_bytes(b"10 0 -1 4 1.8 1.5 0 \xff\xfeCar\n")
+        need = ("000000.txt", "not UTF-8")
     elif how == "label-negative":
         label.write_text("10 0 -1 4 -1.8 1.5 0 Car\n")
         need = ("000000.txt", "line 1", "negative size")
@@ -652,6 +667,7 @@ OPENPCDET_DAMAGE = [
     "npy-pickle",
     "label-7-fields",
     "label-nan",
+    "label-binary",
     "label-negative",
     *(f"split-{name}" for name in HOSTILE if name != "nul"),
 ]

@@ -48,6 +48,22 @@ def check_finite_points(points: np.ndarray, path: str | Path) -> None:
         )
 
 
+def read_text_lines(path: str | Path, what: str) -> list[str]:
+    """The lines of a UTF-8 text file; ImportFormatError naming the file (and `what` it should
+    be) when it is missing, unreadable or not UTF-8 text (the first bad byte's offset)."""
+    path = Path(path)
+    try:
+        return path.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise ImportFormatError(f"{path}: {what} not found") from None
+    except OSError as error:
+        raise ImportFormatError(f"{path}: cannot read {what} ({error.strerror})") from None
+    except UnicodeDecodeError as error:
+        raise ImportFormatError(
+            f"{path}: {what} is not UTF-8 text (byte {error.start}: {error.object[error.start]:#04x})"
+        ) from None
+
+
 def read_id_list(path: str | Path) -> list[str]:
     """Frame ids from a text file, one per line (blank lines and `#` comments ignored).
 
@@ -56,10 +72,7 @@ def read_id_list(path: str | Path) -> list[str]:
     `../../other/velodyne/000008` would otherwise read and later write outside the dataset.
     Errors name the file and the line."""
     path = Path(path)
-    try:
-        lines = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as error:
-        raise ImportFormatError(f"{path}: cannot read id list ({error})") from None
+    lines = read_text_lines(path, "id list")
     ids, first_line = [], {}
     for number, line in enumerate(lines, start=1):
         frame_id = line.split("#", 1)[0].strip()

@@ -25,6 +25,7 @@ from dali_cli.importers.common import (
     ImportFormatError,
     check_id,
     read_float_records,
+    read_text_lines,
     write_imported,
 )
 from dali_cli.manifest import BuildResult
@@ -107,12 +108,7 @@ _CALIB_SHAPES = {"P2": (3, 4), "R0_rect": (3, 3), "Tr_velo_to_cam": (3, 4)}
 def read_calib(path: str | Path) -> Calibration:
     """Parse a KITTI object calib file (`KEY: v1 v2 ...` lines). Errors name file, line and key."""
     path = Path(path)
-    try:
-        lines = path.read_text().splitlines()
-    except FileNotFoundError:
-        raise ImportFormatError(f"{path}: calib file not found") from None
-    except OSError as error:
-        raise ImportFormatError(f"{path}: cannot read calib file ({error})") from None
+    lines = read_text_lines(path, "calib file")
     values: dict[str, tuple[int, np.ndarray]] = {}
     for number, line in enumerate(lines, start=1):
         if not line.strip():

@@ -133,6 +133,8 @@ def _load_table(table_dir: Path, name: str, required: bool = True) -> list[dict]
         raise ImportFormatError(
             f"{path}: invalid JSON (line {error.lineno}: {error.msg})"
         ) from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise ImportFormatError(f"{path}: cannot read nuScenes table ({error})") from None
     if not isinstance(rows, list):
         raise ImportFormatError(f"{path}: expected a JSON list of records")
     return rows
@@ -412,7 +414,7 @@ def read_boxes_csv(path: str | Path):
                         f"{path}, line {line}: column 'num_lidar_pts' = {count} is out of the int32 range"
                     )
                 lidar_pts.append(count)
-    except OSError as error:
+    except (OSError, UnicodeDecodeError, csv.Error) as error:
         raise ImportFormatError(f"{path}: cannot read CSV ({error})") from None
     boxes = np.asarray(values, np.float64).reshape(-1, 7)
     boxes[:, 6] = normalize_yaw(boxes[:, 6])

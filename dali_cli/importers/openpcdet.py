@@ -19,6 +19,7 @@ from dali_cli.importers.common import (
     check_finite_points,
     check_id,
     read_id_list,
+    read_text_lines,
     write_imported,
 )
 from dali_cli.manifest import BuildResult
@@ -71,10 +72,7 @@ def read_labels(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
     Errors name the file, the line and the field."""
     path = Path(path)
-    try:
-        lines = path.read_text().splitlines()
-    except OSError as error:
-        raise ImportFormatError(f"{path}: cannot read label file ({error})") from None
+    lines = read_text_lines(path, "label file")
     names = ("x", "y", "z", "dx", "dy", "dz", "heading")
     values, classes = [], []
     for number, line in enumerate(lines, start=1):
