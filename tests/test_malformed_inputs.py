@@ -543,58 +543,89 @@ def test_import_nuscenes_csv_refuses_malformed_files(tmp_path, how):
     expect_refused(tmp_path, args, *needles)
 
 
-def nuscenes_tables(
-    case: Path, filename: str, annotation: dict | None = None, second: str | None = None
-) -> Path:
-    """A minimal one-sample v1.0 table set whose LIDAR_TOP sample_data record names
-    `filename`; `annotation` overrides fields of its one box; `second` adds a second key frame
-    (another sample) whose record names that file."""
+def nuscenes_tables(case: Path, mutate: Callable[[dict], object]) -> Path:
+    """A minimal one-sample v1.0 table set (one LIDAR_TOP key frame, one car), changed by
+    `mutate(tables)` before it is written."""
     root = case / "nuscenes"
     (root / "samples" / "LIDAR_TOP").mkdir(parents=True)
     shutil.copy(NUSCENES_SCAN, root / "samples" / "LIDAR_TOP" / NUSCENES_SCAN.name)
     pose = {"translation": [0.0, 0.0, 0.0], "rotation": [1.0, 0.0, 0.0, 0.0]}
-    box = {"token": "a0", "sample_token": "s0", "instance_token": "i0", "num_lidar_pts": 5,
-           "translation": [10.0, 0.0, 0.0], "size": [1.8, 4.2, 1.5], "rotation": [1, 0, 0, 0],
-           **(annotation or {})}  # fmt: skip
     tables = {
         "sensor": [{"token": "lidar", "channel": "LIDAR_TOP"}],
         "calibrated_sensor": [{"token": "cs", "sensor_token": "lidar", **pose}],
         "ego_pose": [{"token": "ep", **pose}],
         "sample_data": [{"token": "sd", "sample_token": "s0", "ego_pose_token": "ep",
                          "calibrated_sensor_token": "cs", "is_key_frame": True,
-                         "filename": filename}],
+                         "filename": f"samples/LIDAR_TOP/{NUSCENES_SCAN.name}"}],
         "sample": [{"token": "s0", "scene_token": "sc", "timestamp": 1}],
         "scene": [{"token": "sc", "name": "scene-0001"}],
         "category": [{"token": "c0", "name": "vehicle.car"}],
         "instance": [{"token": "i0", "category_token": "c0"}],
-        "sample_annotation": [box],
+        "sample_annotation": [{"token": "a0", "sample_token": "s0", "instance_token": "i0",
+                               "num_lidar_pts": 5, "translation": [10.0, 0.0, 0.0],
+                               "size": [1.8, 4.2, 1.5], "rotation": [1, 0, 0, 0]}],
     }  # fmt: skip
-    if second is not None:
-        tables["sample_data"].append(
-            {**tables["sample_data"][0], "token": "sd1", "sample_token": "s1", "filename": second}
-        )
-        tables["sample"].append({"token": "s1", "scene_token": "sc", "timestamp": 2})
+    mutate(tables)
     (root / "v1.0-mini").mkdir()
     for name, rows in tables.items():
         (root / "v1.0-mini" / f"{name}.json").write_text(json.dumps(rows))
     return root
 
 
+def _set(table: str, field: str, value, record: int = 0):
+    """A mutation of nuscenes_tables: tables[table][record][field] = value (None: delete)."""
+
+    def mutate(tables):
+        if value is None:
+            del tables[table][record][field]
+        else:
+            tables[table][record][field] = value
+
+    return mutate
+
+
+def _second_key_frame(tables):
+    """Another sample whose LIDAR_TOP record names the same file (in sweeps/)."""
+    first = tables["sample_data"][0]
+    name = first["filename"].rsplit("/", 1)[1]
+    tables["sample_data"].append(
+        {**first, "token": "sd1", "sample_token": "s1", "filename": f"sweeps/LIDAR_TOP/{name}"}
+    )
+    tables["sample"].append({"token": "s1", "scene_token": "sc", "timestamp": 2})
+
+
 NUSCENES_JSON_DAMAGE = {
-    "filename-dotdot": ({"filename": "samples/LIDAR_TOP/.."}, ("sample_data.json", "record 0")),
-    "filename-control": (
-        {"filename": "samples/LIDAR_TOP/a\x01b.pcd.bin"},
-        ("sample_data.json", "record 0", "control character"),
-    ),
-    "annotation-nan": ({"annotation": {"translation": [float("nan"), 0, 0]}},
-                       ("sample_annotation.json", "NaN/inf")),
-    "annotation-num-lidar-pts-2**40": ({"annotation": {"num_lidar_pts": 2**40}},
-                                       ("sample_annotation.json", "num_lidar_pts")),
-    "annotation-num-lidar-pts-text": ({"annotation": {"num_lidar_pts": "many"}},
-                                      ("sample_annotation.json", "num_lidar_pts")),
-    "duplicate-frame": ({"second": f"sweeps/LIDAR_TOP/{getattr(NUSCENES_SCAN, 'name', '')}"},
+    "filename-dotdot": (_set("sample_data", "filename", "samples/LIDAR_TOP/.."),
+                        ("sample_data.json", "record 0", "frame id")),
+    "filename-control": (_set("sample_data", "filename", "samples/LIDAR_TOP/a\x01b.pcd.bin"),
+                         ("sample_data.json", "record 0", "control character")),
+    "filename-number": (_set("sample_data", "filename", 7),
+                        ("sample_data.json", "record 0", "'filename'", "string")),
+    "duplicate-frame": (_second_key_frame,
                         ("sample_data.json", "record 1", "already used by record 0")),
-    "annotation-size-missing": ({"annotation": {"size": [1.8, 4.2]}},
+    "record-not-object": (lambda t: t["sample_data"].__setitem__(0, [1, 2]),
+                          ("sample_data.json", "record 0", "not a JSON object")),
+    "sensor-without-token": (_set("sensor", "token", None),
+                             ("sensor.json", "record 0", "no field 'token'")),
+    "ego-translation-text": (_set("ego_pose", "translation", "abc"),
+                             ("ego_pose.json", "record 0", "'translation'")),
+    "ego-rotation-nan": (_set("ego_pose", "rotation", [float("nan"), 0, 0, 0]),
+                         ("ego_pose.json", "record 0", "'rotation'", "finite")),
+    "calib-zero-quaternion": (_set("calibrated_sensor", "rotation", [0, 0, 0, 0]),
+                              ("calibrated_sensor.json", "record 0", "zero quaternion")),
+    "timestamp-text": (_set("sample", "timestamp", "noon"),
+                       ("sample.json", "record 0", "'timestamp'")),
+    "category-without-name": (_set("category", "name", None),
+                              ("category.json", "record 0", "no field 'name'")),
+    "annotation-not-object": (lambda t: t["sample_annotation"].__setitem__(0, 5),
+                              ("sample_annotation.json", "record 0", "not a JSON object")),
+    "annotation-nan": (_set("sample_annotation", "translation", [float("nan"), 0, 0]),
+                       ("sample_annotation.json", "NaN/inf")),
+    "annotation-num-lidar-pts-2**40": (_set("sample_annotation", "num_lidar_pts", 2**40),
+                                       ("sample_annotation.json", "num_lidar_pts")),
+    "annotation-num-lidar-pts-text": (_set("sample_annotation", "num_lidar_pts", "many"),
+                                      ("sample_annotation.json", "num_lidar_pts")),
+    "annotation-size-missing": (_set("sample_annotation", "size", [1.8, 4.2]),
                                 ("sample_annotation.json", "malformed annotation")),
 }  # fmt: skip
 
@@ -602,9 +633,8 @@ NUSCENES_JSON_DAMAGE = {
 @pytest.mark.skipif(NUSCENES_SCAN is None, reason="nuScenes fixture scan missing")
 @pytest.mark.parametrize("how", list(NUSCENES_JSON_DAMAGE))
 def test_import_nuscenes_tables_refuse_malformed_records(tmp_path, how):
-    change, needles = NUSCENES_JSON_DAMAGE[how]
-    filename = change.get("filename", f"samples/LIDAR_TOP/{NUSCENES_SCAN.name}")
-    root = nuscenes_tables(tmp_path, filename, change.get("annotation"), change.get("second"))
+    mutate, needles = NUSCENES_JSON_DAMAGE[how]
+    root = nuscenes_tables(tmp_path, mutate)
     expect_refused(tmp_path, ["import", "nuscenes", root, "--out", out_of(tmp_path)], *needles)
 
 

@@ -137,7 +137,62 @@ def _load_table(table_dir: Path, name: str, required: bool = True) -> list[dict]
         raise ImportFormatError(f"{path}: cannot read nuScenes table ({error})") from None
     if not isinstance(rows, list):
         raise ImportFormatError(f"{path}: expected a JSON list of records")
+    _check_records(rows, path, _TABLE_FIELDS.get(name, {}))
     return rows
+
+
+# The fields dali reads from each table's records and their kinds ("?": may be absent). Checked
+# when a table is loaded, so a malformed record is an error naming the file, record and field
+# rather than a KeyError or a NaN box later. Annotation geometry is checked per sample in load().
+_TABLE_FIELDS = {
+    "sensor": {"token": "str", "channel?": "str"},
+    "calibrated_sensor": {"token": "str", "sensor_token?": "str", "translation": "vec3",
+                          "rotation": "quaternion"},
+    "ego_pose": {"token": "str", "translation": "vec3", "rotation": "quaternion"},
+    "sample_data": {"sample_token": "str", "ego_pose_token": "str", "filename": "str",
+                    "calibrated_sensor_token?": "str", "is_key_frame?": "bool"},
+    "sample": {"token": "str", "scene_token?": "str", "timestamp?": "number"},
+    "scene": {"token": "str", "name?": "str"},
+    "category": {"token": "str", "name": "str"},
+    "instance": {"token": "str", "category_token?": "str"},
+    "sample_annotation": {"sample_token": "str", "instance_token?": "str"},
+}  # fmt: skip
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and np.isfinite(value)
+
+
+def _kind_problem(value, kind: str) -> str | None:
+    """Why `value` is not of `kind` (see _TABLE_FIELDS), or None."""
+    if kind == "str":
+        return None if isinstance(value, str) else f"expected a string, got {value!r:.40}"
+    if kind == "bool":
+        return None if isinstance(value, bool) else f"expected true/false, got {value!r:.40}"
+    if kind == "number":
+        return None if _is_number(value) else f"expected a finite number, got {value!r:.40}"
+    size = 3 if kind == "vec3" else 4
+    if not (isinstance(value, list) and len(value) == size and all(map(_is_number, value))):
+        return f"expected {size} finite numbers, got {value!r:.60}"
+    if kind == "quaternion" and np.linalg.norm(value) < 1e-9:
+        return "zero quaternion"
+    return None
+
+
+def _check_records(rows: list, path: Path, fields: dict[str, str]) -> None:
+    """ImportFormatError naming the file, record (0-based) and field of the first bad record."""
+    for index, row in enumerate(rows):  # a loop over records: table rows, not points
+        if not isinstance(row, dict):
+            raise ImportFormatError(f"{path}: record {index} is not a JSON object")
+        for key, kind in fields.items():
+            name = key.rstrip("?")
+            if name not in row:
+                if key.endswith("?"):
+                    continue
+                raise ImportFormatError(f"{path}: record {index} has no field '{name}'")
+            problem = _kind_problem(row[name], kind)
+            if problem is not None:
+                raise ImportFormatError(f"{path}: record {index}, field '{name}': {problem}")
 
 
 def _field(rows: list[dict], index: int, name: str, path: Path):
