@@ -405,11 +405,9 @@ def int32_column(values, name: str, frame_id: np.ndarray | None = None) -> np.nd
 
 
 def _typed_column(name: str, values, frame_id: np.ndarray | None = None) -> np.ndarray:
-    """A base column in its schema dtype (int32 range-checked); extra columns as given."""
+    """`num_points` as int32, range-checked; every other column as given."""
     if name == "num_points":
         return int32_column(values, name, frame_id)
-    if name in BOX_FIELDS or name == "score":
-        return np.asarray(values, _BASE_TYPES[name].to_pandas_dtype())
     return np.asarray(values)
 
 
