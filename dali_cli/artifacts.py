@@ -69,7 +69,7 @@ class FrameSet:
             raise ArtifactError(
                 f"{self.path}/points: expected float32 (N, 4), got {self._points.dtype} {self._points.shape}"
             )
-        offsets = self._small(arrays["offsets"])
+        offsets = self._small(arrays["offsets"], "offsets")
         if offsets.dtype != np.int64 or offsets.ndim != 1 or offsets.size < 1:
             raise ArtifactError(
                 f"{self.path}/offsets: expected int64 (F + 1,), got {offsets.dtype} {offsets.shape}"
@@ -86,7 +86,7 @@ class FrameSet:
                 f"{self.path}/frame_ids: {ids.nchunks - ids.nchunks_initialized} of "
                 f"{ids.nchunks} chunks missing"
             )
-        frame_ids = [str(f) for f in self._small(ids).tolist()]
+        frame_ids = [str(f) for f in self._small(ids, "frame_ids").tolist()]
         if len(frame_ids) != offsets.size - 1:
             raise ArtifactError(
                 f"{self.path}/frame_ids: {len(frame_ids)} ids for {offsets.size - 1} frames"
@@ -115,12 +115,11 @@ class FrameSet:
         except Exception as error:  # broken zarr.json: JSON, key or value errors
             raise ArtifactError(f"{self.path}/{name}: cannot open array ({error})") from None
 
-    def _small(self, array) -> np.ndarray:
+    def _small(self, array, name: str) -> np.ndarray:
         """All of a small array (offsets, frame ids); ArtifactError when a chunk cannot decode."""
         try:
             return np.asarray(array[:])
         except Exception as error:
-            name = array.path if hasattr(array, "path") else "array"
             raise ArtifactError(f"{self.path}/{name}: cannot be read ({error})") from None
 
     def __len__(self) -> int:
@@ -251,15 +250,14 @@ class FrameSetWriter:
         compress: bool = True,
     ):
         import zarr
+        from zarr.codecs import Crc32cCodec, ZstdCodec
 
         self.path = Path(directory) / FRAMES_NAME
         self._group = zarr.open_group(str(self.path), mode="w", zarr_format=3)
-        from zarr.codecs import Crc32cCodec, ZstdCodec
-
         # compress=False: raw float32 chunks (LiDAR coordinates shrink only ~8% with zstd, which
         # costs more CPU than the rest of a fast stage); readers need no change. Every chunk ends
         # with a CRC-32C of its stored bytes, checked by Zarr on read (a flipped bit or a truncated
-        # chunk is an error, not silently wrong points); about 5 ms per 32 MiB chunk.
+        # chunk is an error, not silently wrong points); about 3 ms per 32 MiB chunk.
         compressors = (ZstdCodec(level=0), Crc32cCodec()) if compress else (Crc32cCodec(),)
         # point chunks are never all zeros: skip zarr's costly "is this chunk empty?" scan
         # (about 3/4 of the CPU time of writing uncompressed chunks)
@@ -377,7 +375,8 @@ _INT32 = np.iinfo(np.int32)
 def int32_column(values, name: str, frame_id: np.ndarray | None = None) -> np.ndarray:
     """`values` as an `(N,)` int32 array, refusing (TableValueError naming the column, row and
     frame) anything a cast would change: values outside [-2**31, 2**31 - 1], NaN/inf, fractions,
-    non-numbers. Every int32 column of a box table goes through it (num_points, occluded, ...)."""
+    non-numbers. Used for num_points (from_arrays, with_columns, write and read) and by importers
+    for their int32 columns (nuScenes num_lidar_pts)."""
     array = np.asarray(values)
     if array.dtype == np.int32:
         return array
