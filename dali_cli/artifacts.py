@@ -382,8 +382,12 @@ class BoxTable:
         for name, values in self.columns.items():
             if name in _BASE_TYPES:
                 array = pa.array(values, type=_BASE_TYPES[name])
+            elif values.dtype == object:
+                # object columns hold strings; typed explicitly, else an empty one is written as
+                # pyarrow's null type, which read_boxes rejects (an empty ppcg table, issue 17)
+                array = pa.array(values.tolist(), type=pa.string() if len(values) == 0 else None)
             else:
-                array = pa.array(values.tolist() if values.dtype == object else values)
+                array = pa.array(values)
             arrays.append(array)
             fields.append(pa.field(name, array.type))
         return pa.Table.from_arrays(arrays, schema=pa.schema(fields))
