@@ -179,7 +179,7 @@ def _sample_thresholds(tp_scores: np.ndarray, num_gt: int) -> np.ndarray:
     if count == 0 or num_gt == 0:
         return np.zeros(0)
     left = (np.arange(count) + 1) / num_gt  # recall if this score is the threshold
-    right = np.r_[(np.arange(1, count) + 2) / num_gt, left[-1]]
+    right = np.r_[left[1:], left[-1]]  # next score's recall (i + 2) / num_gt; the last: its own
     chosen, current, start = [], 0.0, 0
     while start < count and len(chosen) < NUM_SAMPLE_POINTS:
         # first index at or after `start` whose recall is closest to the current target

@@ -155,6 +155,41 @@ def axis_rotation(up: str = "z", forward: str = "x") -> np.ndarray:
     return np.stack([forward_vector, left, up_vector])  # rows: new x, y, z in file coordinates
 
 
+def proportions_problem(native_lwh: np.ndarray, up: str = "z", forward: str = "x") -> str | None:
+    """Why a car model read with axes `up`, `forward` looks mis-oriented, or None when it is fine.
+
+    native_lwh: `(3,)` l, w, h extents (file units) after the axis mapping. Cars are longer than
+    wide and wider than high (l > w > h); otherwise the message gives the extents and the
+    `--forward`/`--up` that would make them so: the file's longest axis forward, its shortest up.
+    Extents cannot tell front from back or up from down, so an axis that keeps its role keeps the
+    sign the user gave, and a new one is positive.
+    """
+    lwh = np.asarray(native_lwh, np.float64)
+    if lwh[0] > lwh[1] > lwh[2]:
+        return None
+    rotation = axis_rotation(up, forward)  # rows: x (forward), y (left), z (up) in file axes
+    file_axis = np.argmax(np.abs(rotation), axis=1)  # (3,) file axis of l, w, h
+    file_extent = np.zeros(3)
+    file_extent[file_axis] = lwh
+    names = "xyz"
+    given = {"forward": forward.strip().lower(), "up": up.strip().lower()}
+
+    def flag(role: str, axis: int) -> str:
+        keeps_role = given[role].lstrip("+-") == names[axis]
+        return given[role].lstrip("+") if keeps_role else names[axis]
+
+    order = np.argsort(-file_extent, kind="stable")  # file axes, longest first
+    if not file_extent[order[0]] > file_extent[order[1]] > file_extent[order[2]]:
+        suggestion = "no axis mapping does, two extents are equal, so"
+    else:
+        suggestion = f"--forward {flag('forward', order[0])} --up {flag('up', order[2])} would"
+    return (
+        f"extents l {lwh[0]:.3g}, w {lwh[1]:.3g}, h {lwh[2]:.3g} with --forward {forward} "
+        f"--up {up} contradict a car (longer than wide, wider than high); {suggestion} "
+        "give l > w > h (check the signs: extents cannot tell front from back or up from down)"
+    )
+
+
 def load_cad_file(path: str | Path, up: str = "z", forward: str = "x") -> CarModel:
     """Load one OBJ/PLY/STL/GLB/GLTF/OFF mesh (materials and textures ignored) as a CarModel."""
     import trimesh
@@ -181,12 +216,15 @@ def load_cad_directory(
     forward: str = "x",
     length_range: tuple[float, float] | None = None,
     skip_bad: bool = False,
+    keep_odd_proportions: bool = False,
 ) -> tuple[list[CarModel], list[str]]:
     """Every CAD file under `directory` (recursively), sorted by path.
 
     length_range: keep models whose native length lies in [lo, hi] (file units; the paper kept
-    2-8 m). skip_bad: skip unreadable/degenerate files instead of raising. Returns (models,
-    skipped messages). Model ids are the paths relative to `directory` without suffix.
+    2-8 m). skip_bad: skip unreadable/degenerate files instead of raising. A model that is not
+    longer than wide and wider than high (`proportions_problem`: probably other axes) is bad too,
+    unless keep_odd_proportions. Returns (models, skipped messages). Model ids are the paths
+    relative to `directory` without suffix.
     """
     directory = Path(directory)
     if not directory.is_dir():
@@ -200,6 +238,11 @@ def load_cad_directory(
     for file in files:
         try:
             model = load_cad_file(file, up=up, forward=forward)
+            problem = proportions_problem(model.native_lwh, up, forward)
+            if problem and not keep_odd_proportions:
+                raise LibraryError(
+                    f"{file}: {problem}; --skip-bad skips such files, --force keeps them"
+                )
         except LibraryError as error:
             if not skip_bad:
                 raise

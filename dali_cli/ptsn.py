@@ -34,6 +34,19 @@ class PTSNError(Exception):
     """A PTSN failure the CLI reports as a ClickException (no detections, bad sizes, ...)."""
 
 
+class NoDetectionsError(PTSNError):
+    """No box with score >= score_min at any tried scale: E_pred, and so ŝ, is undefined."""
+
+
+# what find_scale does when the detector finds nothing: "identity" returns s = 1 (no size
+# normalization) with a warning and fallback "no-detections"; "error" raises NoDetectionsError
+NO_DETECTIONS_POLICIES = ("identity", "error")
+NO_DETECTIONS_ADVICE = (
+    "the model scores no car that high on these frames: train it on more frames or epochs, "
+    "lower --score-min, or sweep more frames"
+)
+
+
 class Predictor(Protocol):
     """What PTSN needs from a detector."""
 
@@ -279,8 +292,10 @@ class SearchResult:
     mean_lwh: np.ndarray  # (3,) E_pred at ŝ (interpolated between evaluated scales)
     strategy: str
     clipped: str | None  # None, "low" or "high": E_est lies outside the swept range
-    fallback: str | None  # None or "local-grid" (curve not monotone within noise)
-    monotone: bool
+    # None, "local-grid" (curve not monotone within noise) or "no-detections" (s = 1, see
+    # NO_DETECTIONS_POLICIES)
+    fallback: str | None
+    monotone: bool | None  # None when no curve was found (fallback "no-detections")
     evaluations: list[Evaluation] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
 
@@ -401,7 +416,7 @@ def grid_search(evaluator: _Evaluator, grid: np.ndarray, indices, noise: float, 
     inside = (scales >= grid[0] - 1e-12) & (scales <= grid[-1] + 1e-12)
     scales, values = scales[inside], values[inside]
     if len(scales) == 0:
-        raise PTSNError(
+        raise NoDetectionsError(
             f"no detections with score >= {evaluator.cache.score_min} at any scale "
             f"{grid[0]:g}..{grid[-1]:g}: cannot estimate E_pred"
         )
@@ -439,7 +454,7 @@ def bracket_search(
     low = _defined_end(on_subsample, grid, from_low=True)
     high = _defined_end(on_subsample, grid, from_low=False)
     if low is None or high is None:
-        raise PTSNError(
+        raise NoDetectionsError(
             f"no detections with score >= {evaluator.cache.score_min} at any tried scale in "
             f"{grid[0]:g}..{grid[-1]:g} on {len(subsample)} frames: cannot estimate E_pred"
         )
@@ -533,13 +548,18 @@ def find_scale(
     mean: str = "per-frame",
     subsample: Sequence[int] | None = None,
     noise: float = 0.02,
+    no_detections: str = "error",
 ) -> SearchResult:
     """ŝ where E_pred(s) matches `target_lwh` (3,) over the frame indices `frames`.
 
     search: "bracket" (subsample first, then confirm on all frames) or "grid" (every scale of
     `scale_range` on all frames). noise: how much c(s) may rise with s and still count as
-    monotone (volume: a log ratio, 0.02 = 2 %).
+    monotone (volume: a log ratio, 0.02 = 2 %). no_detections: what happens when no box reaches
+    the cache's score_min at any tried scale, "error" (NoDetectionsError) or "identity" (ŝ = 1,
+    fallback "no-detections", E_pred NaN, a warning that says what to do).
     """
+    if no_detections not in NO_DETECTIONS_POLICIES:
+        raise ValueError(f"no_detections must be one of {NO_DETECTIONS_POLICIES}")
     target_lwh = np.asarray(target_lwh, np.float64)
     if target_lwh.shape != (3,) or not (np.isfinite(target_lwh).all() and (target_lwh > 0).all()):
         raise PTSNError(f"expected size must be three positive numbers, got {target_lwh}")
@@ -547,7 +567,29 @@ def find_scale(
     if len(frames) == 0:
         raise PTSNError("no frames with points in range to evaluate")
     evaluator = _Evaluator(cache, target_lwh, match, mean)
-    grid = scale_range.grid()
+    try:
+        return _search(evaluator, scale_range.grid(), frames, search, subsample, noise)
+    except NoDetectionsError as error:
+        if no_detections == "error":
+            raise NoDetectionsError(f"{error} ({NO_DETECTIONS_ADVICE})") from None
+        warning = (
+            f"{error}: ŝ = 1 (no size normalization) instead; {NO_DETECTIONS_ADVICE} "
+            "(--no-detections error stops here instead)"
+        )
+        return SearchResult(
+            scale=1.0,
+            mean_lwh=np.full(3, np.nan),
+            strategy=search,
+            clipped=None,
+            fallback="no-detections",
+            monotone=None,
+            evaluations=evaluator.evaluations,
+            warnings=[warning],
+        )
+
+
+def _search(evaluator: _Evaluator, grid: np.ndarray, frames, search, subsample, noise):
+    """find_scale's search proper (NoDetectionsError when no scale gives boxes)."""
     warnings: list[str] = []
     if search == "grid":
         scale, clipped, monotone = grid_search(evaluator, grid, frames, noise)

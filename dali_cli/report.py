@@ -137,8 +137,8 @@ def ptsn_scales(run: Path) -> dict[str, dict]:
 
 
 def _triple(value) -> str:
-    if isinstance(value, list | tuple):
-        return "/".join(f"{x:.2f}" for x in value)
+    if isinstance(value, list | tuple):  # None entries: undefined (a PTSN no-detections fallback)
+        return "—" if None in value else "/".join(f"{x:.2f}" for x in value)
     return "—" if value is None else str(value)
 
 
@@ -257,8 +257,10 @@ def build_report(run: Path) -> tuple[str, dict]:
         for name, info in scales.items():
             est = info.get("expected_lwh") or info.get("E_est")
             pred = info.get("pred_lwh_at_scale") or info.get("E_pred")
+            fallback = " (no detections: s = 1)" if info.get("fallback") == "no-detections" else ""
             parts.append(
-                f"| {name} | {info.get('scale', float('nan')):.3f} | {_triple(est)} | {_triple(pred)} | "
+                f"| {name} | {info.get('scale', float('nan')):.3f}{fallback} | {_triple(est)} | "
+                f"{_triple(pred)} | "
                 f"{info.get('passes', '—')} |"
             )
     if timings:

@@ -2,10 +2,12 @@
 library; write the frames with each processed box's points replaced (frames.zarr), the boxes with
 their PPCG outcome (boxes.parquet) and manifest.json (counts, per-frame timing).
 
-boxes.parquet = the input rows (all of them, in order) plus ppcg (rc | cf | raw), ppcg_reason
+boxes.parquet = the input rows (in order) plus ppcg (rc | cf | raw), ppcg_reason
 (ok | dense | too_few_points | no_hits | label), points_before / points_after (the box's points
 above its ground height, before / after), model_id ("" when raw); num_points becomes the
-number of points in the box in the new frame (rows of other labels keep theirs).
+number of points in the box in the new frame (rows of other labels keep theirs). Rows of the
+processed label outside dali_cli.plausibility's limits are dropped, neither re-cast nor passed on
+to retraining (manifest count dropped_implausible, a note naming the first).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from dali_cli import plausibility
 from dali_cli.artifacts import BoxTable, FrameSet, FrameSetWriter, read_boxes, write_boxes
 from dali_cli.manifest import BuildResult, StageOutcome, check_made_from, run_stage
 from dali_cli.ppcg.cf import CfParams
@@ -65,6 +68,30 @@ def boxes_by_frame(
         rows.append(rows_in_table[local])
         frame_boxes.append(boxes[rows_in_table[local]])
     return rows, frame_boxes
+
+
+def drop_implausible(
+    table: BoxTable, label: str | None, max_range_m: float, boxes_path: Path
+) -> tuple[BoxTable, int, str | None]:
+    """The rows of `table` to keep: those of the processed `label` (all when None) with positive
+    sizes but outside dali_cli.plausibility's limits are dropped (non-positive sizes stay an
+    error of boxes_by_frame). Returns (kept table, dropped count, a note naming the first)."""
+    boxes = table.boxes
+    selected = np.ones(len(table), bool)
+    if label is not None and len(table):
+        selected = np.asarray(table["label"]).astype(str) == label
+    positive = (boxes[:, 3:6] > 0).all(axis=1)
+    dropped = np.flatnonzero(selected & positive & ~plausibility.plausible(boxes, max_range_m))
+    if not len(dropped):
+        return table, 0, None
+    row = int(dropped[0])
+    note = (
+        f"dropped {len(dropped)} implausible boxes (first: {boxes_path} row {row}, frame "
+        f"'{table.frame_id[row]}': {plausibility.problem(boxes[row], max_range_m)})"
+    )
+    keep = np.ones(len(table), bool)
+    keep[dropped] = False
+    return table.select(keep), len(dropped), note
 
 
 def library_mesh_count(library_dir: Path) -> int:
@@ -146,6 +173,11 @@ def run_ppcg(
                 raise click.ClickException(str(error)) from None
         table = read_boxes(boxes_dir)
         boxes_path = boxes_dir / "boxes.parquet" if boxes_dir.is_dir() else boxes_dir
+        table, implausible, implausible_note = drop_implausible(
+            table, label, profile.max_range_m, boxes_path
+        )
+        if implausible_note:
+            click.secho(f"WARNING: {implausible_note}", fg="red", bold=True, err=True)
         rows, frame_boxes = boxes_by_frame(table, frames, label, boxes_path)
         count = len(table)
         ppcg = np.full(count, "raw", dtype=object)
@@ -208,6 +240,7 @@ def run_ppcg(
             "skipped_dense": int((reason == "dense").sum()),
             "skipped_too_few_points": int((reason == "too_few_points").sum()),
             "skipped_no_hits": int((reason == "no_hits").sum()),
+            "dropped_implausible": implausible,
             "points_in": points_in,
             "points_out": points_out,
         }
@@ -236,7 +269,7 @@ def run_ppcg(
         return BuildResult(
             counts=counts,
             timings=timings,
-            notes=list(NOTES),
+            notes=[*NOTES, *([implausible_note] if implausible_note else [])],
             extra={"per_frame_compute_seconds": [round(float(s), 6) for s in seconds]},
         )
 

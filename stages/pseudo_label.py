@@ -1,6 +1,7 @@
-"""Stage pseudo_label: run the detector on the target at the PTSN scale ŝ, de-scale, keep
-score >= score_min, BEV NMS, count the original points in each box; write boxes.parquet and
-summary.json (boxes per frame, mean size vs E_est, score histogram)."""
+"""Stage pseudo_label: run the detector on the target at the PTSN scale ŝ, de-scale, drop
+implausible boxes (dali_cli.plausibility, counted), keep score >= score_min, BEV NMS, count the
+original points in each box; write boxes.parquet and summary.json (boxes per frame, mean size vs
+E_est, score histogram)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from dali_cli import ptsn
+from dali_cli import plausibility, ptsn
 from dali_cli.artifacts import BoxTable, FrameSet, write_boxes
 from dali_cli.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.sensors import get_profile
@@ -141,6 +142,7 @@ def pseudo_label(
     target_profile = target_profile or target.sensor or None
     if mount_height_m is None and target_profile:
         mount_height_m = get_profile(target_profile, sensors_path).mount_height_m
+    max_range_m = get_profile(target_profile, sensors_path).max_range_m if target_profile else None
     params = {
         "scale": scale,
         "score_min": score_min,
@@ -162,6 +164,7 @@ def pseudo_label(
             disable=not progress, leave=False,
         )  # fmt: skip
         seconds = 0.0
+        implausible = 0  # boxes above the score cut dropped as implausible
         buffer: list[tuple[str, np.ndarray]] = []
         for item in (*target.iter_frames(), None):
             if item is not None:
@@ -178,6 +181,11 @@ def pseudo_label(
                     f"{model_dir}: detector returned {len(predictions)} results for {len(buffer)} frames"
                 )
             for (frame_id, points), (boxes, scores) in zip(buffer, predictions, strict=True):
+                # before NMS: one absurd box with a high score would suppress every other
+                boxes, scores = np.asarray(boxes).reshape(-1, 7), np.asarray(scores).reshape(-1)
+                sane = plausibility.plausible(boxes, max_range_m)
+                implausible += int(np.count_nonzero(~sane & (scores >= score_min)))
+                boxes, scores = boxes[sane], scores[sane]
                 boxes, scores, counts = label_frame(boxes, scores, points, score_min, nms_iou)
                 ids.extend([frame_id] * len(boxes))
                 boxes_all.append(boxes)
@@ -199,14 +207,21 @@ def pseudo_label(
         write_boxes(directory, table)
         summary = summarize(table, len(target), scale, e_est)
         summary["scale_source"] = scale_source
+        summary["boxes_implausible"] = implausible
         (directory / SUMMARY_NAME).write_text(json.dumps(summary, indent=2) + "\n")
         print_summary(summary)
         notes = []
+        if implausible:
+            notes.append(
+                f"dropped {implausible} implausible boxes with score >= {score_min} (size or "
+                "distance beyond dali_cli.plausibility's limits)"
+            )
+            click.secho(f"WARNING: {notes[-1]}", fg="red", bold=True, err=True)
         if not len(table):
             notes.append(f"no boxes with score >= {score_min} on any frame")
             click.secho(f"WARNING: {notes[-1]}", fg="red", bold=True, err=True)
         return BuildResult(
-            counts={"frames": len(target), "boxes": len(table)},
+            counts={"frames": len(target), "boxes": len(table), "boxes_implausible": implausible},
             timings={"detector_seconds": round(seconds, 3)},
             notes=notes,
             extra={"pseudo_label": {"scale": scale, "scale_source": scale_source}},

@@ -180,6 +180,7 @@ def ptsn_sweep(
     subsample_fraction: float = 0.25,
     subsample_min: int = 16,
     noise: float = 0.02,
+    no_detections: str = "identity",
     target_profile: str | None = None,
     source_profile: str | None = None,
     ros_factor: float | None = None,
@@ -233,6 +234,10 @@ def ptsn_sweep(
         "mount_height_m": mount_height_m,
         "plot": plot,
     }
+    if no_detections != "identity":
+        # recorded only when not the default: outputs of sweeps that found detections do not
+        # depend on it, so earlier runs stay up to date
+        params["no_detections"] = no_detections
 
     def build(directory: Path) -> BuildResult:
         loader = detector_loader or load_detector
@@ -268,6 +273,7 @@ def ptsn_sweep(
                 mean=mean,
                 subsample=subsample,
                 noise=noise,
+                no_detections=no_detections,
             )
         except ptsn.PTSNError as error:
             raise click.ClickException(f"{target_dir}: {error}") from None

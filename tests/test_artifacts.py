@@ -199,6 +199,15 @@ def test_empty_box_table_round_trip(tmp_path):
     assert loaded.rows_by_frame() == {}
 
 
+def test_empty_box_table_with_string_columns_round_trip(tmp_path):
+    # an empty ppcg-rc output (pseudo-labels found no car) must stay readable by retrain
+    empty = BoxTable.empty().with_columns(ppcg=np.full(0, "raw", object), points_after=np.zeros(0))
+    write_boxes(tmp_path, empty)
+    loaded = read_boxes(tmp_path)
+    assert len(loaded) == 0 and set(empty.columns) <= set(loaded.columns)
+    assert loaded["ppcg"].astype(str).dtype.kind == "U"
+
+
 def test_write_rejects_nan_boxes(tmp_path):
     table = sample_boxes()
     table.columns["x"][3] = np.nan

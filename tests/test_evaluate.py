@@ -16,7 +16,13 @@ from click.testing import CliRunner
 from dali_cli import geometry
 from dali_cli.artifacts import BoxTable, read_boxes, write_boxes, write_frameset
 from dali_cli.cli import main
-from dali_cli.evaluate import EvaluationError, evaluate, format_table
+from dali_cli.evaluate import (
+    DIFFICULTIES,
+    RANGE_BANDS_M,
+    EvaluationError,
+    evaluate,
+    format_table,
+)
 from dali_cli.kitti_label import read_label_dir, read_label_file, write_label_dir
 
 CAR = (3.9, 1.6, 1.5)
@@ -97,6 +103,26 @@ def test_known_precision_recall_curve():
     assert evaluate(table(pred, score=scores), table(cars), recall_positions=11)["Car"]["bev"][
         "all"
     ] == pytest.approx(r11)
+
+
+def test_thresholds_with_more_than_41_ground_truths():
+    # issue 17's minimal case: 50 counted cars on a 10 x 5 grid, the first 9 found with scores
+    # 0.9 .. 0.1. Recall reaches 9/50 = 0.18: R40 positions 1/40 .. 7/40 have precision 1, which
+    # OpenPCDet's get_thresholds (next recall (i + 2) / num_gt) gives; (i + 3) / num_gt gave 20.0.
+    x, y = np.meshgrid(5.0 + 5.0 * np.arange(10), -16.0 + 8.0 * np.arange(5))
+    count = x.size
+    cars = np.c_[
+        x.ravel(), y.ravel(), np.full(count, -0.9), np.tile(CAR, (count, 1)), np.zeros(count)
+    ]
+    gt = table(cars, **kitti_columns(count, height=75.0))
+    found = cars[:9]
+    pred = table(found, score=np.round(0.9 - 0.1 * np.arange(9), 1), **kitti_columns(9, 75.0))
+    metrics = evaluate(pred, gt, protocol="kitti")["Car"]
+    for metric in ("bev", "3d"):
+        for level in ("easy", "moderate", "hard"):
+            assert metrics[metric][level] == pytest.approx(17.5), (metric, level)
+    expected = reference_thresholds(list(pred["score"].astype(float)), count)
+    assert metrics["curves"]["bev"]["moderate"]["thresholds"] == pytest.approx(expected)
 
 
 def test_overlap_test_is_strict():
@@ -301,12 +327,34 @@ def reference_thresholds(scores, num_gt):
     return chosen
 
 
-def reference_ap(frames, overlap_fn, level, min_overlap):
+def reference_band_flags(gt_rows: BoxTable, pred_rows: BoxTable, band: tuple):
+    """clean_data with a BEV range band in place of the difficulty filters (dali's range protocol):
+    Car outside the band is ignored like a too-hard Car, detections outside it like small ones."""
+    low, high = band
+    ignored_gt = []
+    for k in range(len(gt_rows)):
+        name = str(gt_rows["label"][k]).lower()
+        valid = 1 if name == "car" else 0 if name == "van" else -1
+        distance = math.hypot(gt_rows.boxes[k, 0], gt_rows.boxes[k, 1])
+        ignore = not low <= distance < high
+        ignored_gt.append(
+            0 if valid == 1 and not ignore else 1 if valid == 0 or (ignore and valid == 1) else -1
+        )
+    ignored_dt = []
+    for k in range(len(pred_rows)):
+        distance = math.hypot(pred_rows.boxes[k, 0], pred_rows.boxes[k, 1])
+        same = str(pred_rows["label"][k]).lower() == "car"
+        ignored_dt.append(1 if not low <= distance < high else 0 if same else -1)
+    return ignored_gt, ignored_dt
+
+
+def reference_ap(frames, overlap_fn, level, min_overlap, flags=reference_flags):
+    """(AP_R40, AP_R11) in percent; `flags(gt_rows, pred_rows, level)` gives the ignore flags."""
     prepared = []
     num_gt = 0
     tp_scores = []
     for gt_rows, pred_rows in frames:
-        ignored_gt, ignored_dt = reference_flags(gt_rows, pred_rows, level)
+        ignored_gt, ignored_dt = flags(gt_rows, pred_rows, level)
         overlaps = overlap_fn(pred_rows.boxes, gt_rows.boxes)
         scores = [float(s) for s in pred_rows["score"]]
         num_gt += sum(1 for v in ignored_gt if v == 0)
@@ -328,12 +376,14 @@ def reference_ap(frames, overlap_fn, level, min_overlap):
     return precision[1:].sum() / 40 * 100, precision[::4].sum() / 11 * 100
 
 
-def random_scene(seed: int, frames: int = 25, crowded: bool = False):
+def random_scene(
+    seed: int, frames: int = 25, crowded: bool = False, max_boxes: int = 8, easy_share: float = 0.0
+):
     rng = np.random.default_rng(seed)
     gt_tables, pred_tables = [], []
     for index in range(frames):
         frame = f"{index:04d}"
-        count = int(rng.integers(0, 9))
+        count = int(rng.integers(0, max_boxes + 1))
         centre = rng.uniform([2, -20], [60, 20], (count, 2))
         if crowded and count > 1:  # pile objects up so that one detection can hit two labels
             centre[1:] = centre[0] + rng.normal(0, 1.2, (count - 1, 2))
@@ -344,16 +394,17 @@ def random_scene(seed: int, frames: int = 25, crowded: bool = False):
             rng.uniform(-3.1, 3.1, count),
         ]
         labels = rng.choice(["Car", "Car", "Car", "Car", "Van", "Pedestrian", "DontCare"], count)
+        easy = rng.uniform(size=count) < easy_share  # fully visible, 60 px high
         extra = {
-            "truncated": rng.uniform(0, 0.6, count).astype(np.float32),
-            "occluded": rng.integers(0, 4, count).astype(np.int32),
+            "truncated": np.where(easy, 0.0, rng.uniform(0, 0.6, count)).astype(np.float32),
+            "occluded": np.where(easy, 0, rng.integers(0, 4, count)).astype(np.int32),
             "alpha": np.zeros(count),
             "bbox_left": np.zeros(count, np.float32),
             "bbox_top": np.full(count, 100.0, np.float32),
             "bbox_right": np.full(count, 50.0, np.float32),
-            "bbox_bottom": (100 + rng.choice([20.0, 25.0, 30.0, 40.0, 60.0, 120.0], count)).astype(
-                np.float32
-            ),
+            "bbox_bottom": (
+                100 + np.where(easy, 60.0, rng.choice([20.0, 25.0, 30.0, 40.0, 60.0, 120.0], count))
+            ).astype(np.float32),
         }
         gt_tables.append(BoxTable.from_arrays([frame] * count, boxes, label=labels, **extra))
         detected = rng.uniform(size=count) < 0.8
@@ -401,6 +452,43 @@ def test_matches_reference_loop_on_random_scenes(seed, iou, crowded):
                 assert metrics[metric][name] == pytest.approx(expected[column], abs=1e-9), (
                     metric,
                     name,
+                )
+
+
+def counted_ground_truth(gt_tables, flags, level) -> int:
+    return sum(flags(gt, gt.select(np.zeros(len(gt), bool)), level)[0].count(0) for gt in gt_tables)
+
+
+@pytest.mark.parametrize(
+    "seed, frames, iou",
+    [(10, 24, 0.7), (11, 28, 0.5), (12, 32, 0.3), (13, 38, 0.7), (14, 44, 0.5), (15, 46, 0.7)],
+)
+def test_matches_reference_loop_with_42_to_200_counted_ground_truths(seed, frames, iou):
+    # above 41 counted ground truths the threshold sampling used to differ (issue 17): scenes
+    # across that range, both protocols, every difficulty and band, R40 and R11
+    gt_tables, pred_tables = random_scene(
+        seed, frames=frames, crowded=seed % 3 == 0, max_boxes=14, easy_share=0.5
+    )
+    gt, pred = BoxTable.concat(gt_tables), BoxTable.concat(pred_tables)
+    scenes = list(zip(gt_tables, pred_tables, strict=True))
+    cases = [("kitti", name, reference_flags, level) for level, name in enumerate(DIFFICULTIES)]
+    cases += [("range", name, reference_band_flags, band) for name, band in RANGE_BANDS_M.items()]
+    counted = {name: counted_ground_truth(gt_tables, flags, key) for _, name, flags, key in cases}
+    assert 42 <= min(counted["moderate"], counted["hard"]) <= counted["all"] <= 200, counted
+    for positions, column in ((40, 0), (11, 1)):
+        results = {
+            protocol: evaluate(pred, gt, iou=iou, protocol=protocol, recall_positions=positions)
+            for protocol in ("kitti", "range")
+        }
+        for protocol, name, flags, key in cases:
+            metrics = results[protocol]["Car"]
+            for metric, overlap_fn in (("bev", geometry.bev_iou), ("3d", geometry.iou_3d)):
+                expected = reference_ap(scenes, overlap_fn, key, iou, flags=flags)[column]
+                assert metrics[metric][name] == pytest.approx(expected, abs=1e-9), (
+                    protocol,
+                    name,
+                    metric,
+                    counted[name],
                 )
 
 

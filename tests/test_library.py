@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+import re
+
 import numpy as np
 import pytest
 import trimesh
@@ -11,10 +14,12 @@ from dali_cli.artifacts import BoxTable, write_boxes, write_frameset
 from dali_cli.cli import main
 from dali_cli.library import (
     LibraryError,
+    axis_rotation,
     load_cad_directory,
     load_cad_file,
     point_models_from_frame,
     procedural_car,
+    proportions_problem,
     read_library,
     write_library,
 )
@@ -103,6 +108,76 @@ def test_cad_directory_rejects_degenerate_and_empty_files_naming_them(tmp_path):
         load_cad_directory(tmp_path / "nope")
     with pytest.raises(LibraryError, match="--up"):
         load_cad_file(tmp_path / "good.obj", up="q")
+
+
+def _write_obj_in_axes(path, up, forward, lwh=(4.0, 1.8, 1.5)):
+    """A box car written in a file whose axes are `up` and `forward` (like "y", "-z")."""
+    box = trimesh.creation.box(extents=lwh)
+    rotation = axis_rotation(up, forward)  # rows: dali x, y, z in file coordinates
+    file_vertices = box.vertices @ rotation  # dali -> file
+    lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in file_vertices]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in box.faces]
+    path.write_text("\n".join(lines) + "\n")
+
+
+AXES = ["x", "-x", "y", "-y", "z", "-z"]
+FILE_CONVENTIONS = [(u, f) for u in AXES for f in AXES if u.lstrip("-") != f.lstrip("-")]
+
+
+@pytest.mark.parametrize("up, forward", FILE_CONVENTIONS)
+def test_odd_proportions_name_the_axes_that_make_a_car(tmp_path, up, forward):
+    # any of the 24 file conventions read with the defaults (z up, x forward): either right, or
+    # refused with --forward/--up that give l > w > h when followed
+    path = tmp_path / "car.obj"
+    _write_obj_in_axes(path, up, forward)
+    model = load_cad_file(path)
+    problem = proportions_problem(model.native_lwh)
+    if up.lstrip("-") == "z" and forward.lstrip("-") == "x":
+        assert problem is None
+        return
+    assert problem is not None and "contradict a car" in problem
+    suggested = re.search(r"--forward (\S+) --up (\S+) would", problem)
+    assert suggested, problem
+    fixed = load_cad_file(path, up=suggested[2], forward=suggested[1])
+    np.testing.assert_allclose(fixed.native_lwh, [4.0, 1.8, 1.5], rtol=1e-6)
+    assert proportions_problem(fixed.native_lwh, suggested[2], suggested[1]) is None
+    with pytest.raises(LibraryError, match=r"car\.obj: extents .* --forward"):
+        load_cad_directory(tmp_path)
+
+
+def test_mis_oriented_cad_is_refused_skipped_or_kept_on_request(tmp_path):
+    # issue 17: length along z with y up, read with the default --forward x --up z
+    cad = tmp_path / "cad"
+    cad.mkdir()
+    _write_obj_y_up(cad / "y_up.obj")
+    _write_obj_in_axes(cad / "z_up.obj", "z", "x")
+    with pytest.raises(LibraryError, match=r"y_up\.obj: .*--forward z --up y would"):
+        load_cad_directory(cad)
+    models, skipped = load_cad_directory(cad, skip_bad=True)
+    assert [m.model_id for m in models] == ["z_up"] and "y_up.obj" in skipped[0]
+    models, skipped = load_cad_directory(cad, keep_odd_proportions=True)
+    assert len(models) == 2 and skipped == []
+    # the user's signs are kept where an axis keeps its role
+    assert "--forward -z --up x would" in proportions_problem([4.0, 1.5, 1.8], "-y", "-z")
+    assert "--forward x --up -y would" in proportions_problem([1.8, 4.0, 1.5], "-y", "-z")
+    cube = proportions_problem([2.0, 2.0, 1.0])
+    assert "no axis mapping does, two extents are equal" in cube
+
+    runner = CliRunner()
+    out = tmp_path / "lib"
+    result = runner.invoke(main, ["library", "build", "--cad", str(cad), "--out", str(out)])
+    assert result.exit_code == 1 and "y_up.obj" in result.output
+    assert "--forward z --up y" in result.output and "--force" in result.output
+    assert not out.exists()
+    result = runner.invoke(
+        main, ["library", "build", "--cad", str(cad), "--out", str(out), "--force"]
+    )
+    assert result.exit_code == 0, result.output
+    assert "WARNING" in result.output and "y_up.obj" in result.output
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["outputs"]["counts"]["cad_odd_proportions_kept"] == 1
+    assert any("kept (--force)" in note and "y_up.obj" in note for note in manifest["notes"])
+    assert len(read_library(out).meshes) == 2
 
 
 def _car_points(box, count, rng):

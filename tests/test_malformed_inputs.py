@@ -338,7 +338,6 @@ def test_empty_pseudo_labels_flow_through_ppcg_view_and_retrain(world, tmp_path)
     assert all(not pa.types.is_null(field.type) for field in schema), schema
 
 
-@pytest.mark.xfail(strict=False, reason="pretrain box plausibility: another engineer's scope")
 def test_pretrain_refuses_an_absurd_box(world, tmp_path):
     source = tmp_path / "source"
     shutil.copytree(world / "source", source)

@@ -415,6 +415,40 @@ def test_stage_outputs_and_worker_independence(dataset):
     assert png is not None and png.stat().st_size > 10_000
 
 
+@pytest.mark.parametrize("mode", ["rc", "cf"])
+def test_implausible_boxes_are_dropped_and_counted(dataset, tmp_path, mode):
+    # issue 17: a pseudo box 1,000 km long went through ppcg-rc and was re-cast
+    from stages.ppcg_cf import ppcg_cf
+    from stages.ppcg_rc import ppcg_rc
+
+    stage = {"rc": ppcg_rc, "cf": ppcg_cf}[mode]
+    target, library = dataset / "target", dataset / "library"
+    given = read_boxes(target)
+    huge, far = given.boxes[:1].copy(), given.boxes[:1].copy()
+    huge[:, 3] = 1e6  # over the first car: re-casting it would replace that car's points
+    far[:, :2] = [3e5, 4e5]  # 500 km away
+    noisy = BoxTable.concat(
+        [BoxTable.from_arrays(["000000", "000002"], np.r_[huge, far], label="Car"), given]
+    )
+    write_boxes(tmp_path, noisy)
+    options = {"max_points": 10**5} if mode == "rc" else {"seed": 3}
+    stage(target, target, library, tmp_path / "clean", progress=False, **options)
+    stage(target, tmp_path, library, tmp_path / "noisy", progress=False, **options)
+    clean, kept = read_boxes(tmp_path / "clean"), read_boxes(tmp_path / "noisy")
+    assert len(kept) == len(given)
+    np.testing.assert_array_equal(kept.boxes, clean.boxes)
+    assert list(kept["ppcg"]) == list(clean["ppcg"])
+    for index in range(3):
+        np.testing.assert_array_equal(
+            FrameSet(tmp_path / "noisy").frame(index), FrameSet(tmp_path / "clean").frame(index)
+        )
+    manifest = read_manifest(tmp_path / "noisy")
+    assert manifest["outputs"]["counts"]["dropped_implausible"] == 2
+    assert read_manifest(tmp_path / "clean")["outputs"]["counts"]["dropped_implausible"] == 0
+    note = next(n for n in manifest["notes"] if "implausible" in n)
+    assert "row 0" in note and "000000" in note and "'l' = 1e+06 m" in note
+
+
 def test_cli_errors_name_the_file_frame_and_field(dataset, tmp_path):
     from dali_cli.cli import main
 

@@ -221,3 +221,40 @@ def test_ground_scaling_keeps_the_ground_plane(scale, mount):
     assert np.array_equal(scaled[:, 3], points[:, 3])  # intensity untouched
     height = points[50:, 2] + mount
     assert np.allclose(scaled[50:, 2] + mount, height * scale, atol=1e-4)
+
+
+class AbsurdBoxDetector(SizeLawDetector):
+    """SizeLawDetector plus, per frame, a 1,000 km long box over the first car and a box 1,000 km
+    away, both scored above every car, and one absurd box below the score cut."""
+
+    def predict(self, points_list, scale=1.0, mount_height_m=None):
+        results = []
+        for boxes, scores in super().predict(points_list, scale, mount_height_m):
+            huge, far, faint = boxes[:1].copy(), boxes[:1].copy(), boxes[:1].copy()
+            huge[:, 3] = 1e6
+            far[:, 0] = 1e6
+            faint[:, 4] = 1e30
+            boxes = np.concatenate([huge, far, faint, boxes])
+            results.append((boxes, np.r_[0.99, 0.99, 0.1, scores].astype(np.float32)))
+        return results
+
+
+def test_implausible_detections_are_dropped_before_nms_and_counted(setup, monkeypatch):
+    tmp_path, target, model, _ = setup
+    import stages.pseudo_label
+
+    monkeypatch.setattr(stages.pseudo_label, "load_detector", lambda _: AbsurdBoxDetector())
+    out = tmp_path / "pseudo"
+    result = run(
+        "pseudo-label", "--model", model, "--target", target, "--scale", "1.0", "--out", out,
+        "--no-progress",
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert "WARNING" in result.output and "12 implausible" in result.output
+    table = read_boxes(out)
+    # every car survives: the 1,000 km box (score 0.99) did not suppress the first one in NMS
+    assert len(table) == sum(len(car_boxes(i)) for i in range(6))
+    assert table.boxes[:, 3].max() < 10 and np.abs(table.boxes[:, 0]).max() < 100
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["outputs"]["counts"]["boxes_implausible"] == 12  # the faint one is not counted
+    assert json.loads((out / "summary.json").read_text())["boxes_implausible"] == 12

@@ -218,13 +218,38 @@ def test_target_outside_the_range_is_clipped_loudly(search):
     assert result.clipped == "low" and result.scale == pytest.approx(0.8)
 
 
-def test_no_detections_is_an_error():
+def test_no_detections_is_an_error_that_says_what_to_do():
     frames = make_frames(10)
     for search in ("bracket", "grid"):
-        with pytest.raises(ptsn.PTSNError, match="no detections"):
+        with pytest.raises(ptsn.NoDetectionsError, match="no detections") as caught:
             run_search(
                 LawDetector(inverse_law(SOURCE_LWH), score=0.1), frames, KITTI_LWH, search=search
             )
+        assert "more frames or epochs" in str(caught.value) and "--score-min" in str(caught.value)
+
+
+@pytest.mark.parametrize("search", ["bracket", "grid"])
+def test_no_detections_can_fall_back_to_no_scaling(search):
+    # an undertrained model (every score below --score-min): ŝ = 1, said loudly, no E_pred
+    frames = make_frames(10)
+    detector = LawDetector(inverse_law(SOURCE_LWH), score=0.1)
+    result, cache = run_search(detector, frames, KITTI_LWH, search=search, no_detections="identity")
+    assert result.scale == 1.0 and result.fallback == "no-detections"
+    assert result.monotone is None and result.clipped is None
+    assert np.isnan(result.mean_lwh).all()
+    assert len(result.warnings) == 1 and "ŝ = 1" in result.warnings[0]
+    assert "--score-min" in result.warnings[0] and "--no-detections error" in result.warnings[0]
+    assert result.evaluations and all(e.stats.boxes == 0 for e in result.evaluations)
+    assert cache.frame_passes > 0
+    # the same detector above the threshold gives a real scale: the fallback is only for nothing
+    found, _ = run_search(
+        LawDetector(inverse_law(SOURCE_LWH), score=0.31),
+        frames,
+        KITTI_LWH,
+        search=search,
+        no_detections="identity",
+    )
+    assert found.fallback is None and found.scale != 1.0
 
 
 def test_no_detections_at_large_scales_is_worked_around():
@@ -391,7 +416,8 @@ def test_cli_clipped_boundary_is_reported(sweep_setup):
     assert document["clipped"] == "high" and document["scale"] == pytest.approx(1.1)
 
 
-def test_cli_no_detections_fails_without_output(sweep_setup, monkeypatch):
+def test_cli_no_detections_falls_back_to_no_scaling_or_fails_on_request(sweep_setup, monkeypatch):
+    # the README's tiny run (8 frames, 1 epoch) gives no score >= 0.3: the loop must go on
     tmp_path, target, model = sweep_setup
     import stages.ptsn_sweep
 
@@ -402,8 +428,21 @@ def test_cli_no_detections_fails_without_output(sweep_setup, monkeypatch):
     )
     out = tmp_path / "none"
     result = invoke("--model", model, "--target", target, "--out", out, "--no-progress")
+    assert result.exit_code == 0, result.output
+    assert "WARNING" in result.output and "no detections with score >= 0.3" in result.output
+    document = json.loads((out / "scale.json").read_text())
+    assert document["scale"] == 1.0 and document["fallback"] == "no-detections"
+    assert document["E_pred_at_scale"] == [None, None, None] and document["monotone"] is None
+    assert any("ŝ = 1" in w for w in document["warnings"])
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert any("ŝ = 1" in note for note in manifest["notes"])
+
+    strict = tmp_path / "strict"
+    arguments = ["--model", model, "--target", target, "--no-progress", "--out", strict]
+    result = invoke(*arguments, "--no-detections", "error")
     assert result.exit_code == 1 and "no detections" in result.output
-    assert not out.exists()
+    assert "more frames or epochs" in result.output and "--score-min" in result.output
+    assert not strict.exists()
 
 
 def test_crop_for_scales_keeps_every_point_some_scale_brings_into_range():

@@ -79,3 +79,20 @@ def test_distance_bands_table(tmp_path):
     rows = {row["name"]: row for row in document["target"]}
     assert rows["PTSN + RC&CF (x1)"]["bands"]["30-50"] == {"bev": 40.0, "3d": 20.0, "gt": 7}
     assert rows["Source only"]["bands"] == {}
+
+
+def test_ptsn_no_detections_fallback_is_marked(tmp_path):
+    # a sweep that fell back to s = 1 has no E_pred: the row says so instead of failing
+    write_metrics(tmp_path / "iter0/eval/metrics.json", 10.0, 1.0)
+    ptsn_dir = tmp_path / "iter1/ptsn"
+    ptsn_dir.mkdir(parents=True)
+    document = {
+        "scale": 1.0,
+        "E_est": [3.89, 1.62, 1.53],
+        "E_pred": [None, None, None],
+        "fallback": "no-detections",
+        "passes": 10,
+    }
+    (ptsn_dir / "scale.json").write_text(json.dumps(document))
+    text, _ = build_report(tmp_path)
+    assert "| iter1 | 1.000 (no detections: s = 1) | 3.89/1.62/1.53 | — | 10 |" in text

@@ -51,7 +51,8 @@ def _parse_range(_ctx, _param, value: str | None) -> tuple[float, float] | None:
 @click.option(
     "--skip-bad",
     is_flag=True,
-    help="Skip unreadable or degenerate CAD files (listed in the manifest) instead of failing.",
+    help="Skip unreadable, degenerate or mis-oriented CAD files (listed in the manifest) "
+    "instead of failing.",
 )
 @click.option(
     "--procedural",
@@ -110,6 +111,10 @@ def build_command(
     their native size; point models are instances with >= --min-points points, stored in
     box-normalized coordinates with their viewing angle. Writes OUT/library.zarr (meshes and
     points), OUT/meshes.parquet, OUT/point_models.parquet and OUT/manifest.json.
+
+    A CAD model is refused when it is not longer than wide and wider than high once --forward and
+    --up are applied (probably other axes): the error names the file and the --forward/--up that
+    would fix it. --skip-bad skips such files; --force keeps them with a warning in the manifest.
     """
     from dali_cli.library import (
         LibraryError,
@@ -117,6 +122,7 @@ def build_command(
         load_cad_directory,
         point_models_from_frameset,
         procedural_library,
+        proportions_problem,
         write_library,
     )
     from dali_cli.manifest import BuildResult, run_stage
@@ -148,13 +154,23 @@ def build_command(
     def build(tmp: Path) -> BuildResult:
         import time
 
-        timings, notes, meshes = {}, [], []
+        timings, notes, meshes, odd = {}, [], [], 0
         started = time.perf_counter()
         skipped = []
         if cad_dir is not None:
-            cad, skipped = load_cad_directory(cad_dir, up, forward, length_range, skip_bad)
+            cad, skipped = load_cad_directory(
+                cad_dir, up, forward, length_range, skip_bad, keep_odd_proportions=force
+            )
             meshes += cad
             notes += [f"skipped {message}" for message in skipped]
+            for model in cad:  # only with --force: otherwise such models were refused or skipped
+                problem = proportions_problem(model.native_lwh, up, forward)
+                if problem:
+                    odd += 1
+                    file = Path(cad_dir) / Path(model.model_id).parent / model.source
+                    message = f"kept (--force) {file}: {problem}"
+                    click.secho(f"WARNING: {message}", fg="red", bold=True, err=True)
+                    notes.append(message)
         timings["cad_seconds"] = round(time.perf_counter() - started, 3)
         started = time.perf_counter()
         if procedural_count:
@@ -167,6 +183,7 @@ def build_command(
         timings["point_models_seconds"] = round(time.perf_counter() - started, 3)
         counts = write_library(tmp, meshes, point_models)
         counts["cad_skipped"] = len(skipped)
+        counts["cad_odd_proportions_kept"] = odd
         notes.append(
             "meshes normalized to the unit box (l along +x, w along +y, up +z), native size kept"
         )

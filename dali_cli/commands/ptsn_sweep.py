@@ -66,6 +66,14 @@ SCALE_RANGE = ScaleRangeType()
     help="Box score cut.",
 )
 @click.option(
+    "--no-detections",
+    type=click.Choice(["identity", "error"]),
+    default="identity",
+    show_default=True,
+    help="When no box reaches --score-min at any tried scale: identity = write ŝ = 1 (no size "
+    "normalization) with a warning recorded in scale.json and the manifest; error = exit 1.",
+)
+@click.option(
     "--mean",
     type=click.Choice(["per-frame", "pooled"]),
     default="per-frame",
@@ -132,7 +140,9 @@ def command(model_dir, target_dir, out, scale_range, sensors_path, no_progress, 
     Writes OUT/scale.json ("scale": ŝ, E_est, E_pred at ŝ, per-dimension bias, passes, detector
     frames, strategy, clipping), OUT/sweep.parquet (one row per evaluated scale and frame set:
     frames, boxes, mean l/w/h, mean volume, seconds), OUT/sweep.png with --plot, and manifest.json.
-    When E_est lies outside --scales, ŝ is clipped to the bound and a warning says so.
+    When E_est lies outside --scales, ŝ is clipped to the bound and a warning says so. When the
+    model finds no box with score >= --score-min at any tried scale (an undertrained model),
+    ŝ = 1 with fallback "no-detections" and a warning (or exit 1 with --no-detections error).
     """
     from stages.ptsn_sweep import ptsn_sweep
 

@@ -68,8 +68,11 @@ def load_labeled(
 
     Points and boxes that global rotation (<= 45 deg) cannot bring into the detection range are
     dropped (beyond its far corner + 10 m, or more than 135 deg off +x for a front range); boxes
-    of other labels or with fewer than `min_points` points are not targets.
+    of other labels or with fewer than `min_points` points are not targets. A box of `labels`
+    outside dali_cli.plausibility's limits (size, distance from the sensor) is an ArtifactError
+    naming the file, row, frame and field: corrupt labels or labels not in metres.
     """
+    from dali_cli import plausibility
     from dali_cli.geometry import count_points_in_boxes
     from dali_cli.sensors import get_profile
 
@@ -77,14 +80,25 @@ def load_labeled(
     table = read_boxes(boxes_dir or data_dir)
     if not frames.sensor:
         raise ArtifactError(f"{frames.path}: attrs has no 'sensor' (needed for the mount height)")
-    mount = get_profile(frames.sensor, sensors_path).mount_height_m
+    profile = get_profile(frames.sensor, sensors_path)
+    mount = profile.mount_height_m
     known = set(frames.frame_ids)
     unknown = sorted(set(table.frame_id.astype(str)) - known)
     if unknown:
         raise ArtifactError(
             f"{Path(boxes_dir or data_dir) / 'boxes.parquet'}: frame_id '{unknown[0]}' is not in {frames.path}"
         )
-    table = table.select(np.isin(table["label"].astype(str), labels))
+    targets = np.isin(table["label"].astype(str), labels)
+    bad = np.flatnonzero(targets & ~plausibility.plausible(table.boxes, profile.max_range_m))
+    if len(bad):
+        row = int(bad[0])
+        raise ArtifactError(
+            f"{Path(boxes_dir or data_dir) / 'boxes.parquet'}: row {row} (frame "
+            f"'{table.frame_id[row]}'): "
+            f"{plausibility.problem(table.boxes[row], profile.max_range_m)} ({len(bad)} such "
+            "rows; are the boxes in metres, in the sensor frame?)"
+        )
+    table = table.select(targets)
     rows = table.rows_by_frame()
     far = (
         np.hypot(max(abs(v) for v in config.x_range_m), max(abs(v) for v in config.y_range_m)) + 10
