@@ -10,7 +10,10 @@ Box table: `<dir>/boxes.parquet`, one row per box, columns frame_id, x, y, z, l,
 (float64, geometric centre, yaw CCW from +x), score (float32), label (string), num_points (int32)
 plus optional extra columns.
 
-Every reader validates what it reads and raises ArtifactError naming the path and the problem.
+Every reader validates what it reads and raises ArtifactError naming the path and the problem:
+frame ids (dali_cli.frame_ids), column types and integer ranges, NaN/inf, and every chunk of points
+it reads (present, and its CRC-32C checksum when the writer recorded one). docs/input-validation.md
+lists what is checked where.
 """
 
 from __future__ import annotations
@@ -22,7 +25,10 @@ from pathlib import Path
 import click
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
+
+from dali_cli.frame_ids import FrameIdError, check_name, first_bad_name
 
 FRAMES_NAME = "frames.zarr"
 BOXES_NAME = "boxes.parquet"
@@ -32,6 +38,11 @@ BOX_FIELDS = ("x", "y", "z", "l", "w", "h", "yaw")
 
 class ArtifactError(click.ClickException):
     """A missing or malformed artifact; the message names the path and the problem."""
+
+
+class TableValueError(ArtifactError, ValueError):
+    """A box-table value that cannot be stored (out of its column's range, NaN/inf, a bad frame id);
+    a ValueError for library callers, a clean CLI error for users. Names column, row and frame."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -52,15 +63,13 @@ class FrameSet:
             group = zarr.open_group(str(self.path), mode="r")
         except Exception as error:  # zarr raises several types for a broken group
             raise ArtifactError(f"{self.path}: cannot open Zarr group ({error})") from None
-        for name in ("points", "offsets", "frame_ids"):
-            if name not in group:
-                raise ArtifactError(f"{self.path}: missing array '{name}'")
-        self._points = group["points"]
+        arrays = {name: self._array(group, name) for name in ("points", "offsets", "frame_ids")}
+        self._points = arrays["points"]
         if self._points.dtype != np.float32 or self._points.ndim != 2 or self._points.shape[1] != 4:
             raise ArtifactError(
                 f"{self.path}/points: expected float32 (N, 4), got {self._points.dtype} {self._points.shape}"
             )
-        offsets = np.asarray(group["offsets"][:])
+        offsets = self._small(arrays["offsets"], "offsets")
         if offsets.dtype != np.int64 or offsets.ndim != 1 or offsets.size < 1:
             raise ArtifactError(
                 f"{self.path}/offsets: expected int64 (F + 1,), got {offsets.dtype} {offsets.shape}"
@@ -71,11 +80,20 @@ class FrameSet:
             raise ArtifactError(
                 f"{self.path}/offsets: last offset {offsets[-1]} != number of points {self._points.shape[0]}"
             )
-        frame_ids = [str(f) for f in np.asarray(group["frame_ids"][:]).tolist()]
+        ids = arrays["frame_ids"]
+        if ids.nchunks_initialized != ids.nchunks:  # Zarr would read a missing chunk as ""
+            raise ArtifactError(
+                f"{self.path}/frame_ids: {ids.nchunks - ids.nchunks_initialized} of "
+                f"{ids.nchunks} chunks missing"
+            )
+        frame_ids = [str(f) for f in self._small(ids, "frame_ids").tolist()]
         if len(frame_ids) != offsets.size - 1:
             raise ArtifactError(
                 f"{self.path}/frame_ids: {len(frame_ids)} ids for {offsets.size - 1} frames"
             )
+        bad = first_bad_name(frame_ids)
+        if bad is not None:
+            raise ArtifactError(f"{self.path}/frame_ids, frame {bad[0]}: frame id {bad[1]}")
         if len(set(frame_ids)) != len(frame_ids):
             raise ArtifactError(f"{self.path}/frame_ids: duplicate frame ids")
         self.offsets = offsets
@@ -83,6 +101,26 @@ class FrameSet:
         self.attrs = dict(group.attrs)
         self.sensor: str = str(self.attrs.get("sensor", ""))
         self._index = {fid: i for i, fid in enumerate(frame_ids)}
+        self._chunk = int(self._points.chunks[0])
+        self._chunks_present: set[int] = set()  # chunk files already seen on disk
+
+    def _array(self, group, name: str):
+        """Array `name` of the group; ArtifactError when absent or its metadata is unreadable."""
+        try:
+            if name not in group:
+                raise ArtifactError(f"{self.path}: missing array '{name}'")
+            return group[name]
+        except ArtifactError:
+            raise
+        except Exception as error:  # broken zarr.json: JSON, key or value errors
+            raise ArtifactError(f"{self.path}/{name}: cannot open array ({error})") from None
+
+    def _small(self, array, name: str) -> np.ndarray:
+        """All of a small array (offsets, frame ids); ArtifactError when a chunk cannot decode."""
+        try:
+            return np.asarray(array[:])
+        except Exception as error:
+            raise ArtifactError(f"{self.path}/{name}: cannot be read ({error})") from None
 
     def __len__(self) -> int:
         return len(self.frame_ids)
@@ -101,10 +139,58 @@ class FrameSet:
         """Points of one frame, `(n, 4)` float32. Raises ArtifactError on NaN/inf values."""
         index = self.index_of(index_or_id) if isinstance(index_or_id, str) else int(index_or_id)
         start, stop = int(self.offsets[index]), int(self.offsets[index + 1])
-        points = (
-            np.asarray(self._points[start:stop]) if stop > start else np.zeros((0, 4), np.float32)
+        return self._checked(self._read_points(start, stop), index)
+
+    def _read_points(self, start: int, stop: int) -> np.ndarray:
+        """points[start:stop] `(stop - start, 4)` float32, verified: every chunk it spans must exist
+        (Zarr would return zeros for a missing one) and decode (its CRC-32C checksum, when
+        written, must match). Raises ArtifactError naming the chunk and the frames in it."""
+        if stop <= start:
+            return np.zeros((0, 4), np.float32)
+        for chunk in range(start // self._chunk, (stop - 1) // self._chunk + 1):
+            if chunk not in self._chunks_present:  # one stat per chunk per FrameSet
+                path = self._chunk_file(chunk)
+                if path is not None and not path.is_file():
+                    raise ArtifactError(self._damaged(chunk, "is missing"))
+                self._chunks_present.add(chunk)
+        try:
+            return np.asarray(self._points[start:stop])
+        except Exception as error:  # codecs raise RuntimeError, ValueError, ...: find the chunk
+            first, last = start // self._chunk, (stop - 1) // self._chunk
+            for chunk in range(first, last + 1):
+                lo = chunk * self._chunk
+                try:
+                    self._points[lo : min(lo + self._chunk, self.num_points)]
+                except Exception as chunk_error:
+                    raise ArtifactError(
+                        self._damaged(chunk, f"cannot be decoded ({chunk_error})")
+                    ) from None
+            raise ArtifactError(
+                f"{self.path}/points: cannot read points {start}..{stop} ({error})"
+            ) from None
+
+    def _chunk_file(self, chunk: int) -> Path | None:
+        """Where chunk `chunk` of the points array lives; None when the layout is not known."""
+        encode = getattr(self._points.metadata, "encode_chunk_key", None)
+        return None if encode is None else self.path / "points" / encode((chunk, 0))
+
+    def _damaged(self, chunk: int, problem: str) -> str:
+        """Message for a damaged chunk: the artifact, the chunk file and the frames in it."""
+        lo, hi = chunk * self._chunk, min((chunk + 1) * self._chunk, self.num_points)
+        first = int(np.searchsorted(self.offsets[1:], lo, side="right"))  # offsets[i+1] > lo
+        last = int(np.searchsorted(self.offsets[:-1], hi, side="left")) - 1  # offsets[i] < hi
+        frames = (
+            f"frame '{self.frame_ids[first]}' lies"
+            if first == last
+            else f"frames '{self.frame_ids[first]}' to '{self.frame_ids[last]}' "
+            f"({last - first + 1}) lie"
         )
-        return self._checked(points, index)
+        key = self._chunk_file(chunk)
+        where = key.relative_to(self.path) if key is not None else f"chunk {chunk}"
+        return (
+            f"{self.path}: points chunk {where} {problem}; {frames} in it. "
+            "The frame set is damaged: rebuild it with the stage that wrote it."
+        )
 
     def _checked(self, points: np.ndarray, index: int) -> np.ndarray:
         if not np.isfinite(points).all():
@@ -117,7 +203,7 @@ class FrameSet:
     def iter_frames(self, indices: Sequence[int] | None = None) -> Iterator[tuple[str, np.ndarray]]:
         """Yield (frame_id, points) in order, reading contiguous runs of frames block-wise."""
         indices = range(len(self)) if indices is None else indices
-        chunk = int(self._points.chunks[0])
+        chunk = self._chunk
         block_points = -(-max(DEFAULT_CHUNK_POINTS, chunk) // chunk) * chunk
         buffer_start, buffer = 0, np.zeros((0, 4), np.float32)
         for index in indices:
@@ -129,7 +215,7 @@ class FrameSet:
                 keep_tail = buffer_start <= start < buffer_end
                 read_start = buffer_end if keep_tail else (start // chunk) * chunk
                 read_stop = max(-(-stop // chunk) * chunk, read_start + block_points)
-                fresh = np.asarray(self._points[read_start : min(read_stop, self.num_points)])
+                fresh = self._read_points(read_start, min(read_stop, self.num_points))
                 if keep_tail:
                     buffer = np.concatenate([buffer[start - buffer_start :], fresh])
                     buffer_start = start
@@ -140,7 +226,7 @@ class FrameSet:
 
     def load_all(self) -> tuple[np.ndarray, np.ndarray]:
         """All points `(N_total, 4)` float32 and offsets `(F + 1,)` int64, in memory."""
-        points = np.asarray(self._points[:])
+        points = self._read_points(0, self.num_points)
         if not np.isfinite(points).all():
             bad_point = int(np.flatnonzero(~np.isfinite(points).all(axis=1))[0])
             frame = int(np.searchsorted(self.offsets, bad_point, side="right") - 1)
@@ -164,12 +250,15 @@ class FrameSetWriter:
         compress: bool = True,
     ):
         import zarr
+        from zarr.codecs import Crc32cCodec, ZstdCodec
 
         self.path = Path(directory) / FRAMES_NAME
         self._group = zarr.open_group(str(self.path), mode="w", zarr_format=3)
         # compress=False: raw float32 chunks (LiDAR coordinates shrink only ~8% with zstd, which
-        # costs more CPU than the rest of a fast stage); readers need no change
-        codecs = {} if compress else {"compressors": None}
+        # costs more CPU than the rest of a fast stage); readers need no change. Every chunk ends
+        # with a CRC-32C of its stored bytes, checked by Zarr on read (a flipped bit or a truncated
+        # chunk is an error, not silently wrong points); about 3 ms per 32 MiB chunk.
+        compressors = (ZstdCodec(level=0), Crc32cCodec()) if compress else (Crc32cCodec(),)
         # point chunks are never all zeros: skip zarr's costly "is this chunk empty?" scan
         # (about 3/4 of the CPU time of writing uncompressed chunks)
         self._points = self._group.create_array(
@@ -178,7 +267,7 @@ class FrameSetWriter:
             chunks=(chunk_points, 4),
             dtype="float32",
             config={"write_empty_chunks": True},
-            **codecs,
+            compressors=compressors,
         )
         self._chunk = chunk_points
         self._pending: list[np.ndarray] = []
@@ -192,14 +281,18 @@ class FrameSetWriter:
 
     def append(self, frame_id: str, points: np.ndarray) -> None:
         """Add one frame; `points` is `(n, 4)` (x, y, z, intensity), cast to float32."""
+        frame_id = check_name(
+            str(frame_id), f"{self.path}, frame {len(self._frame_ids)}"
+        )  # FrameIdError (a ValueError) for an id that cannot name a file
         points = np.asarray(points, dtype=np.float32)
         if points.ndim != 2 or points.shape[1] != 4:
             raise ValueError(f"frame '{frame_id}': points must be (n, 4), got {points.shape}")
         if not np.isfinite(points).all():
             raise ValueError(f"frame '{frame_id}': points contain NaN/inf")
-        frame_id = str(frame_id)
         if frame_id in self._seen:
-            raise ValueError(f"frame '{frame_id}' appended twice")
+            raise FrameIdError(
+                f"{self.path}, frame {len(self._frame_ids)}: frame id '{frame_id}' appended twice"
+            )
         self._frame_ids.append(frame_id)
         self._seen.add(frame_id)
         self._offsets.append(self._offsets[-1] + len(points))
@@ -276,6 +369,47 @@ _BASE_TYPES = {
 }
 
 
+_INT32 = np.iinfo(np.int32)
+
+
+def int32_column(values, name: str, frame_id: np.ndarray | None = None) -> np.ndarray:
+    """`values` as an `(N,)` int32 array, refusing (TableValueError naming the column, row and
+    frame) anything a cast would change: values outside [-2**31, 2**31 - 1], NaN/inf, fractions,
+    non-numbers. Used for num_points (from_arrays, with_columns, write and read) and by importers
+    for their int32 columns (nuScenes num_lidar_pts)."""
+    array = np.asarray(values)
+    if array.dtype == np.int32:
+        return array
+    if array.dtype.kind == "b":
+        return array.astype(np.int32)
+    if array.dtype.kind not in "iuf":
+        raise TableValueError(f"column '{name}': expected integers, got {array.dtype}")
+    if array.dtype.kind == "f":
+        bad = ~np.isfinite(array)
+        bad[~bad] = array[~bad] != np.round(array[~bad])
+    else:
+        bad = np.zeros(array.shape, bool)
+    with np.errstate(invalid="ignore"):
+        bad |= (array < _INT32.min) | (array > _INT32.max)
+    if bad.any():
+        row = int(np.flatnonzero(bad.reshape(-1))[0])
+        frame = (
+            f" (frame '{frame_id[row]}')" if frame_id is not None and row < len(frame_id) else ""
+        )
+        raise TableValueError(
+            f"column '{name}', row {row}{frame}: {array.reshape(-1)[row]} is not an int32 "
+            f"(integers in {_INT32.min}..{_INT32.max})"
+        )
+    return array.astype(np.int32)
+
+
+def _typed_column(name: str, values, frame_id: np.ndarray | None = None) -> np.ndarray:
+    """`num_points` as int32, range-checked; every other column as given."""
+    if name == "num_points":
+        return int32_column(values, name, frame_id)
+    return np.asarray(values)
+
+
 @dataclass
 class BoxTable:
     """Boxes of many frames as named numpy columns (see module docstring for the schema)."""
@@ -326,7 +460,7 @@ class BoxTable:
             "label": np.asarray(label, dtype=object).reshape(-1),
             "num_points": np.zeros(count, np.int32)
             if num_points is None
-            else np.asarray(num_points, np.int32),
+            else int32_column(num_points, "num_points", frame_id),
         }
         for name, values in extra.items():
             columns[name] = np.asarray(values)
@@ -346,7 +480,7 @@ class BoxTable:
     def with_columns(self, **columns: np.ndarray) -> BoxTable:
         merged = dict(self.columns)
         for name, values in columns.items():
-            values = np.asarray(values)
+            values = _typed_column(name, values, self.frame_id)
             if len(values) != len(self):
                 raise ValueError(f"column '{name}' has {len(values)} rows, expected {len(self)}")
             merged[name] = values
@@ -381,10 +515,11 @@ class BoxTable:
         arrays, fields = [], []
         for name, values in self.columns.items():
             if name in _BASE_TYPES:
+                values = _typed_column(name, values, self.frame_id)
                 array = pa.array(values, type=_BASE_TYPES[name])
-            elif values.dtype == object:
-                # object columns hold strings; typed explicitly, else an empty one is written as
-                # pyarrow's null type, which read_boxes rejects (an empty ppcg table, issue 17)
+            elif values.dtype == object or values.dtype.kind == "U":
+                # string columns stay strings when empty (pa.array([]) would be of type null,
+                # which no reader accepts)
                 array = pa.array(values.tolist(), type=pa.string() if len(values) == 0 else None)
             else:
                 array = pa.array(values)
@@ -394,14 +529,28 @@ class BoxTable:
 
 
 def write_boxes(directory: str | Path, table: BoxTable) -> Path:
-    """Write `<directory>/boxes.parquet`; validates values first (ValueError on NaN/inf)."""
-    boxes = table.boxes
-    if not np.isfinite(boxes).all():
-        row = int(np.flatnonzero(~np.isfinite(boxes).all(axis=1))[0])
-        raise ValueError(f"box row {row} (frame '{table.frame_id[row]}') has NaN/inf values")
+    """Write `<directory>/boxes.parquet`; validates values first (TableValueError, a ValueError,
+    on NaN/inf boxes or scores, negative sizes, frame ids that cannot name a file, int32 columns
+    out of range): what read_boxes would refuse is never written."""
     path = Path(directory) / BOXES_NAME
-    pq.write_table(table.to_arrow(), path, compression="zstd")
+    problem = _value_problem(table)
+    if problem is not None:  # what read_boxes would refuse is never written
+        raise TableValueError(f"{path}: {problem}")
+    arrow = table.to_arrow()
+    _check_frame_ids(arrow.column("frame_id"), path, TableValueError)
+    pq.write_table(arrow, path, compression="zstd")
     return path
+
+
+def _check_frame_ids(ids: pa.ChunkedArray, path: Path, error=ArtifactError) -> None:
+    """Raise `error` naming the file and the first row whose frame id cannot name a file; checks
+    each distinct id once (a table has far fewer frames than rows)."""
+    distinct = pc.unique(ids).to_pylist()
+    bad = first_bad_name(distinct)
+    if bad is not None:
+        value = distinct[bad[0]]
+        row = pc.index(ids, value).as_py() if value is not None else ids.to_pylist().index(None)
+        raise error(f"{path}: row {row}: frame id {bad[1]}")
 
 
 def _is_plain_type(arrow_type: pa.DataType) -> bool:
@@ -428,6 +577,13 @@ def read_boxes(directory: str | Path) -> BoxTable:
     columns: dict[str, np.ndarray] = {}
     for name in table.column_names:
         arrow_type = table.schema.field(name).type
+        if pa.types.is_null(arrow_type) and table.num_rows == 0 and name not in _BASE_TYPES:
+            # an empty extra string column as written before 2026-11-24 (type null): read it as
+            # the empty string column it was
+            table = table.set_column(
+                table.column_names.index(name), name, pa.array([], type=pa.string())
+            )
+            continue
         if not _is_plain_type(arrow_type):
             raise ArtifactError(f"{path}: column '{name}' has unsupported type {arrow_type}")
         if name in _BASE_TYPES:
@@ -453,21 +609,34 @@ def read_boxes(directory: str | Path) -> BoxTable:
             values = np.asarray(column.to_pylist(), dtype=object)
         else:
             values = column.to_numpy()
-        if name in _BASE_TYPES and name not in ("frame_id", "label"):
+        if name == "num_points":
+            try:
+                values = int32_column(values, name, columns.get("frame_id"))
+            except TableValueError as error:
+                raise ArtifactError(f"{path}: {error.message}") from None
+        elif name in _BASE_TYPES and name not in ("frame_id", "label"):
             values = values.astype(_BASE_TYPES[name].to_pandas_dtype())
         columns[name] = values
+    _check_frame_ids(table.column("frame_id"), path)
     result = BoxTable(columns)
-    boxes = result.boxes
-    finite = np.isfinite(boxes).all(axis=1)
-    if not finite.all():
-        row = int(np.flatnonzero(~finite)[0])
-        raise ArtifactError(
-            f"{path}: row {row} (frame '{result.frame_id[row]}') has NaN/inf box values"
-        )
-    negative = (boxes[:, 3:6] < 0).any(axis=1)
-    if negative.any():
-        row = int(np.flatnonzero(negative)[0])
-        raise ArtifactError(
-            f"{path}: row {row} (frame '{result.frame_id[row]}') has a negative size"
-        )
+    problem = _value_problem(result)
+    if problem is not None:
+        raise ArtifactError(f"{path}: {problem}")
     return result
+
+
+def _value_problem(table: BoxTable) -> str | None:
+    """The first row with NaN/inf box values, a negative size or a NaN/inf score, described
+    with its frame; None when every row is fine."""
+    boxes = table.boxes
+    score = np.asarray(table["score"], np.float64)
+    checks = (
+        (~np.isfinite(boxes).all(axis=1), "has NaN/inf box values"),
+        ((boxes[:, 3:6] < 0).any(axis=1), "has a negative size"),
+        (~np.isfinite(score), "has a NaN/inf score"),
+    )
+    for bad, problem in checks:
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            return f"row {row} (frame '{table.frame_id[row]}') {problem}"
+    return None

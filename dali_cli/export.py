@@ -15,6 +15,7 @@ import numpy as np
 
 from dali_cli import kitti_label
 from dali_cli.artifacts import BoxTable
+from dali_cli.frame_ids import child_path
 from dali_cli.importers.common import ImportFormatError
 from dali_cli.importers.kitti import (
     DEFAULT_IMAGE_SIZE,
@@ -114,6 +115,8 @@ def build_export_kitti(
 
     data = Path(out) / "data"
     data.mkdir(parents=True)
+    for frame_id in frame_ids:  # refuse before writing anything (and before reading calib files)
+        child_path(data, frame_id, ".txt")
     rows = table.rows_by_frame()
     written = outside = 0
     for frame_id in tqdm(frame_ids, desc="export kitti", unit="frame", leave=False):
@@ -132,7 +135,10 @@ def build_export_kitti(
             reuse_columns,
             with_score,
         )
-        (data / f"{frame_id}.txt").write_text("".join(line + "\n" for line in result.lines))
+        # child_path: refuses a file outside OUT/data whatever the id (ids are also checked
+        # where they entered dali)
+        path = child_path(data, frame_id, ".txt")
+        path.write_text("".join(line + "\n" for line in result.lines))
         written += len(result.lines)
         outside += result.outside
     return {"frames": len(frame_ids), "boxes_written": written, "boxes_outside_image": outside}

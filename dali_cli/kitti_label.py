@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.artifacts import ArtifactError, BoxTable
+from dali_cli.frame_ids import check_name, child_path
 from dali_cli.geometry import normalize_yaw
 
 LABEL_SUFFIX = ".txt"
@@ -61,6 +62,8 @@ def _split_lines(path: Path) -> tuple[list[str], list[str], list[int]]:
         text = path.read_text()
     except OSError as error:
         raise ArtifactError(f"{path}: cannot read label file ({error.strerror})") from None
+    except UnicodeDecodeError as error:
+        raise ArtifactError(f"{path}: label file is not UTF-8 text (byte {error.start})") from None
     names, tokens, numbers = [], [], []
     for number, line in enumerate(text.splitlines(), start=1):  # a loop over text lines
         fields = line.split()
@@ -101,11 +104,18 @@ def _parse(files: list[Path], frame_ids: list[str]) -> BoxTable:
     names_array = np.asarray(names, dtype=object)
     dont_care = np.asarray([name.lower() == "dontcare" for name in names], dtype=bool)
     hwl = data[:, 7:10].copy()
-    bad = ~np.isfinite(data).all(axis=1) | ((hwl < 0).any(axis=1) & ~dont_care)
+    finite = np.isfinite(data).all(axis=1)
+    occluded = np.where(finite, data[:, 1], 0.0)
+    not_int32 = (occluded != np.round(occluded)) | (np.abs(occluded) > np.iinfo(np.int32).max)
+    bad = ~finite | ((hwl < 0).any(axis=1) & ~dont_care) | not_int32
     if bad.any():
         row = int(np.flatnonzero(bad)[0])
         problem = (
-            "non-finite value" if not np.isfinite(data[row]).all() else "negative box dimension"
+            "non-finite value"
+            if not finite[row]
+            else f"field 3 (occluded) {data[row, 1]:g} is not an integer"
+            if not_int32[row]
+            else "negative box dimension"
         )
         raise ArtifactError(f"{files[origin[row]]}:{numbers[row]}: {problem}")
     hwl[dont_care] = np.maximum(hwl[dont_care], 0.0)
@@ -142,11 +152,15 @@ def _is_float(text: str) -> bool:
 
 
 def label_files(directory: str | Path) -> list[Path]:
-    """The `<frame>.txt` files of a label directory, sorted by name."""
+    """The `<frame>.txt` files of a label directory, sorted by name; each stem must be a valid
+    frame id (dali_cli.frame_ids), FrameIdError naming the file otherwise."""
     directory = Path(directory)
     if not directory.is_dir():
         raise ArtifactError(f"{directory}: label directory not found")
-    return sorted(p for p in directory.iterdir() if p.suffix == LABEL_SUFFIX and p.is_file())
+    files = sorted(p for p in directory.iterdir() if p.suffix == LABEL_SUFFIX and p.is_file())
+    for path in files:
+        check_name(path.stem, f"{path}: file name")
+    return files
 
 
 def list_label_frames(directory: str | Path) -> list[str]:
@@ -220,9 +234,8 @@ def write_label_dir(
     rows = table.rows_by_frame()
     frames = sorted(rows) if frame_ids is None else [str(f) for f in frame_ids]
     for frame in frames:
-        if "/" in frame or frame in ("", ".", ".."):
-            raise ArtifactError(f"frame id '{frame}' cannot be a label file name")
+        path = child_path(directory, frame, LABEL_SUFFIX)  # FrameIdError unless inside directory
         selected = rows.get(frame, np.zeros(0, np.int64))
         lines = format_label_lines(table.select(selected), with_score, decimals)
-        (directory / f"{frame}{LABEL_SUFFIX}").write_text("".join(line + "\n" for line in lines))
+        path.write_text("".join(line + "\n" for line in lines))
     return len(frames)

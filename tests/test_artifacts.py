@@ -16,6 +16,8 @@ from dali_cli.artifacts import (
     BoxTable,
     FrameSet,
     FrameSetWriter,
+    TableValueError,
+    int32_column,
     read_boxes,
     write_boxes,
     write_frameset,
@@ -66,8 +68,9 @@ def test_reading_one_frame_touches_only_its_chunks(tmp_path):
             path.unlink()
     frameset = FrameSet(tmp_path)
     np.testing.assert_array_equal(frameset.frame(3), frames[3][1])
-    # zarr fills missing chunks with the fill value (0), so frame 2 comes back wrong, not as frame 2
-    assert not np.array_equal(frameset.frame(2), frames[2][1])
+    # zarr would fill the missing chunk with zeros: the reader refuses it, naming frame and chunk
+    with pytest.raises(ArtifactError, match=r"chunk points/c/2/0 is missing; frame 'f2' lies"):
+        frameset.frame(2)
 
 
 def test_writer_rejects_bad_frames(tmp_path):
@@ -258,3 +261,164 @@ def test_read_reports_nulls_and_garbage(tmp_path):
         read_boxes(tmp_path)
     with pytest.raises(ArtifactError, match="box table not found"):
         read_boxes(tmp_path / "elsewhere")
+
+
+# ---------------------------------------------------------------------------------------------
+# reads verify the chunks they read (issue 22 items 5 and 9)
+
+
+def chunked_frames(tmp_path, compress=True):
+    """Six 10-point frames in 10-point chunks: chunk k holds frame f{k}."""
+    frames = [(f"f{i}", np.full((10, 4), i + 1, np.float32)) for i in range(6)]
+    with FrameSetWriter(tmp_path, sensor="kitti", chunk_points=10, compress=compress) as writer:
+        for frame_id, points in frames:
+            writer.append(frame_id, points)
+    return frames, tmp_path / "frames.zarr" / "points" / "c"
+
+
+def _read_every_way(directory):
+    frameset = FrameSet(directory)
+    yield lambda: frameset.frame("f2")
+    yield lambda: list(FrameSet(directory).iter_frames())
+    yield lambda: FrameSet(directory).load_all()
+
+
+def test_missing_chunk_is_an_error_naming_artifact_and_frame(tmp_path):
+    frames, chunks = chunked_frames(tmp_path)
+    (chunks / "2" / "0").unlink()
+    for read in _read_every_way(tmp_path):
+        with pytest.raises(
+            ArtifactError, match=r"frames.zarr: points chunk points/c/2/0 is missing; frame 'f2'"
+        ):
+            read()
+    # the frames in other chunks still read, and read right
+    np.testing.assert_array_equal(FrameSet(tmp_path).frame("f3"), frames[3][1])
+
+
+def test_missing_chunk_under_several_frames_names_them(tmp_path):
+    frames = [(f"f{i}", np.full((4, 4), i + 1, np.float32)) for i in range(6)]
+    write_frameset(tmp_path, frames, sensor="kitti", chunk_points=10)  # f2 spans chunks 0 and 1
+    (tmp_path / "frames.zarr" / "points" / "c" / "1" / "0").unlink()
+    with pytest.raises(ArtifactError, match=r"frames 'f2' to 'f4' \(3\) lie in it"):
+        list(FrameSet(tmp_path).iter_frames())
+
+
+@pytest.mark.parametrize("compress", [True, False])
+def test_truncated_chunk_is_an_error_naming_artifact_and_frame(tmp_path, compress):
+    _, chunks = chunked_frames(tmp_path, compress)
+    path = chunks / "4" / "0"
+    path.write_bytes(path.read_bytes()[:-7])
+    for read in [lambda: FrameSet(tmp_path).frame("f4"), *list(_read_every_way(tmp_path))[1:]]:
+        with pytest.raises(
+            ArtifactError, match=r"chunk points/c/4/0 cannot be decoded .*frame 'f4'"
+        ):
+            read()
+
+
+@pytest.mark.parametrize("compress", [True, False])
+def test_flipped_bit_in_a_chunk_is_caught_by_its_checksum(tmp_path, compress):
+    frames, chunks = chunked_frames(tmp_path, compress)
+    path = chunks / "1" / "0"
+    data = bytearray(path.read_bytes())
+    data[len(data) // 3] ^= 0x10  # inside the payload (uncompressed: inside a float)
+    path.write_bytes(bytes(data))
+    with pytest.raises(ArtifactError, match=r"chunk points/c/1/0 cannot be decoded .*frame 'f1'"):
+        list(FrameSet(tmp_path).iter_frames())
+    np.testing.assert_array_equal(FrameSet(tmp_path).frame("f0"), frames[0][1])
+
+
+# ---------------------------------------------------------------------------------------------
+# empty tables keep their schema; int32 columns are range-checked (issue 22 items 7 and 8)
+
+
+def ppcg_like(count: int) -> BoxTable:
+    """A table with the extra columns a PPCG stage adds (strings and int32 counts)."""
+    return BoxTable.from_arrays(
+        [f"{i:03d}" for i in range(count)],
+        np.ones((count, 7)),
+        scale=np.ones(count),
+        ppcg=np.array(["rc"] * count, dtype=object),
+        model_id=np.array(["m"] * count, dtype=object),
+        points_after=np.zeros(count, np.int32),
+    )
+
+
+def test_empty_table_has_the_schema_of_a_full_one(tmp_path):
+    full, empty = tmp_path / "full", tmp_path / "empty"
+    full.mkdir(), empty.mkdir()
+    write_boxes(full, ppcg_like(3))
+    write_boxes(empty, ppcg_like(3).select(np.zeros(3, bool)))
+    assert pq.read_schema(empty / "boxes.parquet") == pq.read_schema(full / "boxes.parquet")
+    loaded = read_boxes(empty)
+    assert len(loaded) == 0 and loaded.extra_columns == [
+        "scale",
+        "ppcg",
+        "model_id",
+        "points_after",
+    ]
+    # and it can be written again, and concatenated with a full table
+    write_boxes(empty, loaded)
+    assert len(BoxTable.concat([loaded, read_boxes(full)])) == 3
+
+
+def test_empty_null_typed_column_of_older_versions_reads_as_strings(tmp_path):
+    table = ppcg_like(0).to_arrow()
+    legacy = table.set_column(table.column_names.index("ppcg"), "ppcg", pa.array([]))  # null
+    assert pa.types.is_null(legacy.schema.field("ppcg").type)
+    pq.write_table(legacy, tmp_path / "boxes.parquet")
+    loaded = read_boxes(tmp_path)
+    assert len(loaded) == 0 and "ppcg" in loaded.columns
+    write_boxes(tmp_path, loaded)
+    assert pa.types.is_string(pq.read_schema(tmp_path / "boxes.parquet").field("ppcg").type)
+
+
+@pytest.mark.parametrize("value", [2**40, -(2**31) - 1, 2**31, 1.5, np.nan, np.inf])
+def test_num_points_out_of_int32_is_refused(tmp_path, value):
+    counts = np.array([3, value, 5], dtype=np.float64 if isinstance(value, float) else np.int64)
+    with pytest.raises(TableValueError, match=r"column 'num_points', row 1 \(frame 'b'\)"):
+        BoxTable.from_arrays(["a", "b", "c"], np.ones((3, 7)), num_points=counts)
+    table = BoxTable.from_arrays(["a", "b", "c"], np.ones((3, 7)))
+    with pytest.raises(TableValueError, match=r"column 'num_points', row 1"):
+        table.with_columns(num_points=counts)
+    table.columns["num_points"] = counts  # behind the API's back: the writer still refuses
+    with pytest.raises(TableValueError, match=r"column 'num_points', row 1"):
+        write_boxes(tmp_path, table)
+    assert not (tmp_path / "boxes.parquet").exists()
+
+
+def test_num_points_out_of_int32_in_a_parquet_file_is_refused(tmp_path):
+    arrow = sample_boxes().to_arrow()
+    counts = pa.array([1, 2, 3, 2**40, 5], pa.int64())
+    pq.write_table(arrow.set_column(arrow.column_names.index("num_points"), "num_points", counts),
+                   tmp_path / "boxes.parquet")  # fmt: skip
+    with pytest.raises(
+        ArtifactError, match=r"boxes.parquet: column 'num_points', row 3 .*1099511627776"
+    ):
+        read_boxes(tmp_path)
+
+
+def test_int32_column_keeps_what_fits():
+    np.testing.assert_array_equal(
+        int32_column(np.array([0, -(2**31), 2**31 - 1]), "n"), [0, -(2**31), 2**31 - 1]
+    )
+    np.testing.assert_array_equal(int32_column(np.array([2.0, -1.0]), "n"), [2, -1])
+    assert int32_column(np.array([True, False]), "n").dtype == np.int32
+    with pytest.raises(TableValueError, match="expected integers"):
+        int32_column(np.array(["1"]), "n")
+
+
+@pytest.mark.parametrize(
+    ("column", "value", "problem"),
+    [("score", np.nan, "NaN/inf score"), ("score", np.inf, "NaN/inf score"),
+     ("w", -1.0, "negative size")],
+)  # fmt: skip
+def test_write_refuses_what_read_would_refuse(tmp_path, column, value, problem):
+    table = sample_boxes()
+    table.columns[column] = table.columns[column].copy()
+    table.columns[column][2] = value
+    with pytest.raises(TableValueError, match=f"row 2 \\(frame '.*'\\) has a {problem}"):
+        write_boxes(tmp_path, table)
+    assert not (tmp_path / "boxes.parquet").exists()
+    pq.write_table(table.to_arrow(), tmp_path / "boxes.parquet")  # another tool wrote it
+    with pytest.raises(ArtifactError, match=f"boxes.parquet: row 2 .*{problem}"):
+        read_boxes(tmp_path)

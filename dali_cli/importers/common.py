@@ -7,6 +7,8 @@ from pathlib import Path
 import click
 import numpy as np
 
+from dali_cli.frame_ids import name_problem
+
 
 class ImportFormatError(click.ClickException):
     """Malformed input data; the message names the file, the line or point, and the field."""
@@ -46,18 +48,53 @@ def check_finite_points(points: np.ndarray, path: str | Path) -> None:
         )
 
 
-def read_id_list(path: str | Path) -> list[str]:
-    """Frame ids from a text file, one per line (blank lines and `#` comments ignored)."""
+def read_text_lines(path: str | Path, what: str) -> list[str]:
+    """The lines of a UTF-8 text file; ImportFormatError naming the file (and `what` it should
+    be) when it is missing, unreadable or not UTF-8 text (the first bad byte's offset)."""
     path = Path(path)
     try:
-        lines = path.read_text().splitlines()
+        return path.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise ImportFormatError(f"{path}: {what} not found") from None
     except OSError as error:
-        raise ImportFormatError(f"{path}: cannot read id list ({error})") from None
-    ids = [line.split("#", 1)[0].strip() for line in lines]
-    ids = [frame_id for frame_id in ids if frame_id]
-    if len(set(ids)) != len(ids):
-        raise ImportFormatError(f"{path}: duplicate frame ids")
+        raise ImportFormatError(f"{path}: cannot read {what} ({error.strerror})") from None
+    except UnicodeDecodeError as error:
+        raise ImportFormatError(
+            f"{path}: {what} is not UTF-8 text (byte {error.start}: {error.object[error.start]:#04x})"
+        ) from None
+
+
+def read_id_list(path: str | Path) -> list[str]:
+    """Frame ids from a text file, one per line (blank lines and `#` comments ignored).
+
+    Each id must be able to name a file (dali_cli.frame_ids: no path separators, `..`, control
+    characters; at most 200 bytes): ids become file names in exports, and an id such as
+    `../../other/velodyne/000008` would otherwise read and later write outside the dataset.
+    Errors name the file and the line."""
+    path = Path(path)
+    lines = read_text_lines(path, "id list")
+    ids, first_line = [], {}
+    for number, line in enumerate(lines, start=1):
+        frame_id = line.split("#", 1)[0].strip()
+        if not frame_id:
+            continue
+        check_id(frame_id, f"{path}, line {number}")
+        if frame_id in first_line:
+            raise ImportFormatError(
+                f"{path}, line {number}: duplicate frame id '{frame_id}' "
+                f"(first on line {first_line[frame_id]})"
+            )
+        first_line[frame_id] = number
+        ids.append(frame_id)
     return ids
+
+
+def check_id(frame_id: str, where: str) -> str:
+    """`frame_id` if it can name a file, else ImportFormatError `"<where>: frame id ..."`."""
+    problem = name_problem(frame_id)
+    if problem is not None:
+        raise ImportFormatError(f"{where}: frame id {problem}")
+    return frame_id
 
 
 def write_imported(

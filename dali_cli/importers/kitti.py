@@ -21,7 +21,13 @@ import numpy as np
 from dali_cli import kitti_label
 from dali_cli.artifacts import BoxTable
 from dali_cli.geometry import count_points_in_boxes, normalize_yaw
-from dali_cli.importers.common import ImportFormatError, read_float_records, write_imported
+from dali_cli.importers.common import (
+    ImportFormatError,
+    check_id,
+    read_float_records,
+    read_text_lines,
+    write_imported,
+)
 from dali_cli.manifest import BuildResult
 
 DEFAULT_IMAGE_SIZE = (1242, 375)  # width, height in pixels; KITTI images are 1224..1242 x 370..376
@@ -102,12 +108,7 @@ _CALIB_SHAPES = {"P2": (3, 4), "R0_rect": (3, 3), "Tr_velo_to_cam": (3, 4)}
 def read_calib(path: str | Path) -> Calibration:
     """Parse a KITTI object calib file (`KEY: v1 v2 ...` lines). Errors name file, line and key."""
     path = Path(path)
-    try:
-        lines = path.read_text().splitlines()
-    except FileNotFoundError:
-        raise ImportFormatError(f"{path}: calib file not found") from None
-    except OSError as error:
-        raise ImportFormatError(f"{path}: cannot read calib file ({error})") from None
+    lines = read_text_lines(path, "calib file")
     values: dict[str, tuple[int, np.ndarray]] = {}
     for number, line in enumerate(lines, start=1):
         if not line.strip():
@@ -342,10 +343,15 @@ class KittiLayout:
     def frame_ids(self, ids: list[str] | None = None) -> list[str]:
         """The given ids (each must have a scan), else every `velodyne/*.bin` stem, sorted."""
         if ids is None:
-            ids = sorted(path.stem for path in self.velodyne_dir.glob("*.bin"))
+            ids = sorted(
+                check_id(path.stem, f"{path}: file name")
+                for path in self.velodyne_dir.glob("*.bin")
+            )
             if not ids:
                 raise ImportFormatError(f"{self.velodyne_dir}: no .bin scans")
             return ids
+        for position, frame_id in enumerate(ids):
+            check_id(frame_id, f"frame id list, entry {position}")
         missing = [
             frame_id for frame_id in ids if not (self.velodyne_dir / f"{frame_id}.bin").is_file()
         ]

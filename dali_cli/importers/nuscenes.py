@@ -15,10 +15,17 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.artifacts import BoxTable
+from dali_cli.artifacts import BoxTable, TableValueError, int32_column
 from dali_cli.geometry import count_points_in_boxes, normalize_yaw
-from dali_cli.importers.common import ImportFormatError, read_float_records, write_imported
+from dali_cli.importers.common import (
+    ImportFormatError,
+    check_id,
+    read_float_records,
+    write_imported,
+)
 from dali_cli.manifest import BuildResult
+
+_INT32 = np.iinfo(np.int32)
 
 DEFAULT_CAR_CATEGORIES = ("vehicle.car", "car")
 INTENSITY_MAX = 255.0  # nuScenes intensities are 0..255
@@ -126,9 +133,66 @@ def _load_table(table_dir: Path, name: str, required: bool = True) -> list[dict]
         raise ImportFormatError(
             f"{path}: invalid JSON (line {error.lineno}: {error.msg})"
         ) from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise ImportFormatError(f"{path}: cannot read nuScenes table ({error})") from None
     if not isinstance(rows, list):
         raise ImportFormatError(f"{path}: expected a JSON list of records")
+    _check_records(rows, path, _TABLE_FIELDS.get(name, {}))
     return rows
+
+
+# The fields dali reads from each table's records and their kinds ("?": may be absent). Checked
+# when a table is loaded, so a malformed record is an error naming the file, record and field
+# rather than a KeyError or a NaN box later. Annotation geometry is checked per sample in load().
+_TABLE_FIELDS = {
+    "sensor": {"token": "str", "channel?": "str"},
+    "calibrated_sensor": {"token": "str", "sensor_token?": "str", "translation": "vec3",
+                          "rotation": "quaternion"},
+    "ego_pose": {"token": "str", "translation": "vec3", "rotation": "quaternion"},
+    "sample_data": {"sample_token": "str", "ego_pose_token": "str", "filename": "str",
+                    "calibrated_sensor_token?": "str", "is_key_frame?": "bool"},
+    "sample": {"token": "str", "scene_token?": "str", "timestamp?": "number"},
+    "scene": {"token": "str", "name?": "str"},
+    "category": {"token": "str", "name": "str"},
+    "instance": {"token": "str", "category_token?": "str"},
+    "sample_annotation": {"sample_token": "str", "instance_token?": "str"},
+}  # fmt: skip
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and np.isfinite(value)
+
+
+def _kind_problem(value, kind: str) -> str | None:
+    """Why `value` is not of `kind` (see _TABLE_FIELDS), or None."""
+    if kind == "str":
+        return None if isinstance(value, str) else f"expected a string, got {value!r:.40}"
+    if kind == "bool":
+        return None if isinstance(value, bool) else f"expected true/false, got {value!r:.40}"
+    if kind == "number":
+        return None if _is_number(value) else f"expected a finite number, got {value!r:.40}"
+    size = 3 if kind == "vec3" else 4
+    if not (isinstance(value, list) and len(value) == size and all(map(_is_number, value))):
+        return f"expected {size} finite numbers, got {value!r:.60}"
+    if kind == "quaternion" and np.linalg.norm(value) < 1e-9:
+        return "zero quaternion"
+    return None
+
+
+def _check_records(rows: list, path: Path, fields: dict[str, str]) -> None:
+    """ImportFormatError naming the file, record (0-based) and field of the first bad record."""
+    for index, row in enumerate(rows):  # a loop over records: table rows, not points
+        if not isinstance(row, dict):
+            raise ImportFormatError(f"{path}: record {index} is not a JSON object")
+        for key, kind in fields.items():
+            name = key.rstrip("?")
+            if name not in row:
+                if key.endswith("?"):
+                    continue
+                raise ImportFormatError(f"{path}: record {index} has no field '{name}'")
+            problem = _kind_problem(row[name], kind)
+            if problem is not None:
+                raise ImportFormatError(f"{path}: record {index}, field '{name}': {problem}")
 
 
 def _field(rows: list[dict], index: int, name: str, path: Path):
@@ -181,6 +245,7 @@ class JsonSource:
                 raise ImportFormatError(f"{table_dir / 'scene.json'}: unknown scene '{unknown[0]}'")
         path = table_dir / "sample_data.json"
         chosen: list[tuple] = []
+        record_of_frame: dict[str, int] = {}
         poses: dict[str, tuple] = {}
         for index, row in enumerate(sample_data):
             calib = calib_by_token.get(row.get("calibrated_sensor_token"))
@@ -197,6 +262,13 @@ class JsonSource:
                 raise ImportFormatError(f"{path}: record {index} refers to a missing ego_pose")
             filename = Path(_field(sample_data, index, "filename", path))
             frame_id = filename.name.removesuffix(".bin").removesuffix(".pcd")
+            check_id(frame_id, f"{path}, record {index} (field 'filename')")
+            if frame_id in record_of_frame:
+                raise ImportFormatError(
+                    f"{path}, record {index}: frame id '{frame_id}' (field 'filename') already "
+                    f"used by record {record_of_frame[frame_id]}"
+                )
+            record_of_frame[frame_id] = index
             poses[sample_token] = (
                 np.asarray(pose["translation"], np.float64),
                 np.asarray(pose["rotation"], np.float64),
@@ -266,7 +338,17 @@ class JsonSource:
                 [self._category_of_instance.get(r.get("instance_token"), "unknown") for r in rows],
                 dtype=object,
             )
-            lidar_pts = np.array([r.get("num_lidar_pts", -1) for r in rows], np.int32)
+            try:
+                lidar_pts = int32_column(
+                    np.array([r.get("num_lidar_pts", -1) for r in rows], dtype=object).astype(
+                        np.float64
+                    ),
+                    "num_lidar_pts",
+                )
+            except (TableValueError, ValueError, TypeError) as error:
+                raise ImportFormatError(
+                    f"{path}: annotation of sample '{sample.key}': field 'num_lidar_pts' ({error})"
+                ) from None
         if x_forward:
             points, boxes = to_x_forward(points, boxes)
         if boxes is None:
@@ -296,7 +378,12 @@ class CsvSource:
         if not files:
             raise ImportFormatError(f"{path}: no .pcd.bin files")
         samples = [
-            Sample(f.name.removesuffix(".bin").removesuffix(".pcd"), f, f.name) for f in files
+            Sample(
+                check_id(f.name.removesuffix(".bin").removesuffix(".pcd"), f"{f}: file name"),
+                f,
+                f.name,
+            )
+            for f in files
         ]
         ids = {s.frame_id for s in samples}
         frame_of_row, boxes, categories, lidar_pts = read_boxes_csv(csv_path)
@@ -368,14 +455,21 @@ def read_boxes_csv(path: str | Path):
                     raise ImportFormatError(f"{path}, line {line}: negative size")
                 values.append(numbers)
                 categories.append(row["category"])
+                if "frame_id" in row:
+                    check_id(row["frame_id"], f"{path}, line {line}, column 'frame_id'")
                 frames.append(row.get("frame_id"))
                 try:
-                    lidar_pts.append(int(row["num_lidar_pts"]) if "num_lidar_pts" in row else -1)
+                    count = int(row["num_lidar_pts"]) if "num_lidar_pts" in row else -1
                 except ValueError:
                     raise ImportFormatError(
                         f"{path}, line {line}: column 'num_lidar_pts' is not an integer"
                     ) from None
-    except OSError as error:
+                if not _INT32.min <= count <= _INT32.max:
+                    raise ImportFormatError(
+                        f"{path}, line {line}: column 'num_lidar_pts' = {count} is out of the int32 range"
+                    )
+                lidar_pts.append(count)
+    except (OSError, UnicodeDecodeError, csv.Error) as error:
         raise ImportFormatError(f"{path}: cannot read CSV ({error})") from None
     boxes = np.asarray(values, np.float64).reshape(-1, 7)
     boxes[:, 6] = normalize_yaw(boxes[:, 6])

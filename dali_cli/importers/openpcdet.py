@@ -12,11 +12,14 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.artifacts import BoxTable
+from dali_cli.frame_ids import child_path
 from dali_cli.geometry import count_points_in_boxes, normalize_yaw
 from dali_cli.importers.common import (
     ImportFormatError,
     check_finite_points,
+    check_id,
     read_id_list,
+    read_text_lines,
     write_imported,
 )
 from dali_cli.manifest import BuildResult
@@ -41,7 +44,7 @@ def frame_ids(root: str | Path, split: str | None = None) -> list[str]:
                 f"{ids_path}: frame '{missing[0]}' has no {points_dir / (missing[0] + '.npy')}"
             )
         return ids
-    ids = sorted(path.stem for path in points_dir.glob("*.npy"))
+    ids = sorted(check_id(path.stem, f"{path}: file name") for path in points_dir.glob("*.npy"))
     if not ids:
         raise ImportFormatError(f"{points_dir}: no .npy point files")
     return ids
@@ -69,10 +72,7 @@ def read_labels(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
     Errors name the file, the line and the field."""
     path = Path(path)
-    try:
-        lines = path.read_text().splitlines()
-    except OSError as error:
-        raise ImportFormatError(f"{path}: cannot read label file ({error})") from None
+    lines = read_text_lines(path, "label file")
     names = ("x", "y", "z", "dx", "dy", "dz", "heading")
     values, classes = [], []
     for number, line in enumerate(lines, start=1):
@@ -161,6 +161,8 @@ def write_dataset(
     a label file. With `split`, ImageSets/SPLIT.txt lists the frames. Returns counts.
     """
     root = Path(root)
+    if split is not None:
+        split_path = child_path(root / "ImageSets", split, ".txt")  # refuses "../x" before writing
     (root / "points").mkdir(parents=True, exist_ok=True)
     rows = {}
     if boxes is not None:
@@ -171,7 +173,8 @@ def write_dataset(
         all_boxes, all_labels = boxes.boxes, boxes["label"]
     ids, written = [], 0
     for frame_id, points in frames:
-        np.save(root / "points" / f"{frame_id}.npy", np.asarray(points, np.float32))
+        # child_path: a second guard, after the id checks where the data entered
+        np.save(child_path(root / "points", frame_id, ".npy"), np.asarray(points, np.float32))
         ids.append(frame_id)
         if boxes is not None:
             index = rows.get(frame_id, np.zeros(0, np.int64))
@@ -179,9 +182,10 @@ def write_dataset(
             lines = [
                 " ".join(f"{v:.6f}" for v in values[i]) + f" {labels[i]}" for i in range(len(index))
             ]
-            (root / "labels" / f"{frame_id}.txt").write_text("".join(line + "\n" for line in lines))
+            label_path = child_path(root / "labels", frame_id, ".txt")
+            label_path.write_text("".join(line + "\n" for line in lines))
             written += len(index)
     if split is not None:
         (root / "ImageSets").mkdir(exist_ok=True)
-        (root / "ImageSets" / f"{split}.txt").write_text("".join(f"{i}\n" for i in ids))
+        split_path.write_text("".join(f"{i}\n" for i in ids))
     return {"frames": len(ids), "boxes": written}
