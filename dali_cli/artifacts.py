@@ -49,6 +49,31 @@ class TableValueError(ArtifactError, ValueError):
 # FrameSet
 
 
+# Group attribute set by writers that store every chunk, even one equal to the fill value (Zarr
+# skips those by default, so in older artifacts an absent chunk of zeros is legitimate).
+COMPLETE_CHUNKS_ATTR = "complete_chunks"
+STORE_EVERY_CHUNK = {"write_empty_chunks": True}
+
+
+def read_whole_array(
+    array, where: str, error: type[ArtifactError] = ArtifactError, complete: bool = True
+) -> np.ndarray:
+    """All of a small Zarr array, verified: with `complete` (the writer stored every chunk) every
+    chunk must be present (Zarr reads a missing chunk as its fill value: zeros, or "" for
+    strings), and every chunk must decode. `where` names the array in the message; raises `error`
+    (an ArtifactError) otherwise."""
+    missing = array.nchunks - array.nchunks_initialized if complete else 0
+    if missing:
+        raise error(
+            f"{where}: {missing} of {array.nchunks} chunks missing; the artifact is damaged, "
+            "rebuild it with the stage that wrote it"
+        )
+    try:
+        return np.asarray(array[:])
+    except Exception as problem:  # codecs raise RuntimeError, ValueError, ...
+        raise error(f"{where}: cannot be read ({problem})") from None
+
+
 class FrameSet:
     """Read access to a FrameSet directory. Reading one frame reads only the chunks it spans."""
 
@@ -69,7 +94,8 @@ class FrameSet:
             raise ArtifactError(
                 f"{self.path}/points: expected float32 (N, 4), got {self._points.dtype} {self._points.shape}"
             )
-        offsets = self._small(arrays["offsets"], "offsets")
+        complete = bool(group.attrs.get(COMPLETE_CHUNKS_ATTR, False))
+        offsets = self._small(arrays["offsets"], "offsets", complete)
         if offsets.dtype != np.int64 or offsets.ndim != 1 or offsets.size < 1:
             raise ArtifactError(
                 f"{self.path}/offsets: expected int64 (F + 1,), got {offsets.dtype} {offsets.shape}"
@@ -80,13 +106,9 @@ class FrameSet:
             raise ArtifactError(
                 f"{self.path}/offsets: last offset {offsets[-1]} != number of points {self._points.shape[0]}"
             )
-        ids = arrays["frame_ids"]
-        if ids.nchunks_initialized != ids.nchunks:  # Zarr would read a missing chunk as ""
-            raise ArtifactError(
-                f"{self.path}/frame_ids: {ids.nchunks - ids.nchunks_initialized} of "
-                f"{ids.nchunks} chunks missing"
-            )
-        frame_ids = [str(f) for f in self._small(ids, "frame_ids").tolist()]
+        # frame ids are never "" (the fill value), so every chunk was always stored
+        ids = self._small(arrays["frame_ids"], "frame_ids", complete=True)
+        frame_ids = [str(f) for f in ids.tolist()]
         if len(frame_ids) != offsets.size - 1:
             raise ArtifactError(
                 f"{self.path}/frame_ids: {len(frame_ids)} ids for {offsets.size - 1} frames"
@@ -115,12 +137,9 @@ class FrameSet:
         except Exception as error:  # broken zarr.json: JSON, key or value errors
             raise ArtifactError(f"{self.path}/{name}: cannot open array ({error})") from None
 
-    def _small(self, array, name: str) -> np.ndarray:
-        """All of a small array (offsets, frame ids); ArtifactError when a chunk cannot decode."""
-        try:
-            return np.asarray(array[:])
-        except Exception as error:
-            raise ArtifactError(f"{self.path}/{name}: cannot be read ({error})") from None
+    def _small(self, array, name: str, complete: bool) -> np.ndarray:
+        """All of a small array (offsets, frame ids), verified (see `read_whole_array`)."""
+        return read_whole_array(array, f"{self.path}/{name}", complete=complete)
 
     def __len__(self) -> int:
         return len(self.frame_ids)
@@ -319,12 +338,18 @@ class FrameSetWriter:
         if self._closed:
             return
         self._flush(final=True)
-        self._group.create_array("offsets", data=np.asarray(self._offsets, dtype=np.int64))
+        self._group.create_array(
+            "offsets", data=np.asarray(self._offsets, dtype=np.int64), config=STORE_EVERY_CHUNK
+        )
         # dtype=str is Zarr's variable-length UTF-8 string type (stable in the v3 spec)
-        ids = self._group.create_array("frame_ids", shape=(len(self._frame_ids),), dtype=str)
+        ids = self._group.create_array(
+            "frame_ids", shape=(len(self._frame_ids),), dtype=str, config=STORE_EVERY_CHUNK
+        )
         if self._frame_ids:
             ids[:] = np.asarray(self._frame_ids, dtype=object)
-        self._group.attrs.update({**self._attrs, "count": len(self._frame_ids)})
+        self._group.attrs.update(
+            {**self._attrs, "count": len(self._frame_ids), COMPLETE_CHUNKS_ATTR: True}
+        )
         self._closed = True
 
     def __enter__(self) -> FrameSetWriter:

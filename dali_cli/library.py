@@ -23,7 +23,14 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from dali_cli.artifacts import ArtifactError, FrameSet, read_boxes
+from dali_cli.artifacts import (
+    COMPLETE_CHUNKS_ATTR,
+    STORE_EVERY_CHUNK,
+    ArtifactError,
+    FrameSet,
+    read_boxes,
+    read_whole_array,
+)
 from dali_cli.procedural import KINDS, generate_car_mesh
 
 LIBRARY_ZARR = "library.zarr"
@@ -479,17 +486,38 @@ def write_library(
         np.concatenate([m.vertices for m in meshes]) if meshes else np.zeros((0, 3), np.float32)
     )
     faces = np.concatenate([m.faces for m in meshes]) if meshes else np.zeros((0, 3), np.int32)
-    group.create_array("vertices", data=np.ascontiguousarray(vertices, np.float32))
-    group.create_array("faces", data=np.ascontiguousarray(faces, np.int32))
-    group.create_array("vertex_offsets", data=np.r_[0, np.cumsum(vertex_counts)].astype(np.int64))
-    group.create_array("face_offsets", data=np.r_[0, np.cumsum(face_counts)].astype(np.int64))
+    group.create_array(
+        "vertices", data=np.ascontiguousarray(vertices, np.float32), config=STORE_EVERY_CHUNK
+    )
+    group.create_array(
+        "faces", data=np.ascontiguousarray(faces, np.int32), config=STORE_EVERY_CHUNK
+    )
+    group.create_array(
+        "vertex_offsets",
+        data=np.r_[0, np.cumsum(vertex_counts)].astype(np.int64),
+        config=STORE_EVERY_CHUNK,
+    )
+    group.create_array(
+        "face_offsets",
+        data=np.r_[0, np.cumsum(face_counts)].astype(np.int64),
+        config=STORE_EVERY_CHUNK,
+    )
     points_group = root.create_group("points")
     points_group.create_array(
-        "points", data=np.ascontiguousarray(point_models.points, np.float32).reshape(-1, 4)
+        "points",
+        data=np.ascontiguousarray(point_models.points, np.float32).reshape(-1, 4),
+        config=STORE_EVERY_CHUNK,
     )
-    points_group.create_array("offsets", data=np.asarray(point_models.offsets, np.int64))
+    points_group.create_array(
+        "offsets", data=np.asarray(point_models.offsets, np.int64), config=STORE_EVERY_CHUNK
+    )
     root.attrs.update(
-        {"meshes": len(meshes), "point_models": len(point_models), "frame": "unit box"}
+        {
+            "meshes": len(meshes),
+            "point_models": len(point_models),
+            "frame": "unit box",
+            COMPLETE_CHUNKS_ATTR: True,
+        }
     )
 
     lwh = np.array([m.native_lwh for m in meshes], np.float64).reshape(-1, 3)
@@ -547,14 +575,22 @@ def read_library(directory: str | Path) -> ModelLibrary:
             )
     try:
         root = zarr.open_group(str(store), mode="r")
-        vertices = np.asarray(root["meshes/vertices"][:], np.float32)
-        faces = np.asarray(root["meshes/faces"][:], np.int32)
-        vertex_offsets = np.asarray(root["meshes/vertex_offsets"][:], np.int64)
-        face_offsets = np.asarray(root["meshes/face_offsets"][:], np.int64)
-        points = np.asarray(root["points/points"][:], np.float32).reshape(-1, 4)
-        point_offsets = np.asarray(root["points/offsets"][:], np.int64)
+
+        complete = bool(root.attrs.get(COMPLETE_CHUNKS_ATTR, False))
+
+        def whole(name: str) -> np.ndarray:
+            return read_whole_array(root[name], f"{store}/{name}", LibraryError, complete)
+
+        vertices = np.asarray(whole("meshes/vertices"), np.float32)
+        faces = np.asarray(whole("meshes/faces"), np.int32)
+        vertex_offsets = np.asarray(whole("meshes/vertex_offsets"), np.int64)
+        face_offsets = np.asarray(whole("meshes/face_offsets"), np.int64)
+        points = np.asarray(whole("points/points"), np.float32).reshape(-1, 4)
+        point_offsets = np.asarray(whole("points/offsets"), np.int64)
         mesh_index = pq.read_table(directory / MESHES_INDEX).to_pydict()
         point_index = pq.read_table(directory / POINTS_INDEX).to_pydict()
+    except LibraryError:
+        raise
     except Exception as error:
         raise LibraryError(
             f"{directory}: cannot read library ({type(error).__name__}: {error})"

@@ -422,3 +422,20 @@ def test_write_refuses_what_read_would_refuse(tmp_path, column, value, problem):
     pq.write_table(table.to_arrow(), tmp_path / "boxes.parquet")  # another tool wrote it
     with pytest.raises(ArtifactError, match=f"boxes.parquet: row 2 .*{problem}"):
         read_boxes(tmp_path)
+
+
+def test_all_zero_offsets_are_stored_and_their_loss_is_detected(tmp_path):
+    """Zarr skips chunks equal to the fill value by default: offsets of empty frames are all
+    zeros, so the writer must store them anyway (a missing chunk is then damage, not zeros)."""
+    write_frameset(tmp_path, [("a", np.zeros((0, 4))), ("b", np.zeros((0, 4)))], sensor="kitti")
+    frameset = FrameSet(tmp_path)
+    assert frameset.frame_ids == ["a", "b"] and frameset.num_points == 0
+    store = tmp_path / "frames.zarr"
+    shutil.rmtree(store / "offsets" / "c")
+    with pytest.raises(ArtifactError, match=r"frames.zarr/offsets: 1 of 1 chunks missing"):
+        FrameSet(tmp_path)
+    # a frame set from before the writer stored every chunk (no marker) still reads its
+    # legitimately absent all-zero offsets chunk as zeros
+    group = zarr.open_group(str(store), mode="r+")
+    del group.attrs["complete_chunks"]
+    assert FrameSet(tmp_path).num_points == 0

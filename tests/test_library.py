@@ -339,3 +339,23 @@ def test_cad_formats_glb_scene_ply_and_stl_load_as_one_normalized_mesh(tmp_path)
         np.testing.assert_allclose(model.vertices.min(axis=0), -0.5, atol=1e-6)
         np.testing.assert_allclose(model.vertices.max(axis=0), 0.5, atol=1e-6)
         assert len(model.faces) == 24
+
+
+@pytest.mark.parametrize(
+    "array", ["meshes/vertices", "meshes/faces", "meshes/face_offsets", "points/points"]
+)
+def test_a_missing_library_chunk_is_an_error_not_zeros(tmp_path, array):
+    """Zarr reads a missing chunk as zeros (a flattened car, or offsets that still add up):
+    the reader must refuse it and name the array."""
+    rng = np.random.default_rng(0)
+    box = np.array([10.0, 0.0, 0.0, 4.0, 1.8, 1.5, 0.3])
+    points, _ = _car_points(box, 400, rng)
+    models = point_models_from_frame(points, box[None], "f0", "kitti", min_points=300)
+    directory = tmp_path / "lib"
+    write_library(directory, [procedural_car(0, lod=1000)], models)
+    read_library(directory)  # intact: reads
+    chunk = directory / "library.zarr" / array / "c"
+    for path in [p for p in chunk.rglob("*") if p.is_file()]:
+        path.unlink()
+    with pytest.raises(LibraryError, match=rf"{array}: 1 of 1 chunks missing"):
+        read_library(directory)

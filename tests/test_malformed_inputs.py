@@ -116,7 +116,7 @@ def damage_frames(world: Path, case: Path, how: str) -> tuple[Path, tuple[str, .
         return target, ("frames.zarr", "c/0/0", "cannot be decoded", "'000000'")
     if how == "missing-offsets":
         shutil.rmtree(store / "offsets" / "c")
-        return target, ("frames.zarr/offsets", "last offset 0")
+        return target, ("frames.zarr/offsets", "chunks missing")
     if how == "missing-frame-ids":
         shutil.rmtree(store / "frame_ids" / "c")
         return target, ("frames.zarr/frame_ids", "chunks missing")
