@@ -1,14 +1,16 @@
 """Stage execution contract: content hashes, manifest.json, up-to-date checks and atomic output.
 
 A stage is a pure function of (input artifacts, parameters) → an output directory. `run_stage`
-builds the output in `<out>.tmp-<pid>`, writes `manifest.json` last, and renames the directory into
-place, so a crash never leaves a half-written artifact and never damages the previous one. A rerun
-with the same inputs (by content hash), parameters and dali version is skipped.
+checks that `--out` may be written (`output_paths`), takes the output's lock, restores or cleans
+what an interrupted run left (`atomic_dir`), builds the output in `<out>.tmp-<pid>`, writes
+`manifest.json` last, and commits the directory in one atomic exchange, so a crash never leaves a
+half-written artifact and never loses the previous one. A rerun with the same inputs (hashed from
+their files, `file_hashes`), parameters and dali version, over an output whose files are intact,
+is skipped. docs/data-safety.md says what this guarantees.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -21,37 +23,26 @@ from pathlib import Path
 import click
 
 from dali_cli import __version__
+from dali_cli.atomic_dir import OutputLock, recover_interrupted, replace_directory
+from dali_cli.file_hashes import hash_tree as _hash_files
+from dali_cli.output_paths import check_output_path
 
 MANIFEST_NAME = "manifest.json"
-_HASH_BLOCK = 1 << 22
+# how content hashes are computed; manifests of older versions hashed raw bytes differently
+HASH_METHOD = "blake2b-128 of names and per-file blake2b-128 digests"
 
 
 def hash_tree(path: str | Path, exclude: tuple[str, ...] = (MANIFEST_NAME,)) -> str:
-    """blake2b over every file under `path` (relative names and bytes, sorted); a file works too."""
-    path = Path(path)
-    digest = hashlib.blake2b(digest_size=16)
-    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
-    for file in files:
-        relative = file.name if file == path else file.relative_to(path).as_posix()
-        if relative in exclude:
-            continue
-        digest.update(relative.encode())
-        digest.update(b"\0")
-        with open(file, "rb") as handle:
-            while block := handle.read(_HASH_BLOCK):
-                digest.update(block)
-        digest.update(b"\1")
-    return digest.hexdigest()
+    """Content hash of an artifact directory (every file but its manifest) or of one file."""
+    return _hash_files(path, exclude)
 
 
 def content_hash(path: str | Path) -> str:
-    """Hash of an input artifact: its manifest's recorded content hash, else a hash of its files."""
+    """Hash of an input artifact, computed from its files (cached per file, see file_hashes);
+    never the hash its own manifest claims, which a hand edit would leave unchanged."""
     path = Path(path)
     if not path.exists():
         raise click.ClickException(f"{path}: input not found")
-    manifest = read_manifest(path) if path.is_dir() else None
-    if manifest and isinstance(manifest.get("content_hash"), str):
-        return manifest["content_hash"]
     return hash_tree(path)
 
 
@@ -123,6 +114,10 @@ def why_stale(out: Path, stage: str, inputs: dict, params: dict) -> str | None:
     manifest = read_manifest(out)
     if manifest is None:
         return "no output yet" if not out.exists() else "output has no valid manifest"
+    if manifest.get("hash_method") != HASH_METHOD:
+        return "output was written by an older dali (content hashes are computed differently)"
+    if manifest.get("content_hash") != hash_tree(out):
+        return "output files were changed since the stage wrote them"
     if manifest.get("stage") != stage:
         return f"output was written by stage '{manifest.get('stage')}'"
     if manifest.get("dali_version") != __version__:
@@ -147,28 +142,6 @@ def _write_json_atomic(path: Path, document: dict) -> None:
     os.replace(temporary, path)
 
 
-def _process_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # exists, owned by someone else
-        return True
-    return True
-
-
-def remove_stale_temporaries(out: Path) -> list[Path]:
-    """Delete `<out>.tmp-<pid>` directories left by killed runs (their process is gone); a
-    directory of a live process (a concurrent run) is left alone. Returns what was removed."""
-    removed = []
-    for path in out.parent.glob(f"{out.name}.tmp-*"):
-        pid = path.name.rsplit("-", 1)[-1]
-        if path.is_dir() and pid.isdigit() and not _process_alive(int(pid)):
-            shutil.rmtree(path, ignore_errors=True)
-            removed.append(path)
-    return removed
-
-
 def run_stage(
     stage: str,
     out: str | Path,
@@ -187,20 +160,34 @@ def run_stage(
     params: JSON-serializable parameters; together with input hashes they decide staleness.
     build: writes the outputs into the given (empty) directory and returns counts/timings.
     """
-    out = Path(out)
+    given = Path(out)
+    out = check_output_path(given, inputs)
     params = _normalized(params)
-    records = _input_records(inputs)
-    reason = why_stale(out, stage, records, params)
-    if reason is None and not force:
-        echo(f"{stage}: {out} is up to date (use --force to rerun)")
-        return StageOutcome("skipped", "up to date", read_manifest(out))
-    reason = reason or "forced"
     if dry_run:
-        echo(f"{stage}: would run -> {out} ({reason})")
-        return StageOutcome("dry-run", reason)
+        reason = why_stale(out, stage, _input_records(inputs), params)
+        if reason is None and not force:
+            echo(f"{stage}: {given} is up to date (use --force to rerun)")
+            return StageOutcome("skipped", "up to date", read_manifest(out))
+        echo(f"{stage}: would run -> {given} ({reason or 'forced'})")
+        return StageOutcome("dry-run", reason or "forced")
+    with OutputLock(out):
+        recover_interrupted(out, echo)
+        records = _input_records(inputs)
+        reason = why_stale(out, stage, records, params)
+        if reason is None and not force:
+            echo(f"{stage}: {given} is up to date (use --force to rerun)")
+            return StageOutcome("skipped", "up to date", read_manifest(out))
+        reason = reason or "forced"
+        manifest, wall = _build_and_commit(stage, out, records, params, build, seed)
+    echo(f"{stage}: wrote {given} ({wall:.1f} s)")
+    return StageOutcome("ran", reason, manifest)
 
-    out.parent.mkdir(parents=True, exist_ok=True)
-    remove_stale_temporaries(out)
+
+def _build_and_commit(
+    stage: str, out: Path, records: dict, params: dict, build: Callable, seed: int | None
+) -> tuple[dict, float]:
+    """Build into `<out>.tmp-<pid>`, write the manifest last, commit atomically; on any error
+    (or Ctrl-C) remove the temporary directory and leave `out` as it was."""
     temporary = out.parent / f"{out.name}.tmp-{os.getpid()}"
     if temporary.exists():
         shutil.rmtree(temporary)
@@ -229,29 +216,12 @@ def run_stage(
             "timings": {"wall_seconds": round(wall, 3), **_normalized(result.timings)},
             "notes": list(result.notes),
             **_normalized(result.extra),
+            "hash_method": HASH_METHOD,
             "content_hash": hash_tree(temporary),
         }
         _write_json_atomic(temporary / MANIFEST_NAME, manifest)
-        _replace_directory(temporary, out)
+        replace_directory(temporary, out)
     except BaseException:
         shutil.rmtree(temporary, ignore_errors=True)
         raise
-    echo(f"{stage}: wrote {out} ({wall:.1f} s)")
-    return StageOutcome("ran", reason, manifest)
-
-
-def _replace_directory(new: Path, target: Path) -> None:
-    """Move `new` to `target`, replacing an existing directory with only renames in between."""
-    if not target.exists():
-        os.rename(new, target)
-        return
-    retired = target.parent / f"{target.name}.old-{os.getpid()}"
-    if retired.exists():
-        shutil.rmtree(retired)
-    os.rename(target, retired)
-    try:
-        os.rename(new, target)
-    except BaseException:
-        os.rename(retired, target)
-        raise
-    shutil.rmtree(retired, ignore_errors=True)
+    return manifest, wall

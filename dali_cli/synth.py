@@ -704,12 +704,9 @@ def iter_frames(
     if workers <= 1 or frames <= 1:
         yield from map(_frame_task, tasks)
         return
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
+    from dali_cli.workers import process_pool
 
-    # spawn, not fork: Embree's thread pool does not survive a fork
-    context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=min(workers, frames), mp_context=context) as pool:
+    with process_pool(min(workers, frames)) as pool:
         yield from pool.map(_frame_task, tasks, chunksize=max(1, min(8, frames // (4 * workers))))
 
 

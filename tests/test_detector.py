@@ -382,8 +382,9 @@ def test_pretrain_cli(toy_dir, tmp_path):
         main, ["pretrain", "--source", str(toy_dir), "--out", str(out), "--size-norm", "sn"]
     )
     assert usage.exit_code == 2 and "--target-profile" in usage.output
+    (tmp_path / "empty").mkdir()
     missing = runner.invoke(
-        main, ["pretrain", "--source", str(tmp_path), "--out", str(tmp_path / "x")]
+        main, ["pretrain", "--source", str(tmp_path / "empty"), "--out", str(tmp_path / "x")]
     )
     assert missing.exit_code == 1 and "frames.zarr" in missing.output
 

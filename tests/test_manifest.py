@@ -142,13 +142,16 @@ def test_failure_on_first_run_leaves_nothing(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_output_without_manifest_is_rebuilt(tmp_path):
+def test_output_without_manifest_is_refused_not_wiped(tmp_path):
+    from dali_cli.output_paths import OutputPathError
+
     out = tmp_path / "out"
     out.mkdir()
     (out / "stray.txt").write_text("old")
-    outcome = run_stage("demo", out, {}, {}, CountingBuild(), echo=no_echo)
-    assert outcome.status == "ran" and "no valid manifest" in outcome.reason
-    assert not (out / "stray.txt").exists()
+    build = CountingBuild()
+    with pytest.raises(OutputPathError, match="without a dali manifest"):
+        run_stage("demo", out, {}, {}, build, echo=no_echo)
+    assert build.calls == 0 and (out / "stray.txt").read_text() == "old"
 
 
 def test_missing_input_is_an_error(tmp_path):

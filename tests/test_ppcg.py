@@ -430,10 +430,11 @@ def test_implausible_boxes_are_dropped_and_counted(dataset, tmp_path, mode):
     noisy = BoxTable.concat(
         [BoxTable.from_arrays(["000000", "000002"], np.r_[huge, far], label="Car"), given]
     )
-    write_boxes(tmp_path, noisy)
+    (tmp_path / "boxes").mkdir()
+    write_boxes(tmp_path / "boxes", noisy)
     options = {"max_points": 10**5} if mode == "rc" else {"seed": 3}
     stage(target, target, library, tmp_path / "clean", progress=False, **options)
-    stage(target, tmp_path, library, tmp_path / "noisy", progress=False, **options)
+    stage(target, tmp_path / "boxes", library, tmp_path / "noisy", progress=False, **options)
     clean, kept = read_boxes(tmp_path / "clean"), read_boxes(tmp_path / "noisy")
     assert len(kept) == len(given)
     np.testing.assert_array_equal(kept.boxes, clean.boxes)

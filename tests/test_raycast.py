@@ -167,7 +167,8 @@ def test_transformed_rays_equal_rebuilt_mesh_hits(x, y, yaw, lwh):
     assert agree.mean() >= 0.99
     both = moved.hit & direct.hit
     np.testing.assert_allclose(moved.distance[both], direct.distance[both], rtol=1e-5, atol=1e-5)
-    np.testing.assert_allclose(moved.points[both], direct.points[both], atol=1e-4)
+    # float32 hits of a rebuilt (float32) mesh: a few ulp of 60 m apart
+    np.testing.assert_allclose(moved.points[both], direct.points[both], rtol=1e-5, atol=1e-4)
     if moved.hit.any():
         ordered = np.sort(moved.distance[moved.hit])
         limit = float(ordered[len(ordered) // 2 :][:2].mean())  # between two hits, not on one

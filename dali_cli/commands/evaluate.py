@@ -213,6 +213,13 @@ def command(
             raise click.BadParameter(f"must be in [0, 1), got {iou}", param_hint="--iou")
     if len(set(ious)) != len(ious):
         raise click.BadParameter(f"repeated threshold in {list(ious)}", param_hint="--iou")
+    if out is not None:  # before any work: an --out dali must not write fails at once
+        from dali_cli.output_paths import check_metrics_output
+
+        check_metrics_output(
+            out,
+            {"model": model, "data": data, "pred": pred_path, "gt": gt_path, "scale": scale_from},
+        )
     frame_ids = None
     source: dict = {}
     if model is not None or data is not None:

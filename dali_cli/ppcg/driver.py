@@ -119,13 +119,11 @@ def run_frames(
             raise ValueError(f"{count} box lists for {len(worker.frames)} frames")
         yield from worker.run(None, boxes_by_frame)
         return
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
+    from dali_cli.workers import process_pool
 
     chunks = [list(range(a, min(a + _CHUNK_FRAMES, count))) for a in range(0, count, _CHUNK_FRAMES)]
     tasks = [(chunk, [boxes_by_frame[i] for i in chunk]) for chunk in chunks]
-    context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(workers, context, initializer=_init_worker, initargs=(job,)) as pool:
+    with process_pool(workers, _init_worker, (job,)) as pool:
         pending = deque()
         for task in tasks:  # at most 2 chunks per worker in flight bounds the memory held
             pending.append(pool.submit(_run_chunk, task))
