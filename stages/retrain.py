@@ -11,7 +11,7 @@ import click
 import numpy as np
 
 from dali_cli.manifest import BuildResult, StageOutcome, content_hash
-from stages.pretrain import run_training_stage, training_summary, write_train_log
+from stages.pretrain import fit_and_save, run_training_stage
 
 INIT_FROM = ("previous", "scratch")
 
@@ -106,9 +106,7 @@ def run_retrain(
             PillarCenterNet,
             TrainSettings,
             load_labeled,
-            save_checkpoint,
             size_normalize,
-            train,
         )
         from dali_cli.detector.augment import ObjectDatabase
         from dali_cli.detector.data import detection_region
@@ -150,7 +148,6 @@ def run_retrain(
             epochs=epochs, minutes=minutes, batch_size=batch_size, lr=lr, seed=seed,
             precision=precision, compile=compile_net, threads=threads, mix=weights,
         )  # fmt: skip
-        result = train(net, datasets, augmentations, settings, resume, key, progress=progress)
         meta = {
             "provenance": {
                 "stage": "retrain",
@@ -167,30 +164,25 @@ def run_retrain(
                 "target_profile": provenance.get("target_profile"),
                 "seed": seed,
             },
-            "train": training_summary(result, settings),
             "metrics": {
                 "frames": {d.name: len(d) for d in datasets},
                 "boxes": {d.name: d.num_boxes for d in datasets},
                 "mean_lwh_m": {d.name: d.mean_lwh().tolist() for d in datasets},
             },
         }
-        save_checkpoint(tmp, net, meta)
-        write_train_log(tmp, result.log)
-        notes = [
-            f"detector: {net.config.name} (not the paper's SECOND-IoU)",
-            "raw target frames not used: source + PPCG frame sets only",
-        ]
-        if result.resumed_from_step:
-            notes.append(f"resumed from step {result.resumed_from_step}")
-        return BuildResult(
+        return fit_and_save(
+            tmp, net, datasets, augmentations, settings, resume, key,
+            meta=meta,
             counts={
                 "source_frames": len(source_data),
                 "ppcg_frames": int(sum(len(d) for d in pseudo_sets)),
-                "steps": result.steps,
-                "frames_seen": result.frames,
             },
-            timings={"load_seconds": round(load_s, 2), "train_seconds": round(result.seconds, 2)},
-            notes=notes,
-        )
+            notes=[
+                f"detector: {net.config.name} (not the paper's SECOND-IoU)",
+                "raw target frames not used: source + PPCG frame sets only",
+            ],
+            load_s=load_s,
+            progress=progress,
+        )  # fmt: skip
 
     return run_training_stage("retrain", out, inputs, params, train_fn, force, dry_run, seed)

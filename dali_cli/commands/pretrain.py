@@ -77,7 +77,7 @@ def training_options(function):
             "--threads",
             type=click.IntRange(min=1),
             default=None,
-            help="torch threads (default: the cores idle at start, >= 1).",
+            help="torch threads (default: every core this process may use; recorded in the manifest).",
         ),
         click.option(
             "--no-augment",
