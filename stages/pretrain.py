@@ -57,6 +57,19 @@ def training_summary(result, settings) -> dict:
     }
 
 
+def attach_database(data, config, augment: bool) -> None:
+    """Give `data` its gt-sampling database (its own boxes inside the detection region), or
+    none when augmentation is off."""
+    from dali_cli.detector.augment import ObjectDatabase
+    from dali_cli.detector.data import detection_region
+
+    data.database = (
+        ObjectDatabase.build(data.points, data.boxes, region=detection_region(config))
+        if augment
+        else None
+    )
+
+
 def fit_and_save(
     tmp: Path,
     net,
@@ -189,8 +202,6 @@ def run_pretrain(
             load_labeled,
             size_normalize,
         )
-        from dali_cli.detector.augment import ObjectDatabase
-        from dali_cli.detector.data import detection_region
 
         started = time.perf_counter()
         config = DetectorConfig.from_dict({**(config_overrides or {}), "features": features})
@@ -207,11 +218,7 @@ def run_pretrain(
         if size_norm == "sn":
             delta = np.asarray(target_size) - source_mean
             data = size_normalize(data, delta)
-        data.database = (
-            ObjectDatabase.build(data.points, data.boxes, region=detection_region(config))
-            if augment
-            else None
-        )
+        attach_database(data, config, augment)
         augmentation = Augmentation() if augment else Augmentation.none()
         if size_norm == "ros":
             augmentation.object_scale = tuple(ros_range)

@@ -11,7 +11,7 @@ import click
 import numpy as np
 
 from dali_cli.manifest import BuildResult, StageOutcome, content_hash
-from stages.pretrain import fit_and_save, run_training_stage
+from stages.pretrain import attach_database, fit_and_save, run_training_stage
 
 INIT_FROM = ("previous", "scratch")
 
@@ -108,8 +108,6 @@ def run_retrain(
             load_labeled,
             size_normalize,
         )
-        from dali_cli.detector.augment import ObjectDatabase
-        from dali_cli.detector.data import detection_region
 
         started = time.perf_counter()
         previous = Detector.load(init)
@@ -131,11 +129,7 @@ def run_retrain(
             *([pool(pseudo_sets, "ppcg")] if len(weights) == 2 else pseudo_sets),
         ]
         for data in datasets:
-            data.database = (
-                ObjectDatabase.build(data.points, data.boxes, region=detection_region(config))
-                if augment
-                else None
-            )
+            attach_database(data, config, augment)
         augmentations = [source_augmentation] + [
             Augmentation() if augment else Augmentation.none() for _ in datasets[1:]
         ]

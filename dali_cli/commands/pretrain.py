@@ -27,7 +27,7 @@ def parse_floats(count: int):
 
 
 def training_options(function):
-    """Budget, optimizer and input options shared by pretrain and retrain."""
+    """Budget, optimizer and input options shared by pretrain, retrain and self-train."""
     options = [
         click.option(
             "--epochs",
