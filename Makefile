@@ -145,8 +145,23 @@ X1_BUDGET = $(if $(MINUTES),--minutes $$(( 2 * $(MINUTES) )),--epochs $$(( $(EPO
 X2_BUDGET = $(if $(MINUTES),--minutes $$(( 3 * $(MINUTES) )),--epochs $$(( $(EPOCHS) + 4 * $(RETRAIN_EPOCHS) )))
 $(RUN)/baselines/source_x1_budget/model/manifest.json: $(SOURCE)/manifest.json
 	$(DALI) pretrain --source $(SOURCE) --seed $(SEED) $(X1_BUDGET) $(TRAIN_FLAGS) --out $(@D)
+$(RUN)/baselines/source_x2_budget/model/manifest.json: $(SOURCE)/manifest.json
+	$(DALI) pretrain --source $(SOURCE) --seed $(SEED) $(X2_BUDGET) $(TRAIN_FLAGS) --out $(@D)
 $(RUN)/baselines/oracle_x2_budget/model/manifest.json: $(TARGET)/manifest.json
 	$(DALI) pretrain --source $(TARGET) --seed $(SEED) $(X2_BUDGET) $(TRAIN_FLAGS) --out $(@D)
+# self-training (the paper's ‡): fine-tune x2 on the target with its own pseudo labels at its PTSN
+# scale (iter3/ptsn, iter3/pseudo), in that scaled frame, and evaluate at the same scale
+ST_EPOCHS ?= $(RETRAIN_EPOCHS)
+ST_FLAGS  ?= --lr 1e-3
+ST_BUDGET  = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(ST_EPOCHS))
+$(RUN)/iter2_st/model/manifest.json: $(RUN)/iter3/pseudo/manifest.json $(TARGET)/manifest.json
+	$(DALI) self-train --init $(RUN)/iter2/model --target $(TARGET) --pseudo $(RUN)/iter3/pseudo --seed $(SEED) $(ST_BUDGET) $(ST_FLAGS) $(TRAIN_FLAGS) --out $(@D)
+$(RUN)/iter2_st/eval/metrics.json: $(RUN)/iter2_st/model/manifest.json $(TARGET_VAL)/manifest.json
+	$(DALI) eval --model $(RUN)/iter2_st/model --data $(TARGET_VAL) --scale-from $(RUN)/iter3/ptsn $(EVAL_FLAGS) --out $@
+# KITTI easy / moderate / hard of the same predictions (synthetic labels carry KITTI's columns)
+KITTI_EVAL_FLAGS ?= --protocol kitti --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
+$(RUN)/%/metrics_kitti.json: $(RUN)/%/metrics.json
+	$(DALI) eval --pred $(RUN)/$*/predictions.parquet --gt $(TARGET_VAL) $(KITTI_EVAL_FLAGS) --out $@
 # cross-domain check: every model on the source validation set at s = 1
 $(RUN)/%/eval_source/metrics.json: $(RUN)/%/model/manifest.json $(RUN)/data/source_val/manifest.json
 	$(DALI) eval --model $(RUN)/$*/model --data $(RUN)/data/source_val --scale 1.0 $(EVAL_FLAGS) --out $@
@@ -159,9 +174,22 @@ ablation-rc: $(RUN)/baselines/rc_only/eval_ptsn/metrics.json
 ablation-cf: $(RUN)/baselines/cf_only/eval_ptsn/metrics.json
 baselines: baseline-sn baseline-ros baseline-oracle ablation-rc ablation-cf
 cross-domain: $(RUN)/iter0/eval_source/metrics.json $(RUN)/iter2/eval_source/metrics.json
-controls: $(RUN)/baselines/source_x1_budget/eval_ptsn/metrics.json \
+# equal-budget controls (standard rows of `make experiment`; "gap closed" is measured against
+# them): source only with x2's training frames + test-time PTSN, oracle with x2's frames
+controls: $(RUN)/baselines/source_x2_budget/eval_ptsn/metrics.json \
     $(RUN)/baselines/oracle_x2_budget/eval/metrics.json
-.PHONY: baseline-sn baseline-ros baseline-oracle ablation-rc ablation-cf baselines cross-domain controls
+controls-x1: $(RUN)/baselines/source_x1_budget/eval_ptsn/metrics.json
+iter2-st: iter2 $(RUN)/iter2_st/eval/metrics.json
+# every target evaluation of the run also under KITTI's easy / moderate / hard
+KITTI_ROWS = iter0/eval iter0/eval_ptsn iter1/eval iter2/eval iter2_st/eval baselines/sn/eval \
+    baselines/ros/eval baselines/oracle/eval baselines/rc_only/eval_ptsn baselines/cf_only/eval_ptsn \
+    baselines/source_x1_budget/eval_ptsn baselines/source_x2_budget/eval_ptsn baselines/oracle_x2_budget/eval
+kitti-protocol:
+	@for row in $(KITTI_ROWS); do \
+	    if [ -f $(RUN)/$$row/metrics.json ]; then $(MAKE) --no-print-directory $(RUN)/$$row/metrics_kitti.json || exit 1; fi; \
+	done
+.PHONY: baseline-sn baseline-ros baseline-oracle ablation-rc ablation-cf baselines cross-domain controls \
+    controls-x1 iter2-st kitti-protocol
 
 report: | install
 	$(DALI) report $(RUN)
@@ -175,14 +203,27 @@ demo: install
 	@echo "This was the small demo (runs/demo). The full synthetic benchmark: make experiment"
 
 # the full synthetic benchmark (docs/RESULTS.md): 600 frames per training set, 200 validation frames,
-# 4 epochs of pretraining (2,400 frames seen) and 2 of retraining (2,400 frames: source + PPCG 1:1)
+# 4 epochs of pretraining (2,400 frames seen) and 2 of retraining (2,400 frames: source + PPCG 1:1),
+# once per seed of SEEDS, each its own resumable RUN (runs/experiment-s<seed>: data seeds and
+# training seeds follow SEED), the equal-budget controls included; then `dali report` of every
+# seed and the mean ± std over the seeds (runs/experiment-report). EXPERIMENT_GOALS adds e.g.
+# iter2-st. SOURCE_SENSOR=nuscenes gives the paper's second task (runs/experiment-nuscenes-s<seed>).
+SEEDS ?= 0
 EXPERIMENT_FRAMES ?= 600
+EXPERIMENT_VAL_FRAMES ?= 200
 EXPERIMENT_EPOCHS ?= 4
 EXPERIMENT_RETRAIN_EPOCHS ?= 2
+EXPERIMENT_GOALS ?= iter2 baselines cross-domain controls
+EXPERIMENT_PREFIX = runs/experiment$(if $(filter-out waymo,$(SOURCE_SENSOR)),-$(SOURCE_SENSOR))
 experiment: install
-	$(MAKE) --no-print-directory iter2 baselines cross-domain RUN=runs/experiment \
-	    FRAMES=$(EXPERIMENT_FRAMES) VAL_FRAMES=200 EPOCHS=$(EXPERIMENT_EPOCHS) \
-	    RETRAIN_EPOCHS=$(EXPERIMENT_RETRAIN_EPOCHS)
-	$(DALI) report runs/experiment
+	@for seed in $(SEEDS); do \
+	    $(MAKE) --no-print-directory $(EXPERIMENT_GOALS) kitti-protocol RUN=$(EXPERIMENT_PREFIX)-s$$seed SEED=$$seed \
+	        SOURCE_SENSOR=$(SOURCE_SENSOR) FRAMES=$(EXPERIMENT_FRAMES) VAL_FRAMES=$(EXPERIMENT_VAL_FRAMES) \
+	        EPOCHS=$(EXPERIMENT_EPOCHS) RETRAIN_EPOCHS=$(EXPERIMENT_RETRAIN_EPOCHS) || exit 1; \
+	done
+	for seed in $(SEEDS); do $(DALI) report $(EXPERIMENT_PREFIX)-s$$seed > /dev/null || exit 1; done
+	$(DALI) report $(foreach seed,$(SEEDS),$(EXPERIMENT_PREFIX)-s$(seed)) --out $(EXPERIMENT_PREFIX)-report
 
 .PHONY: data iter0 report experiment
+# keep every artifact of a pattern chain (e.g. baselines/*/ptsn): make must not delete manifests
+.SECONDARY:

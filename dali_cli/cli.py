@@ -27,6 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "ppcg-rc": ("ppcg_rc", "Stage 4: ray-constrained pseudo point clouds."),
     "ppcg-cf": ("ppcg_cf", "Stage 5: constraint-free pseudo point clouds."),
     "retrain": ("retrain", "Stage 6: retrain on source + RC + CF frames."),
+    "self-train": ("self_train", "Optional: fine-tune on the target with its own pseudo labels."),
     "report": ("report", "Tables and plots of a run."),
 }
 

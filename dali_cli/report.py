@@ -7,7 +7,7 @@ manifests, PTSN outputs); rows whose artifacts are missing are shown as "—", n
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -22,13 +22,19 @@ ROWS: tuple[tuple[str, str], ...] = (
     ("PTSN + CF", "baselines/cf_only/eval_ptsn/metrics.json"),
     ("PTSN + RC&CF (x1)", "iter1/eval/metrics.json"),
     ("x2", "iter2/eval/metrics.json"),
+    ("x2 + ST", "iter2_st/eval/metrics.json"),
     ("Oracle", "baselines/oracle/eval/metrics.json"),
 )
 # the same training frames as DALI's models saw: does the gain come from more training?
+SOURCE_X2_BUDGET = "Source only, x2's budget + PTSN"
+ORACLE_X2_BUDGET = "Oracle, x2's budget"
 CONTROL_ROWS: tuple[tuple[str, str], ...] = (
     ("Source only, x1's budget + PTSN", "baselines/source_x1_budget/eval_ptsn/metrics.json"),
-    ("Oracle, x2's budget", "baselines/oracle_x2_budget/eval/metrics.json"),
+    (SOURCE_X2_BUDGET, "baselines/source_x2_budget/eval_ptsn/metrics.json"),
+    (ORACLE_X2_BUDGET, "baselines/oracle_x2_budget/eval/metrics.json"),
 )
+KITTI_NAME = "metrics_kitti.json"  # beside each metrics.json: the same predictions, KITTI protocol
+DIFFICULTIES = ("easy", "moderate", "hard")
 SOURCE_ROWS: tuple[tuple[str, str], ...] = (
     ("Source only", "iter0/eval_source/metrics.json"),
     ("DALI x2", "iter2/eval_source/metrics.json"),
@@ -45,6 +51,7 @@ class Row:
     sizes: dict  # {"pred": [l, w, h], "gt": [l, w, h]} when recorded
     scale: float | None
     bands: dict  # {"0-30": {"bev", "3d", "gt"}, ...} at IoU 0.7 with the range protocol, else {}
+    kitti: dict = field(default_factory=dict)  # {"0.7": {"bev": {"easy", "moderate", "hard"}, ...}}
 
 
 def _summary_key(block: dict) -> str | None:
@@ -100,6 +107,21 @@ def read_metrics(path: Path, document: dict | None = None) -> tuple[dict, dict, 
     return ap, sizes, scale
 
 
+def read_kitti(path: Path) -> dict:
+    """AP per IoU, metric and KITTI difficulty from a metrics_kitti.json ({} when absent)."""
+    if not path.is_file():
+        return {}
+    kitti = {}
+    for key, block in json.loads(path.read_text()).items():
+        if not (key.startswith("Car") and isinstance(block, dict) and "iou" in block):
+            continue
+        kitti[f"{float(block['iou']):.1f}"] = {
+            metric: {d: block.get(metric, {}).get(d) for d in DIFFICULTIES}
+            for metric in ("bev", "3d")
+        }
+    return kitti
+
+
 def collect_rows(run: Path, rows=ROWS) -> list[Row]:
     collected = []
     for name, relative in rows:
@@ -110,7 +132,8 @@ def collect_rows(run: Path, rows=ROWS) -> list[Row]:
             bands = read_bands(document)
         else:
             ap, sizes, scale, bands = {}, {}, None, {}
-        collected.append(Row(name, relative, ap, sizes, scale, bands))
+        kitti = read_kitti(path.with_name(KITTI_NAME))
+        collected.append(Row(name, relative, ap, sizes, scale, bands, kitti))
     return collected
 
 
@@ -198,6 +221,37 @@ def gap_closed(
     return float((final - source) / (oracle - source))
 
 
+def gap_closed_equal_budget(
+    rows: list[Row], metric: str = "3d", iou: str = "0.7", final: str = "x2"
+) -> float | None:
+    """Share of the gap from the equal-budget control (source only with x2's training frames +
+    test-time PTSN) to the equal-budget oracle that `final` closes (issue 18's measure)."""
+    by_name = {row.name: row.ap.get(iou, {}).get(metric) for row in rows}
+    control, oracle = by_name.get(SOURCE_X2_BUDGET), by_name.get(ORACLE_X2_BUDGET)
+    value = by_name.get(final)
+    if control is None or oracle is None or value is None or np.isclose(oracle, control):
+        return None
+    return float((value - control) / (oracle - control))
+
+
+def kitti_table(rows: list[Row]) -> str | None:
+    """AP_3D / AP_BEV @0.7 per KITTI difficulty for the rows with a metrics_kitti.json."""
+    shown = [row for row in rows if row.kitti.get("0.7")]
+    if not shown:
+        return None
+    lines = [
+        "| method | 3D@0.7 easy | 3D@0.7 moderate | 3D@0.7 hard | BEV@0.7 moderate |",
+        "|---|---|---|---|---|",
+    ]
+    for row in shown:
+        block = row.kitti["0.7"]
+        cells = [_cell(block["3d"].get(d)) for d in DIFFICULTIES]
+        lines.append(
+            f"| {row.name} | " + " | ".join(cells) + f" | {_cell(block['bev'].get('moderate'))} |"
+        )
+    return "\n".join(lines)
+
+
 def build_report(run: Path) -> tuple[str, dict]:
     """Markdown text and a JSON-ready dict describing the run."""
     rows = collect_rows(run)
@@ -235,15 +289,24 @@ def build_report(run: Path) -> tuple[str, dict]:
             ),
         ]
         for metric, iou in (("3d", "0.7"), ("bev", "0.7")):
-            closed_long = gap_closed(rows + controls, metric, iou, oracle_row=CONTROL_ROWS[1][0])
+            closed_long = gap_closed(rows + controls, metric, iou, oracle_row=ORACLE_X2_BUDGET)
             if closed_long is not None:
                 parts.append(
                     f"\nGap closed against the oracle with x2's budget "
                     f"(AP_{metric.upper()}@{iou}): {100 * closed_long:.0f}%"
                 )
+            equal = gap_closed_equal_budget(rows + controls, metric, iou)
+            if equal is not None:
+                parts.append(
+                    f"\nGap from source + PTSN to the oracle, both with x2's budget, closed by x2 "
+                    f"(AP_{metric.upper()}@{iou}): {100 * equal:.0f}%"
+                )
     by_band = bands_table(rows)
     if by_band is not None:
         parts += ["", "### By distance (AP_BEV / AP_3D @0.7)", "", by_band]
+    by_difficulty = kitti_table(rows + controls)
+    if by_difficulty is not None:
+        parts += ["", "### KITTI difficulties (AP_R40)", "", by_difficulty]
     if any(row.ap for row in source_rows):
         parts += ["", "## Source validation (cross-domain check)", "", markdown_table(source_rows)]
     if scales:
@@ -285,6 +348,8 @@ def build_report(run: Path) -> tuple[str, dict]:
         "gap_closed_3d_0.7": closed,
         "gap_closed_bev_0.7": gap_closed(rows, "bev", "0.7"),
         "controls": [row.__dict__ for row in controls],
+        "gap_closed_equal_budget_3d_0.7": gap_closed_equal_budget(rows + controls),
+        "gap_closed_equal_budget_bev_0.7": gap_closed_equal_budget(rows + controls, "bev"),
         "ptsn": scales,
         "timings": timings,
     }

@@ -53,7 +53,54 @@ def training_summary(result, settings) -> dict:
         "resumed_from_step": result.resumed_from_step,
         "final_loss": float(np.mean([r["loss"] for r in tail])) if tail else None,
         "settings": asdict(settings),
+        "runtime": result.runtime,
     }
+
+
+def attach_database(data, config, augment: bool) -> None:
+    """Give `data` its gt-sampling database (its own boxes inside the detection region), or
+    none when augmentation is off."""
+    from dali_cli.detector.augment import ObjectDatabase
+    from dali_cli.detector.data import detection_region
+
+    data.database = (
+        ObjectDatabase.build(data.points, data.boxes, region=detection_region(config))
+        if augment
+        else None
+    )
+
+
+def fit_and_save(
+    tmp: Path,
+    net,
+    datasets: list,
+    augmentations: list,
+    settings,
+    resume: Path,
+    key: str,
+    *,
+    meta: dict,
+    counts: dict,
+    notes: list[str],
+    load_s: float,
+    progress: bool,
+) -> BuildResult:
+    """The training body pretrain, retrain and self-train share: train `net` on `datasets`,
+    write model.pt + model.json (`meta` plus the training summary) + train_log.parquet into
+    `tmp`, and return the manifest's counts, timings and runtime (threads, CPU model, torch)."""
+    from dali_cli.detector import save_checkpoint, train
+
+    result = train(net, datasets, augmentations, settings, resume, key, progress=progress)
+    save_checkpoint(tmp, net, {**meta, "train": training_summary(result, settings)})
+    write_train_log(tmp, result.log)
+    if result.resumed_from_step:
+        notes = [*notes, f"resumed from step {result.resumed_from_step}"]
+    return BuildResult(
+        counts={**counts, "steps": result.steps, "frames_seen": result.frames},
+        timings={"load_seconds": round(load_s, 2), "train_seconds": round(result.seconds, 2)},
+        notes=notes,
+        extra={"runtime": result.runtime},
+    )
 
 
 def run_training_stage(
@@ -153,12 +200,8 @@ def run_pretrain(
             PillarCenterNet,
             TrainSettings,
             load_labeled,
-            save_checkpoint,
             size_normalize,
-            train,
         )
-        from dali_cli.detector.augment import ObjectDatabase
-        from dali_cli.detector.data import detection_region
 
         started = time.perf_counter()
         config = DetectorConfig.from_dict({**(config_overrides or {}), "features": features})
@@ -175,11 +218,7 @@ def run_pretrain(
         if size_norm == "sn":
             delta = np.asarray(target_size) - source_mean
             data = size_normalize(data, delta)
-        data.database = (
-            ObjectDatabase.build(data.points, data.boxes, region=detection_region(config))
-            if augment
-            else None
-        )
+        attach_database(data, config, augment)
         augmentation = Augmentation() if augment else Augmentation.none()
         if size_norm == "ros":
             augmentation.object_scale = tuple(ros_range)
@@ -190,7 +229,6 @@ def run_pretrain(
             epochs=epochs, minutes=minutes, batch_size=batch_size, lr=lr, seed=seed,
             precision=precision, compile=compile_net, threads=threads,
         )  # fmt: skip
-        result = train(net, [data], [augmentation], settings, resume, key, progress=progress)
         meta = {
             "provenance": {
                 "stage": "pretrain",
@@ -203,7 +241,6 @@ def run_pretrain(
                 "ros_range": list(ros_range) if size_norm == "ros" else None,
                 "seed": seed,
             },
-            "train": training_summary(result, settings),
             "metrics": {
                 "source_mean_lwh_m": source_mean.tolist(),
                 "trained_mean_lwh_m": data.mean_lwh().tolist(),
@@ -212,20 +249,13 @@ def run_pretrain(
                 "database_instances": 0 if data.database is None else len(data.database),
             },
         }
-        save_checkpoint(tmp, net, meta)
-        write_train_log(tmp, result.log)
-        notes = [f"detector: {net.config.name} (not the paper's SECOND-IoU), size_norm={size_norm}"]
-        if result.resumed_from_step:
-            notes.append(f"resumed from step {result.resumed_from_step}")
-        return BuildResult(
-            counts={
-                "frames": len(data),
-                "boxes": data.num_boxes,
-                "steps": result.steps,
-                "frames_seen": result.frames,
-            },
-            timings={"load_seconds": round(load_s, 2), "train_seconds": round(result.seconds, 2)},
-            notes=notes,
-        )
+        return fit_and_save(
+            tmp, net, [data], [augmentation], settings, resume, key,
+            meta=meta,
+            counts={"frames": len(data), "boxes": data.num_boxes},
+            notes=[f"detector: {net.config.name} (not the paper's SECOND-IoU), size_norm={size_norm}"],
+            load_s=load_s,
+            progress=progress,
+        )  # fmt: skip
 
     return run_training_stage("pretrain", out, inputs, params, train_fn, force, dry_run, seed)

@@ -1,7 +1,8 @@
 """Stage pseudo_label: run the detector on the target at the PTSN scale ŝ, de-scale, drop
-implausible boxes (dali_cli.plausibility, counted), keep score >= score_min, BEV NMS, count the
-original points in each box; write boxes.parquet and summary.json (boxes per frame, mean size vs
-E_est, score histogram)."""
+implausible boxes (dali_cli.plausibility, counted), keep score >= score_min, BEV NMS, remove the
+remaining per-dimension size bias against E_est (`dali_cli.size_correction`, on by default),
+count the original points in each box; write boxes.parquet and summary.json (boxes per frame,
+mean size vs E_est, score histogram)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from dali_cli import plausibility, ptsn
+from dali_cli import plausibility, ptsn, size_correction
 from dali_cli.artifacts import BoxTable, FrameSet, write_boxes
 from dali_cli.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.sensors import get_profile
@@ -119,6 +120,7 @@ def pseudo_label(
     mount_height_m: float | None = None,
     sensors_path: str | None = None,
     batch_size: int = 8,
+    size_correction_method: str = "per-dim",
     force: bool = False,
     dry_run: bool = False,
     progress: bool = True,
@@ -138,6 +140,14 @@ def pseudo_label(
     else:
         scale_source = "option"
     e_est = scale_document.get("E_est")
+    if size_correction_method not in size_correction.METHODS:
+        raise click.UsageError(
+            f"--size-correction must be one of {', '.join(size_correction.METHODS)}, "
+            f"got '{size_correction_method}'"
+        )
+    skipped_correction = size_correction_method != "none" and e_est is None
+    if skipped_correction:  # --scale without a sweep: no E_est to correct towards
+        size_correction_method = "none"
     target = FrameSet(target_dir)
     target_profile = target_profile or target.sensor or None
     if mount_height_m is None and target_profile:
@@ -149,6 +159,7 @@ def pseudo_label(
         "nms_iou": nms_iou,
         "target_profile": target_profile,
         "mount_height_m": mount_height_m,
+        "size_correction": size_correction_method,
     }
     inputs = {"model": model_dir, "target": target_dir}
     if scale_from is not None:
@@ -204,10 +215,14 @@ def pseudo_label(
             )
         else:
             table = BoxTable.empty().with_columns(scale=np.zeros(0, np.float64))
+        correction = None
+        if size_correction_method != "none" and len(table):
+            table, correction = correct_table(table, target, e_est, score_min)
         write_boxes(directory, table)
         summary = summarize(table, len(target), scale, e_est)
         summary["scale_source"] = scale_source
         summary["boxes_implausible"] = implausible
+        summary["size_correction"] = correction
         (directory / SUMMARY_NAME).write_text(json.dumps(summary, indent=2) + "\n")
         print_summary(summary)
         notes = []
@@ -217,6 +232,9 @@ def pseudo_label(
                 "distance beyond dali_cli.plausibility's limits)"
             )
             click.secho(f"WARNING: {notes[-1]}", fg="red", bold=True, err=True)
+        if skipped_correction:
+            notes.append("size correction skipped: no E_est (give --scale-from PTSN_DIR)")
+            click.secho(f"WARNING: {notes[-1]}", fg="yellow", err=True)
         if not len(table):
             notes.append(f"no boxes with score >= {score_min} on any frame")
             click.secho(f"WARNING: {notes[-1]}", fg="red", bold=True, err=True)
@@ -224,12 +242,43 @@ def pseudo_label(
             counts={"frames": len(target), "boxes": len(table), "boxes_implausible": implausible},
             timings={"detector_seconds": round(seconds, 3)},
             notes=notes,
-            extra={"pseudo_label": {"scale": scale, "scale_source": scale_source}},
+            extra={
+                "pseudo_label": {"scale": scale, "scale_source": scale_source},
+                "size_correction": correction or {"method": size_correction_method},
+            },
         )
 
     return run_stage(
         STAGE, out, inputs=inputs, params=params, build=build, force=force, dry_run=dry_run
     )
+
+
+def correct_table(
+    table: BoxTable, target: FrameSet, e_est: list, score_min: float
+) -> tuple[BoxTable, dict]:
+    """`table` with l, w, h corrected per dimension towards E_est (bottom faces kept) and its
+    num_points recounted on the original target points; the correction's record."""
+    from dali_cli.geometry import count_points_in_boxes
+
+    boxes, record = size_correction.correct_sizes(
+        table.boxes, table["score"], table.frame_id, e_est, score_min=score_min
+    )
+    counts = np.zeros(len(table), np.int32)
+    rows = table.rows_by_frame()
+    for frame_id, points in target.iter_frames():
+        if frame_id in rows:
+            counts[rows[frame_id]] = count_points_in_boxes(points, boxes[rows[frame_id]])
+    corrected = BoxTable.from_arrays(
+        table.frame_id,
+        boxes,
+        score=table["score"],
+        num_points=counts,
+        scale=table["scale"],
+        size_factor_l=np.full(len(table), record.factors[0]),
+        size_factor_w=np.full(len(table), record.factors[1]),
+        size_factor_h=np.full(len(table), record.factors[2]),
+    )
+    return corrected, record.to_dict()
 
 
 def print_summary(summary: dict) -> None:
@@ -243,3 +292,10 @@ def print_summary(summary: dict) -> None:
         f"({summary['boxes_per_frame']:.2f}/frame) at s = {summary['scale']:.4f}; "
         f"mean l/w/h ({triple(summary['mean_lwh'])}) m vs E_est ({triple(summary['E_est'])}) m"
     )
+    correction = summary.get("size_correction")
+    if correction:
+        click.echo(
+            f"size correction (per dimension, target statistics only): factors "
+            f"{triple(correction['factors_lwh'])}; mean l/w/h before "
+            f"({triple(correction['mean_lwh_before'])}) m"
+        )

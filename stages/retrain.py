@@ -11,7 +11,7 @@ import click
 import numpy as np
 
 from dali_cli.manifest import BuildResult, StageOutcome, content_hash
-from stages.pretrain import run_training_stage, training_summary, write_train_log
+from stages.pretrain import attach_database, fit_and_save, run_training_stage
 
 INIT_FROM = ("previous", "scratch")
 
@@ -106,12 +106,8 @@ def run_retrain(
             PillarCenterNet,
             TrainSettings,
             load_labeled,
-            save_checkpoint,
             size_normalize,
-            train,
         )
-        from dali_cli.detector.augment import ObjectDatabase
-        from dali_cli.detector.data import detection_region
 
         started = time.perf_counter()
         previous = Detector.load(init)
@@ -133,11 +129,7 @@ def run_retrain(
             *([pool(pseudo_sets, "ppcg")] if len(weights) == 2 else pseudo_sets),
         ]
         for data in datasets:
-            data.database = (
-                ObjectDatabase.build(data.points, data.boxes, region=detection_region(config))
-                if augment
-                else None
-            )
+            attach_database(data, config, augment)
         augmentations = [source_augmentation] + [
             Augmentation() if augment else Augmentation.none() for _ in datasets[1:]
         ]
@@ -150,7 +142,6 @@ def run_retrain(
             epochs=epochs, minutes=minutes, batch_size=batch_size, lr=lr, seed=seed,
             precision=precision, compile=compile_net, threads=threads, mix=weights,
         )  # fmt: skip
-        result = train(net, datasets, augmentations, settings, resume, key, progress=progress)
         meta = {
             "provenance": {
                 "stage": "retrain",
@@ -167,30 +158,25 @@ def run_retrain(
                 "target_profile": provenance.get("target_profile"),
                 "seed": seed,
             },
-            "train": training_summary(result, settings),
             "metrics": {
                 "frames": {d.name: len(d) for d in datasets},
                 "boxes": {d.name: d.num_boxes for d in datasets},
                 "mean_lwh_m": {d.name: d.mean_lwh().tolist() for d in datasets},
             },
         }
-        save_checkpoint(tmp, net, meta)
-        write_train_log(tmp, result.log)
-        notes = [
-            f"detector: {net.config.name} (not the paper's SECOND-IoU)",
-            "raw target frames not used: source + PPCG frame sets only",
-        ]
-        if result.resumed_from_step:
-            notes.append(f"resumed from step {result.resumed_from_step}")
-        return BuildResult(
+        return fit_and_save(
+            tmp, net, datasets, augmentations, settings, resume, key,
+            meta=meta,
             counts={
                 "source_frames": len(source_data),
                 "ppcg_frames": int(sum(len(d) for d in pseudo_sets)),
-                "steps": result.steps,
-                "frames_seen": result.frames,
             },
-            timings={"load_seconds": round(load_s, 2), "train_seconds": round(result.seconds, 2)},
-            notes=notes,
-        )
+            notes=[
+                f"detector: {net.config.name} (not the paper's SECOND-IoU)",
+                "raw target frames not used: source + PPCG frame sets only",
+            ],
+            load_s=load_s,
+            progress=progress,
+        )  # fmt: skip
 
     return run_training_stage("retrain", out, inputs, params, train_fn, force, dry_run, seed)

@@ -614,12 +614,13 @@ def test_cli_tables_labels_and_errors(tmp_path):
     assert from_labels.exit_code == 0, from_labels.output
     assert json.loads((tmp_path / "m2.json").read_text())["Car"]["bev"] == metrics["Car"]["bev"]
     # bad input: a usage error (2) for a wrong directory, no output file written
+    (tmp_path / "empty").mkdir()
     bad = runner.invoke(
         main,
         [
             "eval",
             "--pred",
-            str(tmp_path),
+            str(tmp_path / "empty"),
             "--gt",
             str(tmp_path / "gt"),
             "--out",

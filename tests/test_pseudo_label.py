@@ -258,3 +258,75 @@ def test_implausible_detections_are_dropped_before_nms_and_counted(setup, monkey
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["outputs"]["counts"]["boxes_implausible"] == 12  # the faint one is not counted
     assert json.loads((out / "summary.json").read_text())["boxes_implausible"] == 12
+
+
+WAYMO_OVER_KITTI = np.array([1.20, 1.29, 1.14])  # per-dimension source/target size ratios
+
+
+def test_size_correction_removes_an_anisotropic_bias(setup, monkeypatch):
+    """A detector biased like Waymo -> KITTI (l x1.20, w x1.29, h x1.14): the volume-matched ŝ
+    leaves a per-dimension bias; the default correction brings each mean within 1 cm of E_est,
+    cars keep standing on the ground, and `--size-correction none` keeps the bias."""
+    tmp_path, target, model, _ = setup
+    import stages.pseudo_label
+    import stages.ptsn_sweep
+
+    biased = SizeLawDetector(KITTI_LWH * WAYMO_OVER_KITTI)
+    monkeypatch.setattr(stages.pseudo_label, "load_detector", lambda _: biased)
+    monkeypatch.setattr(stages.ptsn_sweep, "load_detector", lambda _: biased)
+    ptsn_dir = tmp_path / "ptsn-aniso"
+    result = run("ptsn-sweep", "--model", model, "--target", target, "--out", ptsn_dir,
+                 "--no-progress")  # fmt: skip
+    assert result.exit_code == 0, result.output
+    e_est = np.asarray(json.loads((ptsn_dir / "scale.json").read_text())["E_est"])
+    base = ["pseudo-label", "--model", model, "--target", target, "--scale-from", ptsn_dir,
+            "--no-progress"]  # fmt: skip
+
+    assert run(*base, "--out", tmp_path / "raw", "--size-correction", "none").exit_code == 0
+    raw = read_boxes(tmp_path / "raw")
+    assert np.abs(raw.boxes[:, 3:6].mean(axis=0) - e_est).max() > 0.05  # the bias to remove
+
+    result = run(*base, "--out", tmp_path / "fixed")
+    assert result.exit_code == 0, result.output
+    fixed = read_boxes(tmp_path / "fixed")
+    assert np.abs(fixed.boxes[:, 3:6].mean(axis=0) - e_est).max() < 0.01
+    bottoms = fixed.boxes[:, 2] - fixed.boxes[:, 5] / 2
+    assert np.allclose(bottoms, raw.boxes[:, 2] - raw.boxes[:, 5] / 2, atol=1e-9)
+    assert np.allclose(fixed.boxes[:, [0, 1, 6]], raw.boxes[:, [0, 1, 6]])
+    assert np.all(fixed["num_points"] == PER_BOX)  # recounted: the boxes still hold their car
+    record = json.loads((tmp_path / "fixed" / "manifest.json").read_text())["size_correction"]
+    assert record["method"] == "per-dim"
+    assert np.allclose(record["factors_lwh"], e_est / raw.boxes[:, 3:6].mean(axis=0), atol=1e-4)
+    assert np.allclose(record["mean_lwh_after"], e_est, atol=1e-4)
+    summary = json.loads((tmp_path / "fixed" / "summary.json").read_text())
+    assert np.abs(np.asarray(summary["mean_minus_E_est"])).max() < 0.01
+
+
+def test_correct_sizes_matches_e_est_per_frame_and_pooled():
+    from dali_cli.size_correction import correct_sizes
+
+    rng = np.random.default_rng(5)
+    n = 200
+    boxes = np.zeros((n, 7))
+    boxes[:, :2] = rng.uniform(-30, 30, (n, 2))
+    boxes[:, 3:6] = KITTI_LWH * [1.03, 1.08, 0.95] * rng.normal(1, 0.05, (n, 3))
+    boxes[:, 2] = -MOUNT + boxes[:, 5] / 2
+    boxes[:, 6] = rng.uniform(-np.pi, np.pi, n)
+    scores = rng.uniform(0, 1, n)
+    frames = rng.integers(0, 17, n).astype(str)
+    for mean in ("per-frame", "pooled"):
+        fixed, record = correct_sizes(boxes, scores, frames, KITTI_LWH, score_min=0.3, mean=mean)
+        used = scores >= 0.3
+        if mean == "pooled":
+            assert np.abs(fixed[used, 3:6].mean(axis=0) - KITTI_LWH).max() < 1e-9
+        else:  # mean of the frames' means, computed here independently
+            per_frame = [
+                fixed[used & (frames == f), 3:6].mean(axis=0) for f in np.unique(frames[used])
+            ]
+            assert np.abs(np.mean(per_frame, axis=0) - KITTI_LWH).max() < 1e-9
+        assert np.allclose(fixed[:, 2] - fixed[:, 5] / 2, -MOUNT)  # bottoms stay on the ground
+        assert np.allclose(record.mean_after, KITTI_LWH)
+    _, unchanged = correct_sizes(boxes, scores, frames, KITTI_LWH, method="none")
+    assert np.allclose(unchanged.factors, 1.0)
+    with pytest.raises(ValueError):
+        correct_sizes(boxes, scores, frames, [3.9, -1.0, 1.5])

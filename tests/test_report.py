@@ -96,3 +96,61 @@ def test_ptsn_no_detections_fallback_is_marked(tmp_path):
     (ptsn_dir / "scale.json").write_text(json.dumps(document))
     text, _ = build_report(tmp_path)
     assert "| iter1 | 1.000 (no detections: s = 1) | 3.89/1.62/1.53 | — | 10 |" in text
+
+
+def write_kitti(path, moderate_3d, iou=0.7):
+    """A metrics_kitti.json beside `path` (KITTI difficulties of the same predictions)."""
+    block = {
+        "iou": iou,
+        "bev": {"easy": 99.0, "moderate": moderate_3d + 10, "hard": 80.0},
+        "3d": {"easy": moderate_3d + 5, "moderate": moderate_3d, "hard": moderate_3d - 5},
+    }
+    path.with_name("metrics_kitti.json").write_text(json.dumps({"Car": block}))
+
+
+def test_equal_budget_gap_and_kitti_rows(tmp_path):
+    write_metrics(tmp_path / "iter2/eval/metrics.json", 80.0, 50.0)
+    write_kitti(tmp_path / "iter2/eval/metrics.json", 61.0)
+    write_metrics(tmp_path / "baselines/source_x2_budget/eval_ptsn/metrics.json", 82.0, 40.0)
+    write_metrics(tmp_path / "baselines/oracle_x2_budget/eval/metrics.json", 90.0, 80.0)
+    text, document = build_report(tmp_path)
+    assert abs(document["gap_closed_equal_budget_3d_0.7"] - (50 - 40) / (80 - 40)) < 1e-12
+    assert abs(document["gap_closed_equal_budget_bev_0.7"] - (80 - 82) / (90 - 82)) < 1e-12
+    assert "| x2 | 66.00 | 61.00 | 56.00 | 71.00 |" in text  # KITTI easy / moderate / hard
+
+
+def test_report_aggregates_seeds_into_mean_and_std(tmp_path):
+    import statistics
+
+    values = {"s0": (80.0, 50.0, 61.0), "s1": (84.0, 57.5, 66.0), "s2": (79.0, 49.0, 60.5)}
+    for seed, (bev, ap3d, moderate) in values.items():
+        run = tmp_path / "runs" / f"experiment-{seed}"
+        path = run / "iter2/eval/metrics.json"
+        write_metrics(path, bev, ap3d, sizes={"pred": [3.9, 1.6 + bev / 1000, 1.5], "gt": None})
+        write_kitti(path, moderate)
+        write_metrics(run / "iter0/eval/metrics.json", 10.0, 1.0)
+    write_metrics(tmp_path / "runs/experiment-s1/baselines/oracle/eval/metrics.json", 90.0, 70.0)
+    result = CliRunner().invoke(main, ["report", str(tmp_path / "runs")])
+    assert result.exit_code == 0, result.output
+    document = json.loads((tmp_path / "runs/report/report.json").read_text())
+    assert len(document["runs"]) == 3
+    rows = {row["name"]: row["columns"] for row in document["target"]}
+    for column, index in (("BEV@0.7", 0), ("3D@0.7", 1), ("KITTI 3D@0.7 moderate", 2)):
+        numbers = [v[index] for v in values.values()]
+        assert abs(rows["x2"][column]["mean"] - statistics.mean(numbers)) < 1e-9
+        assert abs(rows["x2"][column]["std"] - statistics.stdev(numbers)) < 1e-9
+        assert rows["x2"][column]["n"] == 3
+    widths = [1.6 + v[0] / 1000 for v in values.values()]
+    assert abs(rows["x2"]["pred w"]["mean"] - statistics.mean(widths)) < 1e-9
+    assert rows["Source only"]["3D@0.7"]["std"] == 0.0
+    assert rows["Oracle"]["3D@0.7"]["n"] == 1 and rows["Oracle"]["3D@0.7"]["std"] is None
+    assert rows["SN"]["3D@0.7"]["n"] == 0
+    expected = (
+        f"{statistics.mean([50.0, 57.5, 49.0]):.2f} ± {statistics.stdev([50.0, 57.5, 49.0]):.2f}"
+    )
+    assert expected in result.output and "| x2 | 3 |" in result.output
+    # the same runs named one by one give the same table
+    named = [str(tmp_path / "runs" / f"experiment-{seed}") for seed in values]
+    again = CliRunner().invoke(main, ["report", *named, "--out", str(tmp_path / "named")])
+    assert again.exit_code == 0, again.output
+    assert json.loads((tmp_path / "named/report.json").read_text())["target"] == document["target"]

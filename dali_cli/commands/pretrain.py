@@ -27,7 +27,7 @@ def parse_floats(count: int):
 
 
 def training_options(function):
-    """Budget, optimizer and input options shared by pretrain and retrain."""
+    """Budget, optimizer and input options shared by pretrain, retrain and self-train."""
     options = [
         click.option(
             "--epochs",
@@ -77,7 +77,7 @@ def training_options(function):
             "--threads",
             type=click.IntRange(min=1),
             default=None,
-            help="torch threads (default: the cores idle at start, >= 1).",
+            help="torch threads (default: every core this process may use; recorded in the manifest).",
         ),
         click.option(
             "--no-augment",

@@ -45,16 +45,27 @@ from dali_cli.commands.common import model_target_out_options, sensors_option, s
     help="Target sensor height above ground for scaling (default: the target profile's).",
 )
 @click.option("--batch-size", type=click.IntRange(min=1), default=8, show_default=True)
+@click.option(
+    "--size-correction",
+    "size_correction_method",
+    type=click.Choice(["per-dim", "none"]),
+    default="per-dim",
+    show_default=True,
+    help="per-dim: multiply l, w, h by E_est / mean pseudo-box size per dimension (bottom face "
+    "kept), removing the bias one isotropic ŝ leaves; E_est from --scale-from's scale.json.",
+)
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @sensors_option
 @stage_options
 def command(model_dir, target_dir, out, sensors_path, no_progress, **options):
     """Pseudo-label the target: run the model on the target points scaled by ŝ about the ground,
-    de-scale the boxes, keep score >= --score-min, BEV NMS at --nms-iou.
+    de-scale the boxes, keep score >= --score-min, BEV NMS at --nms-iou, then (by default)
+    correct each dimension's remaining size bias against E_est (target statistics only).
 
     Reads MODEL, the TARGET frame set (never its labels) and --scale-from's scale.json.
     Writes OUT/boxes.parquet (one row per pseudo box: frame_id, x, y, z, l, w, h, yaw, score,
-    label, num_points = original target points inside the box, scale = the scale used),
+    label, num_points = original target points inside the box, scale = the scale used,
+    size_factor_l/w/h = the correction factors),
     OUT/summary.json (boxes per frame, mean size vs E_est, score histogram) and manifest.json.
     """
     from stages.pseudo_label import pseudo_label

@@ -12,7 +12,9 @@ from dali_cli.report import build_report
 
 
 @click.command(name="report")
-@click.argument("run", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument(
+    "runs", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False, path_type=Path)
+)
 @click.option(
     "--out",
     "out_dir",
@@ -21,20 +23,32 @@ from dali_cli.report import build_report
     help="Where to write report.md / report.json / plots (default: RUN/report).",
 )
 @click.option("--plots/--no-plots", default=True, show_default=True, help="Draw PNG plots.")
-def command(run: Path, out_dir: Path | None, plots: bool) -> None:
+def command(runs: tuple[Path, ...], out_dir: Path | None, plots: bool) -> None:
     """Summarize a run: AP_BEV / AP_3D at IoU 0.7 and 0.5 per method row (source only, SN, ROS,
-    PTSN, PTSN + RC, PTSN + CF, x1, x2, oracle), sizes, PTSN scales and time per stage.
+    PTSN, PTSN + RC, PTSN + CF, x1, x2, x2 + ST, oracle, equal-budget controls), KITTI
+    difficulties where metrics_kitti.json exist, sizes, PTSN scales and time per stage.
 
     Reads RUN/iter*/ and RUN/baselines/*/ artifacts; rows that were not run show "—".
     Writes RUN/report/report.md, report.json and plots/*.png, and prints the markdown.
+
+    With several RUNs (e.g. one per seed), or a directory holding runs: mean ± sample std per
+    row and column over the runs, written to --out (default: their common parent's report/).
     """
+    from dali_cli.report_aggregate import aggregate_runs, find_runs, is_run
+
+    if len(runs) > 1 or not is_run(runs[0]):
+        found = find_runs(list(runs))
+        if not found:
+            raise click.ClickException(
+                f"{', '.join(map(str, runs))}: no run artifacts (iter*/<stage>/manifest.json, "
+                "*/eval/metrics.json): is it a RUN directory of the Makefile (make iter1 RUN=...)?"
+            )
+        out_dir = out_dir or Path(os.path.commonpath([r.resolve() for r in found])) / "report"
+        text, document = aggregate_runs(found)
+        write_report(out_dir, text, document)
+        return
+    run = runs[0]
     out_dir = out_dir or run / "report"
-    patterns = ("iter*/*/manifest.json", "iter*/*/metrics.json", "baselines/*/*/*.json")
-    if not any(next(run.glob(pattern), None) for pattern in patterns):
-        raise click.ClickException(
-            f"{run}: no run artifacts (iter*/<stage>/manifest.json, */eval/metrics.json): "
-            "is it a RUN directory of the Makefile (make iter1 RUN=...)?"
-        )
     text, document = build_report(run)
     out_dir.mkdir(parents=True, exist_ok=True)
     if plots:
@@ -45,6 +59,12 @@ def command(run: Path, out_dir: Path | None, plots: bool) -> None:
             click.echo(
                 "no plots drawn (matplotlib missing, or no PTSN/PPCG artifacts yet)", err=True
             )
+    write_report(out_dir, text, document)
+
+
+def write_report(out_dir: Path, text: str, document: dict) -> None:
+    """report.md and report.json into `out_dir` (each written atomically); print the markdown."""
+    out_dir.mkdir(parents=True, exist_ok=True)
     for name, content in (
         ("report.md", text),
         ("report.json", json.dumps(document, indent=2, default=str)),

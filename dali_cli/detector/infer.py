@@ -258,11 +258,11 @@ def predict_frameset(
     """
     from tqdm import tqdm
 
-    from dali_cli.detector.train import idle_cores
+    from dali_cli.detector.runtime import available_cores
     from dali_cli.geometry import count_points_in_boxes
     from dali_cli.sensors import get_profile
 
-    torch.set_num_threads(idle_cores())
+    torch.set_num_threads(available_cores())
     detector = Detector.load(model_dir)
     frames = FrameSet(data_dir)
     mount = (

@@ -19,6 +19,7 @@ from dali_cli.detector.config import DetectorConfig
 from dali_cli.detector.data import Augmentation, LabeledFrames, augmented_sample
 from dali_cli.detector.model import PillarCenterNet
 from dali_cli.detector.refine import refine_loss
+from dali_cli.detector.runtime import runtime_info, training_threads
 from dali_cli.detector.targets import build_targets, detection_loss, peak_boxes
 
 REFINE_STREAM = 7_919  # random stream of the refiner's jittered boxes, apart from the samples'
@@ -41,7 +42,7 @@ class TrainSettings:
     grad_clip: float = 10.0
     seed: int = 0
     precision: str = "fp32"  # "bf16" autocast pays off only on CPUs with AMX / AVX512-BF16
-    threads: int | None = None
+    threads: int | None = None  # None: every available core (runtime.training_threads)
     compile: bool = False  # torch.compile the backbone and heads (~1 min cold start)
     mix: tuple[int, ...] = (1,)
     log_every: int = 5
@@ -55,15 +56,7 @@ class TrainResult:
     seconds: float
     log: list[dict] = field(default_factory=list)
     resumed_from_step: int = 0
-
-
-def idle_cores() -> int:
-    """Cores not busy with other processes at start (1-minute load average), at least 1.
-
-    torch's OpenMP threads spin at barriers: on a 2-core machine with other jobs running, 2
-    threads trained 3x slower than 1 (measured: 5-9 s vs 1.6-2.1 s per step at load 5.5)."""
-    cores = os.cpu_count() or 1
-    return max(1, min(cores, round(cores - os.getloadavg()[0])))
+    runtime: dict = field(default_factory=dict)  # runtime.runtime_info: threads, CPU, torch
 
 
 def one_cycle(
@@ -124,7 +117,8 @@ def train(
     from tqdm import tqdm
 
     config: DetectorConfig = net.config
-    torch.set_num_threads(settings.threads or idle_cores())
+    threads = training_threads(settings.threads)
+    torch.set_num_threads(threads)
     if len(datasets) != len(settings.mix) or len(augmentations) != len(datasets):
         raise ValueError("need one mix weight and one augmentation setting per data set")
     for d in datasets:
@@ -222,7 +216,12 @@ def train(
     net.eval()
     frames = step * settings.batch_size
     return TrainResult(
-        steps=step, frames=frames, seconds=elapsed, log=log, resumed_from_step=resumed_from
+        steps=step,
+        frames=frames,
+        seconds=elapsed,
+        log=log,
+        resumed_from_step=resumed_from,
+        runtime=runtime_info(threads),
     )
 
 

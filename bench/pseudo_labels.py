@@ -1,0 +1,137 @@
+"""Benchmark: how good are a run's pseudo labels? (issue 18, diagnosis)
+
+Reads pseudo-label directories (`dali pseudo-label` outputs) and the target's *held-back* labels
+(a bench may read them; no DALI stage does) and measures, per range band of the detection grid:
+precision and recall of the pseudo boxes (greedy matching by score, BEV IoU > --iou), the mean
+l, w, h of the pseudo boxes vs the true mean of the target's cars, and the size error of matched
+pairs (pseudo - truth), so the per-dimension size correction can be judged on real labels.
+
+    .venv/bin/python bench/pseudo_labels.py --target RUN/data/target \
+        --pseudo RUN/iter1/pseudo_raw RUN/iter1/pseudo [--iou 0.5] [--out bench/results/pseudo_labels.json]
+
+Truth counted: every target label of class Car inside the detection grid (x 0..70.4 m,
+|y| <= 40 m, the detector's default range) with at least --min-points points.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from dali_cli.artifacts import read_boxes  # noqa: E402
+from dali_cli.detector.runtime import cpu_model  # noqa: E402
+from dali_cli.geometry import bev_iou  # noqa: E402
+
+BANDS = ((0.0, 30.0), (30.0, 50.0), (50.0, 80.0))
+GRID_X, GRID_Y = (0.0, 70.4), 40.0
+
+
+def in_grid(boxes: np.ndarray) -> np.ndarray:
+    """(N,) bool: box centre inside the detector's default BEV range."""
+    return (boxes[:, 0] >= GRID_X[0]) & (boxes[:, 0] < GRID_X[1]) & (np.abs(boxes[:, 1]) <= GRID_Y)
+
+
+def match(pred: np.ndarray, scores: np.ndarray, truth: np.ndarray, iou: float) -> np.ndarray:
+    """Greedy by descending score: index of the matched truth box per prediction, -1 if none."""
+    matched = np.full(len(pred), -1, np.int64)
+    if not len(pred) or not len(truth):
+        return matched
+    overlaps = bev_iou(pred, truth)  # (P, T)
+    taken = np.zeros(len(truth), bool)
+    for p in np.argsort(-scores, kind="stable"):
+        candidates = np.where(taken, -1.0, overlaps[p])
+        best = int(np.argmax(candidates))
+        if candidates[best] > iou:
+            matched[p], taken[best] = best, True
+    return matched
+
+
+def evaluate(pseudo_dir: Path, truth_table, iou: float, min_points: int) -> dict:
+    pseudo = read_boxes(pseudo_dir)
+    truth_rows, pseudo_rows = truth_table.rows_by_frame(), pseudo.rows_by_frame()
+    pred_range, truth_range, pred_hit, truth_hit, size_error = [], [], [], [], []
+    for frame_id in sorted(set(truth_rows) | set(pseudo_rows)):
+        t = truth_table.boxes[truth_rows.get(frame_id, np.zeros(0, np.int64))]
+        t_points = truth_table["num_points"][truth_rows.get(frame_id, np.zeros(0, np.int64))]
+        t = t[in_grid(t) & (t_points >= min_points)]
+        rows = pseudo_rows.get(frame_id, np.zeros(0, np.int64))
+        p, s = pseudo.boxes[rows], pseudo["score"][rows]
+        keep = in_grid(p)
+        p, s = p[keep], s[keep]
+        matched = match(p, s, t, iou)
+        hit = np.zeros(len(t), bool)
+        hit[matched[matched >= 0]] = True
+        pred_range.append(np.hypot(p[:, 0], p[:, 1]))
+        truth_range.append(np.hypot(t[:, 0], t[:, 1]))
+        pred_hit.append(matched >= 0)
+        truth_hit.append(hit)
+        size_error.append(p[matched >= 0, 3:6] - t[matched[matched >= 0], 3:6])
+    pred_range, truth_range = np.concatenate(pred_range), np.concatenate(truth_range)
+    pred_hit, truth_hit = np.concatenate(pred_hit), np.concatenate(truth_hit)
+    size_error = np.concatenate(size_error)
+    bands = {}
+    for lo, hi in (*BANDS, (0.0, np.inf)):
+        name = "all" if hi == np.inf else f"{lo:.0f}-{hi:.0f}"
+        in_p = (pred_range >= lo) & (pred_range < hi)
+        in_t = (truth_range >= lo) & (truth_range < hi)
+        bands[name] = {
+            "pseudo_boxes": int(in_p.sum()),
+            "true_cars": int(in_t.sum()),
+            "true_positives": int(pred_hit[in_p].sum()),
+            "false_positives": int((~pred_hit[in_p]).sum()),
+            "missed_cars": int((~truth_hit[in_t]).sum()),
+            "precision": round(float(pred_hit[in_p].mean()), 4) if in_p.any() else None,
+            "recall": round(float(truth_hit[in_t].mean()), 4) if in_t.any() else None,
+        }
+    summary = json.loads((pseudo_dir / "summary.json").read_text())
+    return {
+        "pseudo": str(pseudo_dir),
+        "boxes": len(pseudo),
+        "mean_lwh_pooled": [round(float(v), 4) for v in pseudo.boxes[:, 3:6].mean(axis=0)],
+        "mean_lwh_per_frame": summary.get("mean_lwh"),
+        "size_correction": summary.get("size_correction"),
+        "matched_size_error_lwh": [round(float(v), 4) for v in size_error.mean(axis=0)],
+        "matched_pairs": len(size_error),
+        "bands": bands,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--target", type=Path, required=True, help="target FrameSet with labels")
+    parser.add_argument("--pseudo", type=Path, nargs="+", required=True)
+    parser.add_argument("--iou", type=float, default=0.5, help="BEV IoU for a match (>)")
+    parser.add_argument("--min-points", type=int, default=1)
+    parser.add_argument("--out", type=Path, default=ROOT / "bench/results/pseudo_labels.json")
+    args = parser.parse_args()
+    truth = read_boxes(args.target)
+    truth = truth.select(np.asarray(truth["label"]).astype(str) == "Car")
+    grid = in_grid(truth.boxes) & (truth["num_points"] >= args.min_points)
+    result = {
+        "command": "bench/pseudo_labels.py " + " ".join(sys.argv[1:]),
+        "machine": {"cpu_model": cpu_model(), "load_1min": round(os.getloadavg()[0], 2)},
+        "python": platform.python_version(),
+        "iou_bev": args.iou,
+        "truth": {
+            "cars_in_grid": int(grid.sum()),
+            "mean_lwh_in_grid": [round(float(v), 4) for v in truth.boxes[grid, 3:6].mean(axis=0)],
+            "mean_lwh_all": [round(float(v), 4) for v in truth.boxes[:, 3:6].mean(axis=0)],
+        },
+        "pseudo": [evaluate(p, truth, args.iou, args.min_points) for p in args.pseudo],
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    print(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()

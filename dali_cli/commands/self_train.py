@@ -1,0 +1,65 @@
+"""`dali self-train`: fine-tune the final model on the target with its own pseudo labels."""
+
+from __future__ import annotations
+
+import click
+
+from dali_cli.commands.common import sensors_option, stage_options
+from dali_cli.commands.pretrain import training_options
+
+
+@click.command(name="self-train")
+@click.option(
+    "--init",
+    type=click.Path(exists=True, file_okay=False),
+    required=True,
+    help="Model to fine-tune (e.g. RUN/iter2/model, the final DALI model).",
+)
+@click.option(
+    "--target",
+    type=click.Path(exists=True, file_okay=False),
+    required=True,
+    help="Target FrameSet directory (its frames only; its labels are never read).",
+)
+@click.option(
+    "--pseudo",
+    type=click.Path(exists=True, file_okay=False),
+    required=True,
+    help="Pseudo labels of INIT on TARGET from `dali pseudo-label` (e.g. RUN/iter3/pseudo).",
+)
+@click.option(
+    "--out", type=click.Path(file_okay=False), required=True, help="Checkpoint directory to write."
+)
+@click.option(
+    "--scale",
+    type=click.FloatRange(0, min_open=True),
+    default=None,
+    help="Train in the frame scaled by this s (default: the pseudo labels' own PTSN scale ŝ).",
+)
+@training_options
+@sensors_option
+@stage_options
+def command(init, target, pseudo, out, scale, epochs, minutes, seed, batch_size, lr, precision,
+            compile_net, threads, no_augment, quiet, sensors_path, force, dry_run):  # fmt: skip
+    """Self-training (the paper's ‡): fine-tune INIT on the raw TARGET frames with its own pseudo
+    labels, both scaled by ŝ about the ground, as the model sees the target at test time.
+
+    Reads INIT/model.pt + model.json, TARGET/frames.zarr and PSEUDO/boxes.parquet (never
+    TARGET/boxes.parquet). An epoch is one pass over the target frames. Writes OUT/model.pt,
+    model.json, train_log.parquet and manifest.json (as pretrain); evaluate with
+    `dali eval --scale-from` the sweep that made PSEUDO.
+    """
+    from stages.self_train import run_self_train
+
+    outcome = run_self_train(
+        init, target, pseudo, out, scale=scale, epochs=epochs, minutes=minutes, seed=seed,
+        batch_size=batch_size, lr=lr, precision=precision, compile_net=compile_net,
+        threads=threads, augment=not no_augment, sensors_path=sensors_path, force=force,
+        dry_run=dry_run, progress=not quiet,
+    )  # fmt: skip
+    if outcome.status == "ran":
+        counts = (outcome.manifest or {}).get("outputs", {}).get("counts", {})
+        click.echo(
+            f"self-train: {counts.get('steps')} steps, {counts.get('frames_seen')} frames seen, "
+            f"{counts.get('pseudo_boxes')} pseudo boxes"
+        )

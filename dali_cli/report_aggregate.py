@@ -1,0 +1,144 @@
+"""Mean ± standard deviation of the results of several runs (one per seed) of the same benchmark:
+`dali report RUN1 RUN2 ...` or `dali report PARENT` (every RUN directory below it).
+
+Each run is first summarized by `report.build_report`; a figure enters a row's mean only from the
+runs that have it, and the table says how many did (n). The standard deviation is the sample one
+(ddof = 1), undefined ("—") for a single run.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from dali_cli.report import DIFFICULTIES, build_report
+
+# (column title, how to read it from a row of report.json)
+COLUMNS: tuple[tuple[str, tuple], ...] = (
+    ("BEV@0.7", ("ap", "0.7", "bev")),
+    ("3D@0.7", ("ap", "0.7", "3d")),
+    ("BEV@0.5", ("ap", "0.5", "bev")),
+    ("3D@0.5", ("ap", "0.5", "3d")),
+    *((f"KITTI 3D@0.7 {d}", ("kitti", "0.7", "3d", d)) for d in DIFFICULTIES),
+    ("KITTI BEV@0.7 moderate", ("kitti", "0.7", "bev", "moderate")),
+    ("pred l", ("sizes", "pred", 0)),
+    ("pred w", ("sizes", "pred", 1)),
+    ("pred h", ("sizes", "pred", 2)),
+    ("scale", ("scale",)),
+)
+SCALARS = (
+    "gap_closed_3d_0.7",
+    "gap_closed_bev_0.7",
+    "gap_closed_equal_budget_3d_0.7",
+    "gap_closed_equal_budget_bev_0.7",
+)
+TABLE_COLUMNS = ("BEV@0.7", "3D@0.7", "KITTI 3D@0.7 moderate", "pred l", "pred w", "pred h")
+
+
+def is_run(path: Path) -> bool:
+    """Whether `path` holds a Makefile run's artifacts (iter*/ or baselines/ with outputs)."""
+    patterns = ("iter*/*/manifest.json", "iter*/*/metrics.json", "baselines/*/*/*.json")
+    return path.is_dir() and any(next(path.glob(p), None) for p in patterns)
+
+
+def find_runs(paths: list[Path]) -> list[Path]:
+    """The runs named: each path that is a run, else the runs directly below it (sorted)."""
+    runs = []
+    for path in paths:
+        runs += [path] if is_run(path) else sorted(p for p in path.iterdir() if is_run(p))
+    return runs
+
+
+def dig(row: dict, keys: tuple) -> float | None:
+    """A number inside a row of report.json, or None when any level is missing."""
+    value = row
+    for key in keys:
+        if isinstance(value, dict):
+            value = value.get(key)
+        elif isinstance(value, list | tuple) and isinstance(key, int) and key < len(value):
+            value = value[key]
+        else:
+            return None
+    return float(value) if isinstance(value, int | float) and math.isfinite(value) else None
+
+
+def statistics(values: list[float]) -> dict:
+    """{"mean", "std" (sample, None if n < 2), "n", "values"} of the runs' values."""
+    if not values:
+        return {"mean": None, "std": None, "n": 0, "values": []}
+    array = np.asarray(values, np.float64)
+    std = float(array.std(ddof=1)) if len(array) > 1 else None
+    return {"mean": float(array.mean()), "std": std, "n": len(array), "values": list(values)}
+
+
+def aggregate_documents(documents: list[dict], section: str = "target") -> list[dict]:
+    """Per row name of `section` ("target", "source" or "controls"), statistics per column."""
+    names: list[str] = []
+    for document in documents:
+        names += [r["name"] for r in document.get(section, []) if r["name"] not in names]
+    rows = []
+    for name in names:
+        found = [r for d in documents for r in d.get(section, []) if r["name"] == name]
+        columns = {}
+        for title, keys in COLUMNS:
+            values = [v for v in (dig(r, keys) for r in found) if v is not None]
+            columns[title] = statistics(values)
+        rows.append({"name": name, "columns": columns})
+    return rows
+
+
+def _cell(stats: dict, digits: int) -> str:
+    if stats["mean"] is None:
+        return "—"
+    spread = "—" if stats["std"] is None else f"{stats['std']:.{digits}f}"
+    return f"{stats['mean']:.{digits}f} ± {spread}"
+
+
+def markdown(rows: list[dict], columns=TABLE_COLUMNS) -> str:
+    lines = ["| method | n | " + " | ".join(columns) + " |", "|---|---|" + "---|" * len(columns)]
+    for row in rows:
+        n = max(row["columns"][c]["n"] for c in columns)
+        if n == 0:
+            continue
+        cells = [_cell(row["columns"][c], 3 if c.startswith("pred") else 2) for c in columns]
+        lines.append(f"| {row['name']} | {n} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def aggregate_runs(runs: list[Path]) -> tuple[str, dict]:
+    """Markdown and a JSON-ready dict: mean ± std over `runs` of every row and gap figure."""
+    documents = [build_report(run)[1] for run in runs]
+    target = aggregate_documents(documents, "target") + aggregate_documents(documents, "controls")
+    source = aggregate_documents(documents, "source")
+    scalars = {
+        key: statistics([d[key] for d in documents if isinstance(d.get(key), int | float)])
+        for key in SCALARS
+    }
+    parts = [
+        f"# dali report: mean ± std over {len(runs)} runs",
+        "",
+        "Runs: " + ", ".join(str(r) for r in runs),
+        "",
+        "## Target validation (Car AP_R40, %; front region, all boxes, and KITTI moderate)",
+        "",
+        markdown(target),
+        "",
+        "### KITTI difficulties (AP_3D@0.7)",
+        "",
+        markdown(target, tuple(f"KITTI 3D@0.7 {d}" for d in DIFFICULTIES)),
+    ]
+    if any(row["columns"]["3D@0.7"]["n"] for row in source):
+        parts += ["", "## Source validation", "", markdown(source, ("BEV@0.7", "3D@0.7"))]
+    parts += ["", "## Gap closed (share, mean ± std over runs)", ""]
+    for key, stats in scalars.items():
+        parts.append(f"- {key}: {_cell(stats, 3)} (n = {stats['n']})")
+    document = {
+        "runs": [str(r) for r in runs],
+        "target": target,
+        "source": source,
+        "scalars": scalars,
+        "std": "sample standard deviation (ddof = 1) over runs",
+    }
+    return "\n".join(parts) + "\n", document

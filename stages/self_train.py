@@ -1,0 +1,139 @@
+"""Stage: self-train — fine-tune a final model on the raw target frames with its own pseudo labels,
+in the PTSN-scaled frame (the paper's ‡ for nuScenes → KITTI). Same checkpoint format and training
+body as pretrain and retrain; target labels are never read (the boxes come from --pseudo).
+
+Which frame: the pseudo boxes of `dali pseudo-label` are de-scaled to the original target frame,
+but the model that made them sees the target scaled by ŝ about the ground (`Detector.predict(...,
+scale=ŝ)`), and `dali eval --scale-from PTSN_DIR` evaluates it that way. So self-training scales the
+target points *and* the pseudo boxes by ŝ (`scale_about_ground`): the network keeps learning the
+scaled frame it is evaluated in, and the fine-tuned model is evaluated with the same ŝ
+(`--scale-from` of the sweep that made the pseudo labels). Training on the original frame instead
+would teach it target-sized cars at s = 1, and evaluating that with ŝ would shrink every box twice.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import click
+import numpy as np
+
+from dali_cli.manifest import BuildResult, StageOutcome, check_made_from, content_hash
+from stages.pretrain import attach_database, fit_and_save, run_training_stage
+
+
+def pseudo_label_scale(pseudo: Path) -> float:
+    """The scale ŝ at which the pseudo boxes of `pseudo` were made (their `scale` column)."""
+    from dali_cli.artifacts import read_boxes
+
+    table = read_boxes(pseudo)
+    if "scale" not in table.columns:
+        raise click.ClickException(
+            f"{pseudo}/boxes.parquet: no 'scale' column (not from `dali pseudo-label`); "
+            "give --scale S"
+        )
+    scales = np.unique(np.asarray(table["scale"], np.float64))
+    if len(scales) != 1 or not (np.isfinite(scales[0]) and scales[0] > 0):
+        raise click.ClickException(
+            f"{pseudo}/boxes.parquet: expected one positive 'scale' for every box, "
+            f"got {scales[:5].tolist()}; give --scale S"
+        )
+    return float(scales[0])
+
+
+def run_self_train(
+    init: str | Path,
+    target: str | Path,
+    pseudo: str | Path,
+    out: str | Path,
+    *,
+    scale: float | None = None,
+    epochs: float = 10.0,
+    minutes: float | None = None,
+    seed: int = 0,
+    batch_size: int = 1,
+    lr: float = 5e-3,
+    precision: str = "fp32",
+    compile_net: bool = False,
+    threads: int | None = None,
+    augment: bool = True,
+    sensors_path: str | Path | None = None,
+    force: bool = False,
+    dry_run: bool = False,
+    progress: bool = True,
+) -> StageOutcome:
+    """Fine-tune the model of `init` on `target`'s frames with the boxes of `pseudo` (made from
+    `target`), both scaled by ŝ (default: the pseudo labels' own scale); write to `out`."""
+    init, target, pseudo, out = Path(init), Path(target), Path(pseudo), Path(out)
+    check_made_from(pseudo, "target", target)
+    train_scale = pseudo_label_scale(pseudo) if scale is None else float(scale)
+    params = {
+        "scale": train_scale,
+        "epochs": None if minutes else epochs,
+        "minutes": minutes,
+        "seed": seed,
+        "batch_size": batch_size,
+        "lr": lr,
+        "precision": precision,
+        "compile": compile_net,
+        "augment": augment,
+    }
+    inputs = {"init": init, "target": target, "pseudo": pseudo}
+
+    def train_fn(tmp: Path, resume: Path, key: str) -> BuildResult:
+        import torch
+
+        from dali_cli import detector
+        from dali_cli.detector.data import scale_about_ground
+
+        started = time.perf_counter()
+        previous = detector.Detector.load(init)
+        config = previous.config
+        # frames from the target, boxes from the pseudo labels: the target's labels stay unread
+        data = detector.load_labeled(target, config, boxes_dir=pseudo, sensors_path=sensors_path)
+        if data.num_boxes == 0:
+            raise click.ClickException(f"{pseudo}: no pseudo boxes with points to train on")
+        data = scale_about_ground(data, train_scale)
+        attach_database(data, config, augment)
+        augmentation = detector.Augmentation() if augment else detector.Augmentation.none()
+        load_s = time.perf_counter() - started
+        torch.manual_seed(seed)
+        net = detector.PillarCenterNet(config)
+        net.load_state_dict(previous.net.state_dict())
+        budget = dict(epochs=epochs, minutes=minutes, batch_size=batch_size, lr=lr)
+        settings = detector.TrainSettings(
+            **budget, seed=seed, precision=precision, compile=compile_net, threads=threads
+        )
+        meta = {
+            "provenance": {
+                **previous.meta.get("provenance", {}),
+                "stage": "self_train",
+                "init": str(init),
+                "init_hash": content_hash(init),
+                "target": str(target),
+                "pseudo": str(pseudo),
+                "train_scale": train_scale,
+                "seed": seed,
+            },
+            "metrics": {
+                "frames": len(data),
+                "boxes": data.num_boxes,
+                "scaled_mean_lwh_m": data.mean_lwh().tolist(),
+            },
+        }
+        return fit_and_save(
+            tmp, net, [data], [augmentation], settings, resume, key,
+            meta=meta,
+            counts={"target_frames": len(data), "pseudo_boxes": data.num_boxes},
+            notes=[
+                f"detector: {net.config.name} (not the paper's SECOND-IoU)",
+                f"trained in the PTSN-scaled frame (s = {train_scale:.4f}): evaluate with the "
+                "--scale-from of the sweep that made the pseudo labels",
+                "target labels not read: boxes from the pseudo labels",
+            ],
+            load_s=load_s,
+            progress=progress,
+        )  # fmt: skip
+
+    return run_training_stage("self_train", out, inputs, params, train_fn, force, dry_run, seed)
