@@ -16,6 +16,7 @@ import click
 import numpy as np
 
 from dali_cli.manifest import BuildResult, StageOutcome, content_hash, run_stage
+from dali_cli.model_card import ModelCard
 
 SIZE_NORMS = ("none", "sn", "ros")
 
@@ -229,7 +230,19 @@ def run_pretrain(
             epochs=epochs, minutes=minutes, batch_size=batch_size, lr=lr, seed=seed,
             precision=precision, compile=compile_net, threads=threads,
         )  # fmt: skip
+        card = ModelCard(
+            detector=config.name,
+            stage="pretrain",
+            source_sensor=data.sensor,
+            mount_height_m=data.mount_height_m,
+            source_mean_lwh_m=tuple(float(v) for v in source_mean),
+            size_norm=size_norm,
+            sn_delta_lwh_m=None if delta is None else tuple(float(v) for v in delta),
+            ros_range=tuple(ros_range) if size_norm == "ros" else None,
+            target_profile=target_profile,
+        )
         meta = {
+            "card": card.to_dict(),
             "provenance": {
                 "stage": "pretrain",
                 "source": str(source),

@@ -16,6 +16,7 @@ import pyarrow.parquet as pq
 from dali_cli import ptsn
 from dali_cli.artifacts import FrameSet
 from dali_cli.manifest import BuildResult, StageOutcome, run_stage
+from dali_cli.model_card import ModelCard, read_card
 from dali_cli.sensors import get_profile
 
 STAGE = "ptsn_sweep"
@@ -31,15 +32,11 @@ def load_detector(model_dir: str | Path) -> ptsn.Predictor:
     return Detector.load(model_dir)
 
 
-def read_model_info(model_dir: str | Path) -> dict:
-    """`<model_dir>/model.json` as a dict, {} when absent."""
-    path = Path(model_dir) / "model.json"
-    if not path.is_file():
-        return {}
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as error:
-        raise click.ClickException(f"{path}: invalid JSON ({error})") from None
+def read_model_card(model_dir: str | Path) -> ModelCard:
+    """The model card of `model_dir` (an empty card when it has no model.json: test doubles)."""
+    if not (Path(model_dir) / "model.json").is_file():
+        return ModelCard()
+    return read_card(model_dir)
 
 
 def detector_bev_range(detector) -> tuple[float, float, float, float] | None:
@@ -52,42 +49,11 @@ def detector_bev_range(detector) -> tuple[float, float, float, float] | None:
     return (float(x[0]), float(y[0]), float(x[1]), float(y[1]))
 
 
-def model_source_profile(info: dict) -> str | None:
-    """The source sensor profile a model was trained on, from its model.json."""
-    for key in ("source_sensor", "source_profile"):
-        if isinstance(info.get(key), str):
-            return info[key]
-    config = info.get("config")
-    if isinstance(config, dict) and isinstance(config.get("sensor"), str):
-        return config["sensor"]
-    return None
-
-
-def model_ros_factor(info: dict) -> float | None:
-    """The mean ROS factor a model was trained with (model.json), None when it says nothing."""
-    for key in ("ros_factor_mean", "ros_mean_factor"):
-        if isinstance(info.get(key), int | float):
-            return float(info[key])
-    for key in ("ros_range", "ros_scale_range", "ros_factor_range"):
-        value = info.get(key)
-        if isinstance(value, list | tuple) and len(value) == 2:
-            return 0.5 * (float(value[0]) + float(value[1]))
-    return None
-
-
-def _is_size(value) -> bool:
-    return (
-        isinstance(value, list)
-        and len(value) == 3
-        and all(isinstance(v, int | float) and math.isfinite(v) and v > 0 for v in value)
-    )
-
-
 def resolve_expected_size(
     spec: str,
     *,
     target_profile: str | None,
-    model_info: dict,
+    card: ModelCard,
     source_profile: str | None,
     ros_factor: float | None,
     sensors_path: str | None,
@@ -102,13 +68,13 @@ def resolve_expected_size(
         lwh = np.asarray(get_profile(target_profile, sensors_path).car_mean_lwh_m)
         return lwh, {"mode": "sn", "profile": target_profile}
     if spec == "ros":
-        factor = ros_factor if ros_factor is not None else model_ros_factor(model_info)
+        factor = ros_factor if ros_factor is not None else card.ros_factor
         factor = ptsn.DEFAULT_ROS_FACTOR if factor is None else factor
-        measured = model_info.get("source_mean_lwh_m")
-        if source_profile is None and _is_size(measured):
-            record = {"mode": "ros", "source": "model.json source_mean_lwh_m", "ros_factor": factor}
-            return ptsn.ros_expected_size(measured, factor), record
-        profile = source_profile or model_source_profile(model_info)
+        measured = card.source_mean_lwh_m
+        if source_profile is None and measured is not None:
+            record = {"mode": "ros", "source": "model card source_mean_lwh_m", "ros_factor": factor}
+            return ptsn.ros_expected_size(list(measured), factor), record
+        profile = source_profile or card.source_sensor
         if not profile:
             raise click.UsageError(
                 "--expected-size ros needs --source-profile (model.json names none)"
@@ -201,11 +167,10 @@ def ptsn_sweep(
         raise click.ClickException(f"{model_dir}: model directory not found")
     target = FrameSet(target_dir)
     target_profile = target_profile or target.sensor or None
-    model_info = read_model_info(model_dir)
     target_lwh, expected_record = resolve_expected_size(
         expected_size,
         target_profile=target_profile,
-        model_info=model_info,
+        card=read_model_card(model_dir),
         source_profile=source_profile,
         ros_factor=ros_factor,
         sensors_path=sensors_path,

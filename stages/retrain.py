@@ -112,14 +112,14 @@ def run_retrain(
         started = time.perf_counter()
         previous = Detector.load(init)
         config = previous.config
-        provenance = previous.meta.get("provenance", {})
+        card = previous.card
         load = dict(config=config, labels=labels, sensors_path=sensors_path)
         source_data = load_labeled(source, **load)
         source_augmentation = Augmentation() if augment else Augmentation.none()
-        if provenance.get("sn_delta_lwh") is not None:
-            source_data = size_normalize(source_data, np.asarray(provenance["sn_delta_lwh"]))
-        if provenance.get("ros_range") is not None:
-            source_augmentation.object_scale = tuple(provenance["ros_range"])
+        if card.sn_delta_lwh_m is not None:
+            source_data = size_normalize(source_data, np.asarray(card.sn_delta_lwh_m))
+        if card.ros_range is not None:
+            source_augmentation.object_scale = card.ros_range
         pseudo_sets = [load_labeled(p, **load) for p in ppcg]
         for path, data in zip(ppcg, pseudo_sets, strict=True):
             if len(data) == 0:
@@ -143,6 +143,7 @@ def run_retrain(
             precision=precision, compile=compile_net, threads=threads, mix=weights,
         )  # fmt: skip
         meta = {
+            "card": card.carried_forward("retrain").to_dict(),
             "provenance": {
                 "stage": "retrain",
                 "init": str(init),
@@ -152,10 +153,10 @@ def run_retrain(
                 "source_sensor": source_data.sensor,
                 "ppcg": [str(p) for p in ppcg],
                 "mix": list(weights),
-                "size_norm": provenance.get("size_norm", "none"),
-                "sn_delta_lwh": provenance.get("sn_delta_lwh"),
-                "ros_range": provenance.get("ros_range"),
-                "target_profile": provenance.get("target_profile"),
+                "size_norm": card.size_norm,
+                "sn_delta_lwh": None if card.sn_delta_lwh_m is None else list(card.sn_delta_lwh_m),
+                "ros_range": None if card.ros_range is None else list(card.ros_range),
+                "target_profile": card.target_profile,
                 "seed": seed,
             },
             "metrics": {

@@ -106,6 +106,7 @@ def run_self_train(
             **budget, seed=seed, precision=precision, compile=compile_net, threads=threads
         )
         meta = {
+            "card": previous.card.carried_forward("self-train").to_dict(),
             "provenance": {
                 **previous.meta.get("provenance", {}),
                 "stage": "self_train",

@@ -352,7 +352,6 @@ def test_pretrain_refuses_an_absurd_box(world, tmp_path):
     )  # fmt: skip
 
 
-@pytest.mark.xfail(strict=False, reason="model checkpoint reader: another engineer's scope")
 def test_eval_refuses_a_model_that_is_not_dali(world, tmp_path):
     model = tmp_path / "model"
     shutil.copytree(world / "model", model)

@@ -389,9 +389,9 @@ def test_cli_expected_size_options(sweep_setup):
     document = json.loads((tmp_path / "ros" / "scale.json").read_text())
     assert document["E_est"] == pytest.approx((SOURCE_LWH * 0.875).tolist())
     assert document["expected_size"]["source_profile"] == "waymo"
-    (model / "model.json").write_text(
-        json.dumps({"source_mean_lwh_m": [4.0, 2.0, 1.6], "ros_range": [0.7, 0.9]})
-    )
+    # what pretrain --size-norm ros records (test_model_card checks a real checkpoint)
+    card = {"source_mean_lwh_m": [4.0, 2.0, 1.6], "ros_range": [0.7, 0.9], "size_norm": "ros"}
+    (model / "model.json").write_text(json.dumps({"card": card}))
     result = invoke(*base, "--out", tmp_path / "ros2", "--expected-size", "ros")
     assert result.exit_code == 0, result.output
     document = json.loads((tmp_path / "ros2" / "scale.json").read_text())

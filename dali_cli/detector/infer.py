@@ -19,6 +19,7 @@ from dali_cli.detector.config import DetectorConfig
 from dali_cli.detector.model import PillarCenterNet
 from dali_cli.detector.refine import BoxRefiner, refine_boxes
 from dali_cli.detector.targets import gather_cells, peaks_and_boxes
+from dali_cli.model_card import ModelCard, read_meta
 
 WEIGHTS_NAME = "model.pt"
 META_NAME = "model.json"
@@ -113,6 +114,19 @@ def sensor_boxes_to_ground(boxes: np.ndarray, mount_height_m: float) -> np.ndarr
     return boxes
 
 
+def load_weights_only(path: Path, what: str):
+    """torch.load of a file dali wrote, with the weights_only unpickler (tensors, numbers,
+    strings, lists, dicts: no code can run); ArtifactError naming the file otherwise."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # UnpicklingError, RuntimeError, IndexError on garbage, ...
+        first = str(error).splitlines()[0] if str(error) else type(error).__name__
+        raise ArtifactError(
+            f"{path}: not {what} (refused to load it: {first}); dali loads only plain weights "
+            "it wrote itself"
+        ) from None
+
+
 def save_checkpoint(directory: str | Path, net: PillarCenterNet, meta: dict) -> None:
     """Write model.pt (weights) and model.json (config + meta) into `directory`."""
     directory = Path(directory)
@@ -129,26 +143,37 @@ class Detector:
         self.config = net.config
         self.meta = meta or {}
 
+    @property
+    def card(self) -> ModelCard:
+        """What training recorded about this model (source sensor and sizes, size norm)."""
+        return ModelCard.from_meta(self.meta)
+
     @classmethod
     def load(cls, model_dir: str | Path) -> Detector:
+        """A checkpoint directory written by dali. Anything else (a missing or foreign file, a
+        pickle that is not plain weights, weights of another shape) is an ArtifactError naming
+        the file; weights are read with torch's weights_only loader, so no code runs."""
         model_dir = Path(model_dir)
         meta_path, weights_path = model_dir / META_NAME, model_dir / WEIGHTS_NAME
-        for path in (meta_path, weights_path):
-            if not path.is_file():
-                raise ArtifactError(f"{path}: not found (is {model_dir} a model directory?)")
+        meta = read_meta(model_dir)
+        if not weights_path.is_file():
+            raise ArtifactError(f"{weights_path}: not found (is {model_dir} a model directory?)")
         try:
-            meta = json.loads(meta_path.read_text())
             values = dict(meta["config"])
             # checkpoints from before the second stage existed have no refiner weights
             values.setdefault("refine", False)
             config = DetectorConfig.from_dict(values)
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as error:
+        except (KeyError, TypeError, ValueError) as error:
             raise ArtifactError(f"{meta_path}: invalid model description ({error})") from None
         net = PillarCenterNet(config)
+        state = load_weights_only(weights_path, "dali model weights")
         try:
-            net.load_state_dict(torch.load(weights_path, map_location="cpu", weights_only=True))
-        except (RuntimeError, OSError, EOFError) as error:
-            raise ArtifactError(f"{weights_path}: cannot load weights ({error})") from None
+            net.load_state_dict(state)
+        except (RuntimeError, TypeError, AttributeError) as error:
+            raise ArtifactError(
+                f"{weights_path}: weights do not fit {config.name} as {meta_path.name} describes "
+                f"it ({str(error).splitlines()[0]})"
+            ) from None
         return cls(net, meta)
 
     @torch.no_grad()

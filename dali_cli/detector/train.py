@@ -133,7 +133,9 @@ def train(
     step, elapsed, log = 0, 0.0, []
     resume_path = Path(resume_path) if resume_path else None
     if resume_path and resume_path.is_file():
-        state = torch.load(resume_path, map_location="cpu", weights_only=False)
+        from dali_cli.detector.infer import load_weights_only
+
+        state = load_weights_only(resume_path, "a dali training state")
         if state.get("key") == resume_key:
             net.load_state_dict(state["net"])
             optimizer.load_state_dict(state["optimizer"])

@@ -1,0 +1,136 @@
+"""The model card: what training recorded about a detector that later stages rely on.
+
+One typed record, written by pretrain (and carried forward by retrain and self-train) under the
+`card` key of model.json, and read by every stage that needs it: the source sensor and mount
+height, the source's mean car size, the size normalization (SN offset or ROS range) the model was
+trained with. Checkpoints written before the card existed keep these facts in `provenance`,
+`metrics` and `config`; `ModelCard.from_meta` reads both layouts, so no reader looks inside
+model.json by itself (a second, diverging reader once made `--expected-size ros` ignore a real
+checkpoint's ROS range and source mean).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+from dali_cli.artifacts import ArtifactError
+
+META_NAME = "model.json"
+SIZE_NORMS = ("none", "sn", "ros")
+
+
+def _size(value) -> tuple[float, float, float] | None:
+    """(l, w, h) in metres from a JSON list of three positive numbers, else None."""
+    if isinstance(value, list | tuple) and len(value) == 3:
+        if all(isinstance(v, int | float) and not isinstance(v, bool) for v in value):
+            values = tuple(float(v) for v in value)
+            if all(math.isfinite(v) for v in values):
+                return values
+    return None
+
+
+def _pair(value) -> tuple[float, float] | None:
+    if isinstance(value, list | tuple) and len(value) == 2:
+        if all(isinstance(v, int | float) and not isinstance(v, bool) for v in value):
+            return (float(value[0]), float(value[1]))
+    return None
+
+
+def _text(value) -> str | None:
+    return value if isinstance(value, str) and value else None
+
+
+@dataclass(frozen=True)
+class ModelCard:
+    """What a detector was trained on and how (sizes in metres)."""
+
+    detector: str | None = None  # network name, e.g. pillar-centerpoint-iou-refine
+    stage: str | None = None  # pretrain | retrain | self-train: the stage that wrote it
+    source_sensor: str | None = None  # sensor profile of the labeled source frames
+    mount_height_m: float | None = None  # the source sensor's height above the ground
+    source_mean_lwh_m: tuple[float, float, float] | None = None  # mean labeled source car
+    size_norm: str = "none"  # none | sn | ros
+    sn_delta_lwh_m: tuple[float, float, float] | None = None  # SN: size offset added to labels
+    ros_range: tuple[float, float] | None = None  # ROS: object scale factors trained with
+    target_profile: str | None = None  # SN: the target profile whose mean size was used
+
+    @property
+    def ros_factor(self) -> float | None:
+        """The mean ROS factor (middle of the range), None when trained without ROS."""
+        return None if self.ros_range is None else 0.5 * (self.ros_range[0] + self.ros_range[1])
+
+    def to_dict(self) -> dict:
+        document = dataclasses.asdict(self)
+        for key, value in document.items():
+            if isinstance(value, tuple):
+                document[key] = list(value)
+        return document
+
+    def carried_forward(self, stage: str) -> ModelCard:
+        """The card of a model trained from this one (retrain, self-train): same source facts."""
+        return dataclasses.replace(self, stage=stage)
+
+    @classmethod
+    def from_meta(cls, meta: dict) -> ModelCard:
+        """The card in a model.json document: its `card` block, else what older checkpoints
+        recorded in `provenance`, `metrics` and `config`."""
+        if not isinstance(meta, dict):
+            raise ValueError("model.json is not a JSON object")
+        card = meta.get("card")
+        if isinstance(card, dict):
+            return cls._from_card(card)
+        provenance = meta.get("provenance") if isinstance(meta.get("provenance"), dict) else {}
+        metrics = meta.get("metrics") if isinstance(meta.get("metrics"), dict) else {}
+        config = meta.get("config") if isinstance(meta.get("config"), dict) else {}
+        mount = config.get("mount_height_m")
+        size_norm = provenance.get("size_norm")
+        return cls(
+            detector=_text(meta.get("detector")) or _text(config.get("name")),
+            stage=_text(provenance.get("stage")),
+            source_sensor=_text(provenance.get("source_sensor")) or _text(config.get("sensor")),
+            mount_height_m=float(mount) if isinstance(mount, int | float) else None,
+            source_mean_lwh_m=_size(metrics.get("source_mean_lwh_m")),
+            size_norm=size_norm if size_norm in SIZE_NORMS else "none",
+            sn_delta_lwh_m=_size(provenance.get("sn_delta_lwh")),
+            ros_range=_pair(provenance.get("ros_range")),
+            target_profile=_text(provenance.get("target_profile")),
+        )
+
+    @classmethod
+    def _from_card(cls, card: dict) -> ModelCard:
+        mount = card.get("mount_height_m")
+        size_norm = card.get("size_norm")
+        return cls(
+            detector=_text(card.get("detector")),
+            stage=_text(card.get("stage")),
+            source_sensor=_text(card.get("source_sensor")),
+            mount_height_m=float(mount) if isinstance(mount, int | float) else None,
+            source_mean_lwh_m=_size(card.get("source_mean_lwh_m")),
+            size_norm=size_norm if size_norm in SIZE_NORMS else "none",
+            sn_delta_lwh_m=_size(card.get("sn_delta_lwh_m")),
+            ros_range=_pair(card.get("ros_range")),
+            target_profile=_text(card.get("target_profile")),
+        )
+
+
+def read_meta(model_dir: str | Path) -> dict:
+    """model.json of a model directory as a dict; ArtifactError when missing or not JSON."""
+    path = Path(model_dir) / META_NAME
+    if not path.is_file():
+        raise ArtifactError(f"{path}: not found (is {model_dir} a model directory?)")
+    try:
+        document = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ArtifactError(f"{path}: not a dali model description ({error})") from None
+    if not isinstance(document, dict):
+        raise ArtifactError(f"{path}: not a dali model description (not a JSON object)")
+    return document
+
+
+def read_card(model_dir: str | Path) -> ModelCard:
+    """The model card of a model directory (see ModelCard.from_meta)."""
+    return ModelCard.from_meta(read_meta(model_dir))
