@@ -86,29 +86,32 @@ class ModelCard:
         provenance = meta.get("provenance") if isinstance(meta.get("provenance"), dict) else {}
         metrics = meta.get("metrics") if isinstance(meta.get("metrics"), dict) else {}
         config = meta.get("config") if isinstance(meta.get("config"), dict) else {}
-        mount = config.get("mount_height_m")
-        size_norm = provenance.get("size_norm")
-        return cls(
-            detector=_text(meta.get("detector")) or _text(config.get("name")),
-            stage=_text(provenance.get("stage")),
-            source_sensor=_text(provenance.get("source_sensor")) or _text(config.get("sensor")),
-            mount_height_m=float(mount) if isinstance(mount, int | float) else None,
-            source_mean_lwh_m=_size(metrics.get("source_mean_lwh_m")),
-            size_norm=size_norm if size_norm in SIZE_NORMS else "none",
-            sn_delta_lwh_m=_size(provenance.get("sn_delta_lwh")),
-            ros_range=_pair(provenance.get("ros_range")),
-            target_profile=_text(provenance.get("target_profile")),
+        return cls._from_card(
+            {
+                "detector": _text(meta.get("detector")) or _text(config.get("name")),
+                "stage": provenance.get("stage"),
+                "source_sensor": _text(provenance.get("source_sensor")) or config.get("sensor"),
+                "mount_height_m": config.get("mount_height_m"),
+                "source_mean_lwh_m": metrics.get("source_mean_lwh_m"),
+                "size_norm": provenance.get("size_norm"),
+                "sn_delta_lwh_m": provenance.get("sn_delta_lwh"),
+                "ros_range": provenance.get("ros_range"),
+                "target_profile": provenance.get("target_profile"),
+            }
         )
 
     @classmethod
     def _from_card(cls, card: dict) -> ModelCard:
+        """A card from a JSON block, every field type-checked (a bad value reads as unknown)."""
         mount = card.get("mount_height_m")
         size_norm = card.get("size_norm")
         return cls(
             detector=_text(card.get("detector")),
             stage=_text(card.get("stage")),
             source_sensor=_text(card.get("source_sensor")),
-            mount_height_m=float(mount) if isinstance(mount, int | float) else None,
+            mount_height_m=float(mount)
+            if isinstance(mount, int | float) and not isinstance(mount, bool)
+            else None,
             source_mean_lwh_m=_size(card.get("source_mean_lwh_m")),
             size_norm=size_norm if size_norm in SIZE_NORMS else "none",
             sn_delta_lwh_m=_size(card.get("sn_delta_lwh_m")),
