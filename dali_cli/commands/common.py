@@ -49,3 +49,31 @@ def model_target_out_options(model_help: str):
         )(function)
 
     return decorate
+
+
+def output_options(function):
+    """--out DIR, --sensors and the stage switches of commands that write one artifact."""
+    function = stage_options(function)
+    function = sensors_option(function)
+    return click.option(
+        "--out", "out", type=click.Path(file_okay=False), required=True, help="Output directory."
+    )(function)
+
+
+def import_options(default_sensor: str | None):
+    """--sensor (the profile recorded with imported frames; required when None) + output_options."""
+
+    def decorate(function):
+        function = output_options(function)
+        if default_sensor is None:
+            return click.option(
+                "--sensor", required=True, help="Sensor profile of the data (a sensors.toml name)."
+            )(function)
+        return click.option(
+            "--sensor",
+            default=default_sensor,
+            show_default=True,
+            help="Sensor profile recorded with the frames.",
+        )(function)
+
+    return decorate

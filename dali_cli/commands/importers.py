@@ -1,4 +1,4 @@
-"""`dali import kitti|nuscenes|openpcdet`: other datasets' files -> a FrameSet + boxes.parquet."""
+"""`dali import kitti|nuscenes|openpcdet|waymo`: other datasets' files -> a FrameSet + boxes.parquet."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import sensors_option, stage_options
+from dali_cli.commands.common import import_options
 
 
 @click.group(name="import")
@@ -66,14 +66,7 @@ def _summary(outcome) -> None:
     is_flag=True,
     help="Keep only points that project into the camera image (KITTI labels cover only it).",
 )
-@click.option(
-    "--sensor", default="kitti", show_default=True, help="Sensor profile recorded with the frames."
-)
-@click.option(
-    "--out", "out", type=click.Path(file_okay=False), required=True, help="Output directory."
-)
-@sensors_option
-@stage_options
+@import_options("kitti")
 def kitti_command(
     root, split, ids_path, label_dir, crop_fov, sensor, out, sensors_path, force, dry_run
 ):
@@ -154,17 +147,7 @@ def kitti_command(
     help="Keep nuScenes' LiDAR axes (x right, y forward) instead of turning them to dali's "
     "x forward, y left.",
 )
-@click.option(
-    "--sensor",
-    default="nuscenes",
-    show_default=True,
-    help="Sensor profile recorded with the frames.",
-)
-@click.option(
-    "--out", "out", type=click.Path(file_okay=False), required=True, help="Output directory."
-)
-@sensors_option
-@stage_options
+@import_options("nuscenes")
 def nuscenes_command(
     path,
     version,
@@ -252,12 +235,7 @@ def nuscenes_command(
     show_default=True,
     help="Intensities are divided by this (255 for 8-bit intensities).",
 )
-@click.option("--sensor", required=True, help="Sensor profile of the data (a sensors.toml name).")
-@click.option(
-    "--out", "out", type=click.Path(file_okay=False), required=True, help="Output directory."
-)
-@sensors_option
-@stage_options
+@import_options(None)
 def openpcdet_command(
     root, split, car_classes, intensity_max, sensor, out, sensors_path, force, dry_run
 ):
@@ -291,6 +269,93 @@ def openpcdet_command(
         inputs,
         params,
         lambda tmp: openpcdet.build_import(tmp, root, frame_ids, classes, intensity_max, sensor),
+        force=force,
+        dry_run=dry_run,
+    )
+    _summary(outcome)
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+@command.command(name="waymo", short_help="Waymo Open Dataset v2 Parquet or v1 TFRecord.")
+@click.argument("root", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option(
+    "--format",
+    "fmt",
+    type=click.Choice(["auto", "v2", "v1"]),
+    default="auto",
+    show_default=True,
+    help="auto: v2 when ROOT has lidar/*.parquet, v1 when it has *.tfrecord.",
+)
+@click.option("--split", default=None, help="Read ROOT/SPLIT (e.g. training, validation).")
+@click.option(
+    "--every",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Keep every K-th frame of each segment (the paper trains on every 5th).",
+)
+@click.option(
+    "--lidars",
+    type=click.Choice(["top", "all"]),
+    default="top",
+    show_default=True,
+    help="Points of the TOP LiDAR only, or of all five.",
+)
+@click.option(
+    "--returns",
+    type=click.IntRange(1, 2),
+    default=1,
+    show_default=True,
+    help="First return only, or both returns.",
+)
+@click.option("--segments", default=None, help="Comma-separated segment names (default: all).")
+@import_options("waymo")
+def waymo_command(
+    root, fmt, split, every, lidars, returns, segments, sensor, out, sensors_path, force, dry_run
+):
+    """Import Waymo Open Dataset frames without TensorFlow.
+
+    v2: ROOT[/SPLIT]/<component>/<segment>.parquet with the components lidar,
+    lidar_calibration and (optional) lidar_box, vehicle_pose, lidar_pose; only the needed
+    columns are read, the lidar component one row group at a time. v1: ROOT[/SPLIT]/*.tfrecord
+    (Frame protobufs; CRCs checked). Range images become points in the TOP LiDAR's frame
+    (x forward, y left, z up, origin at the sensor), with the TOP's per-pixel (rolling-shutter)
+    pose applied when present, returns with range <= 0 dropped and intensity mapped by tanh to
+    [0, 1). Boxes: Car for TYPE_VEHICLE, Pedestrian, Sign, Cyclist, DontCare for the others;
+    num_points = the dataset's num_lidar_points_in_box. Frame ids: <segment>_<timestamp>.
+    The manifest records per-segment counts and the TOP calibration (beam elevations, mount
+    height) for a sensor profile.
+    """
+    from dali_cli.importers.waymo import WaymoFormatError, WaymoSource, build_import
+    from dali_cli.manifest import run_stage
+
+    _check_sensor(sensor, sensors_path)
+    folder = root / split if split else root
+    if not folder.is_dir():
+        raise click.BadParameter(f"{folder}: no such folder", param_hint="--split")
+    try:
+        source = WaymoSource(folder, fmt, segments.split(",") if segments else None)
+    except WaymoFormatError as error:
+        raise click.ClickException(str(error)) from None
+    params = {"format": source.format, "split": split, "every": every, "lidars": lidars,
+              "returns": returns, "segments": source.segments, "sensor": sensor}  # fmt: skip
+
+    def build(tmp):
+        try:
+            return build_import(
+                tmp, source, returns=returns, lidars=lidars, every=every, sensor=sensor
+            )
+        except WaymoFormatError as error:
+            raise click.ClickException(str(error)) from None
+
+    outcome = run_stage(
+        "import-waymo",
+        out,
+        {"segments": source.input_paths()},
+        params,
+        build,
         force=force,
         dry_run=dry_run,
     )
