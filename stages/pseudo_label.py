@@ -18,6 +18,7 @@ import numpy as np
 from dali_cli import plausibility, ptsn, size_correction
 from dali_cli.artifacts import BoxTable, FrameSet, write_boxes
 from dali_cli.manifest import BuildResult, StageOutcome, run_stage
+from dali_cli.scale_file import read_scale
 from dali_cli.sensors import get_profile
 
 STAGE = "pseudo_label"
@@ -30,29 +31,6 @@ def load_detector(model_dir: str | Path) -> ptsn.Predictor:
     from dali_cli.detector import Detector
 
     return Detector.load(model_dir)
-
-
-def read_scale(scale_from: str | Path) -> tuple[float, dict]:
-    """ŝ and the whole document of `<scale_from>/scale.json` (or a scale.json path)."""
-    path = Path(scale_from)
-    if path.is_dir():
-        path = path / "scale.json"
-    if not path.is_file():
-        raise click.ClickException(f"{path}: scale file not found (run `dali ptsn-sweep` first)")
-    try:
-        document = json.loads(path.read_text())
-    except json.JSONDecodeError as error:
-        raise click.ClickException(f"{path}: invalid JSON ({error})") from None
-    scale = document.get("scale") if isinstance(document, dict) else None
-    if (
-        isinstance(scale, bool)
-        or not isinstance(scale, int | float)
-        or not (math.isfinite(scale) and scale > 0)
-    ):
-        raise click.ClickException(
-            f"{path}: field 'scale' must be a positive number, got {scale!r}"
-        )
-    return float(scale), document
 
 
 def label_frame(

@@ -3,7 +3,6 @@ sweep.parquet (every evaluated scale), scale.json (ŝ and how it was found), opt
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 from pathlib import Path
@@ -17,10 +16,10 @@ from dali_cli import ptsn
 from dali_cli.artifacts import FrameSet
 from dali_cli.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.model_card import ModelCard, read_card
+from dali_cli.scale_file import write_scale
 from dali_cli.sensors import get_profile
 
 STAGE = "ptsn_sweep"
-SCALE_NAME = "scale.json"
 SWEEP_NAME = "sweep.parquet"
 PLOT_NAME = "sweep.png"
 
@@ -259,7 +258,7 @@ def ptsn_sweep(
             params=params,
             grid_frame_passes=grid_frame_passes,
         )
-        (directory / SCALE_NAME).write_text(json.dumps(document, indent=2) + "\n")
+        write_scale(directory, document)
         if plot:
             title = f"PTSN sweep: ŝ = {result.scale:.3f} ({search}, {match})"
             ptsn.plot_sweep(rows, result.scale, target_lwh, directory / PLOT_NAME, title)
@@ -312,7 +311,7 @@ def scale_document(
         return [round(float(v), 6) if math.isfinite(v) else None for v in values]
 
     return {
-        "scale": round(result.scale, 6),
+        "scale": float(result.scale),  # exact: pseudo-label runs at the ŝ found
         "E_est": listed(target_lwh),
         "E_est_volume": round(float(np.prod(target_lwh)), 6),
         "expected_size": expected_record,

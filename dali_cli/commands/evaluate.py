@@ -62,17 +62,9 @@ def _read_scale(scale: float | None, scale_from: str | None) -> float:
     if scale_from is None:
         value = 1.0 if scale is None else scale
     else:
-        path = Path(scale_from) / "scale.json"
-        try:
-            value = json.loads(path.read_text())["scale"]
-        except FileNotFoundError:
-            raise click.ClickException(
-                f"{path}: not found (is {scale_from} a ptsn-sweep output?)"
-            ) from None
-        except (json.JSONDecodeError, KeyError, TypeError):
-            raise click.ClickException(f"{path}: no numeric key 'scale'") from None
-        if not isinstance(value, int | float) or isinstance(value, bool):
-            raise click.ClickException(f"{path}: key 'scale' is not a number ({value!r})")
+        from dali_cli.scale_file import read_scale
+
+        value, _ = read_scale(scale_from)
     if not value > 0:
         raise click.UsageError(f"the scale must be positive, got {value}")
     return float(value)
