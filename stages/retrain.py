@@ -30,6 +30,28 @@ def parse_mix(text: str, ppcg_count: int) -> tuple[int, ...]:
     return parts
 
 
+def drop_boxless_sets(paths: list[Path], sets: list, weights: tuple[int, ...]):
+    """PPCG sets without a single box of the trained labels are left out: their frames still
+    hold the target's cars (pseudo-labelling found none, e.g. after a PTSN no-detection
+    fallback), and training on them would teach that those cars are background.
+
+    Returns (the kept sets, the mix for [source, *datasets], one message per dropped set)."""
+    keep = [i for i, data in enumerate(sets) if data.num_boxes > 0]
+    messages = [
+        f"PPCG set {paths[i]} has no boxes to train on: left out (its cars would be learned as "
+        "background)"
+        for i in range(len(sets))
+        if i not in keep
+    ]
+    kept = [sets[i] for i in keep]
+    if not kept:
+        messages.append("no PPCG set has boxes: this retraining sees the source frames only")
+        return kept, (weights[0],), messages
+    if len(weights) == 2:  # source : all PPCG sets pooled
+        return kept, weights, messages
+    return kept, (weights[0], *(weights[1 + i] for i in keep)), messages
+
+
 def pool(sets: list, name: str):
     """Concatenate labeled sets into one (frame ids prefixed by their set's index)."""
     from dali_cli.detector import LabeledFrames
@@ -124,10 +146,11 @@ def run_retrain(
         for path, data in zip(ppcg, pseudo_sets, strict=True):
             if len(data) == 0:
                 raise click.ClickException(f"{path}: PPCG frame set has no frames")
-        datasets = [
-            source_data,
-            *([pool(pseudo_sets, "ppcg")] if len(weights) == 2 else pseudo_sets),
-        ]
+        pseudo_sets, mix, skipped = drop_boxless_sets(ppcg, pseudo_sets, weights)
+        for message in skipped:
+            click.secho(f"WARNING: {message}", fg="red", bold=True, err=True)
+        pooled = len(weights) == 2 and pseudo_sets
+        datasets = [source_data, *([pool(pseudo_sets, "ppcg")] if pooled else pseudo_sets)]
         for data in datasets:
             attach_database(data, config, augment)
         augmentations = [source_augmentation] + [
@@ -140,7 +163,7 @@ def run_retrain(
             net.load_state_dict(previous.net.state_dict())
         settings = TrainSettings(
             epochs=epochs, minutes=minutes, batch_size=batch_size, lr=lr, seed=seed,
-            precision=precision, compile=compile_net, threads=threads, mix=weights,
+            precision=precision, compile=compile_net, threads=threads, mix=mix,
         )  # fmt: skip
         meta = {
             "card": card.carried_forward("retrain").to_dict(),
@@ -175,6 +198,7 @@ def run_retrain(
             notes=[
                 f"detector: {net.config.name} (not the paper's SECOND-IoU)",
                 "raw target frames not used: source + PPCG frame sets only",
+                *skipped,
             ],
             load_s=load_s,
             progress=progress,

@@ -148,3 +148,38 @@ def test_retrain_cli_errors(world, tmp_path):
     result = runner.invoke(main, ["retrain", "--init", str(world / "source"), "--source", str(world / "source"),
                                   "--ppcg", str(world / "rc"), "--out", str(tmp_path / "m")])  # fmt: skip
     assert result.exit_code == 1 and "model.json" in result.output
+
+
+def test_ppcg_sets_without_boxes_are_left_out_not_trained_as_background(world, tmp_path):
+    """After a PTSN no-detection fallback the pseudo labels are empty and the PPCG frames still
+    hold the target's cars: training on them would teach that cars are background."""
+    import shutil
+
+    from dali_cli.artifacts import BoxTable, write_boxes
+
+    empty = tmp_path / "empty"
+    shutil.copytree(world / "rc", empty)
+    write_boxes(empty, BoxTable.empty())
+    runner = CliRunner()
+    base = ["retrain", "--init", str(world / "iter0"), "--source", str(world / "source"),
+            "--epochs", "1", "--quiet", "--lr", "1e-12"]  # fmt: skip
+    mixed = runner.invoke(
+        main, [*base, "--ppcg", str(empty), str(world / "rc"), "--out", str(tmp_path / "a")]
+    )
+    assert mixed.exit_code == 0, mixed.output
+    manifest = read_manifest(tmp_path / "a")
+    assert manifest["outputs"]["counts"]["ppcg_frames"] == 3  # rc's frames only
+    assert any(str(empty) in note and "left out" in note for note in manifest["notes"])
+    per_set = runner.invoke(
+        main,
+        [*base, "--ppcg", str(empty), str(world / "rc"), "--mix", "2:1:1", "--out",
+         str(tmp_path / "b")],
+    )  # fmt: skip
+    assert per_set.exit_code == 0, per_set.output
+    settings = json.loads((tmp_path / "b" / "model.json").read_text())["train"]["settings"]
+    assert settings["mix"] == [2, 1]
+    alone = runner.invoke(main, [*base, "--ppcg", str(empty), "--out", str(tmp_path / "c")])
+    assert alone.exit_code == 0, alone.output
+    log = pq.read_table(tmp_path / "c" / "train_log.parquet").to_pydict()
+    assert set(log["dataset"]) == {0}  # the source only
+    assert any("source frames only" in note for note in read_manifest(tmp_path / "c")["notes"])
