@@ -20,10 +20,9 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
-import click
-
-from dali_cli import __version__
+from dali_cli import __version__, console
 from dali_cli.atomic_dir import OutputLock, recover_interrupted, replace_directory
+from dali_cli.errors import StageError
 from dali_cli.file_hashes import hash_tree as _hash_files
 from dali_cli.output_paths import check_output_path
 
@@ -42,7 +41,7 @@ def content_hash(path: str | Path) -> str:
     never the hash its own manifest claims, which a hand edit would leave unchanged."""
     path = Path(path)
     if not path.exists():
-        raise click.ClickException(f"{path}: input not found")
+        raise StageError(f"{path}: input not found")
     return hash_tree(path)
 
 
@@ -60,7 +59,7 @@ def check_made_from(artifact: str | Path, role: str, expected_input: str | Path)
     expected = content_hash(expected_input)
     if expected not in {record.get("hash") for record in records}:
         made_from = ", ".join(str(record.get("path")) for record in records)
-        raise click.ClickException(
+        raise StageError(
             f"{artifact}: made from {role} {made_from}, not from {expected_input} "
             f"(content hashes differ); pass the {role} it was made from"
         )
@@ -152,7 +151,7 @@ def run_stage(
     force: bool = False,
     dry_run: bool = False,
     seed: int | None = None,
-    echo: Callable[[str], None] = click.echo,
+    echo: Callable[[str], None] = console.echo,
 ) -> StageOutcome:
     """Run `build(tmp_dir)` unless `out` is up to date, then move the result into place atomically.
 

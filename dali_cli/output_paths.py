@@ -13,12 +13,12 @@ import json
 from collections.abc import Mapping
 from pathlib import Path
 
-import click
+from dali_cli.errors import StageError
 
 MANIFEST_NAME = "manifest.json"
 
 
-class OutputPathError(click.ClickException):
+class OutputPathError(StageError):
     """An `--out` dali must not write to; the message names it and says why."""
 
 

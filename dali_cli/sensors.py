@@ -12,8 +12,9 @@ from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
-import click
 import numpy as np
+
+from dali_cli.errors import StageError
 
 DEFAULT_SENSORS_PATH = Path(__file__).resolve().parent.parent / "sensors.toml"
 
@@ -35,7 +36,7 @@ _KNOWN = set(_REQUIRED) | {
 }
 
 
-class SensorConfigError(click.ClickException):
+class SensorConfigError(StageError):
     """A sensors.toml problem; the message names the file, profile and key."""
 
 

@@ -7,13 +7,13 @@ import math
 import sys
 from pathlib import Path
 
-import click
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from dali_cli import ptsn
+from dali_cli import console, ptsn
 from dali_cli.artifacts import FrameSet
+from dali_cli.errors import ParameterError, StageError
 from dali_cli.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.model_card import ModelCard, read_card
 from dali_cli.scale_file import write_scale
@@ -60,9 +60,9 @@ def resolve_expected_size(
     """E_est (3,) and a record of where it came from. spec: sn | ros | L,W,H."""
     if spec == "sn":
         if not target_profile:
-            raise click.UsageError(
-                "--expected-size sn needs the target's sensor profile: the frame set names none; "
-                "give --target-profile"
+            raise ParameterError(
+                ("expected_size", "target_profile"),
+                "E_est sn needs the target's sensor profile: the frame set names none; name it",
             )
         lwh = np.asarray(get_profile(target_profile, sensors_path).car_mean_lwh_m)
         return lwh, {"mode": "sn", "profile": target_profile}
@@ -75,8 +75,9 @@ def resolve_expected_size(
             return ptsn.ros_expected_size(list(measured), factor), record
         profile = source_profile or card.source_sensor
         if not profile:
-            raise click.UsageError(
-                "--expected-size ros needs --source-profile (model.json names none)"
+            raise ParameterError(
+                ("expected_size", "source_profile"),
+                "E_est ros needs the source's sensor profile (model.json names none)",
             )
         source_lwh = get_profile(profile, sensors_path).car_mean_lwh_m
         lwh = ptsn.ros_expected_size(source_lwh, factor)
@@ -84,7 +85,7 @@ def resolve_expected_size(
     try:
         lwh = np.asarray(ptsn.parse_size(spec))
     except ValueError as error:
-        raise click.BadParameter(str(error), param_hint="--expected-size") from None
+        raise ParameterError("expected_size", str(error)) from None
     return lwh, {"mode": "explicit"}
 
 
@@ -124,10 +125,6 @@ def _progress_bar(enabled: bool, description: str):
     return tqdm(desc=description, unit="frame", file=sys.stderr, disable=not enabled, leave=False)
 
 
-def _warn(message: str) -> None:
-    click.secho(f"WARNING: {message}", fg="red", bold=True, err=True)
-
-
 def ptsn_sweep(
     model_dir: str | Path,
     target_dir: str | Path,
@@ -161,9 +158,9 @@ def ptsn_sweep(
     """Run the PTSN sweep stage (see the module docstring); `detector_loader(model_dir)` for tests."""
     model_dir, target_dir = Path(model_dir), Path(target_dir)
     if frames is not None and frame_fraction is not None:
-        raise click.UsageError("give --frames or --frame-fraction, not both")
+        raise ParameterError(("frames", "frame_fraction"), "give one of the two, not both")
     if not model_dir.is_dir():
-        raise click.ClickException(f"{model_dir}: model directory not found")
+        raise StageError(f"{model_dir}: model directory not found")
     target = FrameSet(target_dir)
     target_profile = target_profile or target.sensor or None
     target_lwh, expected_record = resolve_expected_size(
@@ -176,8 +173,9 @@ def ptsn_sweep(
     )
     if mount_height_m is None:
         if not target_profile:
-            raise click.UsageError(
-                f"{target_dir}: the frame set names no sensor; give --target-profile or --mount-height-m"
+            raise ParameterError(
+                ("target_profile", "mount_height_m"),
+                f"{target_dir}: the frame set names no sensor; name its profile or mount height",
             )
         mount_height_m = get_profile(target_profile, sensors_path).mount_height_m
     params = {
@@ -240,7 +238,7 @@ def ptsn_sweep(
                 no_detections=no_detections,
             )
         except ptsn.PTSNError as error:
-            raise click.ClickException(f"{target_dir}: {error}") from None
+            raise StageError(f"{target_dir}: {error}") from None
         finally:
             bar.close()
         rows = [evaluation.row() for evaluation in result.evaluations]
@@ -263,9 +261,11 @@ def ptsn_sweep(
             title = f"PTSN sweep: ŝ = {result.scale:.3f} ({search}, {match})"
             ptsn.plot_sweep(rows, result.scale, target_lwh, directory / PLOT_NAME, title)
         for message in result.warnings:
-            _warn(message)
+            console.warn(message)
         if skipped:
-            _warn(f"{skipped} of {len(selected)} selected frames have no points in range: skipped")
+            console.warn(
+                f"{skipped} of {len(selected)} selected frames have no points in range: skipped"
+            )
         print_summary(document)
         return BuildResult(
             counts={
@@ -345,7 +345,7 @@ def scale_document(
 def print_summary(document: dict) -> None:
     e_est = ", ".join(f"{v:.2f}" for v in document["E_est"])
     e_pred = ", ".join("nan" if v is None else f"{v:.2f}" for v in document["E_pred_at_scale"])
-    click.echo(
+    console.echo(
         f"ptsn-sweep: ŝ = {document['scale']:.4f} ({document['search']}, match {document['match']}"
         f"{', ' + document['fallback'] if document['fallback'] else ''}); "
         f"E_est = ({e_est}) m, E_pred(ŝ) = ({e_pred}) m; "
