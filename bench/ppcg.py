@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dali_cli.geometry import wrap_angle
+
 RESULTS = Path(__file__).resolve().parent / "results" / "ppcg.json"
 PAPER_S = {"kitti": {"rc": 0.40, "cf": 1.10}, "nuscenes": {"rc": 0.07, "cf": 0.27}}
 
@@ -71,7 +73,7 @@ def make_frames(directory: Path, sensor: str, frames: int, seed: int) -> dict:
         jittered[:, :2] += rng.normal(0, 0.15, (count, 2))
         jittered[:, 3:6] *= rng.uniform(0.94, 1.06, (count, 3))
         jittered[:, 6] += np.radians(rng.normal(0, 3, count))
-        jittered[:, 6] = (jittered[:, 6] + np.pi) % (2 * np.pi) - np.pi
+        jittered[:, 6] = wrap_angle(jittered[:, 6])
         data.append((frame.frame_id, frame.points))
         ids += [frame.frame_id] * count
         boxes.append(jittered)

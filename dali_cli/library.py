@@ -31,6 +31,7 @@ from dali_cli.artifacts import (
     read_boxes,
     read_whole_array,
 )
+from dali_cli.geometry import point_box_indices, wrap_angle
 from dali_cli.procedural import KINDS, generate_car_mesh
 
 LIBRARY_ZARR = "library.zarr"
@@ -343,26 +344,6 @@ class PointModels:
         )
 
 
-def _wrap_angle(angle: np.ndarray) -> np.ndarray:
-    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
-
-
-def _point_box_indices(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
-    """Index of the box holding each point `(M,)` int64, -1 if none (geometry module if present)."""
-    try:
-        from dali_cli.geometry import point_box_indices
-    except ImportError:
-        point_box_indices = None
-    if point_box_indices is not None:
-        return np.asarray(point_box_indices(points, boxes), np.int64)
-    owner = np.full(len(points), -1, np.int64)
-    for index, box in enumerate(np.asarray(boxes, np.float64)):  # loop over boxes, not points
-        local = _to_box_frame(points[:, :3], np.broadcast_to(box, (len(points), 7)))
-        inside = np.all(np.abs(local) <= 0.5 * box[3:6], axis=1) & (owner < 0)
-        owner[inside] = index
-    return owner
-
-
 def _to_box_frame(xyz: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     """Points `(M, 3)` into the frames of per-point boxes `(M, 7)` → `(M, 3)` (metres, unscaled)."""
     offset = np.asarray(xyz, np.float64) - boxes[:, :3]
@@ -394,7 +375,7 @@ def point_models_from_frame(
     points = np.asarray(points, np.float32)
     if len(boxes) == 0 or len(points) == 0:
         return PointModels.empty()
-    owner = _point_box_indices(points, boxes)
+    owner = point_box_indices(points, boxes)
     counts = np.bincount(owner[owner >= 0], minlength=len(boxes))
     keep = np.flatnonzero(counts >= int(min_points))
     if len(keep) == 0:
@@ -410,7 +391,7 @@ def point_models_from_frame(
     return PointModels(
         points=normalized,
         offsets=np.r_[0, np.cumsum(counts[keep])].astype(np.int64),
-        view_angle_rad=_wrap_angle(np.arctan2(sensor_local[:, 1], sensor_local[:, 0])),
+        view_angle_rad=wrap_angle(np.arctan2(sensor_local[:, 1], sensor_local[:, 0])),
         lwh=kept[:, 3:6].copy(),
         yaw=kept[:, 6].copy(),
         range_m=np.linalg.norm(kept[:, :2] - origin[:2], axis=1),

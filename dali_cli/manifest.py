@@ -22,6 +22,7 @@ from pathlib import Path
 
 from dali_cli import __version__, console
 from dali_cli.atomic_dir import OutputLock, recover_interrupted, replace_directory
+from dali_cli.atomic_file import write_text_atomically
 from dali_cli.errors import StageError
 from dali_cli.file_hashes import hash_tree as _hash_files
 from dali_cli.output_paths import check_output_path
@@ -136,9 +137,7 @@ def why_stale(out: Path, stage: str, inputs: dict, params: dict) -> str | None:
 
 
 def _write_json_atomic(path: Path, document: dict) -> None:
-    temporary = path.with_name(path.name + ".part")
-    temporary.write_text(json.dumps(document, indent=2, sort_keys=False, default=str) + "\n")
-    os.replace(temporary, path)
+    write_text_atomically(path, json.dumps(document, indent=2, sort_keys=False, default=str) + "\n")
 
 
 def run_stage(

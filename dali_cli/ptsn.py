@@ -168,17 +168,17 @@ def expected_prediction(
     return SizeStats(len(counts), with_boxes, total, mean_lwh)
 
 
-def criterion(mean_lwh: np.ndarray, target_lwh: np.ndarray, match: str = "volume") -> float:
+def criterion(mean_lwh: np.ndarray, e_est: np.ndarray, match: str = "volume") -> float:
     """c(s) of the module docstring for E_pred = `mean_lwh` (3,): decreasing in s, 0 at ŝ; NaN
     when E_pred is undefined (no boxes)."""
     mean_lwh = np.asarray(mean_lwh, np.float64)
-    target_lwh = np.asarray(target_lwh, np.float64)
+    e_est = np.asarray(e_est, np.float64)
     if not np.isfinite(mean_lwh).all():
         return float("nan")
     if match == "volume":
-        return float(np.sum(np.log(np.maximum(mean_lwh, 1e-12))) - np.sum(np.log(target_lwh)))
+        return float(np.sum(np.log(np.maximum(mean_lwh, 1e-12))) - np.sum(np.log(e_est)))
     if match == "lwh":
-        return float(np.dot(mean_lwh, mean_lwh - target_lwh) / np.dot(target_lwh, target_lwh))
+        return float(np.dot(mean_lwh, mean_lwh - e_est) / np.dot(e_est, e_est))
     raise ValueError(f"match must be 'volume' or 'lwh', got {match!r}")
 
 
@@ -303,9 +303,9 @@ class SearchResult:
 class _Evaluator:
     """Evaluates c(s) on a frame subset through the cache and records every evaluation."""
 
-    def __init__(self, cache: DetectionCache, target_lwh, match: str, mean: str):
+    def __init__(self, cache: DetectionCache, e_est, match: str, mean: str):
         self.cache = cache
-        self.target_lwh = np.asarray(target_lwh, np.float64)
+        self.e_est = np.asarray(e_est, np.float64)
         self.match = match
         self.mean = mean
         self.evaluations: list[Evaluation] = []
@@ -322,7 +322,7 @@ class _Evaluator:
             subset=subset,
             phase=phase,
             stats=stats,
-            value=criterion(stats.mean_lwh, self.target_lwh, self.match),
+            value=criterion(stats.mean_lwh, self.e_est, self.match),
             seconds=self.cache.seconds - seconds_before,
             frame_passes=self.cache.frame_passes - passes_before,
         )
@@ -540,7 +540,7 @@ def bracket_search(
 def find_scale(
     cache: DetectionCache,
     scale_range: ScaleRange,
-    target_lwh,
+    e_est,
     frames: Sequence[int],
     *,
     search: str = "bracket",
@@ -550,7 +550,7 @@ def find_scale(
     noise: float = 0.02,
     no_detections: str = "error",
 ) -> SearchResult:
-    """ŝ where E_pred(s) matches `target_lwh` (3,) over the frame indices `frames`.
+    """ŝ where E_pred(s) matches `e_est` (3,) over the frame indices `frames`.
 
     search: "bracket" (subsample first, then confirm on all frames) or "grid" (every scale of
     `scale_range` on all frames). noise: how much c(s) may rise with s and still count as
@@ -560,13 +560,13 @@ def find_scale(
     """
     if no_detections not in NO_DETECTIONS_POLICIES:
         raise ValueError(f"no_detections must be one of {NO_DETECTIONS_POLICIES}")
-    target_lwh = np.asarray(target_lwh, np.float64)
-    if target_lwh.shape != (3,) or not (np.isfinite(target_lwh).all() and (target_lwh > 0).all()):
-        raise PTSNError(f"expected size must be three positive numbers, got {target_lwh}")
+    e_est = np.asarray(e_est, np.float64)
+    if e_est.shape != (3,) or not (np.isfinite(e_est).all() and (e_est > 0).all()):
+        raise PTSNError(f"expected size must be three positive numbers, got {e_est}")
     frames = np.asarray(frames, dtype=np.int64)
     if len(frames) == 0:
         raise PTSNError("no frames with points in range to evaluate")
-    evaluator = _Evaluator(cache, target_lwh, match, mean)
+    evaluator = _Evaluator(cache, e_est, match, mean)
     try:
         return _search(evaluator, scale_range.grid(), frames, search, subsample, noise)
     except NoDetectionsError as error:
@@ -653,18 +653,22 @@ def subsample_for_bracket(
 
 
 def crop_for_scales(
-    points: np.ndarray, bev_range: Sequence[float] | None, low: float, high: float
+    points: np.ndarray,
+    visible_range: Callable[[float], Sequence[float]] | None,
+    low: float,
+    high: float,
 ) -> np.ndarray:
-    """Drop points `(n, C)` that no scale in [low, high] brings into the BEV range (x0, y0, x1, y1).
+    """Drop points `(n, C)` that no scale in [low, high] brings into the detector's view.
 
-    Scaling about the ground scales x, y about the sensor axis, so a point can enter [x0, x1] at
-    some s only inside [min(x0/low, x0/high), max(x1/low, x1/high)] (same in y).
+    `visible_range(s)` is the detector's (x0, y0, x1, y1) at scale s in the original frame
+    (`Detector.visible_range`); its bounds are monotone in s, so the points some swept scale can
+    see lie in the hull of the ranges at `low` and `high`. None keeps every point.
     """
-    if bev_range is None:
+    if visible_range is None:
         return points
-    bounds = np.asarray(bev_range, np.float64)
-    lower = np.minimum(bounds[:2] / low, bounds[:2] / high)  # (2,) x, y
-    upper = np.maximum(bounds[2:4] / low, bounds[2:4] / high)
+    ends = np.asarray([visible_range(low), visible_range(high)], np.float64)  # (2, 4)
+    lower = ends[:, :2].min(axis=0)  # (2,) x, y
+    upper = ends[:, 2:4].max(axis=0)
     xy = points[:, :2]
     return points[np.all((xy >= lower) & (xy <= upper), axis=1)]
 
@@ -673,7 +677,7 @@ def crop_for_scales(
 # Plot
 
 
-def plot_sweep(rows: Sequence[dict], scale: float, target_lwh, path, title: str = "") -> None:
+def plot_sweep(rows: Sequence[dict], scale: float, e_est, path, title: str = "") -> None:
     """Mean predicted volume vs scale with the E_est volume line and ŝ marked (paper Fig. 3)."""
     import matplotlib
 
@@ -691,7 +695,7 @@ def plot_sweep(rows: Sequence[dict], scale: float, target_lwh, path, title: str 
             xs, ys = zip(*points, strict=True)
             label = "E_pred, all frames" if subset == "all" else "E_pred, subsample"
             axis.plot(xs, ys, marker, color=colour, markersize=4, label=label)
-    target_volume = float(np.prod(target_lwh))
+    target_volume = float(np.prod(e_est))
     axis.axhline(
         target_volume, color="tab:red", linestyle="--", label=f"E_est {target_volume:.2f} m³"
     )

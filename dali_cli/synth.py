@@ -24,6 +24,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from dali_cli.geometry import wrap_angle
 from dali_cli.library import normalize_mesh
 from dali_cli.procedural import generate_car_mesh
 from dali_cli.raycast import Scene, cast, cast_into_box
@@ -73,10 +74,6 @@ def pool_car(index: int) -> PoolCar:
 def _rotate(xy: np.ndarray, angle: float) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     return np.stack([c * xy[..., 0] - s * xy[..., 1], s * xy[..., 0] + c * xy[..., 1]], axis=-1)
-
-
-def _wrap(angle):
-    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def bev_corners(boxes: np.ndarray) -> np.ndarray:
@@ -423,7 +420,7 @@ def generate_scene(
     def to_sensor(boxes: np.ndarray) -> np.ndarray:
         boxes = np.array(boxes, np.float64).reshape(-1, 7)
         boxes[:, :2] = _rotate(boxes[:, :2], heading)
-        boxes[:, 6] = _wrap(boxes[:, 6] + heading)
+        boxes[:, 6] = wrap_angle(boxes[:, 6] + heading)
         return boxes
 
     car_boxes = to_sensor(np.array(placed).reshape(-1, 7))
@@ -499,7 +496,7 @@ def box_ray_window(pattern: _Pattern, box: np.ndarray) -> np.ndarray:
     """
     corners = bev_corners(box)[0]
     center_azimuth = np.arctan2(box[1], box[0])
-    offsets = _wrap(np.arctan2(corners[:, 1], corners[:, 0]) - center_azimuth)
+    offsets = wrap_angle(np.arctan2(corners[:, 1], corners[:, 0]) - center_azimuth)
     # azimuth of the center counted from the pattern's first column, in [0, 2 pi)
     relative = np.mod(center_azimuth - pattern.azimuth_start, 2.0 * np.pi)
     low = int(np.floor((relative + offsets.min()) / pattern.azimuth_step)) - 1

@@ -38,17 +38,7 @@ def read_model_card(model_dir: str | Path) -> ModelCard:
     return read_card(model_dir)
 
 
-def detector_bev_range(detector) -> tuple[float, float, float, float] | None:
-    """(x0, y0, x1, y1) of the detector's input range (metres), if it has one."""
-    config = getattr(detector, "config", None)
-    try:
-        x, y = config.x_range_m, config.y_range_m
-    except AttributeError:
-        return None
-    return (float(x[0]), float(y[0]), float(x[1]), float(y[1]))
-
-
-def resolve_expected_size(
+def resolve_e_est(
     spec: str,
     *,
     target_profile: str | None,
@@ -163,7 +153,7 @@ def ptsn_sweep(
         raise StageError(f"{model_dir}: model directory not found")
     target = FrameSet(target_dir)
     target_profile = target_profile or target.sensor or None
-    target_lwh, expected_record = resolve_expected_size(
+    e_est, expected_record = resolve_e_est(
         expected_size,
         target_profile=target_profile,
         card=read_model_card(model_dir),
@@ -181,7 +171,7 @@ def ptsn_sweep(
     params = {
         "scales": scale_range.as_list(),
         "expected_size": expected_size,
-        "expected_lwh_m": [round(float(v), 6) for v in target_lwh],
+        "expected_lwh_m": [round(float(v), 6) for v in e_est],
         "search": search,
         "frames": frames,
         "frame_fraction": frame_fraction,
@@ -205,9 +195,9 @@ def ptsn_sweep(
         loader = detector_loader or load_detector
         detector = loader(model_dir)
         selected = ptsn.select_frames(len(target), frames, frame_fraction, seed)
-        bev_range = detector_bev_range(detector)
+        visible = getattr(detector, "visible_range", None)  # test doubles may see everything
         store = FrameStore(
-            target, lambda p: ptsn.crop_for_scales(p, bev_range, scale_range.low, scale_range.high)
+            target, lambda p: ptsn.crop_for_scales(p, visible, scale_range.low, scale_range.high)
         )
         counts = np.zeros(len(selected), dtype=np.int64)  # points some swept scale brings in range
         for k, (_, points) in enumerate(target.iter_frames(selected)):
@@ -228,7 +218,7 @@ def ptsn_sweep(
             result = ptsn.find_scale(
                 cache,
                 scale_range,
-                target_lwh,
+                e_est,
                 usable,
                 search=search,
                 match=match,
@@ -246,7 +236,7 @@ def ptsn_sweep(
         grid_frame_passes = len(scale_range.grid()) * len(usable)
         document = scale_document(
             result,
-            target_lwh,
+            e_est,
             expected_record,
             cache,
             frames_selected=len(selected),
@@ -259,7 +249,7 @@ def ptsn_sweep(
         write_scale(directory, document)
         if plot:
             title = f"PTSN sweep: ŝ = {result.scale:.3f} ({search}, {match})"
-            ptsn.plot_sweep(rows, result.scale, target_lwh, directory / PLOT_NAME, title)
+            ptsn.plot_sweep(rows, result.scale, e_est, directory / PLOT_NAME, title)
         for message in result.warnings:
             console.warn(message)
         if skipped:
@@ -293,7 +283,7 @@ def ptsn_sweep(
 
 def scale_document(
     result: ptsn.SearchResult,
-    target_lwh: np.ndarray,
+    e_est: np.ndarray,
     expected_record: dict,
     cache: ptsn.DetectionCache,
     *,
@@ -312,12 +302,12 @@ def scale_document(
 
     return {
         "scale": float(result.scale),  # exact: pseudo-label runs at the ŝ found
-        "E_est": listed(target_lwh),
-        "E_est_volume": round(float(np.prod(target_lwh)), 6),
+        "E_est": listed(e_est),
+        "E_est_volume": round(float(np.prod(e_est)), 6),
         "expected_size": expected_record,
         "E_pred_at_scale": listed(e_pred),
         "E_pred": listed(e_pred),  # alias read by `dali report`
-        "bias_lwh": listed(e_pred - target_lwh),
+        "bias_lwh": listed(e_pred - e_est),
         "search": result.strategy,
         "match": params["match"],
         "mean": params["mean"],

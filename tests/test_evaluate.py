@@ -519,7 +519,7 @@ def test_label_files_round_trip_and_evaluate_identically(tmp_path):
     np.testing.assert_allclose(
         gt_back.boxes[cars[order]][:, :6], gt.boxes[order][cars[order]][:, :6], atol=2e-6
     )
-    yaw_error = geometry.normalize_yaw(gt_back.boxes[:, 6] - gt.boxes[order][:, 6])
+    yaw_error = geometry.wrap_angle(gt_back.boxes[:, 6] - gt.boxes[order][:, 6])
     assert np.abs(yaw_error[cars[order]]).max() < 2e-6
     np.testing.assert_array_equal(
         pred_back["score"],

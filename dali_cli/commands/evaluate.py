@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import click
 import numpy as np
 
 from dali_cli.artifacts import BOXES_NAME, BoxTable, FrameSet, read_boxes
+from dali_cli.atomic_file import write_atomically, write_text_atomically
 
 EPILOG = """\b
 Inputs (--pred, --gt): a box-table directory (boxes.parquet), a .parquet file, or a KITTI
@@ -78,18 +78,8 @@ def _predict(model: str, data: str, scale: float) -> BoxTable:
     return predict_frameset(model, data, scale=scale, score_min=0.0, progress=True)
 
 
-def _write_atomically(path: Path, write) -> None:
-    """`write(partial_path)`, then rename onto `path`: a reader never sees half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(path.name + ".part")
-    write(partial)
-    os.replace(partial, path)
-
-
 def _write_json(path: Path, document: dict) -> None:
-    _write_atomically(
-        path, lambda partial: partial.write_text(json.dumps(document, indent=2) + "\n")
-    )
+    write_text_atomically(path, json.dumps(document, indent=2) + "\n")
 
 
 @click.command(name="eval", epilog=EPILOG)
@@ -278,7 +268,7 @@ def _write_predictions(path: Path, pred: BoxTable) -> None:
     """The evaluated predictions as a box table file, written atomically."""
     import pyarrow.parquet as pq
 
-    _write_atomically(
+    write_atomically(
         path, lambda partial: pq.write_table(pred.to_arrow(), partial, compression="zstd")
     )
 
