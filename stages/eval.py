@@ -1,0 +1,186 @@
+"""Stage eval: KITTI-protocol AP_BEV / AP_3D of predictions against labels (dali_cli.evaluate).
+
+The predictions are a box table (or KITTI label directory), or come from running a model on a
+frame set at a scale (1, or ŝ of a ptsn-sweep's scale.json) through the detector's one predict
+loop (`dali_cli.detector.predict_frameset`). Writes metrics.json (and predictions.parquet beside
+it for model runs), each atomically; returns the metrics for the command to print."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dali_cli.artifacts import BOXES_NAME, BoxTable, FrameSet, read_boxes
+from dali_cli.atomic_file import write_atomically, write_text_atomically
+from dali_cli.errors import ParameterError, StageError
+
+PREDICTIONS_NAME = "predictions.parquet"
+
+
+@dataclass
+class EvalResult:
+    """The metrics document (as written to metrics.json) and the paths written."""
+
+    metrics: dict
+    written: list[Path] = field(default_factory=list)
+
+
+def read_table(path: Path, role: str) -> tuple[BoxTable, list[str] | None]:
+    """A box table from a parquet dir/file or a label directory, plus the label files' frames."""
+    from dali_cli.kitti_label import list_label_frames, read_label_dir
+
+    path = Path(path)
+    if path.is_file() and path.suffix == ".parquet":
+        return read_boxes(path), None
+    if path.is_dir() and (path / BOXES_NAME).is_file():
+        return read_boxes(path), None
+    if path.is_dir() and (path / "label_2").is_dir():
+        path = path / "label_2"
+    if path.is_dir() and any(path.glob("*.txt")):
+        return read_label_dir(path), list_label_frames(path)
+    raise ParameterError(
+        f"{role}_path",
+        f"{path}: neither a box table ({BOXES_NAME}) nor a directory of label .txt files",
+    )
+
+
+def resolve_scale(scale: float | None, scale_from: str | Path | None) -> float:
+    """The inference scale: `scale`, ŝ of `scale_from`'s scale.json, or 1."""
+    if scale is not None and scale_from is not None:
+        raise ParameterError(("scale", "scale_from"), "give one of the two, not both")
+    if scale_from is None:
+        value = 1.0 if scale is None else scale
+    else:
+        from dali_cli.scale_file import read_scale
+
+        value, _ = read_scale(scale_from)
+    if not value > 0:
+        raise ParameterError("scale", f"the scale must be positive, got {value}")
+    return float(value)
+
+
+def predict(model: str | Path, data: str | Path, scale: float) -> BoxTable:
+    """Every prediction (all scores) of the model of `model` on the frame set `data`."""
+    try:
+        from dali_cli.detector import predict_frameset
+    except ImportError as error:
+        raise StageError(f"the detector is not available ({error})") from None
+    return predict_frameset(model, data, scale=scale, score_min=0.0, progress=True)
+
+
+def mean_box_size(table: BoxTable, class_name: str, score_min: float | None = None):
+    """Mean [l, w, h] in metres of the table's `class_name` boxes (score >= score_min), or None."""
+    keep = np.asarray(table["label"]) == class_name
+    if score_min is not None:
+        keep &= np.asarray(table["score"]) >= score_min
+    if not keep.any():
+        return None
+    lwh = table.boxes[keep, 3:6]
+    return [round(float(v), 4) for v in lwh.mean(axis=0)]
+
+
+def check_ious(ious: tuple[float, ...]) -> None:
+    for iou in ious:
+        if not 0.0 <= iou < 1.0:
+            raise ParameterError("ious", f"must be in [0, 1), got {iou}")
+    if len(set(ious)) != len(ious):
+        raise ParameterError("ious", f"repeated threshold in {list(ious)}")
+
+
+def predictions_and_truth(pred_path, gt_path, model, data, scale, scale_from):
+    """(pred, gt, frame ids evaluated or None, source record, gt path) from either the model
+    route (`model` on `data`) or the table route (`pred_path` vs `gt_path`)."""
+    frame_ids = None
+    if model is not None or data is not None:
+        if model is None or data is None:
+            raise ParameterError(("model", "data"), "the model and its frame set go together")
+        if pred_path is not None:
+            raise ParameterError(("pred_path", "model"), "give predictions or a model, not both")
+        chosen_scale = resolve_scale(scale, scale_from)
+        frame_ids = FrameSet(data).frame_ids
+        gt_path = Path(data) if gt_path is None else gt_path
+        pred = predict(model, data, chosen_scale)
+        source = {"model": str(model), "data": str(data), "scale": chosen_scale}
+    else:
+        if scale is not None or scale_from is not None:
+            raise ParameterError(("scale", "scale_from"), "a scale only applies with a model")
+        if pred_path is None or gt_path is None:
+            raise ParameterError(("pred_path", "gt_path"), "give predictions and ground truth")
+        pred, _ = read_table(pred_path, "pred")
+        source = {"pred": str(pred_path)}
+    gt, label_frames = read_table(gt_path, "gt")
+    source["gt"] = str(gt_path)
+    return pred, gt, frame_ids if frame_ids is not None else label_frames, source, gt_path
+
+
+def run_eval(
+    *,
+    pred_path: str | Path | None = None,
+    gt_path: str | Path | None = None,
+    model: str | Path | None = None,
+    data: str | Path | None = None,
+    scale: float | None = None,
+    scale_from: str | Path | None = None,
+    ious: tuple[float, ...] = (0.7,),
+    size_score_min: float = 0.3,
+    recall_positions: int = 40,
+    protocol: str = "auto",
+    front_only: bool = False,
+    class_name: str = "Car",
+    min_gt_points: int = 0,
+    out: str | Path | None = None,
+    save_predictions: bool = True,
+) -> EvalResult:
+    """Evaluate (see the module docstring); with `out`, write metrics.json there (and
+    predictions.parquet beside it for a model run with `save_predictions`)."""
+    from dali_cli.evaluate import EvaluationError, evaluate
+
+    check_ious(tuple(ious))
+    out = Path(out) if out is not None else None
+    if out is not None:  # before any work: an output dali must not write fails at once
+        from dali_cli.output_paths import check_metrics_output
+
+        check_metrics_output(
+            out,
+            {"model": model, "data": data, "pred": pred_path, "gt": gt_path, "scale": scale_from},
+        )
+    pred, gt, frame_ids, source, gt_path = predictions_and_truth(
+        pred_path, gt_path, model, data, scale, scale_from
+    )
+    metrics: dict = {}
+    for index, iou in enumerate(ious):
+        try:
+            result = evaluate(
+                pred, gt, iou=iou, recall_positions=int(recall_positions), protocol=protocol,
+                class_name=class_name, min_gt_points=min_gt_points, frame_ids=frame_ids,
+                front_only=front_only,
+            )  # fmt: skip
+        except EvaluationError as error:
+            raise StageError(
+                f"cannot evaluate {source.get('pred', model)} against {gt_path}: {error}"
+            ) from None
+        block = result[class_name]
+        block["source"] = source
+        metrics[class_name if index == 0 else f"{class_name}@{iou:g}"] = block
+    metrics["sizes"] = {
+        "pred": mean_box_size(pred, class_name, score_min=size_score_min),
+        "gt": mean_box_size(gt, class_name),
+    }
+    if "scale" in source:
+        metrics["scale"] = source["scale"]
+    written = []
+    if out is not None:
+        if save_predictions and model is not None:
+            import pyarrow.parquet as pq
+
+            path = out.parent / PREDICTIONS_NAME
+            write_atomically(
+                path, lambda partial: pq.write_table(pred.to_arrow(), partial, compression="zstd")
+            )
+            written.append(path)
+        write_text_atomically(out, json.dumps(metrics, indent=2) + "\n")
+        written.append(out)
+    return EvalResult(metrics, written)
