@@ -249,7 +249,9 @@ def ptsn_sweep(
         write_scale(directory, document)
         if plot:
             title = f"PTSN sweep: ŝ = {result.scale:.3f} ({search}, {match})"
-            ptsn.plot_sweep(rows, result.scale, e_est, directory / PLOT_NAME, title)
+            from dali_cli.report_plots import plot_sweep
+
+            plot_sweep(rows, result.scale, e_est, directory / PLOT_NAME, title)
         for message in result.warnings:
             console.warn(message)
         if skipped:
