@@ -109,14 +109,16 @@ def _input_records(inputs: Mapping[str, str | Path | list]) -> dict:
     return records
 
 
-def why_stale(out: Path, stage: str, inputs: dict, params: dict) -> str | None:
+def why_stale(
+    out: Path, stage: str, inputs: dict, params: dict, derived: tuple[str, ...] = ()
+) -> str | None:
     """Why `out` must be (re)built, or None when its manifest matches exactly."""
     manifest = read_manifest(out)
     if manifest is None:
         return "no output yet" if not out.exists() else "output has no valid manifest"
     if manifest.get("hash_method") != HASH_METHOD:
         return "output was written by an older dali (content hashes are computed differently)"
-    if manifest.get("content_hash") != hash_tree(out):
+    if manifest.get("content_hash") != hash_tree(out, (MANIFEST_NAME, *derived)):
         return "output files were changed since the stage wrote them"
     if manifest.get("stage") != stage:
         return f"output was written by stage '{manifest.get('stage')}'"
@@ -151,18 +153,21 @@ def run_stage(
     dry_run: bool = False,
     seed: int | None = None,
     echo: Callable[[str], None] = console.echo,
+    derived: tuple[str, ...] = (),
 ) -> StageOutcome:
     """Run `build(tmp_dir)` unless `out` is up to date, then move the result into place atomically.
 
     inputs: name → path (or list of paths) of input artifacts, hashed by content.
     params: JSON-serializable parameters; together with input hashes they decide staleness.
     build: writes the outputs into the given (empty) directory and returns counts/timings.
+    derived: names of files other commands may add to the artifact later (e.g. eval's
+    metrics_kitti.json): not part of its content hash, gone when the stage rebuilds it.
     """
     given = Path(out)
     out = check_output_path(given, inputs)
     params = _normalized(params)
     if dry_run:
-        reason = why_stale(out, stage, _input_records(inputs), params)
+        reason = why_stale(out, stage, _input_records(inputs), params, derived)
         if reason is None and not force:
             echo(f"{stage}: {given} is up to date (use --force to rerun)")
             return StageOutcome("skipped", "up to date", read_manifest(out))
@@ -171,18 +176,24 @@ def run_stage(
     with OutputLock(out):
         recover_interrupted(out, echo)
         records = _input_records(inputs)
-        reason = why_stale(out, stage, records, params)
+        reason = why_stale(out, stage, records, params, derived)
         if reason is None and not force:
             echo(f"{stage}: {given} is up to date (use --force to rerun)")
             return StageOutcome("skipped", "up to date", read_manifest(out))
         reason = reason or "forced"
-        manifest, wall = _build_and_commit(stage, out, records, params, build, seed)
+        manifest, wall = _build_and_commit(stage, out, records, params, build, seed, derived)
     echo(f"{stage}: wrote {given} ({wall:.1f} s)")
     return StageOutcome("ran", reason, manifest)
 
 
 def _build_and_commit(
-    stage: str, out: Path, records: dict, params: dict, build: Callable, seed: int | None
+    stage: str,
+    out: Path,
+    records: dict,
+    params: dict,
+    build: Callable,
+    seed: int | None,
+    derived: tuple[str, ...] = (),
 ) -> tuple[dict, float]:
     """Build into `<out>.tmp-<pid>`, write the manifest last, commit atomically; on any error
     (or Ctrl-C) remove the temporary directory and leave `out` as it was."""
@@ -215,7 +226,7 @@ def _build_and_commit(
             "notes": list(result.notes),
             **_normalized(result.extra),
             "hash_method": HASH_METHOD,
-            "content_hash": hash_tree(temporary),
+            "content_hash": hash_tree(temporary, (MANIFEST_NAME, *derived)),
         }
         _write_json_atomic(temporary / MANIFEST_NAME, manifest)
         replace_directory(temporary, out)

@@ -2,8 +2,13 @@
 
 The predictions are a box table (or KITTI label directory), or come from running a model on a
 frame set at a scale (1, or ŝ of a ptsn-sweep's scale.json) through the detector's one predict
-loop (`dali_cli.detector.predict_frameset`). Writes metrics.json (and predictions.parquet beside
-it for model runs), each atomically; returns the metrics for the command to print."""
+loop (`dali_cli.detector.predict_frameset`). Output, either:
+- an artifact directory (`out` not ending in .json; what the Makefile uses): OUT/metrics.json,
+  OUT/predictions.parquet (model runs) and OUT/manifest.json under the stage contract (written
+  atomically as a whole, skipped when inputs and parameters are unchanged); a KITTI-protocol
+  OUT/metrics_kitti.json added later is not part of its content hash; or
+- a metrics file (`out` ending in .json): FILE and predictions.parquet beside it, each atomic.
+Returns the metrics for the command to print."""
 
 from __future__ import annotations
 
@@ -18,14 +23,18 @@ from dali_cli.atomic_file import write_atomically, write_text_atomically
 from dali_cli.errors import ParameterError, StageError
 
 PREDICTIONS_NAME = "predictions.parquet"
+METRICS_NAME = "metrics.json"
+KITTI_METRICS_NAME = "metrics_kitti.json"  # written beside metrics.json by a second eval
 
 
 @dataclass
 class EvalResult:
-    """The metrics document (as written to metrics.json) and the paths written."""
+    """The metrics document (as written to metrics.json), the paths written and, for an
+    artifact directory, what the stage runner did ("ran", "skipped", "dry-run")."""
 
     metrics: dict
     written: list[Path] = field(default_factory=list)
+    status: str = "ran"
 
 
 def read_table(path: Path, role: str) -> tuple[BoxTable, list[str] | None]:
@@ -133,54 +142,109 @@ def run_eval(
     min_gt_points: int = 0,
     out: str | Path | None = None,
     save_predictions: bool = True,
+    force: bool = False,
+    dry_run: bool = False,
 ) -> EvalResult:
-    """Evaluate (see the module docstring); with `out`, write metrics.json there (and
-    predictions.parquet beside it for a model run with `save_predictions`)."""
-    from dali_cli.evaluate import EvaluationError, evaluate
-
+    """Evaluate (see the module docstring). `out`: None (print only), a metrics file (.json) or
+    an artifact directory; `force` and `dry_run` apply to the directory."""
     check_ious(tuple(ious))
+    options = dict(
+        ious=tuple(ious), size_score_min=size_score_min, recall_positions=int(recall_positions),
+        protocol=protocol, front_only=front_only, class_name=class_name,
+        min_gt_points=min_gt_points,
+    )  # fmt: skip
+    routes = dict(
+        pred_path=pred_path, gt_path=gt_path, model=model, data=data, scale=scale,
+        scale_from=scale_from,
+    )  # fmt: skip
+    inputs = {"model": model, "data": data, "pred": pred_path, "gt": gt_path, "scale": scale_from}
+    if out is not None and Path(out).suffix != ".json":
+        return eval_artifact(Path(out), inputs, routes, options, save_predictions, force, dry_run)
     out = Path(out) if out is not None else None
     if out is not None:  # before any work: an output dali must not write fails at once
         from dali_cli.output_paths import check_metrics_output
 
-        check_metrics_output(
-            out,
-            {"model": model, "data": data, "pred": pred_path, "gt": gt_path, "scale": scale_from},
-        )
-    pred, gt, frame_ids, source, gt_path = predictions_and_truth(
-        pred_path, gt_path, model, data, scale, scale_from
-    )
+        check_metrics_output(out, inputs)
+    metrics, pred = compute_metrics(routes, options)
+    written = []
+    if out is not None:
+        written = write_outputs(out, metrics, pred if save_predictions and model else None)
+    return EvalResult(metrics, written)
+
+
+def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
+    """(the metrics document, the predictions evaluated) of one evaluation."""
+    from dali_cli.evaluate import EvaluationError, evaluate
+
+    pred, gt, frame_ids, source, gt_path = predictions_and_truth(**routes)
+    class_name = options["class_name"]
     metrics: dict = {}
-    for index, iou in enumerate(ious):
+    for index, iou in enumerate(options["ious"]):
         try:
             result = evaluate(
-                pred, gt, iou=iou, recall_positions=int(recall_positions), protocol=protocol,
-                class_name=class_name, min_gt_points=min_gt_points, frame_ids=frame_ids,
-                front_only=front_only,
+                pred, gt, iou=iou, recall_positions=options["recall_positions"],
+                protocol=options["protocol"], class_name=class_name,
+                min_gt_points=options["min_gt_points"], frame_ids=frame_ids,
+                front_only=options["front_only"],
             )  # fmt: skip
         except EvaluationError as error:
             raise StageError(
-                f"cannot evaluate {source.get('pred', model)} against {gt_path}: {error}"
+                f"cannot evaluate {source.get('pred', routes['model'])} against {gt_path}: {error}"
             ) from None
         block = result[class_name]
         block["source"] = source
         metrics[class_name if index == 0 else f"{class_name}@{iou:g}"] = block
     metrics["sizes"] = {
-        "pred": mean_box_size(pred, class_name, score_min=size_score_min),
+        "pred": mean_box_size(pred, class_name, score_min=options["size_score_min"]),
         "gt": mean_box_size(gt, class_name),
     }
     if "scale" in source:
         metrics["scale"] = source["scale"]
-    written = []
-    if out is not None:
-        if save_predictions and model is not None:
-            import pyarrow.parquet as pq
+    return metrics, pred
 
-            path = out.parent / PREDICTIONS_NAME
-            write_atomically(
-                path, lambda partial: pq.write_table(pred.to_arrow(), partial, compression="zstd")
-            )
-            written.append(path)
-        write_text_atomically(out, json.dumps(metrics, indent=2) + "\n")
-        written.append(out)
-    return EvalResult(metrics, written)
+
+def write_outputs(metrics_path: Path, metrics: dict, pred: BoxTable | None) -> list[Path]:
+    """metrics.json at `metrics_path` and (given `pred`) predictions.parquet beside it."""
+    written = []
+    if pred is not None:
+        import pyarrow.parquet as pq
+
+        path = metrics_path.parent / PREDICTIONS_NAME
+        write_atomically(
+            path, lambda partial: pq.write_table(pred.to_arrow(), partial, compression="zstd")
+        )
+        written.append(path)
+    write_text_atomically(metrics_path, json.dumps(metrics, indent=2) + "\n")
+    return [*written, metrics_path]
+
+
+def eval_artifact(out, inputs, routes, options, save_predictions, force, dry_run) -> EvalResult:
+    """The evaluation as the artifact directory `out` under the stage contract."""
+    from dali_cli.manifest import BuildResult, run_stage
+
+    computed: dict = {}
+
+    def build(directory: Path) -> BuildResult:
+        metrics, pred = compute_metrics(routes, options)
+        keep = pred if save_predictions and routes["model"] is not None else None
+        write_outputs(directory / METRICS_NAME, metrics, keep)
+        computed["metrics"] = metrics
+        counts = {"predictions": len(pred), "frames": metrics[options["class_name"]]["frames"]}
+        return BuildResult(counts=counts)
+
+    params = {
+        **{k: v for k, v in options.items()},
+        "scale": routes["scale"],
+        "save_predictions": save_predictions,
+    }
+    outcome = run_stage(
+        "eval", out, inputs, params, build, force=force, dry_run=dry_run,
+        derived=(KITTI_METRICS_NAME,),
+    )  # fmt: skip
+    if outcome.status == "dry-run":
+        return EvalResult({}, [], outcome.status)
+    metrics = computed.get("metrics") or json.loads((out / METRICS_NAME).read_text())
+    names = (
+        [PREDICTIONS_NAME, METRICS_NAME] if (out / PREDICTIONS_NAME).is_file() else [METRICS_NAME]
+    )
+    return EvalResult(metrics, [out / name for name in names], outcome.status)

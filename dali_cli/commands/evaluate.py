@@ -6,6 +6,8 @@ from pathlib import Path
 
 import click
 
+from dali_cli.commands.common import stage_options
+
 EPILOG = """\b
 Inputs (--pred, --gt): a box-table directory (boxes.parquet), a .parquet file, or a KITTI
 label_2-style directory of <frame>.txt files (predictions with a 16th score field).
@@ -112,7 +114,10 @@ the class (predictions: score >= --size-score-min) and, with --model, "scale").
     help="Ignore ground-truth boxes with fewer points (needs num_points).",
 )
 @click.option(
-    "--out", type=click.Path(dir_okay=False, path_type=Path), help="Write metrics.json here."
+    "--out",
+    type=click.Path(path_type=Path),
+    help="A metrics file (FILE.json), or an artifact directory (any other path): DIR/metrics.json, "
+    "DIR/predictions.parquet and DIR/manifest.json, skipped when up to date (what make uses).",
 )
 @click.option(
     "--save-predictions/--no-save-predictions",
@@ -121,6 +126,7 @@ the class (predictions: score >= --size-score-min) and, with --model, "scale").
     help="With --model and --out: also write the predictions (all scores) as "
     "predictions.parquet beside metrics.json (read by `dali report` for size plots).",
 )
+@stage_options
 def command(
     pred_path,
     gt_path,
@@ -137,6 +143,8 @@ def command(
     min_gt_points,
     out,
     save_predictions,
+    force,
+    dry_run,
 ):
     """Average precision (KITTI protocol, BEV and 3D, float64 rotated IoU) of predictions."""
     from dali_cli.evaluate import format_table
@@ -147,9 +155,11 @@ def command(
         scale_from=scale_from, ious=tuple(ious), size_score_min=size_score_min,
         recall_positions=int(recall_positions), protocol=protocol, front_only=front_only,
         class_name=class_name, min_gt_points=min_gt_points, out=out,
-        save_predictions=save_predictions,
+        save_predictions=save_predictions, force=force, dry_run=dry_run,
     )  # fmt: skip
+    if result.status == "dry-run":
+        return
     blocks = {k: v for k, v in result.metrics.items() if k not in ("sizes", "scale")}
     click.echo(format_table(blocks))
-    if out is not None:
+    if result.status == "ran" and out is not None and out.suffix == ".json":
         click.echo(f"wrote {out}", err=True)
