@@ -65,7 +65,7 @@ def resolve_scale(scale: float | None, scale_from: str | Path | None) -> float:
     else:
         from dali_cli.scale_file import read_scale
 
-        value, _ = read_scale(scale_from)
+        value = read_scale(scale_from).scale
     if not value > 0:
         raise ParameterError("scale", f"the scale must be positive, got {value}")
     return float(value)

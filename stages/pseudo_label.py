@@ -112,14 +112,12 @@ def pseudo_label(
         )
     if not model_dir.is_dir():
         raise StageError(f"{model_dir}: model directory not found")
-    scale_document: dict = {}
-    if scale_from is not None:
-        found, scale_document = read_scale(scale_from)
-        scale_source = "option" if scale is not None else str(scale_from)
-        scale = found if scale is None else scale
-    else:
-        scale_source = "option"
-    e_est = scale_document.get("E_est")
+    found = read_scale(scale_from) if scale_from is not None else None
+    scale_source = str(scale_from) if found is not None and scale is None else "option"
+    scale = found.scale if scale is None else scale  # ŝ exactly as the sweep found it
+    e_est = list(found.e_est) if found is not None and found.e_est is not None else None
+    if mount_height_m is None and found is not None and found.pivot_m is not None:
+        mount_height_m = found.pivot_m  # scale about the very point the sweep scaled about
     if size_correction_method not in size_correction.METHODS:
         raise ParameterError(
             "size_correction_method",
