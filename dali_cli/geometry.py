@@ -52,6 +52,12 @@ def _as_boxes(boxes: np.ndarray) -> np.ndarray:
     return boxes
 
 
+def rotate_xy(xy: np.ndarray, angle: float) -> np.ndarray:
+    """`(..., 2)` x, y rotated counter-clockwise by `angle` (rad) about the origin."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.stack([c * xy[..., 0] - s * xy[..., 1], s * xy[..., 0] + c * xy[..., 1]], axis=-1)
+
+
 def bev_corners(boxes: np.ndarray) -> np.ndarray:
     """BEV rectangle corners `(N, 4, 2)` float64, counter-clockwise, of `(N, 7)` boxes."""
     boxes = _as_boxes(boxes)
@@ -71,6 +77,22 @@ def box_corners(boxes: np.ndarray) -> np.ndarray:
     return np.concatenate(
         [np.concatenate([bev, bottom], axis=2), np.concatenate([bev, top], axis=2)], axis=1
     )
+
+
+def footprints_overlap(candidate: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """Separating-axis test of one footprint `(4, 2)` against many `(M, 4, 2)` → `(M,)` bool."""
+    if len(others) == 0:
+        return np.zeros(0, bool)
+    cand_edges = np.diff(candidate[[0, 1, 2]], axis=0)  # (2, 2)
+    other_edges = others[:, 1:3] - others[:, 0:2]  # (M, 2, 2)
+    axes = np.concatenate([np.broadcast_to(cand_edges, other_edges.shape), other_edges], axis=1)
+    axes = np.stack([-axes[..., 1], axes[..., 0]], axis=-1)  # (M, 4, 2) edge normals
+    project_candidate = np.einsum("mak,ck->mac", axes, candidate)  # (M, 4, 4)
+    project_others = np.einsum("mak,mck->mac", axes, others)  # (M, 4, 4)
+    separated = (project_candidate.max(-1) < project_others.min(-1)) | (
+        project_others.max(-1) < project_candidate.min(-1)
+    )
+    return ~separated.any(axis=1)
 
 
 # ---------------------------------------------------------------------------------------------
