@@ -176,14 +176,32 @@ class _Layout:
         self.radii = np.append(self.radii, 0.5 * np.hypot(box[3], box[4]))
 
 
-def generate_scene(
-    rng: np.random.Generator, sensor: SensorProfile, cars: SensorProfile
-) -> SynthScene:
-    """Lay out one street scene (see module docstring)."""
-    mount = sensor.mount_height_m
-    reach = min(MAX_RANGE_M, sensor.max_range_m) + 10.0  # clutter beyond this is never seen
+@dataclass(frozen=True)
+class _Street:
+    """The road of one scene, in the ego road frame (u along the road, v lateral)."""
+
+    reach: float  # clutter beyond this (m) is never seen
+    heading: float  # road heading in the sensor frame (rad)
+    lanes_per_side: int
+    lane: float
+    road_half: float  # half road width incl. the parking strip
+    ego_v: float  # the ego's lateral position (a right-hand lane)
+    sidewalk: float
+    cross: bool
+    cross_u: float
+    cross_half: float
+
+    def lateral(self, v_road: float) -> float:
+        return float(v_road - self.ego_v)
+
+    def on_cross(self, u: np.ndarray | float, half: float = 0.0) -> bool:
+        return bool(np.abs(np.asarray(u) - self.cross_u).min() < self.cross_half + half)
+
+
+def _ground_and_street(rng: np.random.Generator, sensor: SensorProfile) -> tuple[Ground, _Street]:
+    """The scene's ground and road, drawn in this order from `rng`."""
     ground = Ground(
-        mount_height_m=mount,
+        mount_height_m=sensor.mount_height_m,
         slope=rng.normal(0.0, 0.004, 2).clip(-0.012, 0.012),
         wave_vectors=rng.normal(0.0, 1.0, (3, 2)) * (2 * np.pi / rng.uniform(3.0, 25.0, (3, 1))),
         amplitudes=rng.uniform(0.003, 0.012, 3),
@@ -198,94 +216,140 @@ def generate_scene(
     cross = rng.random() < 0.45
     cross_u = float(rng.choice([-1, 1]) * rng.uniform(15.0, 50.0)) if cross else np.inf
     cross_half = rng.uniform(4.0, 8.0)
+    reach = min(MAX_RANGE_M, sensor.max_range_m) + 10.0
+    street = _Street(
+        reach, heading, lanes_per_side, lane, road_half, ego_v, sidewalk, cross, cross_u,
+        cross_half,
+    )  # fmt: skip
+    return ground, street
 
-    layout = _Layout()
-    layout.add(EGO_FOOTPRINT)
-    # everything below is in the ego road frame: u along the road, v lateral from the ego
-    meshes: list[tuple[np.ndarray, np.ndarray, float]] = []
-    static_boxes: list[tuple[np.ndarray, float]] = []
 
-    def lateral(v_road: float) -> float:
-        return float(v_road - ego_v)
+class _Clutter:
+    """What the scene holds besides cars (ego road frame): box-shaped clutter `(7,)` with its
+    reflectance, free meshes (vertices, faces, reflectance), and the footprint layout."""
 
-    def on_cross(u: np.ndarray | float, half: float = 0.0) -> bool:
-        return bool(np.abs(np.asarray(u) - cross_u).min() < cross_half + half)
+    def __init__(self):
+        self.layout = _Layout()
+        self.layout.add(EGO_FOOTPRINT)
+        self.boxes: list[tuple[np.ndarray, float]] = []
+        self.meshes: list[tuple[np.ndarray, np.ndarray, float]] = []
 
-    # curbs along both road edges in short segments (they follow the sloped ground)
+
+def _add_curbs(rng, street: _Street, clutter: _Clutter) -> None:
+    """Curbs along both road edges in short segments (they follow the sloped ground)."""
     for side in (-1, 1):
         height = rng.uniform(0.12, 0.18)
-        for u0 in np.arange(-reach, reach, 8.0):
-            if not on_cross(np.array([u0, u0 + 8.0])) and not on_cross(u0 + 4.0, 4.0):
-                curb = np.array([u0 + 4.0, lateral(side * road_half), 0, 8.0, 0.25, height, 0])
-                static_boxes.append((curb, 1.0))
-    # building walls behind the sidewalks, in segments with gaps
+        for u0 in np.arange(-street.reach, street.reach, 8.0):
+            if not street.on_cross(np.array([u0, u0 + 8.0])) and not street.on_cross(u0 + 4.0, 4.0):
+                v = street.lateral(side * street.road_half)
+                clutter.boxes.append((np.array([u0 + 4.0, v, 0, 8.0, 0.25, height, 0]), 1.0))
+
+
+def _add_walls(rng, street: _Street, clutter: _Clutter) -> None:
+    """Building walls behind the sidewalks, in segments with gaps."""
     for side in (-1, 1):
         if rng.random() < 0.25:
             continue
-        setback = road_half + sidewalk + rng.uniform(0.0, 6.0)
-        u = -reach
-        while u < reach:
+        setback = street.road_half + street.sidewalk + rng.uniform(0.0, 6.0)
+        u = -street.reach
+        while u < street.reach:
             length = rng.uniform(8.0, 40.0)
             center = u + length / 2
-            if not on_cross(center, length / 2 + 1.0):
+            if not street.on_cross(center, length / 2 + 1.0):
                 thickness = rng.uniform(0.4, 1.0)
-                v = lateral(side * (setback + thickness / 2 + rng.uniform(0.0, 1.5)))
+                v = street.lateral(side * (setback + thickness / 2 + rng.uniform(0.0, 1.5)))
                 wall = np.array([center, v, 0, length, thickness, rng.uniform(3.0, 15.0), 0])
-                static_boxes.append((wall, rng.uniform(0.6, 1.4)))
-                layout.add(wall)
+                clutter.boxes.append((wall, rng.uniform(0.6, 1.4)))
+                clutter.layout.add(wall)
             u += length + (rng.uniform(2.0, 12.0) if rng.random() < 0.5 else 0.3)
-    # poles and trees along the sidewalks
+
+
+def _add_pole(rng, u: float, v: float, clutter: _Clutter) -> None:
+    radius, height = rng.uniform(0.07, 0.2), rng.uniform(3.0, 9.0)
+    pole = np.array([u, v, 0, 2 * radius, 2 * radius, height, 0])
+    if clutter.layout.free(pole, 0.3):
+        mesh = _cylinder_mesh(u, v, -0.5, radius, height + 0.5)
+        clutter.meshes.append((*mesh, rng.uniform(0.8, 1.8)))
+        clutter.layout.add(pole)
+
+
+def _add_tree(rng, u: float, v: float, clutter: _Clutter) -> None:
+    trunk = rng.uniform(0.12, 0.3)
+    crown = rng.uniform(1.2, 3.0, 3) * [1, 1, 0.8]
+    tree = np.array([u, v, 0, 2 * trunk, 2 * trunk, 5.0, 0])
+    if clutter.layout.free(tree, 0.3):
+        top = rng.uniform(2.5, 4.0)
+        clutter.meshes.append((*_cylinder_mesh(u, v, -0.5, trunk, top + 0.5 + crown[2] * 0.5), 0.7))
+        clutter.meshes.append((*_blob_mesh(np.array([u, v, top + crown[2]]), crown, rng), 0.45))
+        clutter.layout.add(tree)
+
+
+def _add_poles_and_trees(rng, street: _Street, clutter: _Clutter) -> None:
+    """Poles and trees along the sidewalks."""
     for side in (-1, 1):
-        u = -reach + rng.uniform(0, 15)
-        while u < reach:
-            v = lateral(side * (road_half + rng.uniform(0.4, 1.0)))
-            if not on_cross(u, 1.0):
+        u = -street.reach + rng.uniform(0, 15)
+        while u < street.reach:
+            v = street.lateral(side * (street.road_half + rng.uniform(0.4, 1.0)))
+            if not street.on_cross(u, 1.0):
                 if rng.random() < 0.55:
-                    radius, height = rng.uniform(0.07, 0.2), rng.uniform(3.0, 9.0)
-                    pole = np.array([u, v, 0, 2 * radius, 2 * radius, height, 0])
-                    if layout.free(pole, 0.3):
-                        meshes.append(
-                            (
-                                *_cylinder_mesh(u, v, -0.5, radius, height + 0.5),
-                                rng.uniform(0.8, 1.8),
-                            )
-                        )
-                        layout.add(pole)
+                    _add_pole(rng, u, v, clutter)
                 else:
-                    trunk = rng.uniform(0.12, 0.3)
-                    crown = rng.uniform(1.2, 3.0, 3) * [1, 1, 0.8]
-                    tree = np.array([u, v, 0, 2 * trunk, 2 * trunk, 5.0, 0])
-                    if layout.free(tree, 0.3):
-                        top = rng.uniform(2.5, 4.0)
-                        meshes.append(
-                            (*_cylinder_mesh(u, v, -0.5, trunk, top + 0.5 + crown[2] * 0.5), 0.7)
-                        )
-                        meshes.append(
-                            (*_blob_mesh(np.array([u, v, top + crown[2]]), crown, rng), 0.45)
-                        )
-                        layout.add(tree)
+                    _add_tree(rng, u, v, clutter)
             u += rng.uniform(8.0, 30.0)
-    for _ in range(int(rng.integers(3, 12))):  # bushes and hedges beside the road
+
+
+def _add_bushes_and_containers(rng, street: _Street, clutter: _Clutter) -> None:
+    """Bushes and hedges beside the road; car-sized containers and kiosks (false-positive bait)."""
+    road_half, sidewalk, reach = street.road_half, street.sidewalk, street.reach
+    for _ in range(int(rng.integers(3, 12))):
         side = rng.choice([-1, 1])
         u, v = (
             rng.uniform(-reach, reach),
-            lateral(side * (road_half + rng.uniform(1.0, sidewalk + 8.0))),
+            street.lateral(side * (road_half + rng.uniform(1.0, sidewalk + 8.0))),
         )
         radii = np.array([rng.uniform(0.5, 3.0), rng.uniform(0.4, 1.2), rng.uniform(0.4, 1.2)])
         bush = np.array([u, v, 0, 2 * radii[0], 2 * radii[1], 2 * radii[2], 0])
-        if layout.free(bush, 0.2):
-            meshes.append((*_blob_mesh(np.array([u, v, 0.6 * radii[2]]), radii, rng), 0.4))
-            layout.add(bush)
-    for _ in range(int(rng.integers(0, 4))):  # car-sized containers and kiosks: false-positive bait
+        if clutter.layout.free(bush, 0.2):
+            clutter.meshes.append((*_blob_mesh(np.array([u, v, 0.6 * radii[2]]), radii, rng), 0.4))
+            clutter.layout.add(bush)
+    for _ in range(int(rng.integers(0, 4))):
         side = rng.choice([-1, 1])
         size = np.array([rng.uniform(2.0, 6.0), rng.uniform(1.4, 2.5), rng.uniform(1.0, 2.6)])
-        v = lateral(side * (road_half + sidewalk + rng.uniform(1, 8)))
+        v = street.lateral(side * (road_half + sidewalk + rng.uniform(1, 8)))
         box = np.array([rng.uniform(-reach, reach), v, 0, *size, rng.normal(0, 0.1)])
-        if layout.free(box, 0.3):
-            static_boxes.append((box, rng.uniform(0.6, 1.6)))
-            layout.add(box)
+        if clutter.layout.free(box, 0.3):
+            clutter.boxes.append((box, rng.uniform(0.6, 1.6)))
+            clutter.layout.add(box)
 
-    # cars: lanes, curb parking, rows off the road, the cross street
+
+def _car_slot(rng, street: _Street, size: np.ndarray, max_center: float):
+    """One try at a car's place: (u, v road frame, yaw) in a lane, along a curb, in a lot, on
+    the cross street or anywhere off the road."""
+    slot = rng.random()
+    side = rng.choice([-1, 1])
+    u = rng.uniform(-max_center, max_center)
+    if slot < 0.35:  # driving in a lane (right-hand traffic)
+        lane_index = int(rng.integers(0, street.lanes_per_side))
+        v = side * (lane_index + 0.5) * street.lane + rng.normal(0, 0.25)
+        yaw = (0.0 if side < 0 else np.pi) + rng.normal(0, 0.03)
+    elif slot < 0.75:  # parked along a curb
+        v = side * (street.road_half - size[1] / 2 - rng.uniform(0.1, 0.4))
+        yaw = rng.choice([0.0, np.pi]) + rng.normal(0, 0.04)
+    elif slot < 0.9:  # rows in a lot beside the road, perpendicular
+        v = side * (street.road_half + street.sidewalk + size[0] / 2 + rng.uniform(0.5, 6.0))
+        yaw = rng.choice([np.pi / 2, -np.pi / 2]) + rng.normal(0, 0.06)
+    elif street.cross:  # on the cross street
+        u = street.cross_u + rng.uniform(-0.6, 0.6) * street.cross_half
+        v = rng.uniform(-max_center, max_center)
+        yaw = rng.choice([np.pi / 2, -np.pi / 2]) + rng.normal(0, 0.04)
+    else:  # anywhere off the road at a random angle
+        v = side * (street.road_half + rng.uniform(1.0, 30.0))
+        yaw = rng.uniform(-np.pi, np.pi)
+    return u, street.lateral(v), yaw
+
+
+def _place_cars(rng, street, clutter, sensor, cars) -> list[np.ndarray]:
+    """5-30 cars (ego road frame boxes) that overlap nothing; up to 30 tries each."""
     count = int(rng.integers(MIN_CARS, MAX_CARS + 1))
     sizes = sample_car_sizes(
         rng, count, np.array(cars.car_mean_lwh_m), np.array(cars.car_std_lwh_m)
@@ -294,48 +358,32 @@ def generate_scene(
     max_center = min(MAX_RANGE_M, sensor.max_range_m + 5.0)
     for size in sizes:
         for _attempt in range(30):
-            slot = rng.random()
-            side = rng.choice([-1, 1])
-            u = rng.uniform(-max_center, max_center)
-            if slot < 0.35:  # driving in a lane (right-hand traffic)
-                lane_index = int(rng.integers(0, lanes_per_side))
-                v = side * (lane_index + 0.5) * lane + rng.normal(0, 0.25)
-                yaw = (0.0 if side < 0 else np.pi) + rng.normal(0, 0.03)
-            elif slot < 0.75:  # parked along a curb
-                v = side * (road_half - size[1] / 2 - rng.uniform(0.1, 0.4))
-                yaw = rng.choice([0.0, np.pi]) + rng.normal(0, 0.04)
-            elif slot < 0.9:  # rows in a lot beside the road, perpendicular
-                v = side * (road_half + sidewalk + size[0] / 2 + rng.uniform(0.5, 6.0))
-                yaw = rng.choice([np.pi / 2, -np.pi / 2]) + rng.normal(0, 0.06)
-            elif cross:  # on the cross street
-                u = cross_u + rng.uniform(-0.6, 0.6) * cross_half
-                v = rng.uniform(-max_center, max_center)
-                yaw = rng.choice([np.pi / 2, -np.pi / 2]) + rng.normal(0, 0.04)
-            else:  # anywhere off the road at a random angle
-                v = side * (road_half + rng.uniform(1.0, 30.0))
-                yaw = rng.uniform(-np.pi, np.pi)
-            v = lateral(v)
+            u, v, yaw = _car_slot(rng, street, size, max_center)
             if not MIN_RANGE_M <= np.hypot(u, v) <= max_center:
                 continue
             box = np.array([u, v, 0.0, *size, yaw])
-            if layout.free(box, 0.25):
-                layout.add(box)
+            if clutter.layout.free(box, 0.25):
+                clutter.layout.add(box)
                 placed.append(box)
                 break
+    return placed
 
-    # ego road frame -> sensor frame: turn by the road heading, stand everything on the ground
-    def to_sensor(boxes: np.ndarray) -> np.ndarray:
-        boxes = np.array(boxes, np.float64).reshape(-1, 7)
-        boxes[:, :2] = rotate_xy(boxes[:, :2], heading)
-        boxes[:, 6] = wrap_angle(boxes[:, 6] + heading)
-        return boxes
 
-    car_boxes = to_sensor(np.array(placed).reshape(-1, 7))
-    car_boxes[:, 2] = ground.height(car_boxes[:, :2]) + car_boxes[:, 5] / 2
+def _to_sensor(boxes: np.ndarray, heading: float) -> np.ndarray:
+    """Ego road frame boxes -> sensor frame (turned by the road heading)."""
+    boxes = np.array(boxes, np.float64).reshape(-1, 7)
+    boxes[:, :2] = rotate_xy(boxes[:, :2], heading)
+    boxes[:, 6] = wrap_angle(boxes[:, 6] + heading)
+    return boxes
+
+
+def _clutter_mesh(clutter: _Clutter, ground: Ground, heading: float):
+    """All clutter as one mesh in the sensor frame, standing on the ground: vertices (V, 3),
+    faces (F, 3) int32, face reflectance (F,)."""
     clutter_v, clutter_f, clutter_r = [], [], []
     offset = 0
-    for box, reflect in static_boxes:
-        box = to_sensor(box)[0]
+    for box, reflect in clutter.boxes:
+        box = _to_sensor(box, heading)[0]
         sink = 0.5 if box[5] > 1.0 else 0.03  # buried a little so slopes leave no gap
         base = ground.height(box[:2]) - sink
         box[5] += sink
@@ -345,7 +393,7 @@ def generate_scene(
         clutter_f.append(faces + offset)
         clutter_r.append(np.full(len(faces), reflect))
         offset += len(vertices)
-    for vertices, faces, reflect in meshes:
+    for vertices, faces, reflect in clutter.meshes:
         vertices = vertices.copy()
         vertices[:, :2] = rotate_xy(vertices[:, :2], heading)
         vertices[:, 2] += ground.height(vertices[:, :2].mean(axis=0))
@@ -353,15 +401,38 @@ def generate_scene(
         clutter_f.append(faces + offset)
         clutter_r.append(np.full(len(faces), reflect))
         offset += len(vertices)
-    lane_lines = np.arange(-lanes_per_side + 1, lanes_per_side) * lane - ego_v  # ego-lateral
+    return (
+        np.concatenate(clutter_v),
+        np.concatenate(clutter_f).astype(np.int32),
+        np.concatenate(clutter_r),
+    )
+
+
+def generate_scene(
+    rng: np.random.Generator, sensor: SensorProfile, cars: SensorProfile
+) -> SynthScene:
+    """Lay out one street scene (see module docstring); every draw comes from `rng`, in order:
+    ground and road, curbs, walls, poles and trees, bushes and containers, cars, car models."""
+    ground, street = _ground_and_street(rng, sensor)
+    clutter = _Clutter()
+    _add_curbs(rng, street, clutter)
+    _add_walls(rng, street, clutter)
+    _add_poles_and_trees(rng, street, clutter)
+    _add_bushes_and_containers(rng, street, clutter)
+    placed = _place_cars(rng, street, clutter, sensor, cars)
+    car_boxes = _to_sensor(np.array(placed).reshape(-1, 7), street.heading)
+    car_boxes[:, 2] = ground.height(car_boxes[:, :2]) + car_boxes[:, 5] / 2  # on the ground
+    vertices, faces, reflectance = _clutter_mesh(clutter, ground, street.heading)
+    lanes = street.lanes_per_side
+    lane_lines = np.arange(-lanes + 1, lanes) * street.lane - street.ego_v  # ego-lateral
     return SynthScene(
         ground=ground,
         cars=car_boxes,
         car_models=rng.integers(0, POOL_SIZE, len(car_boxes)),
         car_reflectance=rng.uniform(0.5, 1.7, len(car_boxes)),
-        clutter_vertices=np.concatenate(clutter_v),
-        clutter_faces=np.concatenate(clutter_f).astype(np.int32),
-        face_reflectance=np.concatenate(clutter_r),
-        road_heading=heading,
+        clutter_vertices=vertices,
+        clutter_faces=faces,
+        face_reflectance=reflectance,
+        road_heading=street.heading,
         lane_lines=lane_lines,
     )
