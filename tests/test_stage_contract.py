@@ -90,3 +90,54 @@ def test_stage_error_mapping(tmp_path):
     )  # fmt: skip
     assert result.exit_code == 1 and "frames.zarr" in result.output, result.output
     assert not (tmp_path / "o").exists()
+
+
+# library modules whose ParameterErrors reach the user through these commands
+SHARED_BODIES = {"dali_cli/ppcg/run.py": ("ppcg_rc", "ppcg_cf")}
+
+
+def parameter_fields(path: Path) -> set[str]:
+    """The stage argument names every `ParameterError(fields, ...)` in `path` names."""
+    fields = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "ParameterError":
+            first = node.args[0]
+            items = first.elts if isinstance(first, ast.Tuple) else [first]
+            fields |= {item.value for item in items if isinstance(item, ast.Constant)}
+    return fields
+
+
+def command_params(module: str) -> set[str]:
+    """Parameter names of `dali_cli.commands.<module>`'s command and its subcommands."""
+    import importlib
+
+    import click
+
+    pending, names = [importlib.import_module(f"dali_cli.commands.{module}").command], set()
+    while pending:
+        current = pending.pop()
+        names |= {param.name for param in current.params}
+        if isinstance(current, click.Group):
+            pending.extend(current.commands.values())
+    return names
+
+
+def test_every_parameter_error_names_a_flag_of_its_command():
+    """A ParameterError's fields are rendered as the command's flags (`range_m` -> --range-m):
+    a field no option carries would reach the user as a bare argument name."""
+    stage_commands = {"eval": "evaluate", "library_build": "library"}
+    sources = {
+        ROOT / "stages" / f"{stage}.py": (stage_commands.get(stage, stage),)
+        for stage in (p.stem for p in (ROOT / "stages").glob("*.py"))
+    }
+    for stage in ("import_kitti", "import_nuscenes", "import_openpcdet", "import_waymo"):
+        sources[ROOT / "stages" / f"{stage}.py"] = ("importers",)
+    for relative, stages in SHARED_BODIES.items():
+        sources[ROOT / relative] = stages
+    for path, modules in sources.items():
+        fields = parameter_fields(path)
+        for module in modules:
+            if module == "__init__":
+                continue
+            missing = fields - command_params(module)
+            assert not missing, (path.name, module, missing)
