@@ -349,24 +349,25 @@ def overlapping_pairs(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndar
     return np.concatenate(found_i).astype(np.int64), np.concatenate(found_j).astype(np.int64)
 
 
-def bev_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Pairwise rotated BEV IoU `(N, M)` float64 of boxes a `(N, 7)` and b `(M, 7)`."""
+def _pairwise(a: np.ndarray, b: np.ndarray, pairs_fn) -> np.ndarray:
+    """`(N, M)` float64 of `pairs_fn` over the box pairs of a `(N, 7)` x b `(M, 7)` that can
+    overlap (bounding circles touch); 0 elsewhere."""
     a, b = _as_boxes(a), _as_boxes(b)
     result = np.zeros((len(a), len(b)))
     i, j = overlapping_pairs(a, b)
     if len(i):
-        result[i, j] = bev_iou_pairs(a[i], b[j])
+        result[i, j] = pairs_fn(a[i], b[j])
     return result
+
+
+def bev_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Pairwise rotated BEV IoU `(N, M)` float64 of boxes a `(N, 7)` and b `(M, 7)`."""
+    return _pairwise(a, b, bev_iou_pairs)
 
 
 def iou_3d(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Pairwise 3D IoU `(N, M)` float64 of boxes a `(N, 7)` and b `(M, 7)` (yaw about z only)."""
-    a, b = _as_boxes(a), _as_boxes(b)
-    result = np.zeros((len(a), len(b)))
-    i, j = overlapping_pairs(a, b)
-    if len(i):
-        result[i, j] = iou_3d_pairs(a[i], b[j])
-    return result
+    return _pairwise(a, b, iou_3d_pairs)
 
 
 def nms_bev(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float) -> np.ndarray:
