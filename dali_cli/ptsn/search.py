@@ -192,6 +192,87 @@ def grid_search(evaluator: _Evaluator, grid: np.ndarray, indices, noise: float, 
     return scale, clipped, monotone
 
 
+def _illinois(on_subsample, low: Evaluation, high: Evaluation, step: float, max_iterations: int):
+    """Phase 1: the root estimate of c on the subsample between the range ends `low` and
+    `high` (c decreases with s; keep c(lo) > 0 >= c(hi)), Illinois regula falsi until the
+    bracket is one grid `step` wide."""
+    if low.value <= 0:
+        return low.scale
+    if high.value > 0:
+        return high.scale
+    lo_s, lo_v, hi_s, hi_v = low.scale, low.value, high.scale, high.value
+    side = 0  # Illinois: halve the weight of an end that stays twice in a row
+    for _ in range(max_iterations):
+        if hi_s - lo_s <= step:
+            break
+        guess = hi_s - hi_v * (hi_s - lo_s) / (hi_v - lo_v)
+        margin = 0.05 * (hi_s - lo_s)  # keep strictly inside so the bracket always shrinks
+        guess = float(np.clip(guess, lo_s + margin, hi_s - margin))
+        value = on_subsample(guess).value
+        if not math.isfinite(value):
+            guess = 0.5 * (lo_s + hi_s)
+            value = on_subsample(guess).value
+            if not math.isfinite(value):
+                break
+        if value > 0:
+            lo_s, lo_v = guess, value
+            if side == -1:
+                hi_v *= 0.5
+            side = -1
+        else:
+            hi_s, hi_v = guess, value
+            if side == 1:
+                lo_v *= 0.5
+            side = 1
+    return lo_s + (hi_s - lo_s) * lo_v / (lo_v - hi_v) if lo_v != hi_v else lo_s
+
+
+def _confirm(evaluator: _Evaluator, on_all, grid: np.ndarray, estimate: float, noise: float):
+    """Phase 2: evaluate all frames at the grid scales around `estimate`, walking outwards until
+    c changes sign between them; (ŝ, clipped) of the fitted crossing, or None when the curve of
+    all frames is not monotone within `noise`."""
+    below = int(np.clip(np.searchsorted(grid, estimate + 1e-12) - 1, 0, len(grid) - 1))
+    above = min(below + 1, len(grid) - 1)
+    for _ in range(len(grid)):
+        a, b = on_all(grid[below]), on_all(grid[above])
+        if not (math.isfinite(a.value) and math.isfinite(b.value)):
+            break
+        if a.value <= 0 and below > 0:
+            below, above = below - 1, below
+        elif b.value > 0 and above < len(grid) - 1:
+            below, above = above, above + 1
+        else:
+            break
+    scales, values = evaluator.curve("all")
+    if is_monotone(scales, values, noise) and len(scales):
+        return crossing(scales, decreasing_fit(values))
+    return None
+
+
+def _local_grid(evaluator, on_all, grid, all_frames, estimate, noise, local_steps, warnings):
+    """The fallback: a local grid of +-`local_steps` on all frames around `estimate` (the full
+    grid when the crossing leaves it); returns (ŝ, clipped)."""
+    warnings.append(
+        f"E_pred is not monotone in the scale within noise {noise:g}: fell back to a local grid "
+        f"of +-{local_steps} steps around s = {estimate:.3f}"
+    )
+    centre = int(np.argmin(np.abs(grid - estimate)))
+    window = grid[max(0, centre - local_steps) : centre + local_steps + 1]
+    for scale in window:
+        on_all(scale, "local-grid")
+    scales, values = evaluator.curve("all")
+    if len(scales) == 0:
+        raise PTSNError("no detections on the selected frames near the estimated scale")
+    scale, clipped = crossing(scales, decreasing_fit(values))
+    at_window_edge = clipped is not None and (
+        (clipped == "low" and window[0] > grid[0]) or (clipped == "high" and window[-1] < grid[-1])
+    )
+    if at_window_edge:  # the crossing left the local window: the full grid decides
+        warnings.append("the crossing is outside the local grid: evaluated the full grid")
+        scale, clipped, _ = grid_search(evaluator, grid, all_frames, noise, phase="local-grid")
+    return scale, clipped
+
+
 def bracket_search(
     evaluator: _Evaluator,
     grid: np.ndarray,
@@ -225,82 +306,16 @@ def bracket_search(
             f"no detections with score >= {evaluator.cache.score_min} at any tried scale in "
             f"{grid[0]:g}..{grid[-1]:g} on {len(subsample)} frames: cannot estimate E_pred"
         )
-    # phase 1: c decreases with s; keep c(low) > 0 >= c(high)
-    estimate = None
-    if low.value <= 0:
-        estimate = low.scale
-    elif high.value > 0:
-        estimate = high.scale
-    else:
-        lo_s, lo_v, hi_s, hi_v = low.scale, low.value, high.scale, high.value
-        side = 0  # Illinois: halve the weight of an end that stays twice in a row
-        for _ in range(max_iterations):
-            if hi_s - lo_s <= step:
-                break
-            guess = hi_s - hi_v * (hi_s - lo_s) / (hi_v - lo_v)
-            margin = 0.05 * (hi_s - lo_s)  # keep strictly inside so the bracket always shrinks
-            guess = float(np.clip(guess, lo_s + margin, hi_s - margin))
-            value = on_subsample(guess).value
-            if not math.isfinite(value):
-                guess = 0.5 * (lo_s + hi_s)
-                value = on_subsample(guess).value
-                if not math.isfinite(value):
-                    break
-            if value > 0:
-                lo_s, lo_v = guess, value
-                if side == -1:
-                    hi_v *= 0.5
-                side = -1
-            else:
-                hi_s, hi_v = guess, value
-                if side == 1:
-                    lo_v *= 0.5
-                side = 1
-        estimate = lo_s + (hi_s - lo_s) * lo_v / (lo_v - hi_v) if lo_v != hi_v else lo_s
+    estimate = _illinois(on_subsample, low, high, step, max_iterations)
     sub_scales, sub_values = evaluator.curve("subsample")
-    monotone = is_monotone(sub_scales, sub_values, noise)
-
-    # phase 2: confirm on all frames at the grid scales around the estimate
-    clipped = None
-    if monotone:
-        below = int(np.clip(np.searchsorted(grid, estimate + 1e-12) - 1, 0, len(grid) - 1))
-        above = min(below + 1, len(grid) - 1)
-        for _ in range(len(grid)):
-            a, b = on_all(grid[below]), on_all(grid[above])
-            if not (math.isfinite(a.value) and math.isfinite(b.value)):
-                break
-            if a.value <= 0 and below > 0:
-                below, above = below - 1, below
-            elif b.value > 0 and above < len(grid) - 1:
-                below, above = above, above + 1
-            else:
-                break
-        scales, values = evaluator.curve("all")
-        monotone = is_monotone(scales, values, noise)
-        if monotone and len(scales):
-            scale, clipped = crossing(scales, decreasing_fit(values))
+    if is_monotone(sub_scales, sub_values, noise):
+        confirmed = _confirm(evaluator, on_all, grid, estimate, noise)
+        if confirmed is not None:
+            scale, clipped = confirmed
             return scale, clipped, None, True, warnings
-
-    # fallback: a local grid on all frames around the estimate
-    warnings.append(
-        f"E_pred is not monotone in the scale within noise {noise:g}: fell back to a local grid "
-        f"of +-{local_steps} steps around s = {estimate:.3f}"
+    scale, clipped = _local_grid(
+        evaluator, on_all, grid, all_frames, estimate, noise, local_steps, warnings
     )
-    centre = int(np.argmin(np.abs(grid - estimate)))
-    window = grid[max(0, centre - local_steps) : centre + local_steps + 1]
-    for scale in window:
-        on_all(scale, "local-grid")
-    scales, values = evaluator.curve("all")
-    if len(scales) == 0:
-        raise PTSNError("no detections on the selected frames near the estimated scale")
-    fitted = decreasing_fit(values)
-    scale, clipped = crossing(scales, fitted)
-    at_window_edge = clipped is not None and (
-        (clipped == "low" and window[0] > grid[0]) or (clipped == "high" and window[-1] < grid[-1])
-    )
-    if at_window_edge:  # the crossing left the local window: the full grid decides
-        warnings.append("the crossing is outside the local grid: evaluated the full grid")
-        scale, clipped, _ = grid_search(evaluator, grid, all_frames, noise, phase="local-grid")
     return scale, clipped, "local-grid", False, warnings
 
 
