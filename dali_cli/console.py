@@ -14,6 +14,11 @@ def echo(message: str) -> None:
     print(message, file=sys.stdout, flush=True)
 
 
+def info(message: str) -> None:
+    """One line on stderr (logs of what ran where; stdout stays for results)."""
+    print(message, file=sys.stderr, flush=True)
+
+
 def warn(message: str, colour: str = "red", bold: bool = True) -> None:
     """`WARNING: message` on stderr (red and bold on a terminal, as click.secho did)."""
     line = f"WARNING: {message}"
