@@ -76,6 +76,23 @@ def check_precision(precision: str, device) -> None:
         )
 
 
+def inference_device(spec: str, precision: str):
+    """The torch.device an inference stage runs on, with its precision checked (both before the
+    stage writes anything)."""
+    device = resolve_device(spec)
+    check_precision(precision, device)
+    return device
+
+
+def inference_runtime(device) -> dict:
+    """The manifest's record of an inference stage's machine (threads, device, CPU/GPU, torch)."""
+    import torch
+
+    from dali_cli.detector.runtime import runtime_info
+
+    return runtime_info(torch.get_num_threads(), device)
+
+
 def autocast(device, precision: str):
     """bf16 autocast on `device` for precision 'bf16', else a no-op context."""
     import torch

@@ -10,6 +10,7 @@ import json
 import math
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 import click
@@ -17,6 +18,7 @@ import numpy as np
 
 from dali_cli import plausibility, ptsn, size_correction
 from dali_cli.artifacts import BoxTable, FrameSet, write_boxes
+from dali_cli.device import inference_device, inference_runtime
 from dali_cli.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.scale_file import read_scale
 from dali_cli.sensors import get_profile
@@ -26,11 +28,11 @@ SUMMARY_NAME = "summary.json"
 SCORE_BINS = np.round(np.linspace(0.0, 1.0, 11), 2)  # histogram edges (11,)
 
 
-def load_detector(model_dir: str | Path) -> ptsn.Predictor:
+def load_detector(model_dir: str | Path, device=None, precision: str = "fp32") -> ptsn.Predictor:
     """The trained detector of `model_dir` (torch is imported only here)."""
     from dali_cli.detector import Detector
 
-    return Detector.load(model_dir)
+    return Detector.load(model_dir, device=device, precision=precision)
 
 
 def label_frame(
@@ -103,9 +105,12 @@ def pseudo_label(
     dry_run: bool = False,
     progress: bool = True,
     detector_loader=None,
+    device: str = "auto",
+    precision: str = "fp32",
 ) -> StageOutcome:
     """Run the pseudo-label stage (see the module docstring); `detector_loader` is for tests."""
     model_dir, target_dir = Path(model_dir), Path(target_dir)
+    torch_device = inference_device(device, precision)  # a missing GPU: error, nothing written
     if scale is None and scale_from is None:
         raise click.UsageError("give --scale-from PTSN_DIR (from `dali ptsn-sweep`) or --scale S")
     if not model_dir.is_dir():
@@ -139,6 +144,8 @@ def pseudo_label(
         "mount_height_m": mount_height_m,
         "size_correction": size_correction_method,
     }
+    if precision != "fp32":  # recorded only when not the default: earlier runs stay up to date
+        params["precision"] = precision
     inputs = {"model": model_dir, "target": target_dir}
     if scale_from is not None:
         inputs["scale_from"] = scale_from
@@ -146,7 +153,8 @@ def pseudo_label(
     def build(directory: Path) -> BuildResult:
         from tqdm import tqdm
 
-        detector = (detector_loader or load_detector)(model_dir)
+        loader = detector_loader or partial(load_detector, device=torch_device, precision=precision)
+        detector = loader(model_dir)
         ids, boxes_all, scores_all, counts_all = [], [], [], []
         bar = tqdm(
             total=len(target), desc="pseudo-label", unit="frame", file=sys.stderr,
@@ -222,6 +230,7 @@ def pseudo_label(
             notes=notes,
             extra={
                 "pseudo_label": {"scale": scale, "scale_source": scale_source},
+                "runtime": inference_runtime(torch_device),
                 "size_correction": correction or {"method": size_correction_method},
             },
         )

@@ -82,6 +82,7 @@ def join(world: World, device: torch.device, timeout_s: float = DEFAULT_TIMEOUT_
     if not world.distributed:
         return replace(world, device=device)
     backend = "nccl" if device.type == "cuda" else "gloo"
+    stop_on_sigterm()
     if not dist.is_initialized():
         if device.type == "cuda":
             torch.cuda.set_device(device)
@@ -92,6 +93,17 @@ def join(world: World, device: torch.device, timeout_s: float = DEFAULT_TIMEOUT_
             f"says {world.rank} of {world.size}"
         )
     return replace(world, backend=dist.get_backend(), device=device)
+
+
+def stop_on_sigterm() -> None:
+    """SIGTERM (what torchrun sends the other ranks when one fails) raises SystemExit, so the
+    stage runner's cleanup removes the temporary output instead of the process dying in place."""
+    import signal
+
+    def stop(signum, frame):
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, stop)
 
 
 def leave() -> None:
@@ -169,7 +181,11 @@ class SyncBatchNormCPU(nn.modules.batchnorm._BatchNorm):
         if self.track_running_stats:
             with torch.no_grad():
                 self.num_batches_tracked.add_(1)
-                m = self.momentum if self.momentum is not None else 1.0 / float(self.num_batches_tracked)
+                m = (
+                    self.momentum
+                    if self.momentum is not None
+                    else 1.0 / float(self.num_batches_tracked)
+                )
                 unbiased = var * n / (n - 1).clamp(min=1)
                 self.running_mean.mul_(1 - m).add_(m * mean.to(self.running_mean.dtype))
                 self.running_var.mul_(1 - m).add_(m * unbiased.to(self.running_var.dtype))
