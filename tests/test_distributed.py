@@ -174,16 +174,26 @@ def test_ddp_step_equals_the_serial_step_on_the_global_batch(toy_dir, tmp_path):
     ddp = torch.load(out, weights_only=True)
     serial, serial_result = one_step(toy_dir, batch_size=2)
     assert ddp["threads"] == max(1, available_cores() // 2)  # the cores shared by 2 local ranks
-    worst = 0.0
-    for name, value in serial.state_dict().items():
-        if value.is_floating_point():
-            worst = max(worst, float((ddp["weights"][name] - value).abs().max()))
-        else:
-            assert torch.equal(ddp["weights"][name], value), name
-    assert worst < 1e-5, worst
-    # the gradients themselves (Adam's first step hides a uniform scale error in them)
+    # the gradients: equal up to float32 reduction-order noise, 1e-4 of each tensor's largest
+    # (a scale error, which Adam's first step ~ lr * sign(g) would hide, is not)
     for name, parameter in serial.named_parameters():
-        assert torch.allclose(ddp["grads"][name], parameter.grad, rtol=1e-3, atol=1e-6), name
+        largest = float(parameter.grad.abs().max())
+        error = float((ddp["grads"][name] - parameter.grad).abs().max())
+        assert error <= 1e-4 * largest + 1e-9, (name, error, largest)
+    # the weights after the step: within 1e-5 wherever the gradient stands above that noise
+    # (>= 1% of the tensor's largest); where |g| is down at the noise, it can flip the sign of
+    # Adam's first step, a difference bounded by 2 lr
+    lr = serial_result.log[0]["lr"]
+    clear_elements = 0
+    for name, parameter in serial.named_parameters():
+        difference = (ddp["weights"][name] - parameter.detach()).abs()
+        clear = parameter.grad.abs() >= 1e-2 * parameter.grad.abs().max()
+        clear_elements += int(clear.sum())
+        assert float(difference[clear].max()) < 1e-5, name
+        assert float(difference.max()) <= 2 * lr * (1 + 1e-3), name
+    assert clear_elements > 0.5 * sum(p.numel() for p in serial.parameters())
+    for name, value in serial.named_buffers():  # batch-norm statistics of the global batch
+        assert torch.allclose(ddp["weights"][name].double(), value.double(), atol=1e-5), name
     assert ddp["log"][0]["loss"] == pytest.approx(serial_result.log[0]["loss"], rel=1e-5)
 
 

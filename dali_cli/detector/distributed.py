@@ -21,7 +21,9 @@ whether it finished before rank 0 commits (`all_succeeded`).
 
 from __future__ import annotations
 
+import inspect
 import os
+import warnings
 from dataclasses import dataclass, replace
 from datetime import timedelta
 
@@ -169,7 +171,9 @@ class SyncBatchNormCPU(nn.modules.batchnorm._BatchNorm):
         wide = x.double()
         count = torch.full((1,), x.numel() / channels, dtype=torch.float64, device=x.device)
         local = torch.cat([wide.sum(dims), (wide * wide).sum(dims), count])  # (2C + 1,)
-        total = all_reduce(local)
+        with warnings.catch_warnings():  # deprecated in torch 2.13, its successor is private
+            warnings.simplefilter("ignore", FutureWarning)
+            total = all_reduce(local)
         n = total[-1]
         mean = total[:channels] / n  # (C,)
         var = (total[channels : 2 * channels] / n - mean * mean).clamp(min=0)  # biased
@@ -224,7 +228,13 @@ def wrap(net: nn.Module, world: World) -> nn.Module:
 
     convert_batch_norm(net, world.device)
     device_ids = [world.device.index] if world.device.type == "cuda" else None
-    return DistributedDataParallel(net, device_ids=device_ids, broadcast_buffers=False)
+    accepted = inspect.signature(DistributedDataParallel.__init__).parameters
+    no_sync = (  # torch 2.13 renamed the switch (both still sync the buffers at construction)
+        {"forward_sync_buffers": False}
+        if "forward_sync_buffers" in accepted
+        else {"broadcast_buffers": False}
+    )
+    return DistributedDataParallel(net, device_ids=device_ids, **no_sync)
 
 
 def broadcast_object(value, world: World):

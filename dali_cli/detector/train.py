@@ -155,6 +155,9 @@ def train(
     budget_s = settings.minutes * 60 if settings.minutes else None
     steps = None if budget_s else total_steps(datasets, settings, world.size)
     net.to(device)
+    # net itself serially; under torchrun its batch norms synchronised and the whole in
+    # DistributedDataParallel: before the optimizer, which must hold the synchronised layers' weights
+    model = wrap(net, world)
     optimizer = torch.optim.AdamW(
         net.parameters(), lr=settings.lr, weight_decay=settings.weight_decay
     )
@@ -174,7 +177,6 @@ def train(
     del state
     resumed_from = step
     net.train()
-    model = wrap(net, world)  # net itself serially, DistributedDataParallel under torchrun
     forward = compiled_forward(net) if settings.compile else model
     bar = tqdm(
         total=steps if steps else round(budget_s),
