@@ -239,8 +239,8 @@ def test_torchrun_pretrain_writes_one_model_that_eval_reads(toy_dir, tmp_path):
 def test_a_failing_rank_fails_the_stage_with_no_artifact(toy_dir, tmp_path):
     script = tmp_path / "flaky_dali.py"
     script.write_text(
-        "import os, sys\n"
-        "from dali_cli.detector import train\n"
+        "import importlib, os, sys\n"
+        "train = importlib.import_module('dali_cli.detector.train')\n"
         "if os.environ['RANK'] == '1':\n"
         "    def lost(*args, **kwargs):\n"
         "        raise RuntimeError('rank 1 lost its frames')\n"
@@ -260,3 +260,25 @@ def test_a_failing_rank_fails_the_stage_with_no_artifact(toy_dir, tmp_path):
     assert not out.exists()
     leftovers = sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("model"))
     assert leftovers == [], leftovers
+
+
+def make_plan(tmp_path: Path, *variables: str) -> list[str]:
+    root = Path(__file__).resolve().parents[1]
+    run = subprocess.run(
+        ["make", "-n", "-C", str(root), "iter2", f"RUN={tmp_path / 'run'}", *variables],
+        capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    return [line for line in run.stdout.splitlines() if "dali " in line]
+
+
+def test_make_nproc_runs_the_training_stages_under_torchrun(tmp_path):
+    plan = make_plan(tmp_path, "NPROC=2", "DEVICE=cpu")
+    training = [line for line in plan if any(f"dali {s} " in line for s in ("pretrain", "retrain"))]
+    assert len(training) == 3  # iter0 pretrain, iter1 and iter2 retrain
+    assert all("torchrun --standalone --nproc-per-node 2 " in line for line in training)
+    assert all("torchrun" not in line for line in plan if line not in training)
+    model_stages = [line for line in plan if any(f"dali {s} " in line for s in
+                                                 ("pretrain", "retrain", "ptsn-sweep",
+                                                  "pseudo-label", "eval"))]  # fmt: skip
+    assert model_stages and all("--device cpu" in line for line in model_stages)
+    assert all("torchrun" not in line and "--device" not in line for line in make_plan(tmp_path))
