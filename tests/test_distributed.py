@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
+from test_retrain import SMALL, TOY  # the tiny detector and toy frames of the training tests
 
 from dali_cli.cli import main
 from dali_cli.detector import (
@@ -35,17 +36,6 @@ from dali_cli.device import DeviceError, parse_device_spec, resolve_device
 from dali_cli.sensors import get_profile
 from stages.pretrain import attach_database
 
-SMALL = dict(
-    x_range_m=(0.0, 25.6),
-    y_range_m=(-12.8, 12.8),
-    pfn_channels=16,
-    block_channels=(16, 32, 64),
-    block_layers=(1, 2, 2),
-    up_channels=16,
-    head_channels=32,
-)
-PLACE = dict(x_range_m=(6.0, 22.0), y_range_m=(-9.0, 9.0))
-SCAN = dict(beams=32, points_per_beam=400, azimuth_range_deg=(-60.0, 60.0))
 TORCHRUN = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"]
 DALI = str(Path(sys.executable).with_name("dali"))
 
@@ -53,9 +43,7 @@ DALI = str(Path(sys.executable).with_name("dali"))
 @pytest.fixture(scope="module")
 def toy_dir(tmp_path_factory):
     directory = tmp_path_factory.mktemp("toy")
-    write_toy_dataset(
-        directory, get_profile("kitti"), frames=4, seed=3, cars_per_frame=4, **PLACE, **SCAN
-    )
+    write_toy_dataset(directory, get_profile("kitti"), seed=3, **{**TOY, "frames": 4})
     return directory
 
 
@@ -102,7 +90,7 @@ def test_cuda_without_a_gpu_is_an_error_and_writes_nothing(no_cuda, toy_dir, tmp
 def test_train_and_predict_run_on_an_explicit_cpu_device(toy_dir):
     """With torch's default device set to 'meta', any tensor the train or inference path made
     without naming its device would land on 'meta' and fail against the CPU tensors."""
-    config = DetectorConfig(**SMALL)
+    config = DetectorConfig.from_dict(SMALL)
     data = load_labeled(toy_dir, config)
     attach_database(data, config, augment=True)
     torch.manual_seed(0)
@@ -151,7 +139,7 @@ def ddp_step_worker(rank: int, port: int, toy_dir: str, out: str) -> None:
 def one_step(toy_dir, batch_size: int, world: World | None = None):
     """A fresh net trained for exactly one step of 2 frames (all ranks together), with every
     augmentation (gt sampling included) on."""
-    config = DetectorConfig(**SMALL)
+    config = DetectorConfig.from_dict(SMALL)
     data = load_labeled(toy_dir, config)
     attach_database(data, config, augment=True)
     torch.manual_seed(0)
@@ -181,13 +169,14 @@ def test_ddp_step_equals_the_serial_step_on_the_global_batch(toy_dir, tmp_path):
         error = float((ddp["grads"][name] - parameter.grad).abs().max())
         assert error <= 1e-4 * largest + 1e-9, (name, error, largest)
     # the weights after the step: within 1e-5 wherever the gradient stands above that noise
-    # (>= 1% of the tensor's largest); where |g| is down at the noise, it can flip the sign of
+    # (>= 0.2% of the tensor's largest); where |g| is down at the noise, it can flip the sign of
     # Adam's first step, a difference bounded by 2 lr
     lr = serial_result.log[0]["lr"]
     clear_elements = 0
     for name, parameter in serial.named_parameters():
         difference = (ddp["weights"][name] - parameter.detach()).abs()
-        clear = parameter.grad.abs() >= 1e-2 * parameter.grad.abs().max()
+        gradient = parameter.grad.abs()
+        clear = (gradient >= 2e-3 * gradient.max()) | (gradient == 0)  # 0: no Adam step at all
         clear_elements += int(clear.sum())
         assert float(difference[clear].max()) < 1e-5, name
         assert float(difference.max()) <= 2 * lr * (1 + 1e-3), name
