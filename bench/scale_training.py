@@ -8,9 +8,11 @@ Runs, each with the same global batch (2 frames per optimizer step) and the same
 
 frames/s is the training loop's (model.json "train", load time excluded); wall_s is the whole
 command (interpreter and torch start-up of every process, data loading, training, writing).
+The configurations run in `--repeats` interleaved rounds (the order rotating, as the load of a
+shared machine drifts); the result keeps every run and the median frames/s of each.
 
 Usage:
-  .venv/bin/python bench/scale_training.py [--data DIR] [--frames 16] [--epochs 2]
+  .venv/bin/python bench/scale_training.py [--data DIR] [--frames 16] [--epochs 2] [--repeats 3]
       -> bench/results/scale_training.json
 """
 
@@ -24,6 +26,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+import numpy as np
 
 from dali_cli.detector.runtime import available_cores, cpu_model
 
@@ -80,6 +84,7 @@ def main() -> None:
     )
     parser.add_argument("--frames", type=int, default=16)
     parser.add_argument("--epochs", type=float, default=2.0)
+    parser.add_argument("--repeats", type=int, default=3, help="interleaved rounds")
     parser.add_argument("--out", type=Path, default=RESULT)
     args = parser.parse_args()
     cores = available_cores()
@@ -91,14 +96,24 @@ def main() -> None:
             run([DALI, "synth", "--sensor", "kitti", "--cars", "kitti", "--frames",
                  str(args.frames), "--seed", "0", "--out", str(data)], dict(os.environ))  # fmt: skip
         torchrun = [str(BIN / "torchrun"), "--standalone", "--nproc-per-node", "2", DALI]
-        runs = {
-            "serial-all-cores": measure("serial-all-cores", [DALI], data, work, args.epochs, 2,
-                                        ["--threads", str(cores)]),
-            "serial-1-thread": measure("serial-1-thread", [DALI], data, work, args.epochs, 2,
-                                       ["--threads", "1"]),
-            "ddp-2": measure("ddp-2", torchrun, data, work, args.epochs, 1, []),
-        }  # fmt: skip
-    base = runs["serial-all-cores"]["train_frames_per_s"]
+        configs = {
+            "serial-all-cores": ([DALI], 2, ["--threads", str(cores)]),
+            "serial-1-thread": ([DALI], 2, ["--threads", "1"]),
+            "ddp-2": (torchrun, 1, []),
+        }
+        runs = {name: [] for name in configs}
+        for round_ in range(args.repeats):  # interleaved, the order rotating: load drifts
+            names = list(configs)
+            names = names[round_ % len(names) :] + names[: round_ % len(names)]
+            for name in names:
+                prefix, batch, extra = configs[name]
+                row = measure(name, prefix, data, work, args.epochs, batch, extra)
+                runs[name].append({"round": round_, **row})
+                print(name, row, flush=True)
+    medians = {
+        name: float(np.median([row["train_frames_per_s"] for row in rows]))
+        for name, rows in runs.items()
+    }
     document = {
         "what": "dali pretrain training frames/s: 1 process vs 2 torchrun DDP processes (gloo, CPU)",
         "command": "python bench/scale_training.py " + " ".join(sys.argv[1:]),
@@ -110,8 +125,10 @@ def main() -> None:
         "data": str(args.data) if args.data else f"dali synth kitti, {args.frames} frames, seed 0",
         "epochs": args.epochs,
         "global_batch": 2,
+        "median_train_frames_per_s": medians,
+        "ddp_2_over_serial_all_cores": round(medians["ddp-2"] / medians["serial-all-cores"], 3),
+        "ddp_2_over_serial_1_thread": round(medians["ddp-2"] / medians["serial-1-thread"], 3),
         "runs": runs,
-        "ddp_2_over_serial_all_cores": round(runs["ddp-2"]["train_frames_per_s"] / base, 3),
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(document, indent=2) + "\n")
