@@ -87,6 +87,21 @@ def test_cuda_without_a_gpu_is_an_error_and_writes_nothing(no_cuda, toy_dir, tmp
     assert sorted(p.name for p in tmp_path.iterdir()) == before  # nothing written
 
 
+def test_threads_are_shared_by_the_local_ranks(monkeypatch):
+    from dali_cli.detector import runtime
+
+    monkeypatch.setattr(runtime.os, "sched_getaffinity", lambda pid: set(range(8)), raising=False)
+    assert runtime.training_threads(None) == 8
+    assert runtime.training_threads(None, local_processes=3) == 2
+    assert runtime.training_threads(None, local_processes=16) == 1
+    assert runtime.training_threads(5, local_processes=4) == 5  # --threads wins
+    assert launched({"WORLD_SIZE": "1"}) == World()
+    world = launched({"WORLD_SIZE": "4", "RANK": "3", "LOCAL_RANK": "1", "LOCAL_WORLD_SIZE": "2"})
+    assert (world.rank, world.size, world.local_rank, world.local_size) == (3, 4, 1, 2)
+    with pytest.raises(click.ClickException, match="torchrun"):
+        launched({"WORLD_SIZE": "2"})
+
+
 def test_train_and_predict_run_on_an_explicit_cpu_device(toy_dir):
     """With torch's default device set to 'meta', any tensor the train or inference path made
     without naming its device would land on 'meta' and fail against the CPU tensors."""
