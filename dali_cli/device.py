@@ -84,6 +84,13 @@ def inference_device(spec: str, precision: str):
     return device
 
 
+def place(predictor, device, precision: str = "fp32"):
+    """`predictor` on `device` with `precision`: a Detector is moved there (`Detector.to`); other
+    predictors (stand-ins that only `predict`) are returned as they are."""
+    move = getattr(predictor, "to", None)
+    return move(device, precision) if callable(move) else predictor
+
+
 def inference_runtime(device) -> dict:
     """The manifest's record of an inference stage's machine (threads, device, CPU/GPU, torch)."""
     import torch

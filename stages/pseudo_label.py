@@ -10,7 +10,6 @@ import json
 import math
 import sys
 import time
-from functools import partial
 from pathlib import Path
 
 import click
@@ -18,7 +17,7 @@ import numpy as np
 
 from dali_cli import plausibility, ptsn, size_correction
 from dali_cli.artifacts import BoxTable, FrameSet, write_boxes
-from dali_cli.device import inference_device, inference_runtime
+from dali_cli.device import inference_device, inference_runtime, place
 from dali_cli.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.scale_file import read_scale
 from dali_cli.sensors import get_profile
@@ -28,11 +27,11 @@ SUMMARY_NAME = "summary.json"
 SCORE_BINS = np.round(np.linspace(0.0, 1.0, 11), 2)  # histogram edges (11,)
 
 
-def load_detector(model_dir: str | Path, device=None, precision: str = "fp32") -> ptsn.Predictor:
+def load_detector(model_dir: str | Path) -> ptsn.Predictor:
     """The trained detector of `model_dir` (torch is imported only here)."""
     from dali_cli.detector import Detector
 
-    return Detector.load(model_dir, device=device, precision=precision)
+    return Detector.load(model_dir)
 
 
 def label_frame(
@@ -153,8 +152,7 @@ def pseudo_label(
     def build(directory: Path) -> BuildResult:
         from tqdm import tqdm
 
-        loader = detector_loader or partial(load_detector, device=torch_device, precision=precision)
-        detector = loader(model_dir)
+        detector = place((detector_loader or load_detector)(model_dir), torch_device, precision)
         ids, boxes_all, scores_all, counts_all = [], [], [], []
         bar = tqdm(
             total=len(target), desc="pseudo-label", unit="frame", file=sys.stderr,

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 import sys
-from functools import partial
 from pathlib import Path
 
 import click
@@ -15,7 +14,7 @@ import pyarrow.parquet as pq
 
 from dali_cli import ptsn
 from dali_cli.artifacts import FrameSet
-from dali_cli.device import inference_device, inference_runtime
+from dali_cli.device import inference_device, inference_runtime, place
 from dali_cli.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.model_card import ModelCard, read_card
 from dali_cli.scale_file import write_scale
@@ -26,11 +25,11 @@ SWEEP_NAME = "sweep.parquet"
 PLOT_NAME = "sweep.png"
 
 
-def load_detector(model_dir: str | Path, device=None, precision: str = "fp32") -> ptsn.Predictor:
+def load_detector(model_dir: str | Path) -> ptsn.Predictor:
     """The trained detector of `model_dir` (imported lazily: torch loads only when needed)."""
     from dali_cli.detector import Detector
 
-    return Detector.load(model_dir, device=device, precision=precision)
+    return Detector.load(model_dir)
 
 
 def read_model_card(model_dir: str | Path) -> ModelCard:
@@ -211,8 +210,8 @@ def ptsn_sweep(
         params["precision"] = precision
 
     def build(directory: Path) -> BuildResult:
-        loader = detector_loader or partial(load_detector, device=torch_device, precision=precision)
-        detector = loader(model_dir)
+        loader = detector_loader or load_detector
+        detector = place(loader(model_dir), torch_device, precision)
         selected = ptsn.select_frames(len(target), frames, frame_fraction, seed)
         bev_range = detector_bev_range(detector)
         store = FrameStore(

@@ -156,6 +156,12 @@ class Detector:
         self.meta = meta or {}
         self.precision = precision
 
+    def to(self, device: torch.device, precision: str = "fp32") -> Detector:
+        """This detector on `device` with `precision` (the network is moved in place)."""
+        self.device, self.precision = device, precision
+        self.net.to(device)
+        return self
+
     @property
     def card(self) -> ModelCard:
         """What training recorded about this model (source sensor and sizes, size norm)."""
