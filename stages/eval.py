@@ -71,13 +71,16 @@ def resolve_scale(scale: float | None, scale_from: str | Path | None) -> float:
     return float(value)
 
 
-def predict(model: str | Path, data: str | Path, scale: float) -> BoxTable:
-    """Every prediction (all scores) of the model of `model` on the frame set `data`."""
+def predict(model, data, scale: float, device, precision: str) -> BoxTable:
+    """Every prediction (all scores) of the model of `model` on the frame set `data`, on the
+    torch `device` at `precision`."""
     try:
         from dali_cli.detector import predict_frameset
     except ImportError as error:
         raise StageError(f"the detector is not available ({error})") from None
-    return predict_frameset(model, data, scale=scale, score_min=0.0, progress=True)
+    return predict_frameset(
+        model, data, scale=scale, score_min=0.0, progress=True, device=device, precision=precision
+    )
 
 
 def mean_box_size(table: BoxTable, class_name: str, score_min: float | None = None):
@@ -99,20 +102,26 @@ def check_ious(ious: tuple[float, ...]) -> None:
         raise ParameterError("ious", f"repeated threshold in {list(ious)}")
 
 
-def predictions_and_truth(pred_path, gt_path, model, data, scale, scale_from):
-    """(pred, gt, frame ids evaluated or None, source record, gt path) from either the model
-    route (`model` on `data`) or the table route (`pred_path` vs `gt_path`)."""
-    frame_ids = None
+def predictions_and_truth(
+    pred_path, gt_path, model, data, scale, scale_from, device="auto", precision="fp32"
+):
+    """(pred, gt, frame ids evaluated or None, source record, gt path, runtime or None) from
+    either the model route (`model` on `data`) or the table route (`pred_path` vs `gt_path`)."""
+    frame_ids = runtime = None
     if model is not None or data is not None:
         if model is None or data is None:
             raise ParameterError(("model", "data"), "the model and its frame set go together")
         if pred_path is not None:
             raise ParameterError(("pred_path", "model"), "give predictions or a model, not both")
+        from dali_cli.device import inference_device, inference_runtime
+
+        torch_device = inference_device(device, precision)  # a missing GPU: error, no output
         chosen_scale = resolve_scale(scale, scale_from)
         frame_ids = FrameSet(data).frame_ids
         gt_path = Path(data) if gt_path is None else gt_path
-        pred = predict(model, data, chosen_scale)
+        pred = predict(model, data, chosen_scale, torch_device, precision)
         source = {"model": str(model), "data": str(data), "scale": chosen_scale}
+        runtime = {**inference_runtime(torch_device), "precision": precision}
     else:
         if scale is not None or scale_from is not None:
             raise ParameterError(("scale", "scale_from"), "a scale only applies with a model")
@@ -122,7 +131,8 @@ def predictions_and_truth(pred_path, gt_path, model, data, scale, scale_from):
         source = {"pred": str(pred_path)}
     gt, label_frames = read_table(gt_path, "gt")
     source["gt"] = str(gt_path)
-    return pred, gt, frame_ids if frame_ids is not None else label_frames, source, gt_path
+    frames = frame_ids if frame_ids is not None else label_frames
+    return pred, gt, frames, source, gt_path, runtime
 
 
 def run_eval(
@@ -142,6 +152,8 @@ def run_eval(
     min_gt_points: int = 0,
     out: str | Path | None = None,
     save_predictions: bool = True,
+    device: str = "auto",
+    precision: str = "fp32",
     force: bool = False,
     dry_run: bool = False,
 ) -> EvalResult:
@@ -155,7 +167,7 @@ def run_eval(
     )  # fmt: skip
     routes = dict(
         pred_path=pred_path, gt_path=gt_path, model=model, data=data, scale=scale,
-        scale_from=scale_from,
+        scale_from=scale_from, device=device, precision=precision,
     )  # fmt: skip
     inputs = {"model": model, "data": data, "pred": pred_path, "gt": gt_path, "scale": scale_from}
     if out is not None and Path(out).suffix != ".json":
@@ -176,7 +188,7 @@ def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
     """(the metrics document, the predictions evaluated) of one evaluation."""
     from dali_cli.evaluate import EvaluationError, evaluate
 
-    pred, gt, frame_ids, source, gt_path = predictions_and_truth(**routes)
+    pred, gt, frame_ids, source, gt_path, runtime = predictions_and_truth(**routes)
     class_name = options["class_name"]
     metrics: dict = {}
     for index, iou in enumerate(options["ious"]):
@@ -200,6 +212,8 @@ def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
     }
     if "scale" in source:
         metrics["scale"] = source["scale"]
+    if runtime is not None:
+        metrics["runtime"] = runtime
     return metrics, pred
 
 
@@ -236,6 +250,7 @@ def eval_artifact(out, inputs, routes, options, save_predictions, force, dry_run
         **{k: v for k, v in options.items()},
         "scale": routes["scale"],
         "save_predictions": save_predictions,
+        "precision": routes["precision"],
     }
     outcome = run_stage(
         "eval", out, inputs, params, build, force=force, dry_run=dry_run,

@@ -42,8 +42,10 @@ def run_pretrain(
     force: bool = False,
     dry_run: bool = False,
     progress: bool = True,
+    device: str = "auto",
 ) -> StageOutcome:
-    """Train on `source` (FrameSet + boxes.parquet) and write the checkpoint to `out`."""
+    """Train on `source` (FrameSet + boxes.parquet) and write the checkpoint to `out` (on
+    `device`; under torchrun with DDP, see run_training_stage)."""
     from dali_cli.sensors import get_profile
 
     source, out = Path(source), Path(out)
@@ -83,7 +85,7 @@ def run_pretrain(
     }
     inputs = {"source": source, "boxes": Path(boxes) if boxes else None}
 
-    def train_fn(tmp: Path, resume: Path, key: str) -> BuildResult:
+    def train_fn(tmp: Path | None, resume: Path, key: str, world) -> BuildResult | None:
         import torch
 
         from dali_cli.detector import (
@@ -119,7 +121,7 @@ def run_pretrain(
         net = PillarCenterNet(config)
         settings = TrainSettings(
             epochs=epochs, minutes=minutes, batch_size=batch_size, lr=lr, seed=seed,
-            precision=precision, compile=compile_net, threads=threads,
+            precision=precision, compile=compile_net, threads=threads, device=device,
         )  # fmt: skip
         card = ModelCard(
             detector=config.name,
@@ -160,6 +162,9 @@ def run_pretrain(
             notes=[f"detector: {net.config.name} (not the paper's SECOND-IoU), size_norm={size_norm}"],
             load_s=load_s,
             progress=progress,
+            world=world,
         )  # fmt: skip
 
-    return run_training_stage("pretrain", out, inputs, params, train_fn, force, dry_run, seed)
+    return run_training_stage(
+        "pretrain", out, inputs, params, train_fn, force, dry_run, seed, device
+    )

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import stage_options
+from dali_cli.commands.common import device_options, stage_options
 
 EPILOG = """\b
 Inputs (--pred, --gt): a box-table directory (boxes.parquet), a .parquet file, or a KITTI
@@ -126,6 +126,7 @@ the class (predictions: score >= --size-score-min) and, with --model, "scale").
     help="With --model and --out: also write the predictions (all scores) as "
     "predictions.parquet beside metrics.json (read by `dali report` for size plots).",
 )
+@device_options
 @stage_options
 def command(
     pred_path,
@@ -143,6 +144,8 @@ def command(
     min_gt_points,
     out,
     save_predictions,
+    device,
+    precision,
     force,
     dry_run,
 ):
@@ -155,11 +158,12 @@ def command(
         scale_from=scale_from, ious=tuple(ious), size_score_min=size_score_min,
         recall_positions=int(recall_positions), protocol=protocol, front_only=front_only,
         class_name=class_name, min_gt_points=min_gt_points, out=out,
-        save_predictions=save_predictions, force=force, dry_run=dry_run,
+        save_predictions=save_predictions, device=device, precision=precision, force=force,
+        dry_run=dry_run,
     )  # fmt: skip
     if result.status == "dry-run":
         return
-    blocks = {k: v for k, v in result.metrics.items() if k not in ("sizes", "scale")}
+    blocks = {k: v for k, v in result.metrics.items() if k not in ("sizes", "scale", "runtime")}
     click.echo(format_table(blocks))
     if result.status == "ran" and out is not None and out.suffix == ".json":
         click.echo(f"wrote {out}", err=True)
