@@ -35,7 +35,8 @@ $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	@# torch first, pinned: on these machines 2.13.0 is a local CPU wheel; other specs pull CUDA.
 	$(BIN)/pip install --quiet --disable-pip-version-check torch==2.13.0
-	$(BIN)/pip install --quiet --disable-pip-version-check -e '.[dev]'
+	@# .[ray]: the optional Ray engine, installed so the test suite runs its tests on a local Ray
+	$(BIN)/pip install --quiet --disable-pip-version-check -e '.[dev,ray]'
 	@touch $(STAMP)
 
 install: $(STAMP)
