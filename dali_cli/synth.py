@@ -787,20 +787,18 @@ def build_synth(
                 tables.append(frame_table(frame))
                 bar.update(1)
         else:
-            from dali_cli.executors import plan_shards, run_sharded
+            from dali_cli.executors import plan_shards, shard_results
             from dali_cli.executors.shards import read_shard_frames
 
-            def merge(shard, directory: Path, summary: dict) -> None:
-                nonlocal total_points
-                for frame_id_, points in read_shard_frames(directory):
-                    writer.append(frame_id_, points)
+            ids = [frame_id(index) for index in range(frames)]
+            worker = SynthShards(int(seed), sensor, cars, int(threads))
+            shards = plan_shards(ids, executor.workers, max_frames=16)
+            for shard, directory, _ in shard_results(executor, worker, shards, Path(out_dir)):
+                for name, points in read_shard_frames(directory):
+                    writer.append(name, points)
                     total_points += len(points)
                 tables.append(read_boxes(directory))
                 bar.update(len(shard.frame_ids))
-
-            ids = [frame_id(index) for index in range(frames)]
-            shards = plan_shards(ids, executor.workers, max_frames=16)
-            run_sharded(executor, SynthShards(int(seed), sensor, cars, int(threads)), shards, Path(out_dir), merge)
     bar.close()
     table = BoxTable.concat(tables)
     write_boxes(out_dir, table)

@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import model_target_out_options, sensors_option, stage_options
+from dali_cli.commands.common import (
+    executor_options,
+    model_target_out_options,
+    sensors_option,
+    stage_options,
+    workers_option,
+)
 
 
 @click.command(name="pseudo-label")
@@ -54,6 +60,8 @@ from dali_cli.commands.common import model_target_out_options, sensors_option, s
     help="per-dim: multiply l, w, h by E_est / mean pseudo-box size per dimension (bottom face "
     "kept), removing the bias one isotropic ŝ leaves; E_est from --scale-from's scale.json.",
 )
+@workers_option("1")
+@executor_options
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @sensors_option
 @stage_options

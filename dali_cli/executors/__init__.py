@@ -71,9 +71,12 @@ class ShardsFailed(click.ClickException):
     """Shards that failed after the engine's retries; the message names their frames."""
 
     def __init__(self, engine: str, failures: list[tuple[Shard, str]]):
-        lines = [f"shard {shard.index} ({shard.describe()}): {problem}" for shard, problem in failures]
+        lines = [
+            f"shard {shard.index} ({shard.describe()}): {problem}" for shard, problem in failures
+        ]
         super().__init__(
-            f"{engine}: {len(failures)} shard(s) failed, nothing was written:\n  " + "\n  ".join(lines)
+            f"{engine}: {len(failures)} shard(s) failed, nothing was written:\n  "
+            + "\n  ".join(lines)
         )
         self.failures = failures
 
@@ -143,7 +146,10 @@ def plan_shards(
     shard's payload."""
     count = len(frame_ids)
     size = -(-count // max(1, workers * per_worker))
-    size = max(multiple, min(-(-size // multiple) * multiple, max(multiple, max_frames // multiple * multiple)))
+    size = max(
+        multiple,
+        min(-(-size // multiple) * multiple, max(multiple, max_frames // multiple * multiple)),
+    )
     shards = []
     for index, start in enumerate(range(0, count, size)):
         stop = min(start + size, count)
@@ -250,7 +256,11 @@ class Executor:
             return
         click.echo(
             f"{stage}: ran on {report['engine']} with {report['workers']} worker(s)"
-            + (f" (start-up {report['startup_seconds']:.1f} s)" if report["startup_seconds"] else ""),
+            + (
+                f" (start-up {report['startup_seconds']:.1f} s)"
+                if report["startup_seconds"]
+                else ""
+            ),
             err=True,
         )
         for worker, r in report["per_worker"].items():
@@ -272,7 +282,9 @@ def _describe_error(error: BaseException) -> str:
     return f"{type(error).__name__}: {text[-1] if text else ''}"
 
 
-def make_executor(engine: str, workers: int | None, address: str | None = None, cpus_per_worker: int = 1) -> Executor:
+def make_executor(
+    engine: str, workers: int | None, address: str | None = None, cpus_per_worker: int = 1
+) -> Executor:
     """The executor of `--executor ENGINE --workers N [--ray-address ADDR]`. workers None: local,
     1; ray, every CPU of the cluster (or of this machine for a local instance)."""
     if engine == "local":
@@ -297,22 +309,22 @@ def run_on(executor: Executor, stage: str, body: Callable[[Executor], Any]) -> A
     return result
 
 
-def run_sharded(
+def shard_results(
     executor: Executor,
     factory: Callable[[], ShardWorker],
     shards: list[Shard],
     directory: Path,
-    merge: Callable[[Shard, Path, dict], None],
-) -> None:
-    """Run `shards` on `executor` with shard folders under `directory/shards`, calling
-    `merge(shard, shard_dir, summary)` in shard order as they complete; each merged shard's
-    folder is deleted, and the shards folder with it at the end (also on failure)."""
+) -> Iterator[tuple[Shard, Path, dict]]:
+    """Run `shards` on `executor` with shard folders under `directory/shards`; yields
+    (shard, its folder, its summary) in shard order as they complete, for the caller to merge.
+    A merged shard's folder is deleted when the caller asks for the next one; the shards folder
+    goes at the end (also on failure or Ctrl-C)."""
     root = Path(directory) / SHARDS_DIR
     root.mkdir()
     try:
         for shard, summary in executor.map_shards(factory, shards, root):
             shard_dir = root / f"{shard.index:06d}"
-            merge(shard, shard_dir, summary)
+            yield shard, shard_dir, summary
             shutil.rmtree(shard_dir)
     finally:
         shutil.rmtree(root, ignore_errors=True)

@@ -110,9 +110,7 @@ class RayExecutor(Executor):
             # local instance; on a cluster, dali must be installed on every node)
             runtime_env={"env_vars": {"OMP_NUM_THREADS": str(self.cpus_per_worker)}},
         )
-        self._actors = [
-            actor_class.remote(factory) for _ in range(min(self.workers, len(shards)))
-        ]
+        self._actors = [actor_class.remote(factory) for _ in range(min(self.workers, len(shards)))]
         self.started_seconds += time.perf_counter() - started
         idle = list(self._actors)
         queue = list(reversed(shards))

@@ -45,6 +45,8 @@ def read_shard_frames(directory: Path) -> Iterator[tuple[str, np.ndarray]]:
     offsets = np.load(directory / "offsets.npy")
     ids = json.loads((directory / "frame_ids.json").read_text())
     if len(ids) != len(offsets) - 1 or offsets[-1] != len(points):
-        raise ValueError(f"{directory}: shard files disagree ({len(ids)} ids, {len(offsets) - 1} frames)")
+        raise ValueError(
+            f"{directory}: shard files disagree ({len(ids)} ids, {len(offsets) - 1} frames)"
+        )
     for index, frame_id in enumerate(ids):
         yield frame_id, np.asarray(points[offsets[index] : offsets[index + 1]])
