@@ -70,6 +70,7 @@ class RayExecutor(Executor):
 
                 cpus = max(self._requested or available_cores(), 1) * self.cpus_per_worker
                 ray.init(
+                    address="local",  # a new instance, even when a `ray start` one runs here
                     num_cpus=cpus,
                     include_dashboard=False,
                     object_store_memory=LOCAL_OBJECT_STORE_BYTES,
