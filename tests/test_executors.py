@@ -42,6 +42,7 @@ def ray_session():
     import ray
 
     ray.init(
+        address="local",  # our own, even if another Ray runs on this machine
         num_cpus=2,
         include_dashboard=False,
         object_store_memory=80 * 2**20,
@@ -270,3 +271,33 @@ def test_local_executor_stops_at_a_failing_frame_and_names_it(tmp_path):
                 merged.append(shard.index)
     assert "frame '000004': ValueError: injected" in str(caught.value.message)
     assert merged == [0]  # shard 1 holds frame 4: nothing after it is handed to the merge
+
+
+def test_lost_ray_workers_are_restarted_and_their_shards_retried(
+    data, ray_session, tmp_path, monkeypatch
+):
+    """Both actors are killed while shards are queued and running: Ray restarts them (each
+    loads the library again, once) and reruns their shards; the artifact is still the serial
+    one."""
+    import dali_cli.executors as executors
+
+    original = executors.shard_results
+    killed = []
+
+    def killing(executor, factory, shards, directory):
+        for shard, shard_dir, summary in original(executor, factory, shards, directory):
+            if not killed:
+                for actor in executor._actors:
+                    ray_session.kill(actor, no_restart=False)
+                killed.append(shard.index)
+            yield shard, shard_dir, summary
+
+    monkeypatch.setattr(executors, "shard_results", killing)
+    args = ["ppcg-cf", "--target", data / "target", "--boxes", data / "target",
+            "--library", data / "library", "--no-progress"]  # fmt: skip
+    dali(*args, "--out", tmp_path / "serial")
+    dali(*args, "--executor", "ray", "--workers", 2, "--out", tmp_path / "ray")
+    manifest = same_artifact(tmp_path / "serial", tmp_path / "ray")
+    per_worker = manifest["executor"]["per_worker"]
+    assert killed and len(per_worker) >= 3  # the restarted actors are new processes
+    assert all(record["loads"] == {"model library": 1} for record in per_worker.values())
