@@ -6,8 +6,9 @@ start-up and per-task overhead. Issue 19's goal: 2 workers >= 1.6 x one worker.
 Every run is a whole stage (`--force`), so frames/s include reading, the shard round trip
 (workers write shards, the driver merges them) and writing; each run records the 1-minute load
 average before and after it (the machine may be shared: compare runs of similar load). The
-detector is the default configuration with random weights (its inference cost is the trained
-model's; its boxes are not); PPCG processes the target's own labels.
+detector is --model, or the default configuration with random weights (the trained model's
+network, but not its boxes: many low-score boxes to refine); PPCG processes the target's own
+labels.
 
 Writes bench/results/scale.json.
     .venv/bin/python bench/scale.py [--frames 48] [--ppcg-frames 192] [--repeats 1]
@@ -273,6 +274,10 @@ def main() -> None:
     parser.add_argument("--ppcg-frames", type=int, default=192, help="frames for ppcg-rc/cf")
     parser.add_argument("--repeats", type=int, default=1, help="runs per configuration (best)")
     parser.add_argument("--stages", default="synth,ppcg-rc,ppcg-cf,pseudo-label")
+    parser.add_argument(
+        "--model", type=Path, default=None,
+        help="trained checkpoint for pseudo-label (default: the default detector, random weights)",
+    )  # fmt: skip
     parser.add_argument("--port", type=int, default=6390, help="port of the Ray head started")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
@@ -287,7 +292,11 @@ def main() -> None:
             "shared": "yes: other sessions' experiments and builds ran on the same cores",
         },
         "command": "bench/scale.py "
-        + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k != "out"),
+        + " ".join(
+            f"--{k.replace('_', '-')} {v}"
+            for k, v in vars(args).items()
+            if k != "out" and v is not None
+        ),
         "frames": {
             "synth": args.frames,
             "pseudo-label": args.frames,
@@ -299,6 +308,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="dali-scale-") as tmp:
         root = Path(tmp)
         paths = prepare(root, args.frames, args.ppcg_frames)
+        if args.model is not None:
+            paths["model"] = args.model
         paths["library"] = build_library(root)
         result["local_pool_overhead"] = pool_overhead()
         result["driver_merge"] = driver_merge(paths["ppcg_target"], root)
