@@ -142,9 +142,7 @@ def test_ppcg_on_ray_equals_serial_and_loads_the_library_once_per_actor(
         assert np.array_equal(serial[name], ray_boxes[name]), name
 
 
-def test_pseudo_label_on_ray_equals_serial_at_the_same_torch_threads(
-    data, ray_session, tmp_path
-):
+def test_pseudo_label_on_ray_equals_serial_at_the_same_torch_threads(data, ray_session, tmp_path):
     """Each worker runs torch on one thread; the serial reference does too (torch's results
     differ in the last bits between thread counts, whatever the engine)."""
     args = ["pseudo-label", "--model", data / "model", "--target", data / "target",
