@@ -42,10 +42,16 @@ class LocalExecutor(Executor):
                 except Exception as error:
                     yield shard, error
             return
+        import click
+
         from dali_cli.workers import process_pool
 
         started = time.perf_counter()
-        pool = process_pool(min(self.workers, len(shards)), _start, (factory,))
+        count = min(self.workers, len(shards))
+        click.echo(
+            f"executor: local process pool, {count} worker(s), {len(shards)} shards", err=True
+        )
+        pool = process_pool(count, _start, (factory,))
         self.started_seconds = time.perf_counter() - started
         try:
             queue = list(reversed(shards))
