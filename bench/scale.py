@@ -46,8 +46,8 @@ def load() -> float:
     return round(os.getloadavg()[0], 2)
 
 
-def prepare(root: Path, frames: int, ppcg_frames: int) -> dict:
-    """Target frame sets (synth kitti, serial), a 24-model library and a default-size detector."""
+def prepare(root: Path, frames: int, ppcg_frames: int, sensor: str) -> dict:
+    """Target frame sets (synth of `sensor`, serial) and a default-size detector."""
     import torch
 
     from dali_cli.detector.config import DetectorConfig
@@ -56,11 +56,11 @@ def prepare(root: Path, frames: int, ppcg_frames: int) -> dict:
     from dali_cli.sensors import get_profile
     from dali_cli.synth import build_synth
 
-    kitti = get_profile("kitti")
+    profile = get_profile(sensor)
     paths = {"target": root / "target", "ppcg_target": root / "ppcg_target"}
     for name, count in (("target", frames), ("ppcg_target", ppcg_frames)):
         paths[name].mkdir()
-        build_synth(paths[name], kitti, kitti, count, 11, progress=False)
+        build_synth(paths[name], profile, profile, count, 11, progress=False)
     torch.manual_seed(0)
     paths["model"] = root / "model"
     paths["model"].mkdir()
@@ -83,7 +83,14 @@ def build_library(root: Path) -> Path:
 
 
 def run_stage(
-    stage: str, paths: dict, out: Path, engine: str, workers: int, frames: int, address: str | None
+    stage: str,
+    paths: dict,
+    out: Path,
+    engine: str,
+    workers: int,
+    frames: int,
+    address: str | None,
+    sensor: str,
 ) -> tuple[float, dict]:
     """Run one stage as a user would (`dali ...` in a fresh process, --force); returns the
     command's wall seconds and its manifest (wall_seconds = the stage's own build time)."""
@@ -94,7 +101,7 @@ def run_stage(
     if engine == "ray":
         engine_args += ["--ray-address", address]
     if stage == "synth":
-        command = [dali, "synth", "--sensor", "kitti", "--frames", str(frames), "--seed", "11"]
+        command = [dali, "synth", "--sensor", sensor, "--frames", str(frames), "--seed", "11"]
     elif stage == "pseudo-label":
         command = [dali, "pseudo-label", "--model", str(paths["model"]), "--target",
                    str(paths["target"]), "--scale", "1.0", "--no-progress"]  # fmt: skip
@@ -202,7 +209,7 @@ def driver_merge(frames_dir: Path, root: Path) -> dict:
         out = root / f"merge-{compress}"
         out.mkdir()
         started = time.perf_counter()
-        with FrameSetWriter(out, "kitti", compress=compress) as merged:
+        with FrameSetWriter(out, frames.sensor, compress=compress) as merged:
             for shard in shards:
                 for frame_id, points in read_shard_frames(shard):
                     merged.append(frame_id, points)
@@ -236,7 +243,9 @@ def measure(args, result: dict, paths: dict, root: Path, address: str) -> None:
             for repeat in range(args.repeats):
                 before = load()
                 out = root / "out" / f"{stage}-{engine}-{workers}-{repeat}"
-                wall, manifest = run_stage(stage, paths, out, engine, workers, frames, address)
+                wall, manifest = run_stage(
+                    stage, paths, out, engine, workers, frames, address, args.sensor
+                )
                 report = manifest.get("executor") or {}
                 stage_wall = manifest["timings"]["wall_seconds"]
                 row = {
@@ -278,6 +287,7 @@ def main() -> None:
         "--model", type=Path, default=None,
         help="trained checkpoint for pseudo-label (default: the default detector, random weights)",
     )  # fmt: skip
+    parser.add_argument("--sensor", default="kitti", help="sensor profile of the frames")
     parser.add_argument("--port", type=int, default=6390, help="port of the Ray head started")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
@@ -307,7 +317,7 @@ def main() -> None:
     }
     with tempfile.TemporaryDirectory(prefix="dali-scale-") as tmp:
         root = Path(tmp)
-        paths = prepare(root, args.frames, args.ppcg_frames)
+        paths = prepare(root, args.frames, args.ppcg_frames, args.sensor)
         if args.model is not None:
             paths["model"] = args.model
         paths["library"] = build_library(root)
