@@ -277,6 +277,44 @@ def measure(args, result: dict, paths: dict, root: Path, address: str) -> None:
         result["stages"][stage] = rows
 
 
+WAYMO_TRAIN_FRAMES = 158_081
+
+
+def wall_time_model(result: dict, frames: int = WAYMO_TRAIN_FRAMES, workers=(1, 8, 64)) -> dict:
+    """Wall time per stage for `frames` frames at each worker count, from the measurements:
+
+        T(W) = s0 + frames * max(t1 / W, td)
+
+    t1 = one worker's busy seconds per frame (Ray x1 run: read + compute + shard write, one
+    core), s0 = the rest of that run's wall time (Ray connect, actor start, model load, the
+    driver's work that does not overlap the workers), td = the driver's merge seconds per frame
+    (zstd chunks for synth, raw for PPCG; pseudo-label merges boxes only: 0). Assumes workers on
+    cores of their own (no sharing), a filesystem that keeps up, and no straggler."""
+    merge = result["driver_merge"]
+    driver = {
+        "synth": merge["zstd_ms_per_frame"] / 1e3,
+        "ppcg-rc": merge["raw_ms_per_frame"] / 1e3,
+        "ppcg-cf": merge["raw_ms_per_frame"] / 1e3,
+        "pseudo-label": 0.0,
+    }
+    model = {"frames": frames, "formula": "T(W) = s0 + frames * max(t1 / W, td)", "stages": {}}
+    for stage, rows in result["stages"].items():
+        one = rows["ray_1"]
+        busy = sum(w["busy_seconds"] for w in one["per_worker"].values())
+        count = result["frames"][stage]
+        t1 = busy / count
+        s0 = max(0.0, one["stage_seconds"] - busy)
+        td = driver[stage]
+        model["stages"][stage] = {
+            "t1_seconds_per_frame": round(t1, 4),
+            "s0_seconds": round(s0, 2),
+            "td_seconds_per_frame": round(td, 5),
+            "hours": {str(w): round((s0 + frames * max(t1 / w, td)) / 3600, 2) for w in workers},
+            "driver_bound_above_workers": round(t1 / td) if td else None,
+        }
+    return model
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=48, help="frames for synth, pseudo-label")
@@ -290,7 +328,16 @@ def main() -> None:
     parser.add_argument("--sensor", default="kitti", help="sensor profile of the frames")
     parser.add_argument("--port", type=int, default=6390, help="port of the Ray head started")
     parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument(
+        "--model-only", action="store_true", help="only recompute the wall-time model of --out"
+    )
     args = parser.parse_args()
+    if args.model_only:
+        result = json.loads(args.out.read_text())
+        result["model_waymo_train"] = wall_time_model(result)
+        args.out.write_text(json.dumps(result, indent=2) + "\n")
+        print(json.dumps(result["model_waymo_train"], indent=2))
+        return
 
     import ray
 
@@ -350,6 +397,7 @@ def main() -> None:
         finally:
             stop_ray_head(head)
     result["machine"]["load_average_1m_end"] = load()
+    result["model_waymo_train"] = wall_time_model(result)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {args.out}")
