@@ -20,6 +20,7 @@ import argparse
 import json
 import os
 import platform
+import resource
 import signal
 import subprocess
 import sys
@@ -91,9 +92,10 @@ def run_stage(
     frames: int,
     address: str | None,
     sensor: str,
-) -> tuple[float, dict]:
+) -> tuple[float, float, dict]:
     """Run one stage as a user would (`dali ...` in a fresh process, --force); returns the
-    command's wall seconds and its manifest (wall_seconds = the stage's own build time)."""
+    command's wall and CPU seconds (its workers' included) and its manifest (wall_seconds = the
+    stage's own build time)."""
     from dali_cli.manifest import read_manifest
 
     dali = str(Path(sys.executable).with_name("dali"))
@@ -108,14 +110,23 @@ def run_stage(
     else:
         command = [dali, stage, "--target", str(paths["ppcg_target"]), "--boxes",
                    str(paths["ppcg_target"]), "--library", str(paths["library"]), "--no-progress"]  # fmt: skip
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
     started = time.perf_counter()
     done = subprocess.run(
         [*command, *engine_args, "--force", "--out", str(out)], capture_output=True, text=True
     )
     wall = time.perf_counter() - started
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if done.returncode:
         raise RuntimeError(f"{' '.join(command)} failed:\n{done.stdout}\n{done.stderr}")
-    return wall, read_manifest(out)
+    # CPU of the command and of the pool processes it reaped (Ray actors are the Ray node's
+    # children: their CPU comes from the manifest's per-worker record)
+    cpu = (after.ru_utime + after.ru_stime) - (usage.ru_utime + usage.ru_stime)
+    manifest = read_manifest(out)
+    if engine == "ray":
+        per_worker = (manifest.get("executor") or {}).get("per_worker", {})
+        cpu += sum(w.get("cpu_seconds", 0.0) for w in per_worker.values())
+    return wall, cpu, manifest
 
 
 def start_ray_head(port: int) -> tuple[subprocess.Popen, float]:
@@ -143,13 +154,17 @@ def start_ray_head(port: int) -> tuple[subprocess.Popen, float]:
     return head, time.perf_counter() - started
 
 
-def stop_ray_head(head: subprocess.Popen) -> None:
+def stop_ray_head(head: subprocess.Popen, port: int) -> None:
     """End the head and the processes it started (its own session: one process group)."""
     os.killpg(head.pid, signal.SIGTERM)
     try:
         head.wait(timeout=30)
     except subprocess.TimeoutExpired:
         os.killpg(head.pid, signal.SIGKILL)
+    # the head's record of "the cluster on this node" (what `ray stop` would remove), if ours
+    record = Path(tempfile.gettempdir()) / "ray" / "ray_current_cluster"
+    if record.is_file() and record.read_text().strip().endswith(f":{port}"):
+        record.unlink()
 
 
 def ray_overheads(ray, calls: int = 200) -> dict:
@@ -243,7 +258,7 @@ def measure(args, result: dict, paths: dict, root: Path, address: str) -> None:
             for repeat in range(args.repeats):
                 before = load()
                 out = root / "out" / f"{stage}-{engine}-{workers}-{repeat}"
-                wall, manifest = run_stage(
+                wall, cpu, manifest = run_stage(
                     stage, paths, out, engine, workers, frames, address, args.sensor
                 )
                 report = manifest.get("executor") or {}
@@ -252,6 +267,8 @@ def measure(args, result: dict, paths: dict, root: Path, address: str) -> None:
                     "command_seconds": round(wall, 3),
                     "stage_seconds": stage_wall,
                     "frames_per_second": round(frames / stage_wall, 3),
+                    "command_cpu_seconds": round(cpu, 3),
+                    "cpu_seconds_per_frame": round(cpu / frames, 4),
                     "load_before": before,
                     "load_after": load(),
                     "engine_startup_seconds": report.get("startup_seconds"),
@@ -270,6 +287,12 @@ def measure(args, result: dict, paths: dict, root: Path, address: str) -> None:
             one, two = rows[f"{engine}_1"], rows[f"{engine}_2"]
             rows[f"{engine}_speedup_2_vs_1"] = round(
                 two["frames_per_second"] / one["frames_per_second"], 3
+            )
+        for engine in ("local", "ray"):  # extra CPU the second worker costs (start-up, shards)
+            rows[f"{engine}_cpu_2_vs_1"] = round(
+                rows[f"{engine}_2"]["command_cpu_seconds"]
+                / rows[f"{engine}_1"]["command_cpu_seconds"],
+                3,
             )
         rows["ray_2_vs_serial"] = round(
             rows["ray_2"]["frames_per_second"] / rows["local_1"]["frames_per_second"], 3
@@ -371,7 +394,7 @@ def main() -> None:
         result["local_pool_overhead"] = pool_overhead()
         result["driver_merge"] = driver_merge(paths["ppcg_target"], root)
         started = time.perf_counter()  # what `--executor ray` without --ray-address starts
-        ray.init(num_cpus=2, include_dashboard=False, object_store_memory=128 * 2**20,
+        ray.init(address="local", num_cpus=2, include_dashboard=False, object_store_memory=128 * 2**20,
                  log_to_driver=False, logging_level="WARNING")  # fmt: skip
         local_init = time.perf_counter() - started
         started = time.perf_counter()
@@ -395,7 +418,7 @@ def main() -> None:
             ray.shutdown()
             measure(args, result, paths, root, address)
         finally:
-            stop_ray_head(head)
+            stop_ray_head(head, args.port)
     result["machine"]["load_average_1m_end"] = load()
     result["model_waymo_train"] = wall_time_model(result)
     args.out.parent.mkdir(parents=True, exist_ok=True)

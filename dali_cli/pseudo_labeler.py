@@ -141,9 +141,8 @@ class _LabelWorker:
     def run(self, shard, directory: Path) -> dict:
         """labels.npz of the shard: frame (index in the shard) per box, boxes, scores, counts;
         per frame: implausible boxes, detector seconds."""
-        from dali_cli.executors import naming_frames, stamp
+        from dali_cli.executors import naming_frames
 
-        started = time.perf_counter()
         frames = self.frames.iter_frames(range(shard.start, shard.stop))
         labels: list[FrameLabels] = []
         for batch_ids in self.labeler.batches(iter(shard.frame_ids)):
@@ -159,7 +158,7 @@ class _LabelWorker:
             implausible=[x.implausible for x in labels],
             seconds=[x.seconds for x in labels],
         )
-        return stamp({}, len(labels), started)
+        return {}
 
 
 def _read_labels(directory: Path, frame_ids: tuple[str, ...]) -> Iterator[FrameLabels]:

@@ -109,13 +109,18 @@ def worker_identity() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
-def stamp(summary: dict, frames: int, started: float) -> dict:
-    """A worker's shard summary with who ran it, how long, and the loads of its process so far."""
+def run_shard(worker: ShardWorker, shard: Shard, root: Path) -> dict:
+    """Run one shard on an engine's worker (every engine calls this, in the worker's process):
+    the worker's summary plus who ran it, its frames, wall and CPU seconds (all threads of the
+    process) and the loads of the process so far."""
+    wall, cpu = time.perf_counter(), time.process_time()
+    summary = worker.run(shard, shard_directory(root, shard))
     return {
-        **summary,
+        **(summary or {}),
         "worker": worker_identity(),
-        "frames": frames,
-        "seconds": time.perf_counter() - started,
+        "frames": len(shard.frame_ids),
+        "seconds": time.perf_counter() - wall,
+        "cpu_seconds": time.process_time() - cpu,
         "loads": dict(_loads),
     }
 
@@ -125,6 +130,7 @@ class WorkerRecord:
     shards: int = 0
     frames: int = 0
     seconds: float = 0.0
+    cpu_seconds: float = 0.0
     loads: dict = field(default_factory=dict)
 
 
@@ -230,6 +236,7 @@ class Executor:
         record.shards += 1
         record.frames += int(summary.get("frames", 0))
         record.seconds += float(summary.get("seconds", 0.0))
+        record.cpu_seconds += float(summary.get("cpu_seconds", 0.0))
         record.loads = dict(summary.get("loads", {}))
 
     def report(self) -> dict:
@@ -243,6 +250,7 @@ class Executor:
                     "shards": r.shards,
                     "frames": r.frames,
                     "busy_seconds": round(r.seconds, 3),
+                    "cpu_seconds": round(r.cpu_seconds, 3),
                     "loads": r.loads,
                 }
                 for worker, r in sorted(self.records.items())

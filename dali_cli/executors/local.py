@@ -8,7 +8,7 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, wait
 from pathlib import Path
 
-from dali_cli.executors import Executor, Shard, ShardWorker, shard_directory
+from dali_cli.executors import Executor, Shard, ShardWorker, run_shard
 
 _worker: ShardWorker | None = None  # the pool process's worker, made once by _start
 
@@ -19,7 +19,7 @@ def _start(factory: Callable[[], ShardWorker]) -> None:
 
 
 def _run(shard: Shard, root: str) -> dict:
-    return _worker.run(shard, shard_directory(Path(root), shard))
+    return run_shard(_worker, shard, Path(root))
 
 
 class LocalExecutor(Executor):
@@ -38,7 +38,7 @@ class LocalExecutor(Executor):
                 if self._stopping:
                     return
                 try:
-                    yield shard, worker.run(shard, shard_directory(directory, shard))
+                    yield shard, run_shard(worker, shard, directory)
                 except Exception as error:
                     yield shard, error
             return

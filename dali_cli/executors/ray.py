@@ -18,7 +18,7 @@ from pathlib import Path
 
 import click
 
-from dali_cli.executors import Executor, Shard, ShardWorker, shard_directory
+from dali_cli.executors import Executor, Shard, ShardWorker, run_shard
 
 RESTARTS = 2  # times Ray restarts a lost actor and retries its shard
 LOCAL_OBJECT_STORE_BYTES = 128 * 2**20  # only shards' small payloads and summaries travel
@@ -31,7 +31,7 @@ class _ShardActor:
         self.worker = factory()
 
     def run(self, shard: Shard, root: str) -> dict:
-        return self.worker.run(shard, shard_directory(Path(root), shard))
+        return run_shard(self.worker, shard, Path(root))
 
 
 def _import_ray():

@@ -111,10 +111,9 @@ class _ShardWorker:
     def run(self, shard, directory: Path) -> dict:
         """The shard's new frames (shard files) and records.npz: every BoxRecords field
         concatenated over its frames, the boxes per frame, compute and read seconds."""
-        from dali_cli.executors import naming_frames, stamp
+        from dali_cli.executors import naming_frames
         from dali_cli.executors.shards import ShardFramesWriter
 
-        started = time.perf_counter()
         writer = ShardFramesWriter(directory)
         results = self.state.run(list(range(shard.start, shard.stop)), list(shard.payload))
         columns: dict[str, list] = {f.name: [] for f in fields(BoxRecords)}
@@ -134,7 +133,7 @@ class _ShardWorker:
             for name, values in columns.items()
         }
         np.savez(directory / "records.npz", boxes=boxes, seconds=seconds, reads=reads, **arrays)
-        return stamp({}, len(shard.frame_ids), started)
+        return {}
 
 
 def _stored(values: np.ndarray) -> np.ndarray:
