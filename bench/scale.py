@@ -223,14 +223,16 @@ def driver_merge(frames_dir: Path, root: Path) -> dict:
     for compress in (True, False):
         out = root / f"merge-{compress}"
         out.mkdir()
-        started = time.perf_counter()
+        started, started_cpu = time.perf_counter(), time.process_time()
         with FrameSetWriter(out, frames.sensor, compress=compress) as merged:
             for shard in shards:
                 for frame_id, points in read_shard_frames(shard):
                     merged.append(frame_id, points)
         seconds = time.perf_counter() - started
+        cpu = time.process_time() - started_cpu
         key = "zstd" if compress else "raw"
         result[f"{key}_ms_per_frame"] = round(seconds / len(frames) * 1e3, 3)
+        result[f"{key}_cpu_ms_per_frame"] = round(cpu / len(frames) * 1e3, 3)
         result[f"{key}_seconds_per_million_points"] = round(seconds / frames.num_points * 1e6, 4)
     return result
 
@@ -308,33 +310,43 @@ def wall_time_model(result: dict, frames: int = WAYMO_TRAIN_FRAMES, workers=(1, 
 
         T(W) = s0 + frames * max(t1 / W, td)
 
-    t1 = one worker's busy seconds per frame (Ray x1 run: read + compute + shard write, one
-    core), s0 = the rest of that run's wall time (Ray connect, actor start, model load, the
-    driver's work that does not overlap the workers), td = the driver's merge seconds per frame
-    (zstd chunks for synth, raw for PPCG; pseudo-label merges boxes only: 0). Assumes workers on
-    cores of their own (no sharing), a filesystem that keeps up, and no straggler."""
+    t1 = one worker's seconds per frame (Ray x1 run: read + compute + shard write), s0 = the rest
+    of that run's wall time (Ray connect, actor start, model load, driver work that does not
+    overlap the workers), td = the driver's merge seconds per frame (zstd chunks for synth, raw
+    for PPCG; pseudo-label merges boxes only: 0). Two variants: "measured" uses wall seconds as
+    measured on this shared machine (contention inflates t1 and td alike); "dedicated_cores"
+    uses CPU seconds (t1: the worker's CPU per frame, all its threads; td: the merge's CPU), what
+    a worker with a core of its own would take. Both assume no straggler and a filesystem that
+    keeps up."""
     merge = result["driver_merge"]
-    driver = {
-        "synth": merge["zstd_ms_per_frame"] / 1e3,
-        "ppcg-rc": merge["raw_ms_per_frame"] / 1e3,
-        "ppcg-cf": merge["raw_ms_per_frame"] / 1e3,
-        "pseudo-label": 0.0,
-    }
     model = {"frames": frames, "formula": "T(W) = s0 + frames * max(t1 / W, td)", "stages": {}}
     for stage, rows in result["stages"].items():
         one = rows["ray_1"]
-        busy = sum(w["busy_seconds"] for w in one["per_worker"].values())
         count = result["frames"][stage]
-        t1 = busy / count
+        busy = sum(w["busy_seconds"] for w in one["per_worker"].values())
+        cpu = sum(w.get("cpu_seconds", float("nan")) for w in one["per_worker"].values())
         s0 = max(0.0, one["stage_seconds"] - busy)
-        td = driver[stage]
-        model["stages"][stage] = {
-            "t1_seconds_per_frame": round(t1, 4),
-            "s0_seconds": round(s0, 2),
-            "td_seconds_per_frame": round(td, 5),
-            "hours": {str(w): round((s0 + frames * max(t1 / w, td)) / 3600, 2) for w in workers},
-            "driver_bound_above_workers": round(t1 / td) if td else None,
+        key = {"synth": "zstd", "ppcg-rc": "raw", "ppcg-cf": "raw"}.get(stage)
+        variants = {
+            "measured": (busy / count, merge[f"{key}_ms_per_frame"] / 1e3 if key else 0.0),
+            "dedicated_cores": (
+                cpu / count,
+                merge.get(f"{key}_cpu_ms_per_frame", float("nan")) / 1e3 if key else 0.0,
+            ),
         }
+        entry = {"s0_seconds": round(s0, 2)}
+        for name, (t1, td) in variants.items():
+            if t1 != t1 or td != td:  # NaN: not measured (an older scale.json)
+                continue
+            entry[name] = {
+                "t1_seconds_per_frame": round(t1, 4),
+                "td_seconds_per_frame": round(td, 5),
+                "hours": {
+                    str(w): round((s0 + frames * max(t1 / w, td)) / 3600, 2) for w in workers
+                },
+                "driver_bound_above_workers": round(t1 / td, 1) if td else None,
+            }
+        model["stages"][stage] = entry
     return model
 
 
@@ -354,9 +366,23 @@ def main() -> None:
     parser.add_argument(
         "--model-only", action="store_true", help="only recompute the wall-time model of --out"
     )
+    parser.add_argument(
+        "--merge-only",
+        action="store_true",
+        help="only remeasure the driver merge (on --ppcg-frames frames) into --out, and the model",
+    )
     args = parser.parse_args()
-    if args.model_only:
+    if args.model_only or args.merge_only:
         result = json.loads(args.out.read_text())
+        if args.merge_only:
+            with tempfile.TemporaryDirectory(prefix="dali-scale-") as tmp:
+                paths = prepare(Path(tmp), 1, args.ppcg_frames, args.sensor)
+                result["driver_merge"] = {
+                    **driver_merge(paths["ppcg_target"], Path(tmp)),
+                    "load_average_1m": load(),
+                    "command": f"bench/scale.py --merge-only --ppcg-frames {args.ppcg_frames} "
+                    f"--sensor {args.sensor}",
+                }
         result["model_waymo_train"] = wall_time_model(result)
         args.out.write_text(json.dumps(result, indent=2) + "\n")
         print(json.dumps(result["model_waymo_train"], indent=2))
