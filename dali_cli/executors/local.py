@@ -3,7 +3,6 @@ on this machine (dali_cli.workers.process_pool: workers die with their parent)."
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, wait
 from pathlib import Path
@@ -46,13 +45,11 @@ class LocalExecutor(Executor):
 
         from dali_cli.workers import process_pool
 
-        started = time.perf_counter()
         count = min(self.workers, len(shards))
         click.echo(
             f"executor: local process pool, {count} worker(s), {len(shards)} shards", err=True
         )
-        pool = process_pool(count, _start, (factory,))
-        self.started_seconds = time.perf_counter() - started
+        pool = process_pool(count, _start, (factory,))  # processes start on first use
         try:
             queue = list(reversed(shards))
             running = {}
