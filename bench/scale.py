@@ -401,7 +401,7 @@ def main() -> None:
         + " ".join(
             f"--{k.replace('_', '-')} {v}"
             for k, v in vars(args).items()
-            if k != "out" and v is not None
+            if k != "out" and v is not None and v is not False
         ),
         "frames": {
             "synth": args.frames,
