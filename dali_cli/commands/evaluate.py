@@ -83,12 +83,16 @@ def _predict(model: str, data: str, scale: float, engine, out: Path | None) -> B
         raise click.ClickException(f"the detector is not available ({error})") from None
     from dali_cli.executors import run_on
 
-    where = None
-    if not engine.serial:
-        parent = Path(out).parent if out is not None else None
-        if parent is not None:
-            parent.mkdir(parents=True, exist_ok=True)
-        where = Path(tempfile.mkdtemp(prefix=".dali-eval-shards-", dir=parent))
+    if engine.serial:  # the reference path: in this process
+        return run_on(
+            engine,
+            "eval",
+            lambda _: predict_frameset(model, data, scale=scale, score_min=0.0, progress=True),
+        )
+    parent = Path(out).parent if out is not None else None
+    if parent is not None:
+        parent.mkdir(parents=True, exist_ok=True)
+    where = Path(tempfile.mkdtemp(prefix=".dali-eval-shards-", dir=parent))
     try:
         return run_on(
             engine,
@@ -99,8 +103,7 @@ def _predict(model: str, data: str, scale: float, engine, out: Path | None) -> B
             ),
         )  # fmt: skip
     finally:
-        if where is not None:
-            shutil.rmtree(where, ignore_errors=True)
+        shutil.rmtree(where, ignore_errors=True)
 
 
 def _write_atomically(path: Path, write) -> None:
