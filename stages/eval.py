@@ -71,16 +71,35 @@ def resolve_scale(scale: float | None, scale_from: str | Path | None) -> float:
     return float(value)
 
 
-def predict(model, data, scale: float, device, precision: str) -> BoxTable:
+def predict(model, data, scale: float, device, precision: str, engine=None, near=None) -> BoxTable:
     """Every prediction (all scores) of the model of `model` on the frame set `data`, on the
-    torch `device` at `precision`."""
+    torch `device` at `precision`, on `engine` (dali_cli.executors; None: this process); a
+    parallel engine's shards go to a temporary folder in `near` (workers must see it)."""
+    import shutil
+    import tempfile
+
     try:
         from dali_cli.detector import predict_frameset
     except ImportError as error:
         raise StageError(f"the detector is not available ({error})") from None
-    return predict_frameset(
-        model, data, scale=scale, score_min=0.0, progress=True, device=device, precision=precision
-    )
+    from dali_cli.executors import run_on
+
+    options = dict(scale=scale, score_min=0.0, progress=True, device=device, precision=precision)
+    if engine is None or engine.serial:  # the reference path: in this process
+        if engine is None:
+            return predict_frameset(model, data, **options)
+        return run_on(engine, "eval", lambda _: predict_frameset(model, data, **options))
+    if near is not None:
+        Path(near).mkdir(parents=True, exist_ok=True)
+    where = Path(tempfile.mkdtemp(prefix=".dali-eval-shards-", dir=near))
+    try:
+        return run_on(
+            engine,
+            "eval",
+            lambda pool: predict_frameset(model, data, executor=pool, shards_dir=where, **options),
+        )
+    finally:
+        shutil.rmtree(where, ignore_errors=True)
 
 
 def mean_box_size(table: BoxTable, class_name: str, score_min: float | None = None):
@@ -103,8 +122,9 @@ def check_ious(ious: tuple[float, ...]) -> None:
 
 
 def predictions_and_truth(
-    pred_path, gt_path, model, data, scale, scale_from, device="auto", precision="fp32"
-):
+    pred_path, gt_path, model, data, scale, scale_from, device="auto", precision="fp32",
+    engine=None, near=None,
+):  # fmt: skip
     """(pred, gt, frame ids evaluated or None, source record, gt path, runtime or None) from
     either the model route (`model` on `data`) or the table route (`pred_path` vs `gt_path`)."""
     frame_ids = runtime = None
@@ -119,7 +139,7 @@ def predictions_and_truth(
         chosen_scale = resolve_scale(scale, scale_from)
         frame_ids = FrameSet(data).frame_ids
         gt_path = Path(data) if gt_path is None else gt_path
-        pred = predict(model, data, chosen_scale, torch_device, precision)
+        pred = predict(model, data, chosen_scale, torch_device, precision, engine, near)
         source = {"model": str(model), "data": str(data), "scale": chosen_scale}
         runtime = {**inference_runtime(torch_device), "precision": precision}
     else:
@@ -154,6 +174,9 @@ def run_eval(
     save_predictions: bool = True,
     device: str = "auto",
     precision: str = "fp32",
+    executor: str = "local",
+    workers: int | None = 1,
+    ray_address: str | None = None,
     force: bool = False,
     dry_run: bool = False,
 ) -> EvalResult:
@@ -165,9 +188,13 @@ def run_eval(
         protocol=protocol, front_only=front_only, class_name=class_name,
         min_gt_points=min_gt_points,
     )  # fmt: skip
+    from dali_cli.executors import make_executor
+
     routes = dict(
         pred_path=pred_path, gt_path=gt_path, model=model, data=data, scale=scale,
         scale_from=scale_from, device=device, precision=precision,
+        engine=make_executor(executor, workers, ray_address),
+        near=Path(out).parent if out is not None else None,
     )  # fmt: skip
     inputs = {"model": model, "data": data, "pred": pred_path, "gt": gt_path, "scale": scale_from}
     if out is not None and Path(out).suffix != ".json":

@@ -23,16 +23,25 @@ def synth(
     sensors_path: str | None = None,
     force: bool = False,
     dry_run: bool = False,
+    executor: str = "local",
+    ray_address: str | None = None,
 ) -> StageOutcome:
     """`frames` scenes scanned with `sensor`'s pattern, cars sized by `cars_profile` (default:
-    the sensor's own); frame k depends only on (seed, k), whatever `workers` and `threads`."""
+    the sensor's own); frame k depends only on (seed, k), whatever the engine (`executor`,
+    `workers`, `ray_address`: dali_cli.executors) and `threads`."""
     from dali_cli.cores import available_cores
+    from dali_cli.executors import make_executor, run_on
     from dali_cli.sensors import get_profile
     from dali_cli.synth import build_synth
 
     sensor_profile = get_profile(sensor, sensors_path)
     cars = get_profile(cars_profile or sensor, sensors_path)
-    workers = workers or available_cores()
+    engine = make_executor(
+        executor,
+        workers or (available_cores() if executor == "local" else None),
+        ray_address,
+        cpus_per_worker=threads,
+    )
     params = {
         "sensor": sensor,
         "cars": cars.name,
@@ -49,7 +58,13 @@ def synth(
         out,
         {},
         params,
-        lambda tmp: build_synth(tmp, sensor_profile, cars, frames, seed, workers, threads=threads),
+        lambda tmp: run_on(
+            engine,
+            "synth",
+            lambda pool: build_synth(
+                tmp, sensor_profile, cars, frames, seed, threads=threads, executor=pool
+            ),
+        ),
         force=force,
         dry_run=dry_run,
         seed=seed,

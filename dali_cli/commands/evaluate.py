@@ -6,7 +6,12 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import device_options, stage_options
+from dali_cli.commands.common import (
+    device_options,
+    executor_options,
+    stage_options,
+    workers_option,
+)
 
 EPILOG = """\b
 Inputs (--pred, --gt): a box-table directory (boxes.parquet), a .parquet file, or a KITTI
@@ -127,6 +132,8 @@ the class (predictions: score >= --size-score-min) and, with --model, "scale").
     "predictions.parquet beside metrics.json (read by `dali report` for size plots).",
 )
 @device_options
+@workers_option("1")
+@executor_options
 @stage_options
 def command(
     pred_path,
@@ -146,10 +153,14 @@ def command(
     save_predictions,
     device,
     precision,
+    workers,
+    executor,
+    ray_address,
     force,
     dry_run,
 ):
-    """Average precision (KITTI protocol, BEV and 3D, float64 rotated IoU) of predictions."""
+    """Average precision (KITTI protocol, BEV and 3D, float64 rotated IoU) of predictions.
+    With --model, the detector runs on --executor with --workers."""
     from dali_cli.evaluate import format_table
     from stages.eval import run_eval
 
@@ -158,8 +169,8 @@ def command(
         scale_from=scale_from, ious=tuple(ious), size_score_min=size_score_min,
         recall_positions=int(recall_positions), protocol=protocol, front_only=front_only,
         class_name=class_name, min_gt_points=min_gt_points, out=out,
-        save_predictions=save_predictions, device=device, precision=precision, force=force,
-        dry_run=dry_run,
+        save_predictions=save_predictions, device=device, precision=precision, executor=executor,
+        workers=workers, ray_address=ray_address, force=force, dry_run=dry_run,
     )  # fmt: skip
     if result.status == "dry-run":
         return

@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import sensors_option, stage_options
+from dali_cli.commands.common import (
+    executor_options,
+    sensors_option,
+    stage_options,
+    workers_option,
+)
 
 
 @click.command(name="synth")
@@ -27,12 +32,8 @@ from dali_cli.commands.common import sensors_option, stage_options
     show_default=True,
     help="Run seed; frame k depends only on (seed, k).",
 )
-@click.option(
-    "--workers",
-    type=click.IntRange(min=1),
-    default=None,
-    help="Worker processes (default: cores available). The output does not depend on it.",
-)
+@workers_option("the cores available")
+@executor_options
 @click.option(
     "--threads",
     type=click.IntRange(min=1),
@@ -44,7 +45,18 @@ from dali_cli.commands.common import sensors_option, stage_options
 @sensors_option
 @stage_options
 def command(
-    sensor, cars_profile, frames, seed, workers, threads, out, sensors_path, force, dry_run
+    sensor,
+    cars_profile,
+    frames,
+    seed,
+    workers,
+    executor,
+    ray_address,
+    threads,
+    out,
+    sensors_path,
+    force,
+    dry_run,
 ):
     """Synthesize a labeled LiDAR domain: street scenes of 5-30 procedural cars with clutter
     (walls, poles, trees, bushes, curbs, containers), scanned with the full --sensor pattern.
@@ -62,6 +74,7 @@ def command(
     outcome = synth(
         out, sensor=sensor, cars_profile=cars_profile, frames=frames, seed=seed, workers=workers,
         threads=threads, sensors_path=sensors_path, force=force, dry_run=dry_run,
+        executor=executor, ray_address=ray_address,
     )  # fmt: skip
     if outcome.status == "ran":
         counts = outcome.manifest["outputs"]["counts"]
