@@ -32,7 +32,7 @@ _WRAPPED = (
     ("points_in_boxes", "dali_cli.ppcg.cf", None, "car_points"),
     ("select_models", "dali_cli.ppcg.models", "ModelBank", "select"),
     ("cf_windows", "dali_cli.ppcg.cf", None, "box_windows"),
-    ("cf_windows", "dali_cli.ppcg.cf", None, "window_rays"),
+    ("cf_windows", "dali_cli.ppcg.cf", None, "windows_directions"),
     ("cast_incl_embree", "dali_cli.ppcg.models", "ModelBank", "cast_many"),
     ("embree", "dali_cli.raycast", "Scene", "_trace"),
     ("assemble", "dali_cli.ppcg.rc", None, "assemble"),
@@ -57,13 +57,14 @@ class Phases:
 
     def __init__(self, record_traces: bool = False):
         self.seconds: dict[str, float] = {}
+        self.cpu_seconds: dict[str, float] = {}  # this thread's CPU time: steadier under load
         self.traces: list[tuple] = []  # (scene, origins, directions, tfar before the call)
         self.rays = 0
         self._record = record_traces
         self._stack = ExitStack()
 
     def _wrapper(self, phase: str):
-        seconds, phases = self.seconds, self
+        seconds, cpu_seconds, phases = self.seconds, self.cpu_seconds, self
 
         def wrap(original):
             def timed(*args, **kwargs):
@@ -71,12 +72,16 @@ class Phases:
                     scene, origins, directions, tfar = args
                     phases.rays += len(origins)
                     if phases._record:
-                        phases.traces.append((scene, origins.copy(), directions.copy(), tfar.copy()))
-                started = time.perf_counter()
+                        phases.traces.append(
+                            (scene, origins.copy(), directions.copy(), tfar.copy())
+                        )
+                started, started_cpu = time.perf_counter(), time.thread_time()
                 try:
                     return original(*args, **kwargs)
                 finally:
                     seconds[phase] = seconds.get(phase, 0.0) + time.perf_counter() - started
+                    cpu = time.thread_time() - started_cpu
+                    cpu_seconds[phase] = cpu_seconds.get(phase, 0.0) + cpu
 
             return timed
 
@@ -94,10 +99,11 @@ class Phases:
     def __exit__(self, *exc) -> None:
         self._stack.close()
 
-    def per_frame(self, frames: int, loop_seconds: float) -> dict:
+    def per_frame(self, frames: int, loop_seconds: float, cpu: bool = False) -> dict:
         """Seconds per frame of each phase (exclusive: the ray set-up excludes Embree), and
-        `other` = the frame loop minus all phases (bookkeeping)."""
-        s = dict(self.seconds)
+        `other` = the frame loop minus all phases (bookkeeping); `cpu`: CPU seconds of the
+        calling thread instead of wall seconds (then loop_seconds is CPU seconds too)."""
+        s = dict(self.cpu_seconds if cpu else self.seconds)
         cast = s.pop("cast_incl_embree", 0.0)
         s["ray_setup"] = max(cast - s.get("embree", 0.0), 0.0)
         s["other"] = max(loop_seconds - sum(s.values()), 0.0)
@@ -113,42 +119,44 @@ def _chunk_files(frames_dir: Path) -> tuple[list[Path], bool]:
     return files, "zstd" in codecs
 
 
-def floor_read(frames_dir: Path) -> float:
-    """Seconds to read, CRC-check and decode every points chunk of a frame set (module doc)."""
+def floor_read(frames_dir: Path) -> tuple[float, float]:
+    """(Wall, CPU) seconds to read, CRC-check and decode every points chunk of a frame set (module doc)."""
     import google_crc32c
     from numcodecs import Zstd
 
     files, compressed = _chunk_files(frames_dir)
-    started = time.perf_counter()
+    started, started_cpu = time.perf_counter(), time.process_time()
     for path in files:
-        data = path.read_bytes()
+        data = np.fromfile(path, dtype=np.uint8)  # one read into one buffer
         body = data[:-4]
-        if google_crc32c.value(body) != int.from_bytes(data[-4:], "little"):
+        if google_crc32c.value(body) != int.from_bytes(data[-4:].tobytes(), "little"):
             raise ValueError(f"{path}: checksum mismatch")
-        raw = Zstd().decode(body) if compressed else body
-        np.frombuffer(raw, np.float32)
-    return time.perf_counter() - started
+        np.frombuffer(Zstd().decode(body) if compressed else body, np.float32)
+    return time.perf_counter() - started, time.process_time() - started_cpu
 
 
-def floor_write(points: np.ndarray, chunk_points: int) -> float:
-    """Seconds to write `points` `(N, 4)` float32 as raw chunk files with a CRC-32C each."""
-    import google_crc32c
+def floor_write(points: np.ndarray, chunk_points: int) -> tuple[float, float]:
+    """(Wall, CPU) seconds to write `points` `(N, 4)` float32 as raw chunk files with a CRC-32C each (the
+    last one padded to a whole chunk, as the format stores it)."""
+    from dali_cli.raw_chunks import write_chunk
 
     points = np.ascontiguousarray(points, np.float32)
     with tempfile.TemporaryDirectory(prefix="dali-floor-") as tmp:
-        started = time.perf_counter()
+        started, started_cpu = time.perf_counter(), time.process_time()
         for number, first in enumerate(range(0, len(points), chunk_points)):
-            body = points[first : first + chunk_points].tobytes()
-            with open(Path(tmp) / str(number), "wb") as handle:
-                handle.write(body)
-                handle.write(google_crc32c.value(body).to_bytes(4, "little"))
-        return time.perf_counter() - started
+            chunk = points[first : first + chunk_points]
+            if len(chunk) < chunk_points:
+                chunk = np.concatenate(
+                    [chunk, np.zeros((chunk_points - len(chunk), 4), np.float32)]
+                )
+            write_chunk(Path(tmp) / str(number), chunk)
+        return time.perf_counter() - started, time.process_time() - started_cpu
 
 
-def floor_embree(traces: list[tuple]) -> float:
-    """Seconds of the recorded Embree calls replayed bare (fresh tfar each, BVHs cached)."""
+def floor_embree(traces: list[tuple]) -> tuple[float, float]:
+    """(Wall, CPU) seconds of the recorded Embree calls replayed bare (fresh tfar each, BVHs cached)."""
     fresh = [(scene, o, d, t.copy()) for scene, o, d, t in traces]
-    started = time.perf_counter()
+    started, started_cpu = time.perf_counter(), time.process_time()
     for scene, origins, directions, tfar in fresh:
         scene._scene.run(origins, directions, dists=tfar, output=1)
-    return time.perf_counter() - started
+    return time.perf_counter() - started, time.process_time() - started_cpu
