@@ -35,25 +35,12 @@ PAPER_S = {"kitti": {"rc": 0.40, "cf": 1.10}, "nuscenes": {"rc": 0.07, "cf": 0.2
 def make_frames(directory: Path, sensor: str, frames: int, seed: int) -> dict:
     """Synthesize `frames` frames of `sensor` with jittered labels as pseudo boxes."""
     from dali_cli.artifacts import BoxTable, FrameSetWriter, write_boxes, write_frameset
-    from dali_cli.sensors import get_profile
-    from dali_cli.synth import synth_frame
+    from pareto.data import jittered_frames
 
-    profile = get_profile(sensor)
-    rng = np.random.default_rng(seed)
-    data, ids, boxes = [], [], []
-    for index in range(frames):
-        frame = synth_frame(seed, index, profile, profile)
-        keep = frame.num_points >= 5
-        jittered = frame.boxes[keep].copy()
-        count = len(jittered)
-        jittered[:, :2] += rng.normal(0, 0.15, (count, 2))
-        jittered[:, 3:6] *= rng.uniform(0.94, 1.06, (count, 3))
-        jittered[:, 6] += np.radians(rng.normal(0, 3, count))
-        jittered[:, 6] = (jittered[:, 6] + np.pi) % (2 * np.pi) - np.pi
-        data.append((frame.frame_id, frame.points))
-        ids += [frame.frame_id] * count
-        boxes.append(jittered)
-    table = BoxTable.from_arrays(ids, np.concatenate(boxes))
+    made = jittered_frames(sensor, frames, seed)
+    data = [(frame_id, points) for frame_id, points, _ in made]
+    ids = [frame_id for frame_id, _, boxes in made for _ in range(len(boxes))]
+    table = BoxTable.from_arrays(ids, np.concatenate([boxes for _, _, boxes in made]))
     write_frameset(directory, data, sensor=sensor)
     write_boxes(directory, table)
     # the same frames stored uncompressed, to show what reading zstd chunks costs
@@ -66,7 +53,7 @@ def make_frames(directory: Path, sensor: str, frames: int, seed: int) -> dict:
     return {
         "frames": frames,
         "points_per_frame": float(np.mean([len(p) for _, p in data])),
-        "boxes_per_frame": float(np.mean([len(b) for b in boxes])),
+        "boxes_per_frame": float(np.mean([len(b) for _, _, b in made])),
     }
 
 
