@@ -34,8 +34,9 @@ PAPER_S = {"kitti": {"rc": 0.40, "cf": 1.10}, "nuscenes": {"rc": 0.07, "cf": 0.2
 
 def make_frames(directory: Path, sensor: str, frames: int, seed: int) -> dict:
     """Synthesize `frames` frames of `sensor` with jittered labels as pseudo boxes."""
-    from dali_cli.artifacts import BoxTable, FrameSetWriter, write_boxes, write_frameset
     from pareto.data import jittered_frames
+
+    from dali_cli.artifacts import BoxTable, FrameSetWriter, write_boxes, write_frameset
 
     made = jittered_frames(sensor, frames, seed)
     data = [(frame_id, points) for frame_id, points, _ in made]
