@@ -496,3 +496,27 @@ def test_cli_errors_name_the_file_frame_and_field(dataset, tmp_path):
         from stages.ppcg_rc import parse_range
 
         parse_range("20-50")
+
+
+def test_cf_with_the_calibrated_waymo_top_pattern_loses_no_ray():
+    """CF-PPCG on sensors.toml's waymo_top (non-uniform calibrated beams): the angular window
+    keeps every ray of the full pattern that hits the moved model (issue 20, item 2)."""
+    profile = get_profile("waymo_top")
+    box = on_ground(6.0, 0.0, (4.5, 1.8, 1.5), np.pi / 2)
+    box[2] = -profile.mount_height_m + box[5] / 2
+    points = scan(box[None], (1,))
+    params = CfParams(
+        theta_rad=angular_threshold_rad(profile.points_per_beam),
+        range_m=(20.0, 20.0),
+        ground_margin_m=0.0,
+    )
+    out, records = cf_frame("f", points, box[None], bank_of(2), profile, params)
+    new = out[len(out) - records.points_after[0] :, :3].astype(np.float64)
+    assert (np.abs(sensor_to_model(new, box) * box[3:6]) <= box[3:6] / 2 + 0.01).all()
+    moved = box.copy()
+    moved[:2] *= 20.0 / np.hypot(*box[:2])
+    directions = profile.ray_pattern().directions.astype(np.float64)
+    hits = cast_into_box(car(2).bvh(), np.zeros(3), directions, moved)
+    distance = np.where(hits.hit, hits.distance, np.inf)
+    expected = int(((distance >= profile.min_range_m) & (distance <= profile.max_range_m)).sum())
+    assert records.points_after[0] == expected > 50

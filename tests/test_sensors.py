@@ -163,3 +163,34 @@ def test_sensors_command_lists_profiles(tmp_path):
     bad = write_toml(tmp_path, GOOD.replace("beams = 4", "beams = -4"))
     result = runner.invoke(main, ["sensors", "--sensors", str(bad)])
     assert result.exit_code == 1 and "'beams'" in result.output and "Traceback" not in result.output
+
+
+def test_waymo_top_is_the_calibrated_non_uniform_pattern():
+    """sensors.toml's waymo_top: the TOP LiDAR's 64 calibrated beams (issue 20), not a uniform
+    stand-in: about -17.6 .. +2.5 deg, ~0.6 deg apart at the bottom, ~0.16 deg near the horizon."""
+    profile = get_profile("waymo_top")
+    elevations = np.asarray(profile.elevations_deg)
+    assert profile.beams == 64 and profile.points_per_beam == 2650
+    assert elevations[0] == pytest.approx(-17.5468) and elevations[-1] == pytest.approx(2.5028)
+    spacing = np.diff(elevations)
+    assert (spacing > 0).all()
+    assert spacing[:4].min() > 0.5 and spacing[-16:].max() < 0.2  # denser near the horizon
+    assert profile.mount_height_m == pytest.approx(2.184)
+
+
+def test_synth_scans_exactly_the_waymo_top_beams(tmp_path):
+    from dali_cli.artifacts import FrameSet
+
+    out = tmp_path / "w"
+    result = CliRunner().invoke(
+        main, ["synth", "--sensor", "waymo_top", "--frames", "1", "--seed", "3", "--out", str(out)]
+    )
+    assert result.exit_code == 0, result.output
+    xyz = FrameSet(out).frame(0)[:, :3].astype(np.float64)
+    elevation = np.degrees(np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1])))
+    beams = np.asarray(get_profile("waymo_top").elevations_deg)
+    nearest = np.abs(elevation[:, None] - beams[None]).min(axis=1)
+    assert len(xyz) > 10_000 and nearest.max() < 0.01  # every point on a calibrated beam
+    # beams below the horizon all reach the ground somewhere in a 360 degree scene
+    hit_beams = np.unique(np.abs(elevation[:, None] - beams[None]).argmin(axis=1))
+    assert set(np.flatnonzero(beams < -1.0)) <= set(hit_beams)

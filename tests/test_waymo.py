@@ -119,6 +119,31 @@ def ri_columns(component, ret, image):
     }
 
 
+def waymo_field_type(name: str, inferred: pa.DataType) -> pa.DataType:
+    """The Arrow type the dataset's v2 files use for a column (waymo_open_dataset/v2/
+    perception/*.py and column_types.py; vehicle poses are float32[16] in the released files)."""
+    if name == "key.laser_name" or name.endswith("].type"):
+        return pa.int8()
+    if name.endswith(".shape"):
+        return pa.list_(pa.int32(), 3)
+    if name.endswith("world_from_vehicle.transform"):
+        return pa.list_(pa.float32(), 16)
+    if name.endswith(".transform"):
+        return pa.list_(pa.float64(), 16)
+    if name.endswith("beam_inclination.values"):
+        return pa.list_(pa.float64())
+    if name.endswith(".values"):
+        return pa.list_(pa.float32())
+    return inferred
+
+
+def write_component(rows: list[dict], path: Path, **options) -> None:
+    """A v2 component file with the dataset's own column types (fixed-size lists included)."""
+    table = pa.Table.from_pylist(rows)
+    schema = pa.schema([pa.field(f.name, waymo_field_type(f.name, f.type)) for f in table.schema])
+    pq.write_table(table.cast(schema), path, **options)
+
+
 def write_v2(root: Path, frames, row_group_size=1) -> Path:
     """The five components of one segment as Waymo v2 Parquet files."""
     rows = []
@@ -135,8 +160,7 @@ def write_v2(root: Path, frames, row_group_size=1) -> Path:
             rows.append(row)
     for component in v2.COMPONENTS:
         (root / component).mkdir(parents=True, exist_ok=True)
-    pq.write_table(pa.Table.from_pylist(rows), root / "lidar" / f"{SEGMENT}.parquet",
-                   row_group_size=row_group_size)  # fmt: skip
+    write_component(rows, root / "lidar" / f"{SEGMENT}.parquet", row_group_size=row_group_size)
     calibration = [
         {"key.segment_context_name": SEGMENT, "key.laser_name": 1,
          "[LiDARCalibrationComponent].extrinsic.transform": TOP_EXTRINSIC.reshape(-1).tolist(),
@@ -149,16 +173,15 @@ def write_v2(root: Path, frames, row_group_size=1) -> Path:
          "[LiDARCalibrationComponent].beam_inclination.max": float(np.radians(30.0)),
          "[LiDARCalibrationComponent].beam_inclination.values": None},
     ]  # fmt: skip
-    pq.write_table(pa.Table.from_pylist(calibration),
-                   root / "lidar_calibration" / f"{SEGMENT}.parquet")  # fmt: skip
+    write_component(calibration, root / "lidar_calibration" / f"{SEGMENT}.parquet")
     poses = [{"key.segment_context_name": SEGMENT, "key.frame_timestamp_micros": f["stamp"],
               "[VehiclePoseComponent].world_from_vehicle.transform":
               frame_pose(i).reshape(-1).tolist()} for i, f in enumerate(frames)]  # fmt: skip
-    pq.write_table(pa.Table.from_pylist(poses), root / "vehicle_pose" / f"{SEGMENT}.parquet")
+    write_component(poses, root / "vehicle_pose" / f"{SEGMENT}.parquet")
     pixel = [{"key.segment_context_name": SEGMENT, "key.frame_timestamp_micros": f["stamp"],
               "key.laser_name": 1, **ri_columns("LiDARPoseComponent", 1, f["top1"][3])}
              for f in frames]  # fmt: skip
-    pq.write_table(pa.Table.from_pylist(pixel), root / "lidar_pose" / f"{SEGMENT}.parquet")
+    write_component(pixel, root / "lidar_pose" / f"{SEGMENT}.parquet")
     boxes = []
     for f in frames:
         for k, (box, kind) in enumerate(zip(BOXES_VEHICLE, BOX_TYPES, strict=True)):
@@ -170,7 +193,7 @@ def write_v2(root: Path, frames, row_group_size=1) -> Path:
                 "[LiDARBoxComponent].box.heading": box[6], "[LiDARBoxComponent].type": int(kind),
                 "[LiDARBoxComponent].num_lidar_points_in_box": 100 + k,
                 "[LiDARBoxComponent].num_top_lidar_points_in_box": 90 + k})  # fmt: skip
-    pq.write_table(pa.Table.from_pylist(boxes), root / "lidar_box" / f"{SEGMENT}.parquet")
+    write_component(boxes, root / "lidar_box" / f"{SEGMENT}.parquet")
     return root
 
 

@@ -12,6 +12,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 
 from dali_cli.importers.waymo.frame import (
@@ -81,12 +82,23 @@ def _read(path: Path, columns: list[str], segment: str) -> dict[str, list]:
 
 class ListColumn:
     """A list<number> column of an Arrow table, row slices as numpy views (no Python lists:
-    a TOP range image has 678,400 values)."""
+    a TOP range image has 678,400 values). Accepts variable-size lists (`values`:
+    list<float>) and fixed-size lists (`shape`: list<int32, 3>, transforms: list<float, 16>),
+    the types the dataset's component definitions and its files use."""
 
     def __init__(self, table, name: str):
         column = table.column(name).combine_chunks()
         self.valid = ~np.asarray(column.is_null().to_numpy(zero_copy_only=False), bool)
-        self.offsets = np.asarray(column.offsets.to_numpy(), np.int64)
+        if pa.types.is_fixed_size_list(column.type):
+            # no offsets buffer: row r holds values[(offset + r) * size, (offset + r + 1) * size)
+            size = column.type.list_size
+            self.offsets = (np.arange(len(column) + 1, dtype=np.int64) + column.offset) * size
+        elif pa.types.is_list(column.type) or pa.types.is_large_list(column.type):
+            self.offsets = np.asarray(column.offsets.to_numpy(), np.int64)
+        else:
+            raise WaymoFormatError(
+                f"column {name}: expected a list of numbers, found {column.type}"
+            )
         self.values = column.values.to_numpy(zero_copy_only=False)
 
     def __getitem__(self, row: int):
