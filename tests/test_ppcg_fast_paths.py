@@ -99,7 +99,7 @@ def _random_windows(rng, count):
     return box_windows(boxes)
 
 
-@pytest.mark.parametrize("sensor", ["kitti", "nuscenes", "waymo"])
+@pytest.mark.parametrize("sensor", ["kitti", "nuscenes", "waymo", "waymo_top"])
 def test_windows_directions_equal_window_rays_box_by_box(sensor):
     profile = get_profile(sensor)
     windows = _random_windows(np.random.default_rng(4), 40)
