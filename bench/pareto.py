@@ -93,7 +93,7 @@ def plot(results: dict) -> None:
     if "raycast" in results:
         points = results["raycast"]["points"]
         for p in points:
-            p["us_per_1000_rays"] = 1e9 / p["rays_per_second"]
+            p["us_per_1000_rays"] = 1e9 / p["rays_per_cpu_second"]
         front_plot(
             PLOTS / "raycast.png",
             "Ray casting: PPCG's casts on an exact box at 1-150 m",
@@ -101,7 +101,7 @@ def plot(results: dict) -> None:
             "us_per_1000_rays",
             "error_mm_p999_all_rays",
             lambda p: f"{'robust' if p['robust'] else 'fast'}, {p['setup']} set-up",
-            "microseconds per 1000 rays (1 thread)",
+            "CPU microseconds per 1000 rays (1 thread)",
             "hit error, 99.9th percentile of all rays (mm)",
             note,
             logy=True,
@@ -112,23 +112,23 @@ def plot(results: dict) -> None:
             PLOTS / "ppcg_mesh_detail.png",
             "PPCG: mesh detail (RC casts vs the 67k-triangle car)",
             ppcg["mesh_detail"],
-            "rc_ms_per_frame",
+            "rc_cpu_ms_per_frame",
             "surface_error_mm_p95",
             lambda p: f"{p['mean_triangles'] / 1000:.0f}k tri",
-            "RC compute ms per KITTI-like frame",
+            "RC compute, CPU ms per KITTI-like frame",
             "surface error of RC points, 95th percentile (mm)",
             note,
         )
         for p in ppcg["library_size"]:
-            p["rc_cf_ms_per_frame"] = p["rc_ms_per_frame"] + p["cf_ms_per_frame"]
+            p["rc_cf_cpu_ms_per_frame"] = p["rc_cpu_ms_per_frame"] + p["cf_cpu_ms_per_frame"]
         front_plot(
             PLOTS / "ppcg_library_size.png",
             "PPCG: library size (procedural cars)",
             ppcg["library_size"],
-            "rc_cf_ms_per_frame",
+            "rc_cf_cpu_ms_per_frame",
             "size_fit_error_percent",
             lambda p: f"{p['cars']} cars",
-            "RC + CF compute ms per KITTI-like frame",
+            "RC + CF compute, CPU ms per KITTI-like frame",
             "size mismatch of the selected model (mean |model/box - 1|, %)",
             note,
         )
