@@ -118,6 +118,7 @@ def plot(results: dict) -> None:
             "RC compute, CPU ms per KITTI-like frame",
             "surface error of RC points, 95th percentile (mm)",
             note,
+            logy=True,
         )
         for p in ppcg["library_size"]:
             p["rc_cf_cpu_ms_per_frame"] = p["rc_cpu_ms_per_frame"] + p["cf_cpu_ms_per_frame"]
@@ -257,7 +258,10 @@ def main() -> None:
         previous.update({k: v for k, v in results.items() if k != "command"})
         results = previous
     if not args.quick:
+        from pareto.tables import markdown
+
         plot(results)
+        (PLOTS / "tables.md").write_text(markdown(results))
     results_path.write_text(json.dumps(results, indent=2) + "\n")
     print(f"wrote {results_path}")
 

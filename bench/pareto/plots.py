@@ -69,13 +69,18 @@ def front_plot(
     if logx:
         axes.set_xscale("log")
     if logy:
-        axes.set_yscale("symlog", linthresh=1e-4)
+        positive = [y for _, y in pairs if y > 0]
+        if len(positive) == len(pairs):
+            axes.set_yscale("log")
+        else:  # a zero error (the reference itself) stays on the plot
+            axes.set_yscale("symlog", linthresh=min(positive, default=1.0) / 2)
     axes.set_xlabel(xlabel)
     axes.set_ylabel(ylabel)
     axes.set_title(title, fontsize=10)
     if note:
         figure.text(0.01, 0.01, note, fontsize=6, color="0.3")
-    axes.legend(fontsize=7, loc="upper right")
+    axes.legend(fontsize=7, loc="best")
+    axes.margins(x=0.15, y=0.12)
     axes.grid(alpha=0.3)
     figure.tight_layout(rect=(0, 0.03, 1, 1))
     path.parent.mkdir(parents=True, exist_ok=True)
