@@ -106,7 +106,7 @@ def mesh_detail(frames, sensor: str, cars: int, repeats: int) -> list[dict]:
 
     profile, rc_params, cf_params = _params(sensor)
     reference = cad_bank(cars, DETAIL_LODS[-1])
-    _warm(reference)
+    reference_build = _warm(reference)
     cast_sets = [_rc_rays(frame, rc_params) for frame in frames]
     chosen = [reference.select(boxes) for boxes, _, _ in cast_sets]
 
@@ -120,7 +120,7 @@ def mesh_detail(frames, sensor: str, cars: int, repeats: int) -> list[dict]:
     points = []
     for lod in DETAIL_LODS:
         bank = reference if lod == DETAIL_LODS[-1] else cad_bank(cars, lod)
-        build = _warm(bank) if bank is not reference else None
+        build = _warm(bank) if bank is not reference else reference_build
         triangles = float(np.mean([len(faces) for _, faces in bank.meshes]))
         errors, fits, changed, rays = [], [], 0, 0
         for (hit, xyz), (hit_full, xyz_full), (boxes, _, bounds) in zip(
