@@ -182,6 +182,9 @@ def main() -> None:
     parser.add_argument(
         "--frames", type=int, default=None, help="PPCG frames (default 12; 3 quick)"
     )
+    parser.add_argument(
+        "--ptsn-frames", type=int, default=16, help="target frames for PTSN and the detector"
+    )
     parser.add_argument("--model", default=None)
     parser.add_argument("--target", default=None)
     parser.add_argument("--target-val", default=None)
@@ -238,19 +241,24 @@ def main() -> None:
         results["model"] = {"model": str(model), "target": str(target), "target_val": str(target_val),
                             "built_with": commands}  # fmt: skip
         data = f" --model {model} --target {target} --target-val {target_val}"
+        data += f" --ptsn-frames {args.ptsn_frames}"
         if "ptsn" in only:
             from pareto import ptsn_front
 
             results["ptsn"] = section(
                 "ptsn", 0, 1, f"{base} --only ptsn{data}",
-                lambda: ptsn_front.measure(model, target, "kitti", quick=args.quick),
+                lambda: ptsn_front.measure(
+                    model, target, "kitti", quick=args.quick, frames=args.ptsn_frames
+                ),
             )  # fmt: skip
         if "detector" in only:
             from pareto import detector_front
 
             results["detector"] = section(
                 "detector", 0, 1, f"{base} --only detector{data}",
-                lambda: detector_front.measure(model, target_val, "kitti", quick=args.quick),
+                lambda: detector_front.measure(
+                    model, target_val, "kitti", quick=args.quick, frames=args.ptsn_frames
+                ),
             )  # fmt: skip
     results_path.parent.mkdir(parents=True, exist_ok=True)
     if results_path.is_file() and set(only) != set(FRONTS):  # keep the other fronts of a full run

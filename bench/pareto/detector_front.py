@@ -21,7 +21,7 @@ def _ap(metrics: dict, key: str) -> float | None:
     return None if value is None else float(value)
 
 
-def measure(model_dir, val_dir, sensor: str, quick: bool = False) -> dict:
+def measure(model_dir, val_dir, sensor: str, quick: bool = False, frames=None) -> dict:
     import torch
 
     from dali_cli.artifacts import BoxTable, FrameSet, read_boxes
@@ -31,8 +31,9 @@ def measure(model_dir, val_dir, sensor: str, quick: bool = False) -> dict:
 
     detector = Detector.load(model_dir)
     base = detector.config
-    frames = list(FrameSet(val_dir).iter_frames())
+    frames = list(FrameSet(val_dir).iter_frames())[:frames]
     gt = read_boxes(val_dir)
+    gt = gt.select(np.isin(gt.frame_id.astype(str), [frame_id for frame_id, _ in frames]))
     mount = get_profile(sensor).mount_height_m
     default_threads = torch.get_num_threads()
     defaults = {

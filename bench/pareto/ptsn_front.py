@@ -40,8 +40,8 @@ def _shared_cache_class():
     return SharedCache
 
 
-def load_frames(model_dir, target_dir, scale_low: float, scale_high: float):
-    """The detector and the target's frames cropped as ptsn-sweep crops them."""
+def load_frames(model_dir, target_dir, scale_low: float, scale_high: float, limit=None):
+    """The detector and the target's (first `limit`) frames cropped as ptsn-sweep crops them."""
     from dali_cli import ptsn
     from dali_cli.artifacts import FrameSet
     from dali_cli.detector import Detector
@@ -52,18 +52,18 @@ def load_frames(model_dir, target_dir, scale_low: float, scale_high: float):
     frames = [
         ptsn.crop_for_scales(points, bev, scale_low, scale_high)
         for _, points in FrameSet(target_dir).iter_frames()
-    ]
+    ][:limit]
     return detector, frames
 
 
-def measure(model_dir, target_dir, sensor: str, quick: bool = False) -> dict:
+def measure(model_dir, target_dir, sensor: str, quick: bool = False, frames=None) -> dict:
     import time
 
     from dali_cli import ptsn
     from dali_cli.sensors import get_profile
 
     low, high = 0.8, 1.4
-    detector, frames = load_frames(model_dir, target_dir, low, high)
+    detector, frames = load_frames(model_dir, target_dir, low, high, frames)
     profile = get_profile(sensor)
     target_lwh = np.asarray(profile.car_mean_lwh_m, np.float64)
     shared = ptsn.DetectionCache(detector, frames, score_min=0.3, mount_height_m=None)
@@ -105,7 +105,9 @@ def measure(model_dir, target_dir, sensor: str, quick: bool = False) -> dict:
     variants += [("bracket", 0.01, None, 16), ("bracket", 0.02, None, 16)]
     if not quick:
         variants += [("bracket", 0.05, None, 16), ("bracket", 0.01, None, 8)]
-        variants += [("bracket", 0.01, n, min(16, n)) for n in (10, 20) if n < len(frames)]
+        variants += [
+            ("bracket", 0.01, n, min(16, n)) for n in (len(frames) // 4, len(frames) // 2) if n
+        ]
     points = [run(*variant) for variant in variants]
     per_pass = shared.seconds / max(shared.frame_passes, 1)
     reference = points[0]["scale"]
