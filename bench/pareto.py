@@ -71,6 +71,17 @@ def ensure_model(args) -> tuple[Path, Path, Path, list[str]]:
     return model, run / "target", run / "target_val", commands
 
 
+def save(results: dict, path: Path, fronts: list[str]) -> dict:
+    """Write `results` to `path`, merged into what a run of other fronts left there."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.is_file() and set(fronts) != set(FRONTS):
+        previous = json.loads(path.read_text())
+        previous.update({k: v for k, v in results.items() if k != "command"})
+        results = previous
+    path.write_text(json.dumps(results, indent=2) + "\n")
+    return results
+
+
 def section(name: str, threads: int, repeats: int, command: str, measure) -> dict:
     print(f"== {name}", file=sys.stderr, flush=True)
     started, load = time.perf_counter(), load_average()
@@ -153,7 +164,7 @@ def plot(results: dict) -> None:
             logx=True,
         )
     if "detector" in results:
-        points = results["detector"]["points"]
+        points = [p for p in results["detector"]["points"] if "error" not in p]
         for p in points:
             p["ap_loss"] = 100.0 - (p["ap3d_07_all"] or 0.0)
         front_plot(
@@ -251,6 +262,7 @@ def main() -> None:
                     model, target, "kitti", quick=args.quick, frames=args.ptsn_frames
                 ),
             )  # fmt: skip
+            save(results, results_path, only)  # a later front's crash keeps this one
         if "detector" in only:
             from pareto import detector_front
 
@@ -260,11 +272,7 @@ def main() -> None:
                     model, target_val, "kitti", quick=args.quick, frames=args.ptsn_frames
                 ),
             )  # fmt: skip
-    results_path.parent.mkdir(parents=True, exist_ok=True)
-    if results_path.is_file() and set(only) != set(FRONTS):  # keep the other fronts of a full run
-        previous = json.loads(results_path.read_text())
-        previous.update({k: v for k, v in results.items() if k != "command"})
-        results = previous
+    results = save(results, results_path, only)
     if not args.quick:
         from pareto.tables import markdown
 

@@ -67,8 +67,14 @@ def measure(model_dir, val_dir, sensor: str, quick: bool = False, frames=None) -
             )
             ids, boxes, scores = [], [], []
             started = time.perf_counter()
-            with autocast:
-                results = detector.predict([p for _, p in frames], mount_height_m=mount)
+            try:
+                with autocast:
+                    results = detector.predict([p for _, p in frames], mount_height_m=mount)
+            except Exception as error:  # a knob combination that does not run is a result too
+                points.append(
+                    {**variant, "default": False, "error": f"{type(error).__name__}: {error}"}
+                )
+                continue
             seconds = (time.perf_counter() - started) / len(frames)
             for (frame_id, _), (frame_boxes, frame_scores) in zip(frames, results, strict=True):
                 ids += [frame_id] * len(frame_boxes)

@@ -144,8 +144,9 @@ def markdown(results: dict) -> str:
         r = results["detector"]
         out += ["## Detector (inference knobs, one checkpoint)", "", _machine(r),
                 f"{r['frames']} validation frames.", ""]  # fmt: skip
+        failed = [p for p in r["points"] if "error" in p]
         out += _table(
-            r["points"],
+            [p for p in r["points"] if "error" not in p],
             [
                 ("second stage", lambda p: "on" if p["refine"] else "off"),
                 ("flip test", lambda p: "on" if p["flip_test"] else "off"),
@@ -158,5 +159,11 @@ def markdown(results: dict) -> str:
             "seconds_per_frame",
             "ap_loss",
         )
+        for p in failed:
+            out.append(
+                f"\nFailed: second stage {'on' if p['refine'] else 'off'}, flip "
+                f"{'on' if p['flip_test'] else 'off'}, {p['precision']}, {p['threads']} threads: "
+                f"`{p['error']}`"
+            )
         out.append("")
     return "\n".join(out) + "\n"
