@@ -74,6 +74,13 @@ MINUTES        ?=
 RETRAIN_EPOCHS ?= $(EPOCHS)
 # extra pretrain/retrain flags, e.g. TRAIN_FLAGS="--threads 1" for `make -j2` on a 2-core machine
 TRAIN_FLAGS    ?=
+# NPROC=N: pretrain, retrain and self-train run as N data-parallel processes under torchrun
+# (DDP: gloo on the CPU, nccl on GPUs; --batch-size frames per process; rank 0 writes the model).
+# Unset: one process, as before. DEVICE=cuda (or cpu, cuda:N) is passed to every model stage.
+NPROC          ?=
+DEVICE         ?=
+TRAIN_DALI      = $(if $(NPROC),$(BIN)/torchrun --standalone --nproc-per-node $(NPROC) $(DALI),$(DALI))
+DEVICE_FLAG     = $(if $(DEVICE),--device $(DEVICE))
 # --minutes makes results depend on the machine and its load; epochs (the default) do not
 TRAIN_BUDGET    = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(EPOCHS))
 RETRAIN_BUDGET  = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(RETRAIN_EPOCHS))
@@ -101,29 +108,29 @@ data: $(SOURCE)/manifest.json $(TARGET)/manifest.json $(TARGET_VAL)/manifest.jso
 
 # iteration 0: the source-only detector
 $(RUN)/iter0/model/manifest.json: $(SOURCE)/manifest.json
-	$(DALI) pretrain --source $(SOURCE) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) --out $(@D)
+	$(TRAIN_DALI) pretrain --source $(SOURCE) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/iter0/eval/metrics.json: $(RUN)/iter0/model/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) --out $@
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) --out $@
 $(RUN)/iter0/eval_ptsn/metrics.json: $(RUN)/iter1/ptsn/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale-from $(RUN)/iter1/ptsn $(EVAL_FLAGS) --out $@
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale-from $(RUN)/iter1/ptsn $(EVAL_FLAGS) --out $@
 iter0: $(RUN)/iter0/eval/metrics.json $(RUN)/iter0/eval_ptsn/metrics.json
 
 # ptsn-sweep N uses model N-1 (ITER_PTSN), iteration N builds model N (ITER)
 define ITER_PTSN
 $(RUN)/iter$(1)/ptsn/manifest.json: $(RUN)/iter$(2)/model/manifest.json $(TARGET)/manifest.json
-	$(DALI) ptsn-sweep --model $(RUN)/iter$(2)/model --target $(TARGET) --expected-size $(EXPECTED) --score-min $(SCORE_MIN) --seed $(SEED) --out $$(@D)
+	$(DALI) ptsn-sweep $(DEVICE_FLAG) --model $(RUN)/iter$(2)/model --target $(TARGET) --expected-size $(EXPECTED) --score-min $(SCORE_MIN) --seed $(SEED) --out $$(@D)
 endef
 define ITER
 $(RUN)/iter$(1)/pseudo/manifest.json: $(RUN)/iter$(1)/ptsn/manifest.json
-	$(DALI) pseudo-label --model $(RUN)/iter$(2)/model --target $(TARGET) --scale-from $(RUN)/iter$(1)/ptsn --score-min $(SCORE_MIN) --out $$(@D)
+	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(RUN)/iter$(2)/model --target $(TARGET) --scale-from $(RUN)/iter$(1)/ptsn --score-min $(SCORE_MIN) --out $$(@D)
 $(RUN)/iter$(1)/rc/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
 	$(DALI) ppcg-rc --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) --out $$(@D)
 $(RUN)/iter$(1)/cf/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
 	$(DALI) ppcg-cf --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) --out $$(@D)
 $(RUN)/iter$(1)/model/manifest.json: $(RUN)/iter$(1)/rc/manifest.json $(RUN)/iter$(1)/cf/manifest.json $(SOURCE)/manifest.json
-	$(DALI) retrain --init $(RUN)/iter$(2)/model --source $(SOURCE) --ppcg $(RUN)/iter$(1)/rc $(RUN)/iter$(1)/cf --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) --out $$(@D)
+	$(TRAIN_DALI) retrain --init $(RUN)/iter$(2)/model --source $(SOURCE) --ppcg $(RUN)/iter$(1)/rc $(RUN)/iter$(1)/cf --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $$(@D)
 $(RUN)/iter$(1)/eval/metrics.json: $(RUN)/iter$(3)/ptsn/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval --model $(RUN)/iter$(1)/model --data $(TARGET_VAL) --scale-from $(RUN)/iter$(3)/ptsn $(EVAL_FLAGS) --out $$@
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter$(1)/model --data $(TARGET_VAL) --scale-from $(RUN)/iter$(3)/ptsn $(EVAL_FLAGS) --out $$@
 iter$(1): iter$(2) $(RUN)/iter$(1)/eval/metrics.json
 .PHONY: iter$(1)
 endef
@@ -132,47 +139,47 @@ $(foreach n,1 2 3 4 5,$(eval $(call ITER,$(n),$(shell echo $$(( $(n) - 1 ))),$(s
 
 # Baselines and ablations for the results table (make experiment)
 $(RUN)/baselines/sn/model/manifest.json: $(SOURCE)/manifest.json
-	$(DALI) pretrain --source $(SOURCE) --size-norm sn --target-profile $(SENSOR) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) --out $(@D)
+	$(TRAIN_DALI) pretrain --source $(SOURCE) --size-norm sn --target-profile $(SENSOR) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/ros/model/manifest.json: $(SOURCE)/manifest.json
-	$(DALI) pretrain --source $(SOURCE) --size-norm ros --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) --out $(@D)
+	$(TRAIN_DALI) pretrain --source $(SOURCE) --size-norm ros --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/oracle/model/manifest.json: $(TARGET)/manifest.json
-	$(DALI) pretrain --source $(TARGET) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) --out $(@D)
+	$(TRAIN_DALI) pretrain --source $(TARGET) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/rc_only/model/manifest.json: $(RUN)/iter1/rc/manifest.json $(SOURCE)/manifest.json
-	$(DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/rc --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) --out $(@D)
+	$(TRAIN_DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/rc --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/cf_only/model/manifest.json: $(RUN)/iter1/cf/manifest.json $(SOURCE)/manifest.json
-	$(DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/cf --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) --out $(@D)
+	$(TRAIN_DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/cf --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/%/eval/metrics.json: $(RUN)/baselines/%/model/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) --out $@
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) --out $@
 $(RUN)/baselines/%/ptsn/manifest.json: $(RUN)/baselines/%/model/manifest.json $(TARGET)/manifest.json
-	$(DALI) ptsn-sweep --model $(RUN)/baselines/$*/model --target $(TARGET) --expected-size $(EXPECTED) --score-min $(SCORE_MIN) --seed $(SEED) --out $(@D)
+	$(DALI) ptsn-sweep $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --target $(TARGET) --expected-size $(EXPECTED) --score-min $(SCORE_MIN) --seed $(SEED) --out $(@D)
 $(RUN)/baselines/%/eval_ptsn/metrics.json: $(RUN)/baselines/%/ptsn/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale-from $(RUN)/baselines/$*/ptsn $(EVAL_FLAGS) --out $@
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale-from $(RUN)/baselines/$*/ptsn $(EVAL_FLAGS) --out $@
 # controls: as many training frames as DALI's models saw (pretrain E epochs, each retrain 2 x RE
 # epochs of source + PPCG): source only with x1's budget (+ test-time PTSN), oracle with x2's
 X1_BUDGET = $(if $(MINUTES),--minutes $$(( 2 * $(MINUTES) )),--epochs $$(( $(EPOCHS) + 2 * $(RETRAIN_EPOCHS) )))
 X2_BUDGET = $(if $(MINUTES),--minutes $$(( 3 * $(MINUTES) )),--epochs $$(( $(EPOCHS) + 4 * $(RETRAIN_EPOCHS) )))
 $(RUN)/baselines/source_x1_budget/model/manifest.json: $(SOURCE)/manifest.json
-	$(DALI) pretrain --source $(SOURCE) --seed $(SEED) $(X1_BUDGET) $(TRAIN_FLAGS) --out $(@D)
+	$(TRAIN_DALI) pretrain --source $(SOURCE) --seed $(SEED) $(X1_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/source_x2_budget/model/manifest.json: $(SOURCE)/manifest.json
-	$(DALI) pretrain --source $(SOURCE) --seed $(SEED) $(X2_BUDGET) $(TRAIN_FLAGS) --out $(@D)
+	$(TRAIN_DALI) pretrain --source $(SOURCE) --seed $(SEED) $(X2_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/oracle_x2_budget/model/manifest.json: $(TARGET)/manifest.json
-	$(DALI) pretrain --source $(TARGET) --seed $(SEED) $(X2_BUDGET) $(TRAIN_FLAGS) --out $(@D)
+	$(TRAIN_DALI) pretrain --source $(TARGET) --seed $(SEED) $(X2_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 # self-training (the paper's ‡): fine-tune x2 on the target with its own pseudo labels at its PTSN
 # scale (iter3/ptsn, iter3/pseudo), in that scaled frame, and evaluate at the same scale
 ST_EPOCHS ?= $(RETRAIN_EPOCHS)
 ST_FLAGS  ?= --lr 1e-3
 ST_BUDGET  = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(ST_EPOCHS))
 $(RUN)/iter2_st/model/manifest.json: $(RUN)/iter3/pseudo/manifest.json $(TARGET)/manifest.json
-	$(DALI) self-train --init $(RUN)/iter2/model --target $(TARGET) --pseudo $(RUN)/iter3/pseudo --seed $(SEED) $(ST_BUDGET) $(ST_FLAGS) $(TRAIN_FLAGS) --out $(@D)
+	$(TRAIN_DALI) self-train --init $(RUN)/iter2/model --target $(TARGET) --pseudo $(RUN)/iter3/pseudo --seed $(SEED) $(ST_BUDGET) $(ST_FLAGS) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/iter2_st/eval/metrics.json: $(RUN)/iter2_st/model/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval --model $(RUN)/iter2_st/model --data $(TARGET_VAL) --scale-from $(RUN)/iter3/ptsn $(EVAL_FLAGS) --out $@
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter2_st/model --data $(TARGET_VAL) --scale-from $(RUN)/iter3/ptsn $(EVAL_FLAGS) --out $@
 # KITTI easy / moderate / hard of the same predictions (synthetic labels carry KITTI's columns)
 KITTI_EVAL_FLAGS ?= --protocol kitti --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
 $(RUN)/%/metrics_kitti.json: $(RUN)/%/metrics.json
 	$(DALI) eval --pred $(RUN)/$*/predictions.parquet --gt $(TARGET_VAL) $(KITTI_EVAL_FLAGS) --out $@
 # cross-domain check: every model on the source validation set at s = 1
 $(RUN)/%/eval_source/metrics.json: $(RUN)/%/model/manifest.json $(RUN)/data/source_val/manifest.json
-	$(DALI) eval --model $(RUN)/$*/model --data $(RUN)/data/source_val --scale 1.0 $(EVAL_FLAGS) --out $@
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/$*/model --data $(RUN)/data/source_val --scale 1.0 $(EVAL_FLAGS) --out $@
 
 # phony goals (evaluated inside the sub-make, so they follow its RUN)
 baseline-sn: $(RUN)/baselines/sn/eval/metrics.json

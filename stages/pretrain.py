@@ -85,13 +85,24 @@ def fit_and_save(
     notes: list[str],
     load_s: float,
     progress: bool,
-) -> BuildResult:
-    """The training body pretrain, retrain and self-train share: train `net` on `datasets`,
-    write model.pt + model.json (`meta` plus the training summary) + train_log.parquet into
-    `tmp`, and return the manifest's counts, timings and runtime (threads, CPU model, torch)."""
+    world=None,
+) -> BuildResult | None:
+    """The training body pretrain, retrain and self-train share: train `net` on `datasets` on
+    `world` (its device; the ranks of a torchrun run), write model.pt + model.json (`meta` plus
+    the training summary) + train_log.parquet into `tmp`, and return the manifest's counts,
+    timings and runtime (threads, device, world size, CPU/GPU model, torch). A rank other than
+    0 of a distributed run trains with the others and writes nothing (`tmp` None)."""
     from dali_cli.detector import save_checkpoint, train
+    from dali_cli.detector.distributed import SINGLE
 
-    result = train(net, datasets, augmentations, settings, resume, key, progress=progress)
+    world = world or SINGLE
+    result = train(
+        net, datasets, augmentations, settings, resume, key, progress=progress,
+        device=world.device, world=world,
+    )  # fmt: skip
+    report_ranks(result, world)
+    if tmp is None:
+        return None
     save_checkpoint(tmp, net, {**meta, "train": training_summary(result, settings)})
     write_train_log(tmp, result.log)
     if result.resumed_from_step:
@@ -104,6 +115,21 @@ def fit_and_save(
     )
 
 
+def report_ranks(result, world) -> None:
+    """One log line per rank: which engine, and what this rank did."""
+    runtime = result.runtime
+    engine = (
+        f"rank {world.rank} of {world.size} ({world.backend}, DDP)"
+        if world.distributed
+        else "1 process"
+    )
+    click.echo(
+        f"train: {engine} on {runtime.get('device')}, {runtime.get('threads')} threads: "
+        f"{result.steps} steps, {result.frames} frames (all ranks) in {result.seconds:.1f} s",
+        err=True,
+    )
+
+
 def run_training_stage(
     stage: str,
     out: Path,
@@ -113,16 +139,52 @@ def run_training_stage(
     force: bool,
     dry_run: bool,
     seed: int,
+    device: str = "auto",
 ) -> StageOutcome:
-    """run_stage around `train_fn(tmp_dir, resume_path, resume_key) -> BuildResult`, then drop
-    the resume state once the checkpoint is in place."""
+    """run_stage around `train_fn(tmp_dir, resume_path, resume_key, world) -> BuildResult`, then
+    drop the resume state once the checkpoint is in place.
+
+    `device` (auto | cpu | cuda | cuda:N) is resolved first: a missing GPU fails before anything
+    is written. Under torchrun (dali_cli.detector.distributed) rank 0 runs the stage as usual and
+    tells the other ranks whether to train; they train with it and write nothing, and rank 0
+    commits only after every rank finished (a failing rank fails the stage, no artifact)."""
+    from dali_cli.detector import distributed
+    from dali_cli.device import resolve_device
+
+    world = distributed.launched()
+    torch_device = resolve_device(device, world.local_rank if world.distributed else None)
+    if world.distributed:  # the global batch is batch_size x world size: another training
+        params = {**params, "world_size": world.size}
     resume = resume_path_for(out)
+    key = None
+    world = distributed.join(world, torch_device)
+    started = False
 
     def build(tmp: Path) -> BuildResult:
-        key = resume_key(inputs, params)
-        return train_fn(tmp, resume, key)
+        nonlocal started
+        distributed.broadcast_object("train", world)
+        started = True
+        result = train_fn(tmp, resume, resume_key(inputs, params), world)
+        distributed.all_succeeded(world)
+        return result
 
-    outcome = run_stage(stage, out, inputs, params, build, force=force, dry_run=dry_run, seed=seed)
+    try:
+        if not world.is_main:  # a follower: train when rank 0 does, write nothing
+            decision = distributed.broadcast_object(None, world)
+            if decision != "train":
+                return StageOutcome("follower", f"rank 0: {decision}")
+            train_fn(None, resume, key, world)
+            distributed.all_succeeded(world)
+            return StageOutcome(
+                "follower", f"rank {world.rank} of {world.size}; rank 0 wrote {out}"
+            )
+        outcome = run_stage(
+            stage, out, inputs, params, build, force=force, dry_run=dry_run, seed=seed
+        )
+        if not started:
+            distributed.broadcast_object(outcome.status, world)
+    finally:
+        distributed.leave()
     if outcome.status == "ran":
         shutil.rmtree(resume.parent, ignore_errors=True)
     return outcome
@@ -153,8 +215,10 @@ def run_pretrain(
     force: bool = False,
     dry_run: bool = False,
     progress: bool = True,
+    device: str = "auto",
 ) -> StageOutcome:
-    """Train on `source` (FrameSet + boxes.parquet) and write the checkpoint to `out`."""
+    """Train on `source` (FrameSet + boxes.parquet) and write the checkpoint to `out` (on
+    `device`; under torchrun with DDP, see run_training_stage)."""
     from dali_cli.sensors import get_profile
 
     source, out = Path(source), Path(out)
@@ -192,7 +256,7 @@ def run_pretrain(
     }
     inputs = {"source": source, "boxes": Path(boxes) if boxes else None}
 
-    def train_fn(tmp: Path, resume: Path, key: str) -> BuildResult:
+    def train_fn(tmp: Path | None, resume: Path, key: str, world) -> BuildResult | None:
         import torch
 
         from dali_cli.detector import (
@@ -228,7 +292,7 @@ def run_pretrain(
         net = PillarCenterNet(config)
         settings = TrainSettings(
             epochs=epochs, minutes=minutes, batch_size=batch_size, lr=lr, seed=seed,
-            precision=precision, compile=compile_net, threads=threads,
+            precision=precision, compile=compile_net, threads=threads, device=device,
         )  # fmt: skip
         card = ModelCard(
             detector=config.name,
@@ -269,6 +333,9 @@ def run_pretrain(
             notes=[f"detector: {net.config.name} (not the paper's SECOND-IoU), size_norm={size_norm}"],
             load_s=load_s,
             progress=progress,
+            world=world,
         )  # fmt: skip
 
-    return run_training_stage("pretrain", out, inputs, params, train_fn, force, dry_run, seed)
+    return run_training_stage(
+        "pretrain", out, inputs, params, train_fn, force, dry_run, seed, device
+    )

@@ -17,6 +17,7 @@ import numpy as np
 
 from dali_cli import plausibility, ptsn, size_correction
 from dali_cli.artifacts import BoxTable, FrameSet, write_boxes
+from dali_cli.device import inference_device, inference_runtime, place
 from dali_cli.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.scale_file import read_scale
 from dali_cli.sensors import get_profile
@@ -103,9 +104,12 @@ def pseudo_label(
     dry_run: bool = False,
     progress: bool = True,
     detector_loader=None,
+    device: str = "auto",
+    precision: str = "fp32",
 ) -> StageOutcome:
     """Run the pseudo-label stage (see the module docstring); `detector_loader` is for tests."""
     model_dir, target_dir = Path(model_dir), Path(target_dir)
+    torch_device = inference_device(device, precision)  # a missing GPU: error, nothing written
     if scale is None and scale_from is None:
         raise click.UsageError("give --scale-from PTSN_DIR (from `dali ptsn-sweep`) or --scale S")
     if not model_dir.is_dir():
@@ -139,6 +143,8 @@ def pseudo_label(
         "mount_height_m": mount_height_m,
         "size_correction": size_correction_method,
     }
+    if precision != "fp32":  # recorded only when not the default: earlier runs stay up to date
+        params["precision"] = precision
     inputs = {"model": model_dir, "target": target_dir}
     if scale_from is not None:
         inputs["scale_from"] = scale_from
@@ -146,7 +152,7 @@ def pseudo_label(
     def build(directory: Path) -> BuildResult:
         from tqdm import tqdm
 
-        detector = (detector_loader or load_detector)(model_dir)
+        detector = place((detector_loader or load_detector)(model_dir), torch_device, precision)
         ids, boxes_all, scores_all, counts_all = [], [], [], []
         bar = tqdm(
             total=len(target), desc="pseudo-label", unit="frame", file=sys.stderr,
@@ -222,6 +228,7 @@ def pseudo_label(
             notes=notes,
             extra={
                 "pseudo_label": {"scale": scale, "scale_source": scale_source},
+                "runtime": inference_runtime(torch_device),
                 "size_correction": correction or {"method": size_correction_method},
             },
         )

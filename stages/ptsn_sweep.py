@@ -14,6 +14,7 @@ import pyarrow.parquet as pq
 
 from dali_cli import ptsn
 from dali_cli.artifacts import FrameSet
+from dali_cli.device import inference_device, inference_runtime, place
 from dali_cli.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.model_card import ModelCard, read_card
 from dali_cli.scale_file import write_scale
@@ -157,9 +158,12 @@ def ptsn_sweep(
     dry_run: bool = False,
     progress: bool = True,
     detector_loader=None,
+    device: str = "auto",
+    precision: str = "fp32",
 ) -> StageOutcome:
     """Run the PTSN sweep stage (see the module docstring); `detector_loader(model_dir)` for tests."""
     model_dir, target_dir = Path(model_dir), Path(target_dir)
+    torch_device = inference_device(device, precision)  # a missing GPU: error, nothing written
     if frames is not None and frame_fraction is not None:
         raise click.UsageError("give --frames or --frame-fraction, not both")
     if not model_dir.is_dir():
@@ -202,10 +206,12 @@ def ptsn_sweep(
         # recorded only when not the default: outputs of sweeps that found detections do not
         # depend on it, so earlier runs stay up to date
         params["no_detections"] = no_detections
+    if precision != "fp32":
+        params["precision"] = precision
 
     def build(directory: Path) -> BuildResult:
         loader = detector_loader or load_detector
-        detector = loader(model_dir)
+        detector = place(loader(model_dir), torch_device, precision)
         selected = ptsn.select_frames(len(target), frames, frame_fraction, seed)
         bev_range = detector_bev_range(detector)
         store = FrameStore(
@@ -276,7 +282,10 @@ def ptsn_sweep(
             },
             timings={"detector_seconds": round(cache.seconds, 3)},
             notes=list(result.warnings),
-            extra={"ptsn": {"scale": result.scale, "clipped": result.clipped}},
+            extra={
+                "ptsn": {"scale": result.scale, "clipped": result.clipped},
+                "runtime": inference_runtime(torch_device),
+            },
         )
 
     return run_stage(

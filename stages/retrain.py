@@ -89,6 +89,7 @@ def run_retrain(
     force: bool = False,
     dry_run: bool = False,
     progress: bool = True,
+    device: str = "auto",
 ) -> StageOutcome:
     """Retrain the detector of `init` on `source` + the PPCG sets `ppcg`; write a checkpoint to `out`.
 
@@ -119,7 +120,7 @@ def run_retrain(
     }
     inputs = {"init": init, "source": source, "ppcg": ppcg}
 
-    def train_fn(tmp: Path, resume: Path, key: str) -> BuildResult:
+    def train_fn(tmp: Path | None, resume: Path, key: str, world) -> BuildResult | None:
         import torch
 
         from dali_cli.detector import (
@@ -163,7 +164,7 @@ def run_retrain(
             net.load_state_dict(previous.net.state_dict())
         settings = TrainSettings(
             epochs=epochs, minutes=minutes, batch_size=batch_size, lr=lr, seed=seed,
-            precision=precision, compile=compile_net, threads=threads, mix=mix,
+            precision=precision, compile=compile_net, threads=threads, device=device, mix=mix,
         )  # fmt: skip
         meta = {
             "card": card.carried_forward("retrain").to_dict(),
@@ -202,6 +203,9 @@ def run_retrain(
             ],
             load_s=load_s,
             progress=progress,
+            world=world,
         )  # fmt: skip
 
-    return run_training_stage("retrain", out, inputs, params, train_fn, force, dry_run, seed)
+    return run_training_stage(
+        "retrain", out, inputs, params, train_fn, force, dry_run, seed, device
+    )

@@ -62,6 +62,7 @@ def run_self_train(
     force: bool = False,
     dry_run: bool = False,
     progress: bool = True,
+    device: str = "auto",
 ) -> StageOutcome:
     """Fine-tune the model of `init` on `target`'s frames with the boxes of `pseudo` (made from
     `target`), both scaled by ŝ (default: the pseudo labels' own scale); write to `out`."""
@@ -81,7 +82,7 @@ def run_self_train(
     }
     inputs = {"init": init, "target": target, "pseudo": pseudo}
 
-    def train_fn(tmp: Path, resume: Path, key: str) -> BuildResult:
+    def train_fn(tmp: Path | None, resume: Path, key: str, world) -> BuildResult | None:
         import torch
 
         from dali_cli import detector
@@ -103,7 +104,12 @@ def run_self_train(
         net.load_state_dict(previous.net.state_dict())
         budget = dict(epochs=epochs, minutes=minutes, batch_size=batch_size, lr=lr)
         settings = detector.TrainSettings(
-            **budget, seed=seed, precision=precision, compile=compile_net, threads=threads
+            **budget,
+            seed=seed,
+            precision=precision,
+            compile=compile_net,
+            threads=threads,
+            device=device,
         )
         meta = {
             "card": previous.card.carried_forward("self-train").to_dict(),
@@ -135,6 +141,9 @@ def run_self_train(
             ],
             load_s=load_s,
             progress=progress,
+            world=world,
         )  # fmt: skip
 
-    return run_training_stage("self_train", out, inputs, params, train_fn, force, dry_run, seed)
+    return run_training_stage(
+        "self_train", out, inputs, params, train_fn, force, dry_run, seed, device
+    )

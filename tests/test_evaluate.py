@@ -646,6 +646,13 @@ def test_cli_tables_labels_and_errors(tmp_path):
     assert no_kitti.exit_code == 1 and "KITTI columns" in no_kitti.output
 
 
+def keep_runtime(monkeypatch):
+    import importlib
+
+    module = importlib.import_module("dali_cli.detector.runtime")
+    monkeypatch.setitem(sys.modules, "dali_cli.detector.runtime", module)
+
+
 def test_cli_model_inference_uses_the_ptsn_scale(tmp_path, monkeypatch):
     cars = [row_of_cars(1) + [0, k, 0, 0, 0, 0, 0] for k in range(45)]
     write_dataset(tmp_path / "data", cars)
@@ -653,7 +660,7 @@ def test_cli_model_inference_uses_the_ptsn_scale(tmp_path, monkeypatch):
     (tmp_path / "ptsn" / "scale.json").write_text(json.dumps({"scale": 0.85}))
     seen = {}
 
-    def predict_frameset(model_dir, data_dir, scale=1.0, score_min=0.0, progress=True):
+    def predict_frameset(model_dir, data_dir, scale=1.0, score_min=0.0, progress=True, **engine):
         seen.update(model=str(model_dir), scale=scale)
         return BoxTable.concat(
             [table(box, frame=f"{k:03d}", score=[0.8]) for k, box in enumerate(cars)]
@@ -661,6 +668,7 @@ def test_cli_model_inference_uses_the_ptsn_scale(tmp_path, monkeypatch):
 
     fake = types.ModuleType("dali_cli.detector")
     fake.predict_frameset = predict_frameset
+    keep_runtime(monkeypatch)  # the machine record of metrics.json stays importable
     monkeypatch.setitem(sys.modules, "dali_cli.detector", fake)
     (tmp_path / "model").mkdir()
     runner = CliRunner()
@@ -757,13 +765,14 @@ def test_cli_several_ious_sizes_and_saved_predictions(tmp_path, monkeypatch):
     grown = [np.asarray(box, float) * [1, 1, 1, 1.1, 1, 1, 1] for box in cars]
     scores = np.r_[np.full(40, 0.8), np.full(5, 0.1)]
 
-    def predict_frameset(model_dir, data_dir, scale=1.0, score_min=0.0, progress=True):
+    def predict_frameset(model_dir, data_dir, scale=1.0, score_min=0.0, progress=True, **engine):
         return BoxTable.concat(
             [table(box, frame=f"{k:03d}", score=[scores[k]]) for k, box in enumerate(grown)]
         )
 
     fake = types.ModuleType("dali_cli.detector")
     fake.predict_frameset = predict_frameset
+    keep_runtime(monkeypatch)  # the machine record of metrics.json stays importable
     monkeypatch.setitem(sys.modules, "dali_cli.detector", fake)
     (tmp_path / "model").mkdir()
     out = tmp_path / "eval" / "metrics.json"

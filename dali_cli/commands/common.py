@@ -77,3 +77,24 @@ def import_options(default_sensor: str | None):
         )(function)
 
     return decorate
+
+
+def device_options(function):
+    """--device and --precision, shared by every command that runs the detector (pretrain,
+    retrain, self-train, ptsn-sweep, pseudo-label, eval)."""
+    function = click.option(
+        "--precision",
+        type=click.Choice(["fp32", "bf16"]),
+        default="fp32",
+        show_default=True,
+        help="bf16 autocast: for CUDA GPUs with bf16 (Ampere or newer); on a CPU it is faster "
+        "only with AMX / AVX512-BF16.",
+    )(function)
+    return click.option(
+        "--device",
+        default="auto",
+        show_default=True,
+        metavar="auto|cpu|cuda|cuda:N",
+        help="Where the network runs. auto: CUDA when available, else the CPU. cuda under "
+        "torchrun: the GPU of the local rank. A missing GPU is an error (nothing written).",
+    )(function)

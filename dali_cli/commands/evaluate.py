@@ -10,6 +10,7 @@ import click
 import numpy as np
 
 from dali_cli.artifacts import BOXES_NAME, BoxTable, FrameSet, read_boxes
+from dali_cli.commands.common import device_options
 
 EPILOG = """\b
 Inputs (--pred, --gt): a box-table directory (boxes.parquet), a .parquet file, or a KITTI
@@ -70,12 +71,14 @@ def _read_scale(scale: float | None, scale_from: str | None) -> float:
     return float(value)
 
 
-def _predict(model: str, data: str, scale: float) -> BoxTable:
+def _predict(model: str, data: str, scale: float, device, precision: str) -> BoxTable:
     try:
         from dali_cli.detector import predict_frameset
     except ImportError as error:
         raise click.ClickException(f"the detector is not available ({error})") from None
-    return predict_frameset(model, data, scale=scale, score_min=0.0, progress=True)
+    return predict_frameset(
+        model, data, scale=scale, score_min=0.0, progress=True, device=device, precision=precision
+    )
 
 
 def _write_atomically(path: Path, write) -> None:
@@ -173,6 +176,7 @@ def _write_json(path: Path, document: dict) -> None:
 @click.option(
     "--out", type=click.Path(dir_okay=False, path_type=Path), help="Write metrics.json here."
 )
+@device_options
 @click.option(
     "--save-predictions/--no-save-predictions",
     default=True,
@@ -196,6 +200,8 @@ def command(
     min_gt_points,
     out,
     save_predictions,
+    device,
+    precision,
 ):
     """Average precision (KITTI protocol, BEV and 3D, float64 rotated IoU) of predictions."""
     from dali_cli.evaluate import EvaluationError, evaluate, format_table
@@ -219,12 +225,16 @@ def command(
             raise click.UsageError("--model and --data go together")
         if pred_path is not None:
             raise click.UsageError("give either --pred or --model/--data, not both")
+        from dali_cli.device import inference_device, inference_runtime
+
+        torch_device = inference_device(device, precision)  # a missing GPU: error, no output
         chosen_scale = _read_scale(scale, scale_from)
         frame_ids = FrameSet(data).frame_ids
         if gt_path is None:
             gt_path = Path(data)
-        pred = _predict(model, data, chosen_scale)
+        pred = _predict(model, data, chosen_scale, torch_device, precision)
         source = {"model": str(model), "data": str(data), "scale": chosen_scale}
+        runtime = {**inference_runtime(torch_device), "precision": precision}
     else:
         if scale is not None or scale_from is not None:
             raise click.UsageError("--scale/--scale-from only apply with --model")
@@ -264,6 +274,8 @@ def command(
     }
     if "scale" in source:
         metrics["scale"] = source["scale"]
+    if model is not None:
+        metrics["runtime"] = runtime
     if out is not None:
         if save_predictions and model is not None:
             _write_predictions(out.parent / PREDICTIONS_NAME, pred)

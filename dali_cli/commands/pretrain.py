@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import sensors_option, stage_options
+from dali_cli.commands.common import device_options, sensors_option, stage_options
 
 
 def parse_floats(count: int):
@@ -59,13 +59,6 @@ def training_options(function):
             help="Peak learning rate of the one-cycle schedule (AdamW).",
         ),
         click.option(
-            "--precision",
-            type=click.Choice(["fp32", "bf16"]),
-            default="fp32",
-            show_default=True,
-            help="bf16 autocast is faster only on CPUs with AMX / AVX512-BF16.",
-        ),
-        click.option(
             "--compile",
             "compile_net",
             is_flag=True,
@@ -77,7 +70,8 @@ def training_options(function):
             "--threads",
             type=click.IntRange(min=1),
             default=None,
-            help="torch threads (default: every core this process may use; recorded in the manifest).",
+            help="torch threads per process (default: every core this process may use, divided "
+            "by the processes torchrun starts on this machine; recorded in the manifest).",
         ),
         click.option(
             "--no-augment",
@@ -89,7 +83,7 @@ def training_options(function):
     ]
     for option in reversed(options):
         function = option(function)
-    return function
+    return device_options(function)
 
 
 @click.command(name="pretrain")
@@ -163,14 +157,18 @@ def training_options(function):
 @stage_options
 def command(source, boxes, out, size_norm, target_profile, target_size, ros_range, features,
             detector_config, labels,
-            epochs, minutes, seed, batch_size, lr, precision, compile_net, threads, no_augment, quiet,
-            sensors_path, force, dry_run):  # fmt: skip
+            epochs, minutes, seed, batch_size, lr, compile_net, threads, no_augment, quiet,
+            device, precision, sensors_path, force, dry_run):  # fmt: skip
     """Train the CPU detector (pillars + CenterPoint heads + IoU score) on a labeled source.
 
     Reads SOURCE/frames.zarr and SOURCE/boxes.parquet (or --boxes). Writes OUT/model.pt (weights),
     OUT/model.json (config, provenance, metrics), OUT/train_log.parquet (step, loss terms, lr,
     frames/s) and OUT/manifest.json. An interrupted run keeps its state in OUT.resume/ and the
     same command resumes it. Training is deterministic for a given --seed and thread count.
+
+    Distributed: `torchrun --nproc-per-node N $(which dali) pretrain ...` trains with
+    DistributedDataParallel (gloo on the CPU, nccl on CUDA), --batch-size frames per process;
+    rank 0 alone writes OUT. See docs/scale-out-training.md.
     """
     import json
 
@@ -189,7 +187,7 @@ def command(source, boxes, out, size_norm, target_profile, target_size, ros_rang
         target_size=target_size, ros_range=ros_range, epochs=epochs, minutes=minutes, seed=seed,
         batch_size=batch_size, lr=lr, features=features, precision=precision, threads=threads,
         compile_net=compile_net, augment=not no_augment, labels=tuple(labels), config_overrides=overrides,
-        sensors_path=sensors_path, force=force, dry_run=dry_run, progress=not quiet,
+        sensors_path=sensors_path, force=force, dry_run=dry_run, progress=not quiet, device=device,
     )  # fmt: skip
     if outcome.status == "ran":
         train = (outcome.manifest or {}).get("outputs", {}).get("counts", {})

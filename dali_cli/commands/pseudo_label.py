@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import model_target_out_options, sensors_option, stage_options
+from dali_cli.commands.common import (
+    device_options,
+    model_target_out_options,
+    sensors_option,
+    stage_options,
+)
 
 
 @click.command(name="pseudo-label")
@@ -55,6 +60,7 @@ from dali_cli.commands.common import model_target_out_options, sensors_option, s
     "kept), removing the bias one isotropic ŝ leaves; E_est from --scale-from's scale.json.",
 )
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
+@device_options
 @sensors_option
 @stage_options
 def command(model_dir, target_dir, out, sensors_path, no_progress, **options):

@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import model_target_out_options, sensors_option, stage_options
+from dali_cli.commands.common import (
+    device_options,
+    model_target_out_options,
+    sensors_option,
+    stage_options,
+)
 from dali_cli.ptsn import ScaleRange, parse_scale_range
 
 
@@ -130,6 +135,7 @@ SCALE_RANGE = ScaleRangeType()
 @click.option("--plot", is_flag=True, help="Also write sweep.png (mean volume vs scale).")
 @click.option("--batch-size", type=click.IntRange(min=1), default=8, show_default=True)
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
+@device_options
 @sensors_option
 @stage_options
 def command(model_dir, target_dir, out, scale_range, sensors_path, no_progress, **options):

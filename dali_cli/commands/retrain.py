@@ -79,14 +79,15 @@ class GreedyOption(click.Option):
 @sensors_option
 @stage_options
 def command(init, source, ppcg, out, init_from, mix, labels, epochs, minutes, seed, batch_size, lr,
-            precision, compile_net, threads, no_augment, quiet, sensors_path, force, dry_run):  # fmt: skip
+            compile_net, threads, no_augment, quiet, device, precision, sensors_path, force,
+            dry_run):  # fmt: skip
     """Retrain on the labeled source plus PPCG frame sets, alternating source and PPCG batches.
 
     Reads INIT/model.pt + model.json, SOURCE (frames.zarr + boxes.parquet) and each PPCG directory
     (frames.zarr + boxes.parquet); raw target frames are not used. The source keeps INIT's size
     normalization (SN delta or ROS). An epoch is one pass over the source frames. Writes OUT/model.pt,
     model.json, train_log.parquet and manifest.json (same format as pretrain); an interrupted run
-    resumes from OUT.resume/.
+    resumes from OUT.resume/. Runs under torchrun like pretrain (docs/scale-out-training.md).
     """
     from stages.retrain import run_retrain
 
@@ -94,7 +95,7 @@ def command(init, source, ppcg, out, init_from, mix, labels, epochs, minutes, se
         init, source, list(ppcg), out, init_from=init_from, mix=mix, epochs=epochs, minutes=minutes,
         seed=seed, batch_size=batch_size, lr=lr, precision=precision, threads=threads,
         compile_net=compile_net, augment=not no_augment, labels=tuple(labels), sensors_path=sensors_path, force=force,
-        dry_run=dry_run, progress=not quiet,
+        dry_run=dry_run, progress=not quiet, device=device,
     )  # fmt: skip
     if outcome.status == "ran":
         counts = (outcome.manifest or {}).get("outputs", {}).get("counts", {})

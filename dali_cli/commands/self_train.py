@@ -39,8 +39,9 @@ from dali_cli.commands.pretrain import training_options
 @training_options
 @sensors_option
 @stage_options
-def command(init, target, pseudo, out, scale, epochs, minutes, seed, batch_size, lr, precision,
-            compile_net, threads, no_augment, quiet, sensors_path, force, dry_run):  # fmt: skip
+def command(init, target, pseudo, out, scale, epochs, minutes, seed, batch_size, lr,
+            compile_net, threads, no_augment, quiet, device, precision, sensors_path, force,
+            dry_run):  # fmt: skip
     """Self-training (the paper's ‡): fine-tune INIT on the raw TARGET frames with its own pseudo
     labels, both scaled by ŝ about the ground, as the model sees the target at test time.
 
@@ -55,7 +56,7 @@ def command(init, target, pseudo, out, scale, epochs, minutes, seed, batch_size,
         init, target, pseudo, out, scale=scale, epochs=epochs, minutes=minutes, seed=seed,
         batch_size=batch_size, lr=lr, precision=precision, compile_net=compile_net,
         threads=threads, augment=not no_augment, sensors_path=sensors_path, force=force,
-        dry_run=dry_run, progress=not quiet,
+        dry_run=dry_run, progress=not quiet, device=device,
     )  # fmt: skip
     if outcome.status == "ran":
         counts = (outcome.manifest or {}).get("outputs", {}).get("counts", {})

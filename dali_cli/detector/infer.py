@@ -44,12 +44,13 @@ def decode(
     batch = heat_score.shape[0]
     iou = torch.sigmoid(gather_cells(maps["iou"].detach(), index)[..., 0])  # (B, k)
     alpha = config.iou_alpha
-    score = heat_score.pow(1 - alpha) * iou.pow(alpha)  # (B, k)
+    score = (heat_score.pow(1 - alpha) * iou.pow(alpha)).float().cpu().numpy()  # (B, k)
+    boxes = boxes.cpu().numpy()  # one copy of the top-k per batch to the host (NMS is numpy)
     results = []
     for b in range(batch):  # frames: a few per batch
-        keep = (score[b] >= config.score_threshold).numpy()
-        frame_boxes = boxes[b].numpy()[keep]
-        frame_scores = score[b].numpy()[keep].astype(np.float32)
+        keep = score[b] >= config.score_threshold
+        frame_boxes = boxes[b][keep]
+        frame_scores = score[b][keep].astype(np.float32)
         frame_boxes[:, 6] = (frame_boxes[:, 6] + np.pi) % (2 * np.pi) - np.pi
         kept = nms_bev(frame_boxes, frame_scores, config.nms_iou)
         frame_boxes, frame_scores = frame_boxes[kept], frame_scores[kept]
@@ -138,10 +139,28 @@ def save_checkpoint(directory: str | Path, net: PillarCenterNet, meta: dict) -> 
 class Detector:
     """A trained detector. `predict` takes sensor-frame points and returns sensor-frame boxes."""
 
-    def __init__(self, net: PillarCenterNet, meta: dict | None = None):
-        self.net = net.eval()
+    def __init__(
+        self,
+        net: PillarCenterNet,
+        meta: dict | None = None,
+        device: torch.device | None = None,
+        precision: str = "fp32",
+    ):
+        """`device`: where the network runs (default: where its weights are); `precision`:
+        fp32, or bf16 autocast (dali_cli.device.autocast)."""
+        if device is None:  # where the weights are (a parameterless stand-in: the CPU)
+            device = next((p.device for p in net.parameters()), torch.device("cpu"))
+        self.device = device
+        self.net = net.to(self.device).eval()
         self.config = net.config
         self.meta = meta or {}
+        self.precision = precision
+
+    def to(self, device: torch.device, precision: str = "fp32") -> Detector:
+        """This detector on `device` with `precision` (the network is moved in place)."""
+        self.device, self.precision = device, precision
+        self.net.to(device)
+        return self
 
     @property
     def card(self) -> ModelCard:
@@ -149,10 +168,13 @@ class Detector:
         return ModelCard.from_meta(self.meta)
 
     @classmethod
-    def load(cls, model_dir: str | Path) -> Detector:
-        """A checkpoint directory written by dali. Anything else (a missing or foreign file, a
-        pickle that is not plain weights, weights of another shape) is an ArtifactError naming
-        the file; weights are read with torch's weights_only loader, so no code runs."""
+    def load(
+        cls, model_dir: str | Path, device: torch.device | None = None, precision: str = "fp32"
+    ) -> Detector:
+        """A checkpoint directory written by dali, on `device` (default: the CPU). Anything else
+        (a missing or foreign file, a pickle that is not plain weights, weights of another
+        shape) is an ArtifactError naming the file; weights are read with torch's weights_only
+        loader, so no code runs."""
         model_dir = Path(model_dir)
         meta_path, weights_path = model_dir / META_NAME, model_dir / WEIGHTS_NAME
         meta = read_meta(model_dir)
@@ -174,7 +196,7 @@ class Detector:
                 f"{weights_path}: weights do not fit {config.name} as {meta_path.name} describes "
                 f"it ({str(error).splitlines()[0]})"
             ) from None
-        return cls(net, meta)
+        return cls(net, meta, device=device or torch.device("cpu"), precision=precision)
 
     @torch.no_grad()
     def predict(
@@ -193,18 +215,22 @@ class Detector:
         mount = self.config.mount_height_m if mount_height_m is None else float(mount_height_m)
         if not scale > 0:
             raise ValueError(f"scale must be positive, got {scale}")
+        from dali_cli.device import autocast
+
         config = inference_config(self.config, scale)
         refiner = getattr(self.net, "refiner", None) if config.refine else None
         results = []
         for start in range(0, len(points_list), batch_size):
             chunk = points_list[start : start + batch_size]
             points, batch_index = to_network_input(chunk, mount, scale)
-            maps = run_network(self.net, points, batch_index, len(chunk), config)
             frames_points = (  # the second stage's input: network-frame points per frame
                 [points[batch_index == b].numpy() for b in range(len(chunk))]
                 if refiner is not None
                 else None
             )
+            points, batch_index = points.to(self.device), batch_index.to(self.device)
+            with autocast(self.device, self.precision):
+                maps = run_network(self.net, points, batch_index, len(chunk), config)
             for boxes, scores in decode(maps, config, refiner, frames_points):
                 results.append((ground_boxes_to_sensor(boxes, mount, scale), scores))
         return results
@@ -275,8 +301,11 @@ def predict_frameset(
     progress: bool = True,
     batch_size: int = 4,
     sensors_path: str | Path | None = None,
+    device: torch.device | None = None,
+    precision: str = "fp32",
 ) -> BoxTable:
-    """Run the detector of `model_dir` on every frame of the FrameSet `data_dir`.
+    """Run the detector of `model_dir` on every frame of the FrameSet `data_dir` on `device`
+    (default: the CPU) with `precision` (fp32 or bf16 autocast).
 
     The ground (for the network and for PTSN scaling) is the frame set's sensor profile mount height.
     Returns a BoxTable with score and num_points (points of the original frame inside each box).
@@ -288,7 +317,7 @@ def predict_frameset(
     from dali_cli.sensors import get_profile
 
     torch.set_num_threads(available_cores())
-    detector = Detector.load(model_dir)
+    detector = Detector.load(model_dir, device=device, precision=precision)
     frames = FrameSet(data_dir)
     mount = (
         get_profile(frames.sensor, sensors_path).mount_height_m

@@ -194,11 +194,13 @@ def refine_boxes(
     features, _ = box_point_features(
         points, proposals, config.refine_points, config.refine_margin_m
     )
+    device = next(refiner.parameters()).device
     residuals, iou_logits = refiner(
-        torch.from_numpy(features), torch.from_numpy(proposals[:, 3:6].astype(np.float32))
+        torch.from_numpy(features).to(device),
+        torch.from_numpy(proposals[:, 3:6].astype(np.float32)).to(device),
     )
-    refined = apply_residuals(proposals, residuals.double().numpy())
-    return refined, torch.sigmoid(iou_logits).numpy().astype(np.float32)
+    refined = apply_residuals(proposals, residuals.double().cpu().numpy())
+    return refined, torch.sigmoid(iou_logits).float().cpu().numpy()
 
 
 def jitter_boxes(boxes: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -219,17 +221,24 @@ def refine_loss(
     proposals_list: list[np.ndarray],
     objects_list: list[np.ndarray],
     config: DetectorConfig,
-    rng: np.random.Generator,
+    rng: np.random.Generator | list[np.random.Generator],
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Residual (L1, on proposals with BEV IoU >= 0.4 with a target box) and IoU (BCE against
-    the refined box's best 3D IoU with any target box) losses over a batch of frames.
+    the refined box's best 3D IoU with any target box) losses over a batch of frames, each a
+    mean over the (global, under DDP) batch's positives and proposals.
 
     points_list[b] (P_b, >=3), proposals_list[b] (K_b, 7) (detached first-stage boxes) and
-    objects_list[b] (M_b, 7) target boxes, all in the ground frame."""
+    objects_list[b] (M_b, 7) target boxes, all in the ground frame. `rng`: one generator for
+    the whole batch, or one per frame (what distributed training needs)."""
+    from dali_cli.detector.distributed import global_normalizer
+
+    rngs = rng if isinstance(rng, list) else [rng] * len(points_list)
+    device = next(refiner.parameters()).device
     features, sizes, proposals, truth, positive, objects_of = [], [], [], [], [], []
     for b, (points, found, objects) in enumerate(
         zip(points_list, proposals_list, objects_list, strict=True)
     ):
+        rng = rngs[b]
         found = clip_proposals(found)
         boxes = np.concatenate([found, jitter_boxes(objects, rng)]) if len(objects) else found
         if len(boxes) == 0:
@@ -249,25 +258,29 @@ def refine_loss(
         else:
             truth.append(boxes.copy())
             positive.append(np.zeros(len(boxes), bool))
-    if not proposals:
-        zero = torch.zeros(())
+    if not proposals:  # still a graph over every weight: DDP waits for each one's gradient
+        zero = sum(p.sum() for p in refiner.parameters()) * 0.0
+        global_normalizer(zero.new_zeros(()), 1.0)  # the collectives the other ranks run
+        global_normalizer(zero.new_zeros(()), 1.0)
         return zero, zero
     proposals_all, truth_all = np.concatenate(proposals), np.concatenate(truth)
-    positive_all = torch.from_numpy(np.concatenate(positive))
+    positive_all = torch.from_numpy(np.concatenate(positive)).to(device)
     residuals, iou_logits = refiner(
-        torch.from_numpy(np.concatenate(features)),
-        torch.from_numpy(np.concatenate(sizes).astype(np.float32)),
+        torch.from_numpy(np.concatenate(features)).to(device),
+        torch.from_numpy(np.concatenate(sizes).astype(np.float32)).to(device),
     )
     target = torch.from_numpy(encode_residuals(proposals_all, truth_all).astype(np.float32))
-    l1 = F.l1_loss(residuals, target, reduction="none").sum(dim=1)  # (K,)
-    box = (l1 * positive_all).sum() / positive_all.sum().clamp(min=1)
+    l1 = F.l1_loss(residuals, target.to(device), reduction="none").sum(dim=1)  # (K,)
+    box = (l1 * positive_all).sum() / global_normalizer(positive_all.sum().float(), 1.0)
     with torch.no_grad():
-        refined = apply_residuals(proposals_all, residuals.detach().double().numpy())
+        refined = apply_residuals(proposals_all, residuals.detach().double().cpu().numpy())
     iou_target = np.zeros(len(refined), np.float32)
     frame_of = np.asarray(objects_of)
     for b, objects in enumerate(objects_list):
         rows = np.flatnonzero(frame_of == b)
         if len(rows) and len(objects):
             iou_target[rows] = iou_3d(refined[rows], objects).max(axis=1)
-    iou = F.binary_cross_entropy_with_logits(iou_logits, torch.from_numpy(iou_target))
-    return box, iou
+    losses = F.binary_cross_entropy_with_logits(
+        iou_logits, torch.from_numpy(iou_target).to(device), reduction="none"
+    )
+    return box, losses.sum() / global_normalizer(losses.new_tensor(float(len(losses))), 1.0)

@@ -24,11 +24,15 @@ def available_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def training_threads(requested: int | None) -> int:
-    """torch threads for a run: `requested` (>= 1) when given, else every available core."""
+def training_threads(requested: int | None, local_processes: int = 1) -> int:
+    """torch threads for a run: `requested` (>= 1) when given, else this process's share of the
+    available cores: all of them alone, cores // local_processes (at least 1) when torchrun starts
+    `local_processes` ranks on this machine (LOCAL_WORLD_SIZE), so they do not oversubscribe it."""
     if requested is not None and requested < 1:
         raise ValueError(f"threads must be >= 1, got {requested}")
-    return requested if requested is not None else available_cores()
+    if requested is not None:
+        return requested
+    return max(1, available_cores() // max(1, local_processes))
 
 
 def cpu_model(cpuinfo: Path = CPUINFO) -> str:
@@ -43,14 +47,23 @@ def cpu_model(cpuinfo: Path = CPUINFO) -> str:
     return platform.processor() or platform.machine() or "unknown"
 
 
-def runtime_info(threads: int) -> dict:
-    """What a training manifest records about the run's machine: threads, device, CPU model,
-    available cores, torch and Python versions."""
+def runtime_info(threads: int, device=None, world=None) -> dict:
+    """What a training manifest records about the run's machine: threads (per process), device
+    (GPU model for CUDA), CPU model, available cores, torch and Python versions, and for a
+    torchrun run the world size, the backend and the processes per machine."""
     import torch
 
-    return {
+    from dali_cli.device import describe
+
+    record = {
         "threads": int(threads),
-        "device": "cpu",
+        **describe(device if device is not None else torch.device("cpu")),
+        "world_size": world.size if world is not None else 1,
+    }
+    if world is not None and world.size > 1:
+        record.update(backend=world.backend, local_world_size=world.local_size)
+    return {
+        **record,
         "cpu_model": cpu_model(),
         "cores_available": available_cores(),
         "torch_version": torch.__version__,

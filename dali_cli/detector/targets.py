@@ -14,6 +14,7 @@ import torch
 import torch.nn.functional as F
 
 from dali_cli.detector.config import DetectorConfig
+from dali_cli.detector.distributed import global_normalizer
 from dali_cli.geometry import iou_3d, iou_3d_pairs
 
 REGRESSION = ("offset", "z", "size", "rot")  # head maps concatenated in this order -> 8 channels
@@ -36,6 +37,18 @@ class Targets:
     boxes: np.ndarray
     weight: torch.Tensor
     objects: list[np.ndarray] | None = None  # per frame (M_b, 7) float64: every target box
+
+    def to(self, device: torch.device) -> Targets:
+        """The tensors on `device` (boxes and objects stay numpy: they feed the IoU targets)."""
+        return Targets(
+            self.heatmap.to(device),
+            self.index.to(device),
+            self.mask.to(device),
+            self.regression.to(device),
+            self.boxes,
+            self.weight.to(device),
+            self.objects,
+        )
 
 
 def gaussian_radius(
@@ -180,13 +193,14 @@ def regression_to_boxes(
 
 
 def focal_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """CenterNet's penalty-reduced focal loss on (B, 1, h, w) logits vs Gaussian targets."""
+    """CenterNet's penalty-reduced focal loss on (B, 1, h, w) logits vs Gaussian targets, over
+    the number of positive cells of the (global, under DDP) batch."""
     prob = torch.sigmoid(logits).clamp(1e-4, 1 - 1e-4)
     positive = target.eq(1).float()
     negative_weight = (1 - target).pow(4)
     positive_loss = torch.log(prob) * (1 - prob).pow(2) * positive
     negative_loss = torch.log(1 - prob) * prob.pow(2) * negative_weight * (1 - positive)
-    count = positive.sum().clamp(min=1)
+    count = global_normalizer(positive.sum(), 1.0)
     return -(positive_loss.sum() + negative_loss.sum()) / count
 
 
@@ -230,13 +244,17 @@ def peak_iou_loss(
     anything elsewhere, so a score that leans on it (iou_alpha) lifts background peaks."""
     index, boxes = peak_boxes(maps, config, config.iou_peak_cells)
     batch, k = index.shape
+    boxes = boxes.cpu().numpy()  # (B, k, 7): the exact IoU targets are numpy geometry
     target = np.zeros((batch, k), np.float32)
     for b in range(batch):  # frames: one or a few per batch
         objects = targets.objects[b] if targets.objects is not None else np.zeros((0, 7))
         if len(objects):
-            target[b] = iou_3d(boxes[b].numpy(), objects).max(axis=1)
+            target[b] = iou_3d(boxes[b], objects).max(axis=1)
     logits = gather_cells(maps["iou"], index)[..., 0]  # (B, k)
-    return F.binary_cross_entropy_with_logits(logits, torch.from_numpy(target))
+    losses = F.binary_cross_entropy_with_logits(
+        logits, torch.from_numpy(target).to(logits.device), reduction="none"
+    )
+    return losses.sum() / global_normalizer(logits.new_tensor(float(losses.numel())), 1.0)
 
 
 def detection_loss(
@@ -244,29 +262,30 @@ def detection_loss(
     targets: Targets,
     config: DetectorConfig,
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Total loss and its terms (floats, for the log). The IoU head learns the 3D IoU of the box
+    """Total loss and its terms (detached () tensors, for the log: no host copy per step).
+    Every term is a mean over the global batch (see distributed.global_normalizer). The IoU head learns the 3D IoU of the box
     decoded at each regressing cell with its object (a soft BCE target), weighted like the box loss."""
     heat = focal_loss(maps["heatmap"], targets.heatmap)
     regression_maps = torch.cat([maps[name] for name in REGRESSION], dim=1)  # (B, 8, h, w)
     predicted = gather_cells(regression_maps, targets.index)  # (B, K, 8)
     mask = targets.mask  # (B, K)
     cell_weight = targets.weight * mask  # (B, K)
-    count = cell_weight.sum().clamp(min=1e-6)
-    weights = torch.tensor(config.regression_weights, dtype=predicted.dtype)  # (8,)
+    count = global_normalizer(cell_weight.sum(), 1e-6)
+    weights = predicted.new_tensor(config.regression_weights)  # (8,)
     l1 = F.l1_loss(predicted, targets.regression, reduction="none") * weights  # (B, K, 8)
     box = (l1 * cell_weight[..., None]).sum() / count
     iou_logits = gather_cells(maps["iou"], targets.index)[..., 0]  # (B, K)
     with torch.no_grad():
         predicted_boxes = regression_to_boxes(predicted.detach().double(), targets.index, config)
         iou_target = np.zeros(mask.shape, np.float32)
-        selected = mask.numpy()
-        if selected.any():
+        selected = mask.cpu().numpy()
+        if selected.any():  # exact rotated-box IoU (numpy geometry): one copy to the host
             iou_target[selected] = iou_3d_pairs(
-                predicted_boxes.numpy()[selected], targets.boxes[selected]
+                predicted_boxes.cpu().numpy()[selected], targets.boxes[selected]
             )
     iou = (
         F.binary_cross_entropy_with_logits(
-            iou_logits, torch.from_numpy(iou_target), reduction="none"
+            iou_logits, torch.from_numpy(iou_target).to(iou_logits.device), reduction="none"
         )
         * cell_weight
     ).sum() / count
@@ -277,4 +296,4 @@ def detection_loss(
         peak = peak_iou_loss(maps, targets, config)
         total = total + w_iou * peak
         terms.update(loss=total, iou_peaks=peak)
-    return total, {name: float(value.detach()) for name, value in terms.items()}
+    return total, {name: value.detach() for name, value in terms.items()}

@@ -17,6 +17,15 @@ import torch
 
 from dali_cli.detector.config import DetectorConfig
 from dali_cli.detector.data import Augmentation, LabeledFrames, augmented_sample
+from dali_cli.detector.distributed import (
+    SINGLE,
+    World,
+    broadcast_float,
+    broadcast_object,
+    mean_over_ranks,
+    rank_slice,
+    wrap,
+)
 from dali_cli.detector.model import PillarCenterNet
 from dali_cli.detector.refine import refine_loss
 from dali_cli.detector.runtime import runtime_info, training_threads
@@ -41,8 +50,9 @@ class TrainSettings:
     pct_start: float = 0.3
     grad_clip: float = 10.0
     seed: int = 0
-    precision: str = "fp32"  # "bf16" autocast pays off only on CPUs with AMX / AVX512-BF16
-    threads: int | None = None  # None: every available core (runtime.training_threads)
+    precision: str = "fp32"  # "bf16" autocast: on CUDA, or on CPUs with AMX / AVX512-BF16
+    threads: int | None = None  # None: this process's share of the cores (runtime.training_threads)
+    device: str = "auto"  # auto | cpu | cuda | cuda:N (dali_cli.device.resolve_device)
     compile: bool = False  # torch.compile the backbone and heads (~1 min cold start)
     mix: tuple[int, ...] = (1,)
     log_every: int = 5
@@ -96,9 +106,12 @@ def batch_indices(
     return out
 
 
-def total_steps(datasets: list[LabeledFrames], settings: TrainSettings) -> int:
+def total_steps(datasets: list[LabeledFrames], settings: TrainSettings, world_size: int = 1) -> int:
+    """Optimizer steps of an epoch budget; a step takes batch_size frames on each of
+    `world_size` ranks (the global batch)."""
     pattern = interleave(settings.mix)
-    per_epoch = math.ceil(len(datasets[0]) / settings.batch_size) * len(pattern) / pattern.count(0)
+    global_batch = settings.batch_size * world_size
+    per_epoch = math.ceil(len(datasets[0]) / global_batch) * len(pattern) / pattern.count(0)
     return max(1, math.ceil(settings.epochs * per_epoch))
 
 
@@ -111,46 +124,70 @@ def train(
     resume_key: str = "",
     progress: bool = True,
     on_log: Callable[[dict], None] | None = None,
+    *,
+    device: torch.device | None = None,
+    world: World = SINGLE,
 ) -> TrainResult:
-    """Train `net` in place. Saves a resumable state to `resume_path` every `checkpoint_every_s`
-    and resumes from it when its `resume_key` matches (the caller's hash of inputs + parameters)."""
+    """Train `net` in place on `device` (default: settings.device resolved). Saves a resumable
+    state to `resume_path` every `checkpoint_every_s` and resumes from it when its `resume_key`
+    matches (the caller's hash of inputs + parameters).
+
+    With a distributed `world` (torchrun, see distributed.py) each rank trains on its slice of
+    the global batch (batch_size frames per rank) through DistributedDataParallel; rank 0 alone
+    saves resume states and shows progress, and every rank leaves with the same weights."""
     from tqdm import tqdm
 
+    from dali_cli.device import autocast, check_precision, resolve_device
+
     config: DetectorConfig = net.config
-    threads = training_threads(settings.threads)
+    device = device if device is not None else resolve_device(settings.device, world.local_rank)
+    check_precision(settings.precision, device)
+    threads = training_threads(settings.threads, world.local_size)
     torch.set_num_threads(threads)
     if len(datasets) != len(settings.mix) or len(augmentations) != len(datasets):
         raise ValueError("need one mix weight and one augmentation setting per data set")
     for d in datasets:
         if len(d) == 0:
             raise ValueError(f"training set {d.name} has no frames")
+    if settings.compile and world.distributed:
+        raise ValueError("--compile is not supported with torchrun (distributed) training")
     pattern = interleave(settings.mix)
     budget_s = settings.minutes * 60 if settings.minutes else None
-    steps = None if budget_s else total_steps(datasets, settings)
+    steps = None if budget_s else total_steps(datasets, settings, world.size)
+    net.to(device)
+    # net itself serially; under torchrun its batch norms synchronised and the whole in
+    # DistributedDataParallel: before the optimizer, which must hold the synchronised layers' weights
+    model = wrap(net, world)
     optimizer = torch.optim.AdamW(
         net.parameters(), lr=settings.lr, weight_decay=settings.weight_decay
     )
     step, elapsed, log = 0, 0.0, []
     resume_path = Path(resume_path) if resume_path else None
-    if resume_path and resume_path.is_file():
+    state = None
+    if world.is_main and resume_path and resume_path.is_file():
         from dali_cli.detector.infer import load_weights_only
 
         state = load_weights_only(resume_path, "a dali training state")
-        if state.get("key") == resume_key:
-            net.load_state_dict(state["net"])
-            optimizer.load_state_dict(state["optimizer"])
-            step, elapsed, log = state["step"], state["elapsed_s"], state["log"]
+        state = state if state.get("key") == resume_key else None
+    state = broadcast_object(state, world)  # the other ranks resume from rank 0's file
+    if state is not None:
+        net.load_state_dict(state["net"])
+        optimizer.load_state_dict(state["optimizer"])
+        step, elapsed, log = state["step"], state["elapsed_s"], state["log"]
+    del state
     resumed_from = step
     net.train()
-    forward = compiled_forward(net) if settings.compile else net
+    forward = compiled_forward(net) if settings.compile else model
     bar = tqdm(
         total=steps if steps else round(budget_s),
         initial=step if steps else round(elapsed),
-        desc="train",
+        desc="train" if not world.distributed else f"train (rank 0 of {world.size})",
         unit="step" if steps else "s",
-        disable=not progress,
+        disable=not (progress and world.is_main),
         leave=False,
     )
+    mine = rank_slice(world, settings.batch_size)  # this rank's positions in the global batch
+    global_batch = settings.batch_size * world.size
     last_save = time.perf_counter()
     window_frames, window_time = 0, 0.0
     while (step < steps) if steps else (elapsed < budget_s):
@@ -162,46 +199,46 @@ def train(
         d = pattern[step % len(pattern)]
         cycles, within = divmod(step, len(pattern))
         batch_number = cycles * pattern.count(d) + pattern[:within].count(d)
-        indices = batch_indices(
-            len(datasets[d]), batch_number, settings.batch_size, settings.seed, d
-        )
-        samples = [
+        indices = batch_indices(len(datasets[d]), batch_number, global_batch, settings.seed, d)
+        samples = [  # each frame's draws follow its place in the global batch, not the rank
             augmented_sample(
                 datasets[d],
-                int(i),
+                int(indices[j]),
                 np.random.default_rng([settings.seed, step, j]),
                 augmentations[d],
             )
-            for j, i in enumerate(indices)
+            for j in mine
         ]
-        points = torch.from_numpy(np.concatenate([p for p, _ in samples]))  # (P, 4)
+        points = torch.from_numpy(np.concatenate([p for p, _ in samples])).to(device)  # (P, 4)
         batch_index = torch.from_numpy(
             np.repeat(np.arange(len(samples)), [len(p) for p, _ in samples])
-        )
-        targets = build_targets([b for _, b in samples], config)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=settings.precision == "bf16"):
+        ).to(device)
+        targets = build_targets([b for _, b in samples], config).to(device)
+        with autocast(device, settings.precision):
             maps = forward(points, batch_index, len(samples))
         loss, terms = detection_loss(maps, targets, config)
         if net.refiner is not None:
             loss, terms = add_refine_loss(
-                net, maps, [p for p, _ in samples], targets, loss, terms, settings.seed, step
-            )
+                net, maps, [p for p, _ in samples], targets, loss, terms, settings.seed, step,
+                positions=list(mine),
+            )  # fmt: skip
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(net.parameters(), settings.grad_clip)
         optimizer.step()
         step += 1
         took = time.perf_counter() - started
-        elapsed += took
-        window_frames, window_time = window_frames + len(samples), window_time + took
+        elapsed = broadcast_float(elapsed + took, world) if budget_s else elapsed + took
+        window_frames, window_time = window_frames + global_batch, window_time + took
         bar.update(1 if steps else min(round(elapsed), bar.total) - bar.n)
         if step % settings.log_every == 0 or step == 1 or step == steps:
+            terms = {k: float(v) for k, v in mean_over_ranks(terms).items()}
             row = {
                 "step": step,
                 "dataset": d,
                 **terms,
                 "lr": lr,
-                "frames_per_s": window_frames / max(window_time, 1e-9),
+                "frames_per_s": window_frames / max(window_time, 1e-9),  # all ranks together
                 "elapsed_s": elapsed,
             }
             log.append(row)
@@ -209,39 +246,47 @@ def train(
             bar.set_postfix(
                 loss=f"{terms['loss']:.3f}", fps=f"{row['frames_per_s']:.1f}", lr=f"{lr:.1e}"
             )
-            if on_log:
+            if on_log and world.is_main:
                 on_log(row)
-        if resume_path and time.perf_counter() - last_save > settings.checkpoint_every_s:
+        if (
+            world.is_main
+            and resume_path
+            and time.perf_counter() - last_save > settings.checkpoint_every_s
+        ):
             save_resume_state(resume_path, resume_key, net, optimizer, step, elapsed, log)
             last_save = time.perf_counter()
     bar.close()
     net.eval()
-    frames = step * settings.batch_size
+    frames = step * global_batch
     return TrainResult(
         steps=step,
         frames=frames,
         seconds=elapsed,
         log=log,
         resumed_from_step=resumed_from,
-        runtime=runtime_info(threads),
+        runtime=runtime_info(threads, device, world),
     )
 
 
-def add_refine_loss(net, maps, points_list, targets, loss, terms, seed: int, step: int):
-    """`loss` plus the second stage's losses on the heads' strongest peaks (see refine.py)."""
+def add_refine_loss(
+    net, maps, points_list, targets, loss, terms, seed: int, step: int, positions=None
+):
+    """`loss` plus the second stage's losses on the heads' strongest peaks (see refine.py).
+    Frame b's jitter draws are seeded by (seed, step, its position in the global batch)."""
     config = net.config
     _, boxes = peak_boxes(maps, config, config.refine_train_peaks)  # (B, k, 7)
-    rng = np.random.default_rng([seed, step, REFINE_STREAM])
+    positions = range(len(points_list)) if positions is None else positions
+    rngs = [np.random.default_rng([seed, step, REFINE_STREAM, j]) for j in positions]
     box, iou = refine_loss(
-        net.refiner, points_list, list(boxes.numpy()), targets.objects, config, rng
+        net.refiner, points_list, list(boxes.cpu().numpy()), targets.objects, config, rngs
     )
     w_box, w_iou = config.refine_weights
     total = loss + w_box * box + w_iou * iou
     return total, {
         **terms,
-        "loss": float(total.detach()),
-        "refine_box": float(box.detach()),
-        "refine_iou": float(iou.detach()),
+        "loss": total.detach(),
+        "refine_box": box.detach(),
+        "refine_iou": iou.detach(),
     }
 
 

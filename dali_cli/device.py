@@ -1,0 +1,126 @@
+"""Which torch device a training or inference run uses: `--device auto|cpu|cuda|cuda:N` resolved
+to a `torch.device` (with a clear error when it does not exist), bf16 autocast on it, and a
+record of the device (GPU model, count) for the manifest.
+
+torch is imported inside the functions, so `dali --help` stays fast.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import re
+
+import click
+
+DEVICE_SPECS = "auto, cpu, cuda or cuda:N"
+PRECISIONS = ("fp32", "bf16")
+
+
+class DeviceError(click.ClickException):
+    """A device that was asked for but is not there (exit 1, before anything is written)."""
+
+
+def parse_device_spec(spec: str) -> tuple[str, int | None]:
+    """'auto' | 'cpu' | 'cuda' | 'cuda:N' -> (kind, index or None); click.BadParameter otherwise."""
+    text = str(spec).strip().lower()
+    if text in ("auto", "cpu", "cuda"):
+        return text, None
+    match = re.fullmatch(r"cuda:(\d+)", text)
+    if match:
+        return "cuda", int(match.group(1))
+    raise click.BadParameter(f"'{spec}' is not a device; use {DEVICE_SPECS}", param_hint="--device")
+
+
+def resolve_device(spec: str = "auto", local_rank: int | None = None):
+    """The torch.device for `spec`.
+
+    auto: CUDA when torch.cuda.is_available(), else the CPU. cuda without an index: the GPU of
+    this process's local rank under torchrun (`local_rank`), else GPU 0. A CUDA device that does
+    not exist is a DeviceError naming what is there, raised before any output is written.
+    """
+    import torch
+
+    kind, index = parse_device_spec(spec)
+    if kind == "auto":
+        kind = "cuda" if torch.cuda.is_available() else "cpu"
+    if kind == "cpu":
+        return torch.device("cpu")
+    if not torch.cuda.is_available():
+        raise DeviceError(
+            f"--device {spec}: no CUDA GPU is available to this process (torch "
+            f"{torch.__version__}, built with CUDA {torch.version.cuda or 'none'}); "
+            "use --device cpu or --device auto"
+        )
+    count = torch.cuda.device_count()
+    if index is None:
+        index = local_rank if local_rank is not None else 0
+    if not 0 <= index < count:
+        raise DeviceError(
+            f"--device {spec}: GPU {index} does not exist (this process sees {count}: "
+            f"cuda:0..cuda:{count - 1}; check CUDA_VISIBLE_DEVICES and --nproc-per-node)"
+        )
+    return torch.device("cuda", index)
+
+
+def check_precision(precision: str, device) -> None:
+    """bf16 needs a device that runs it: any CPU (slow without AMX / AVX512-BF16), a CUDA GPU
+    with bf16 support (Ampere or newer)."""
+    import torch
+
+    if precision not in PRECISIONS:
+        raise click.BadParameter(f"'{precision}' is not one of {', '.join(PRECISIONS)}")
+    if precision == "bf16" and device.type == "cuda" and not torch.cuda.is_bf16_supported():
+        raise DeviceError(
+            f"--precision bf16: {torch.cuda.get_device_name(device)} does not support bf16; "
+            "use --precision fp32"
+        )
+
+
+def inference_device(spec: str, precision: str):
+    """The torch.device an inference stage runs on, with its precision checked (both before the
+    stage writes anything)."""
+    device = resolve_device(spec)
+    check_precision(precision, device)
+    return device
+
+
+def place(predictor, device, precision: str = "fp32"):
+    """`predictor` on `device` with `precision`: a Detector is moved there (`Detector.to`); other
+    predictors (stand-ins that only `predict`) are returned as they are."""
+    move = getattr(predictor, "to", None)
+    return move(device, precision) if callable(move) else predictor
+
+
+def inference_runtime(device) -> dict:
+    """The manifest's record of an inference stage's machine (threads, device, CPU/GPU, torch)."""
+    import torch
+
+    from dali_cli.detector.runtime import runtime_info
+
+    return runtime_info(torch.get_num_threads(), device)
+
+
+def autocast(device, precision: str):
+    """bf16 autocast on `device` for precision 'bf16', else a no-op context."""
+    import torch
+
+    if precision != "bf16":
+        return contextlib.nullcontext()
+    return torch.autocast(device.type, dtype=torch.bfloat16)
+
+
+def describe(device) -> dict:
+    """What a manifest records about the device: its name, and for CUDA the GPU model, its memory
+    and the number of GPUs this process sees."""
+    import torch
+
+    record = {"device": str(device)}
+    if device.type == "cuda":
+        properties = torch.cuda.get_device_properties(device)
+        record.update(
+            gpu_model=properties.name,
+            gpu_memory_gib=round(properties.total_memory / 2**30, 1),
+            gpu_count=torch.cuda.device_count(),
+            cuda_version=torch.version.cuda,
+        )
+    return record
