@@ -36,7 +36,8 @@ $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	@# torch first, pinned: on these machines 2.13.0 is a local CPU wheel; other specs pull CUDA.
 	$(BIN)/pip install --quiet --disable-pip-version-check torch==2.13.0
-	$(BIN)/pip install --quiet --disable-pip-version-check -e '.[dev]'
+	@# .[ray]: the optional Ray engine, installed so the test suite runs its tests on a local Ray
+	$(BIN)/pip install --quiet --disable-pip-version-check -e '.[dev,ray]'
 	@touch $(STAMP)
 
 install: $(STAMP)
@@ -87,6 +88,14 @@ RETRAIN_BUDGET  = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(RETRAIN_EPOCHS
 EXPECTED       ?= sn
 LIBRARY_MODELS ?= 24
 SYNTH_WORKERS  ?= 2
+# engine of the per-frame stages (synth, pseudo-label, ppcg-rc, ppcg-cf, eval): local or ray
+# (docs/scale-out.md); WORKERS: their workers (empty: each stage's default), RAY_ADDRESS: a Ray
+# cluster (empty: a local Ray instance per stage)
+EXECUTOR       ?= local
+WORKERS        ?=
+RAY_ADDRESS    ?=
+EXEC_FLAGS      = --executor $(EXECUTOR)$(if $(WORKERS), --workers $(WORKERS))$(if $(RAY_ADDRESS), --ray-address $(RAY_ADDRESS))
+SYNTH_FLAGS     = --executor $(EXECUTOR) --workers $(or $(WORKERS),$(SYNTH_WORKERS))$(if $(RAY_ADDRESS), --ray-address $(RAY_ADDRESS))
 VAL_FRAMES     ?= $(FRAMES)
 SCORE_MIN      ?= 0.3
 # evaluation: all boxes and range bands of the front region (90 deg FOV, detection range, as ST3D
@@ -94,13 +103,13 @@ SCORE_MIN      ?= 0.3
 EVAL_FLAGS     ?= --protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
 
 $(RUN)/data/source/manifest.json: | install
-	$(DALI) synth --sensor $(SOURCE_SENSOR) --cars $(SOURCE_SENSOR) --frames $(FRAMES) --seed $(SEED) --workers $(SYNTH_WORKERS) --out $(@D)
+	$(DALI) synth --sensor $(SOURCE_SENSOR) --cars $(SOURCE_SENSOR) --frames $(FRAMES) --seed $(SEED) $(SYNTH_FLAGS) --out $(@D)
 $(RUN)/data/source_val/manifest.json: | install
-	$(DALI) synth --sensor $(SOURCE_SENSOR) --cars $(SOURCE_SENSOR) --frames $(VAL_FRAMES) --seed $$(( $(SEED) + 3000 )) --workers $(SYNTH_WORKERS) --out $(@D)
+	$(DALI) synth --sensor $(SOURCE_SENSOR) --cars $(SOURCE_SENSOR) --frames $(VAL_FRAMES) --seed $$(( $(SEED) + 3000 )) $(SYNTH_FLAGS) --out $(@D)
 $(RUN)/data/target/manifest.json: | install
-	$(DALI) synth --sensor $(SENSOR) --cars $(SENSOR) --frames $(FRAMES) --seed $$(( $(SEED) + 1000 )) --workers $(SYNTH_WORKERS) --out $(@D)
+	$(DALI) synth --sensor $(SENSOR) --cars $(SENSOR) --frames $(FRAMES) --seed $$(( $(SEED) + 1000 )) $(SYNTH_FLAGS) --out $(@D)
 $(RUN)/data/target_val/manifest.json: | install
-	$(DALI) synth --sensor $(SENSOR) --cars $(SENSOR) --frames $(VAL_FRAMES) --seed $$(( $(SEED) + 2000 )) --workers $(SYNTH_WORKERS) --out $(@D)
+	$(DALI) synth --sensor $(SENSOR) --cars $(SENSOR) --frames $(VAL_FRAMES) --seed $$(( $(SEED) + 2000 )) $(SYNTH_FLAGS) --out $(@D)
 $(RUN)/library/manifest.json: | install
 	$(DALI) library build --procedural $(LIBRARY_MODELS) --seed $$(( $(SEED) + 4000 )) --out $(@D)
 
@@ -110,9 +119,9 @@ data: $(SOURCE)/manifest.json $(TARGET)/manifest.json $(TARGET_VAL)/manifest.jso
 $(RUN)/iter0/model/manifest.json: $(SOURCE)/manifest.json
 	$(TRAIN_DALI) pretrain --source $(SOURCE) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/iter0/eval/metrics.json: $(RUN)/iter0/model/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) --out $@
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) $(EXEC_FLAGS) --out $@
 $(RUN)/iter0/eval_ptsn/metrics.json: $(RUN)/iter1/ptsn/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale-from $(RUN)/iter1/ptsn $(EVAL_FLAGS) --out $@
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale-from $(RUN)/iter1/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $@
 iter0: $(RUN)/iter0/eval/metrics.json $(RUN)/iter0/eval_ptsn/metrics.json
 
 # ptsn-sweep N uses model N-1 (ITER_PTSN), iteration N builds model N (ITER)
@@ -122,15 +131,15 @@ $(RUN)/iter$(1)/ptsn/manifest.json: $(RUN)/iter$(2)/model/manifest.json $(TARGET
 endef
 define ITER
 $(RUN)/iter$(1)/pseudo/manifest.json: $(RUN)/iter$(1)/ptsn/manifest.json
-	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(RUN)/iter$(2)/model --target $(TARGET) --scale-from $(RUN)/iter$(1)/ptsn --score-min $(SCORE_MIN) --out $$(@D)
+	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(RUN)/iter$(2)/model --target $(TARGET) --scale-from $(RUN)/iter$(1)/ptsn --score-min $(SCORE_MIN) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/rc/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
-	$(DALI) ppcg-rc --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) --out $$(@D)
+	$(DALI) ppcg-rc --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/cf/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
-	$(DALI) ppcg-cf --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) --out $$(@D)
+	$(DALI) ppcg-cf --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/model/manifest.json: $(RUN)/iter$(1)/rc/manifest.json $(RUN)/iter$(1)/cf/manifest.json $(SOURCE)/manifest.json
 	$(TRAIN_DALI) retrain --init $(RUN)/iter$(2)/model --source $(SOURCE) --ppcg $(RUN)/iter$(1)/rc $(RUN)/iter$(1)/cf --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $$(@D)
 $(RUN)/iter$(1)/eval/metrics.json: $(RUN)/iter$(3)/ptsn/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter$(1)/model --data $(TARGET_VAL) --scale-from $(RUN)/iter$(3)/ptsn $(EVAL_FLAGS) --out $$@
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter$(1)/model --data $(TARGET_VAL) --scale-from $(RUN)/iter$(3)/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $$@
 iter$(1): iter$(2) $(RUN)/iter$(1)/eval/metrics.json
 .PHONY: iter$(1)
 endef
@@ -149,11 +158,11 @@ $(RUN)/baselines/rc_only/model/manifest.json: $(RUN)/iter1/rc/manifest.json $(SO
 $(RUN)/baselines/cf_only/model/manifest.json: $(RUN)/iter1/cf/manifest.json $(SOURCE)/manifest.json
 	$(TRAIN_DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/cf --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/%/eval/metrics.json: $(RUN)/baselines/%/model/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) --out $@
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) $(EXEC_FLAGS) --out $@
 $(RUN)/baselines/%/ptsn/manifest.json: $(RUN)/baselines/%/model/manifest.json $(TARGET)/manifest.json
 	$(DALI) ptsn-sweep $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --target $(TARGET) --expected-size $(EXPECTED) --score-min $(SCORE_MIN) --seed $(SEED) --out $(@D)
 $(RUN)/baselines/%/eval_ptsn/metrics.json: $(RUN)/baselines/%/ptsn/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale-from $(RUN)/baselines/$*/ptsn $(EVAL_FLAGS) --out $@
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale-from $(RUN)/baselines/$*/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $@
 # controls: as many training frames as DALI's models saw (pretrain E epochs, each retrain 2 x RE
 # epochs of source + PPCG): source only with x1's budget (+ test-time PTSN), oracle with x2's
 X1_BUDGET = $(if $(MINUTES),--minutes $$(( 2 * $(MINUTES) )),--epochs $$(( $(EPOCHS) + 2 * $(RETRAIN_EPOCHS) )))
@@ -172,14 +181,14 @@ ST_BUDGET  = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(ST_EPOCHS))
 $(RUN)/iter2_st/model/manifest.json: $(RUN)/iter3/pseudo/manifest.json $(TARGET)/manifest.json
 	$(TRAIN_DALI) self-train --init $(RUN)/iter2/model --target $(TARGET) --pseudo $(RUN)/iter3/pseudo --seed $(SEED) $(ST_BUDGET) $(ST_FLAGS) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/iter2_st/eval/metrics.json: $(RUN)/iter2_st/model/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter2_st/model --data $(TARGET_VAL) --scale-from $(RUN)/iter3/ptsn $(EVAL_FLAGS) --out $@
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter2_st/model --data $(TARGET_VAL) --scale-from $(RUN)/iter3/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $@
 # KITTI easy / moderate / hard of the same predictions (synthetic labels carry KITTI's columns)
 KITTI_EVAL_FLAGS ?= --protocol kitti --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
 $(RUN)/%/metrics_kitti.json: $(RUN)/%/metrics.json
 	$(DALI) eval --pred $(RUN)/$*/predictions.parquet --gt $(TARGET_VAL) $(KITTI_EVAL_FLAGS) --out $@
 # cross-domain check: every model on the source validation set at s = 1
 $(RUN)/%/eval_source/metrics.json: $(RUN)/%/model/manifest.json $(RUN)/data/source_val/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/$*/model --data $(RUN)/data/source_val --scale 1.0 $(EVAL_FLAGS) --out $@
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/$*/model --data $(RUN)/data/source_val --scale 1.0 $(EVAL_FLAGS) $(EXEC_FLAGS) --out $@
 
 # phony goals (evaluated inside the sub-make, so they follow its RUN)
 baseline-sn: $(RUN)/baselines/sn/eval/metrics.json

@@ -57,7 +57,7 @@ def main() -> None:
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
         with tempfile.TemporaryDirectory() as tmp:
             stage = time.perf_counter()
-            synth.build_synth(tmp, profile, profile, args.frames, 1, workers=1, progress=False)
+            synth.build_synth(tmp, profile, profile, args.frames, 1, progress=False)
             stage = time.perf_counter() - stage
         points = np.array([len(f.points) for f in frames])
         labels = np.concatenate([f.num_points for f in frames])

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 
@@ -685,29 +686,61 @@ def synth_frame(
 # The stage
 
 
-def _frame_task(task: tuple[int, int, SensorProfile, SensorProfile, int]) -> SynthFrame:
-    seed, index, sensor, cars, threads = task
-    return synth_frame(seed, index, sensor, cars, threads=threads)
-
-
 def iter_frames(
-    seed: int,
-    frames: int,
-    sensor: SensorProfile,
-    cars: SensorProfile,
-    workers: int = 1,
-    threads: int = 1,
+    seed: int, frames: range | int, sensor: SensorProfile, cars: SensorProfile, threads: int = 1
 ):
-    """Yield SynthFrames 0..frames-1 in order, computed by `workers` processes (spawned), each
-    tracing with `threads` Embree threads."""
-    tasks = [(int(seed), index, sensor, cars, int(threads)) for index in range(int(frames))]
-    if workers <= 1 or frames <= 1:
-        yield from map(_frame_task, tasks)
-        return
-    from dali_cli.workers import process_pool
+    """Yield SynthFrames of `frames` (a range of indices, or 0..frames-1) in order, each traced
+    with `threads` Embree threads, in this process (the serial path; see SynthShards)."""
+    indices = range(int(frames)) if isinstance(frames, int) else frames
+    for index in indices:
+        yield synth_frame(int(seed), index, sensor, cars, threads=int(threads))
 
-    with process_pool(min(workers, frames)) as pool:
-        yield from pool.map(_frame_task, tasks, chunksize=max(1, min(8, frames // (4 * workers))))
+
+def frame_table(frame: SynthFrame):
+    """One frame's labels as a BoxTable: every car with >= 1 point, its KITTI label fields."""
+    from dali_cli.artifacts import BoxTable
+    from dali_cli.camera import kitti_label_columns
+
+    return BoxTable.from_arrays(
+        np.full(len(frame.boxes), frame.frame_id, dtype=object),
+        frame.boxes,
+        label="Car",
+        num_points=frame.num_points,
+        occlusion=frame.occlusion,
+        kind=frame.kind.astype(str),
+        car_model=frame.model,
+        # after the scan, from the boxes alone: no random draw, points unchanged
+        **kitti_label_columns(frame.boxes, frame.occlusion),
+    )
+
+
+@dataclass(frozen=True)
+class SynthShards:
+    """Worker factory and worker of the sharded path (dali_cli.executors): a shard's frames
+    and labels, written as shard files (points) and boxes.parquet. Nothing to load."""
+
+    seed: int
+    sensor: SensorProfile
+    cars: SensorProfile
+    threads: int = 1
+
+    def __call__(self) -> SynthShards:
+        return self
+
+    def run(self, shard, directory: Path) -> dict:
+        from dali_cli.artifacts import BoxTable, write_boxes
+        from dali_cli.executors import naming_frames
+        from dali_cli.executors.shards import ShardFramesWriter
+
+        writer, tables = ShardFramesWriter(directory), []
+        for index in range(shard.start, shard.stop):
+            with naming_frames(frame_id(index)):
+                frame = synth_frame(self.seed, index, self.sensor, self.cars, self.threads)
+            writer.append(frame.frame_id, frame.points)
+            tables.append(frame_table(frame))
+        points = writer.close()
+        write_boxes(directory, BoxTable.concat(tables))
+        return {"points": points}
 
 
 def build_synth(
@@ -716,11 +749,13 @@ def build_synth(
     cars: SensorProfile,
     frames: int,
     seed: int,
-    workers: int = 1,
     progress: bool = True,
     threads: int = 1,
+    executor=None,
 ):
-    """Write `frames` synthetic frames as a FrameSet + boxes.parquet into `out_dir`.
+    """Write `frames` synthetic frames as a FrameSet + boxes.parquet into `out_dir`, in this
+    process or, given a parallel `executor` (dali_cli.executors), as shards on its workers
+    merged in order (the same bytes).
 
     Returns a manifest.BuildResult with counts (frames, points, labels, mean label size, points
     per car by range band) and timings.
@@ -729,8 +764,7 @@ def build_synth(
 
     from tqdm import tqdm
 
-    from dali_cli.artifacts import BoxTable, FrameSetWriter, write_boxes
-    from dali_cli.camera import kitti_label_columns
+    from dali_cli.artifacts import BoxTable, FrameSetWriter, read_boxes, write_boxes
     from dali_cli.manifest import BuildResult
 
     started = time.perf_counter()
@@ -741,29 +775,28 @@ def build_synth(
         "mount_height_m": sensor.mount_height_m,
     }
     tables, total_points = [], 0
+    bar = tqdm(total=frames, desc=f"synth {sensor.name}", unit="frame", disable=not progress)
     with FrameSetWriter(out_dir, sensor.name, attrs) as writer:
-        for frame in tqdm(
-            iter_frames(seed, frames, sensor, cars, workers, threads),
-            total=frames,
-            desc=f"synth {sensor.name}",
-            unit="frame",
-            disable=not progress,
-        ):
-            writer.append(frame.frame_id, frame.points)
-            total_points += len(frame.points)
-            tables.append(
-                BoxTable.from_arrays(
-                    np.full(len(frame.boxes), frame.frame_id, dtype=object),
-                    frame.boxes,
-                    label="Car",
-                    num_points=frame.num_points,
-                    occlusion=frame.occlusion,
-                    kind=frame.kind.astype(str),
-                    car_model=frame.model,
-                    # after the scan, from the boxes alone: no random draw, points unchanged
-                    **kitti_label_columns(frame.boxes, frame.occlusion),
-                )
-            )
+        if executor is None or executor.serial:
+            for frame in iter_frames(seed, frames, sensor, cars, threads):
+                writer.append(frame.frame_id, frame.points)
+                total_points += len(frame.points)
+                tables.append(frame_table(frame))
+                bar.update(1)
+        else:
+            from dali_cli.executors import plan_shards, shard_results
+            from dali_cli.executors.shards import read_shard_frames
+
+            ids = [frame_id(index) for index in range(frames)]
+            worker = SynthShards(int(seed), sensor, cars, int(threads))
+            shards = plan_shards(ids, executor.workers, max_frames=16)
+            for shard, directory, _ in shard_results(executor, worker, shards, Path(out_dir)):
+                for name, points in read_shard_frames(directory):
+                    writer.append(name, points)
+                    total_points += len(points)
+                tables.append(read_boxes(directory))
+                bar.update(len(shard.frame_ids))
+    bar.close()
     table = BoxTable.concat(tables)
     write_boxes(out_dir, table)
     elapsed = time.perf_counter() - started
@@ -793,4 +826,5 @@ def build_synth(
         "colour camera at the sensor (dali_cli.camera), so `dali eval --protocol kitti` gives "
         "easy/moderate/hard",
     ]
-    return BuildResult(counts=counts, timings=timings, notes=notes)
+    extra = {"executor": executor.report()} if executor is not None else {}
+    return BuildResult(counts=counts, timings=timings, notes=notes, extra=extra)

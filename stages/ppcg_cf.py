@@ -29,11 +29,13 @@ def ppcg_cf(
     seed: int = 0,
     ground_margin_m: float = 0.1,
     label: str | None = "Car",
-    workers: int = 1,
+    workers: int | None = 1,
     force: bool = False,
     dry_run: bool = False,
     progress: bool = True,
     bank: ModelBank | None = None,
+    executor: str = "local",
+    ray_address: str | None = None,
 ) -> StageOutcome:
     """CF pseudo point clouds (see dali_cli.ppcg.cf); `bank` replaces the library (tests)."""
     low, high = (float(v) for v in range_m)
@@ -61,5 +63,5 @@ def ppcg_cf(
         "cf", target_dir, boxes_dir, library_dir, out,
         params=params, stage_params=stage_params, sensor=sensor, sensors_path=sensors_path,
         models=models, label=label, workers=workers, force=force, dry_run=dry_run,
-        progress=progress, bank=bank,
+        progress=progress, bank=bank, executor=executor, ray_address=ray_address,
     )  # fmt: skip

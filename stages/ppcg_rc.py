@@ -22,6 +22,7 @@ import numpy as np
 
 from dali_cli import plausibility
 from dali_cli.artifacts import BoxTable, FrameSet, FrameSetWriter, read_boxes, write_boxes
+from dali_cli.executors import make_executor, run_on
 from dali_cli.manifest import BuildResult, StageOutcome, check_made_from, run_stage
 from dali_cli.ppcg.cf import CfParams
 from dali_cli.ppcg.driver import Job, run_frames
@@ -131,13 +132,17 @@ def run_ppcg(
     sensors_path: str | None,
     models: str | None,
     label: str | None,
-    workers: int,
+    workers: int | None,
     force: bool,
     dry_run: bool,
     progress: bool,
     bank: ModelBank | None = None,
+    executor: str = "local",
+    ray_address: str | None = None,
 ) -> StageOutcome:
-    """The shared body of ppcg-rc and ppcg-cf (mode "rc" or "cf")."""
+    """The shared body of ppcg-rc and ppcg-cf (mode "rc" or "cf"); `executor`, `workers`,
+    `ray_address`: the engine of the per-frame work (dali_cli.executors)."""
+    engine = make_executor(executor, workers, ray_address)
     target_dir, boxes_dir, library_dir = Path(target_dir), Path(boxes_dir), Path(library_dir)
     frames = FrameSet(target_dir)
     check_made_from(boxes_dir, "target", target_dir)  # pseudo boxes of this very frame set
@@ -161,10 +166,13 @@ def run_ppcg(
     job = Job(mode, str(target_dir), str(library_dir), models, sensor, sensors_path, params)
 
     def build(directory: Path) -> BuildResult:
+        return run_on(engine, f"ppcg-{mode}", lambda pool: build_on(pool, directory))
+
+    def build_on(pool, directory: Path) -> BuildResult:
         from tqdm import tqdm
 
         nonlocal bank
-        if bank is None:  # loaded only when the stage runs (not for an up-to-date skip)
+        if bank is None and pool.serial:  # loaded only when the stage runs in this process
             from dali_cli.library import read_library
 
             try:
@@ -198,7 +206,7 @@ def run_ppcg(
         )  # fmt: skip
         # raw chunks: zstd saves ~8% on LiDAR coordinates at about the cost of the whole RC step
         with FrameSetWriter(directory, attrs.pop("sensor"), attrs, compress=False) as writer:
-            results = run_frames(job, frame_boxes, workers, bank if workers <= 1 else None)
+            results = run_frames(job, frame_boxes, pool, bank, directory)
             for index, result in enumerate(results):
                 frame_rows = rows[index]
                 write_started = time.perf_counter()
@@ -270,7 +278,10 @@ def run_ppcg(
             counts=counts,
             timings=timings,
             notes=[*NOTES, *([implausible_note] if implausible_note else [])],
-            extra={"per_frame_compute_seconds": [round(float(s), 6) for s in seconds]},
+            extra={
+                "per_frame_compute_seconds": [round(float(s), 6) for s in seconds],
+                "executor": pool.report(),
+            },
         )
 
     return run_stage(
@@ -300,11 +311,13 @@ def ppcg_rc(
     seed: int = 0,
     ground_margin_m: float = 0.1,
     label: str | None = "Car",
-    workers: int = 1,
+    workers: int | None = 1,
     force: bool = False,
     dry_run: bool = False,
     progress: bool = True,
     bank: ModelBank | None = None,
+    executor: str = "local",
+    ray_address: str | None = None,
 ) -> StageOutcome:
     """RC pseudo point clouds (see dali_cli.ppcg.rc); `bank` replaces the library (tests)."""
     if min_points < 1 or max_points <= min_points:
@@ -336,5 +349,5 @@ def ppcg_rc(
         "rc", target_dir, boxes_dir, library_dir, out,
         params=params, stage_params=stage_params, sensor=sensor, sensors_path=sensors_path,
         models=models, label=label, workers=workers, force=force, dry_run=dry_run,
-        progress=progress, bank=bank,
+        progress=progress, bank=bank, executor=executor, ray_address=ray_address,
     )  # fmt: skip

@@ -9,16 +9,17 @@ from __future__ import annotations
 import json
 import math
 import sys
-import time
 from pathlib import Path
 
 import click
 import numpy as np
 
-from dali_cli import plausibility, ptsn, size_correction
+from dali_cli import ptsn, size_correction
 from dali_cli.artifacts import BoxTable, FrameSet, write_boxes
-from dali_cli.device import inference_device, inference_runtime, place
+from dali_cli.device import inference_device, inference_runtime
+from dali_cli.executors import make_executor, run_on
 from dali_cli.manifest import BuildResult, StageOutcome, run_stage
+from dali_cli.pseudo_labeler import FrameLabeler, label_frame  # noqa: F401 (public here)
 from dali_cli.scale_file import read_scale
 from dali_cli.sensors import get_profile
 
@@ -32,24 +33,6 @@ def load_detector(model_dir: str | Path) -> ptsn.Predictor:
     from dali_cli.detector import Detector
 
     return Detector.load(model_dir)
-
-
-def label_frame(
-    boxes: np.ndarray, scores: np.ndarray, points: np.ndarray, score_min: float, nms_iou: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One frame's pseudo labels: boxes (K, 7), scores (K,), in-box point counts (K,) int32.
-
-    boxes (M, 7) are already de-scaled to the original frame; points (n, 4) are the original ones.
-    """
-    from dali_cli.geometry import count_points_in_boxes, nms_bev
-
-    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
-    scores = np.asarray(scores, np.float32).reshape(-1)
-    keep = scores >= score_min
-    boxes, scores = boxes[keep], scores[keep]
-    kept = nms_bev(boxes, scores, nms_iou)
-    boxes, scores = boxes[kept], scores[kept]
-    return boxes, scores, count_points_in_boxes(points, boxes)
 
 
 def summarize(table: BoxTable, frames: int, scale: float, e_est: list | None) -> dict:
@@ -106,8 +89,12 @@ def pseudo_label(
     detector_loader=None,
     device: str = "auto",
     precision: str = "fp32",
+    workers: int | None = None,
+    executor: str = "local",
+    ray_address: str | None = None,
 ) -> StageOutcome:
-    """Run the pseudo-label stage (see the module docstring); `detector_loader` is for tests."""
+    """Run the pseudo-label stage (see the module docstring); `detector_loader` is for tests.
+    `executor`, `workers`, `ray_address`: the engine of the detector runs (dali_cli.executors)."""
     model_dir, target_dir = Path(model_dir), Path(target_dir)
     torch_device = inference_device(device, precision)  # a missing GPU: error, nothing written
     if scale is None and scale_from is None:
@@ -149,10 +136,18 @@ def pseudo_label(
     if scale_from is not None:
         inputs["scale_from"] = scale_from
 
+    engine = make_executor(executor, workers, ray_address)
+    labeler = FrameLabeler(
+        str(model_dir), str(target_dir), scale, mount_height_m, max_range_m, score_min, nms_iou,
+        batch_size, detector_loader or load_detector, device=torch_device, precision=precision,
+    )  # fmt: skip
+
     def build(directory: Path) -> BuildResult:
+        return run_on(engine, "pseudo-label", lambda pool: build_on(pool, directory))
+
+    def build_on(pool, directory: Path) -> BuildResult:
         from tqdm import tqdm
 
-        detector = place((detector_loader or load_detector)(model_dir), torch_device, precision)
         ids, boxes_all, scores_all, counts_all = [], [], [], []
         bar = tqdm(
             total=len(target), desc="pseudo-label", unit="frame", file=sys.stderr,
@@ -160,34 +155,14 @@ def pseudo_label(
         )  # fmt: skip
         seconds = 0.0
         implausible = 0  # boxes above the score cut dropped as implausible
-        buffer: list[tuple[str, np.ndarray]] = []
-        for item in (*target.iter_frames(), None):
-            if item is not None:
-                buffer.append(item)
-            if not buffer or (item is not None and len(buffer) < batch_size):
-                continue
-            started = time.perf_counter()
-            predictions = detector.predict(
-                [points for _, points in buffer], scale=scale, mount_height_m=mount_height_m
-            )
-            seconds += time.perf_counter() - started
-            if len(predictions) != len(buffer):
-                raise click.ClickException(
-                    f"{model_dir}: detector returned {len(predictions)} results for {len(buffer)} frames"
-                )
-            for (frame_id, points), (boxes, scores) in zip(buffer, predictions, strict=True):
-                # before NMS: one absurd box with a high score would suppress every other
-                boxes, scores = np.asarray(boxes).reshape(-1, 7), np.asarray(scores).reshape(-1)
-                sane = plausibility.plausible(boxes, max_range_m)
-                implausible += int(np.count_nonzero(~sane & (scores >= score_min)))
-                boxes, scores = boxes[sane], scores[sane]
-                boxes, scores, counts = label_frame(boxes, scores, points, score_min, nms_iou)
-                ids.extend([frame_id] * len(boxes))
-                boxes_all.append(boxes)
-                scores_all.append(scores)
-                counts_all.append(counts)
-            bar.update(len(buffer))
-            buffer = []
+        for labels in labeler.frame_labels(pool, directory, target):
+            ids.extend([labels.frame_id] * len(labels.boxes))
+            boxes_all.append(labels.boxes)
+            scores_all.append(labels.scores)
+            counts_all.append(labels.counts)
+            implausible += labels.implausible
+            seconds += labels.seconds
+            bar.update(1)
         bar.close()
         if ids:
             table = BoxTable.from_arrays(
@@ -230,6 +205,7 @@ def pseudo_label(
                 "pseudo_label": {"scale": scale, "scale_source": scale_source},
                 "runtime": inference_runtime(torch_device),
                 "size_correction": correction or {"method": size_correction_method},
+                "executor": pool.report(),
             },
         )
 

@@ -98,3 +98,37 @@ def device_options(function):
         help="Where the network runs. auto: CUDA when available, else the CPU. cuda under "
         "torchrun: the GPU of the local rank. A missing GPU is an error (nothing written).",
     )(function)
+
+
+def workers_option(local_default: str):
+    """--workers N: processes (local) or actors (ray) that run the stage's frames."""
+    return click.option(
+        "--workers",
+        type=click.IntRange(min=1),
+        default=None,
+        help=f"Workers: processes of this machine (--executor local; default {local_default}) or "
+        "Ray actors (--executor ray; default one per CPU of the cluster). The output does not "
+        "depend on it.",
+    )
+
+
+def executor_options(function):
+    """--executor local|ray and --ray-address: the engine that runs a per-frame stage's shards
+    (dali_cli.executors; docs/scale-out.md)."""
+    function = click.option(
+        "--ray-address",
+        default=None,
+        metavar="ADDR",
+        help="With --executor ray: the Ray cluster to use (e.g. HEAD:6379 of `ray start "
+        "--head`, or 'auto'). Default: start a local Ray instance for this run.",
+    )(function)
+    return click.option(
+        "--executor",
+        type=click.Choice(["local", "ray"]),
+        default="local",
+        show_default=True,
+        help="Engine for the per-frame work: local = this machine (in-process for one worker, "
+        "else a process pool); ray = Ray actors, each loading its models once, writing shards "
+        "into the output's temporary directory (needs pip install -e '.[ray]'). The output "
+        "does not depend on it.",
+    )(function)

@@ -10,7 +10,7 @@ import click
 import numpy as np
 
 from dali_cli.artifacts import BOXES_NAME, BoxTable, FrameSet, read_boxes
-from dali_cli.commands.common import device_options
+from dali_cli.commands.common import device_options, executor_options, workers_option
 
 EPILOG = """\b
 Inputs (--pred, --gt): a box-table directory (boxes.parquet), a .parquet file, or a KITTI
@@ -71,14 +71,49 @@ def _read_scale(scale: float | None, scale_from: str | None) -> float:
     return float(value)
 
 
-def _predict(model: str, data: str, scale: float, device, precision: str) -> BoxTable:
+def _predict(
+    model: str, data: str, scale: float, engine, out: Path | None, device: str, precision: str
+) -> BoxTable:
+    """The model's predictions on `data`, on `engine` (dali_cli.executors); a parallel engine's
+    shards go to a temporary folder beside --out (which workers must see), removed after."""
+    import shutil
+    import tempfile
+
     try:
         from dali_cli.detector import predict_frameset
     except ImportError as error:
         raise click.ClickException(f"the detector is not available ({error})") from None
-    return predict_frameset(
-        model, data, scale=scale, score_min=0.0, progress=True, device=device, precision=precision
-    )
+    from dali_cli.executors import run_on
+
+    if engine.serial:  # the reference path: in this process
+        return run_on(
+            engine,
+            "eval",
+            lambda _: predict_frameset(
+                model,
+                data,
+                scale=scale,
+                score_min=0.0,
+                progress=True,
+                device=device,
+                precision=precision,
+            ),
+        )
+    parent = Path(out).parent if out is not None else None
+    if parent is not None:
+        parent.mkdir(parents=True, exist_ok=True)
+    where = Path(tempfile.mkdtemp(prefix=".dali-eval-shards-", dir=parent))
+    try:
+        return run_on(
+            engine,
+            "eval",
+            lambda pool: predict_frameset(
+                model, data, scale=scale, score_min=0.0, progress=True, executor=pool,
+                shards_dir=where, device=device, precision=precision,
+            ),
+        )  # fmt: skip
+    finally:
+        shutil.rmtree(where, ignore_errors=True)
 
 
 def _write_atomically(path: Path, write) -> None:
@@ -177,6 +212,8 @@ def _write_json(path: Path, document: dict) -> None:
     "--out", type=click.Path(dir_okay=False, path_type=Path), help="Write metrics.json here."
 )
 @device_options
+@workers_option("1")
+@executor_options
 @click.option(
     "--save-predictions/--no-save-predictions",
     default=True,
@@ -199,12 +236,19 @@ def command(
     class_name,
     min_gt_points,
     out,
+    workers,
+    executor,
+    ray_address,
     save_predictions,
     device,
     precision,
 ):
-    """Average precision (KITTI protocol, BEV and 3D, float64 rotated IoU) of predictions."""
+    """Average precision (KITTI protocol, BEV and 3D, float64 rotated IoU) of predictions.
+    With --model, the detector runs on --executor with --workers."""
     from dali_cli.evaluate import EvaluationError, evaluate, format_table
+    from dali_cli.executors import make_executor
+
+    engine = make_executor(executor, workers, ray_address)
 
     for iou in ious:
         if not 0.0 <= iou < 1.0:
@@ -232,7 +276,7 @@ def command(
         frame_ids = FrameSet(data).frame_ids
         if gt_path is None:
             gt_path = Path(data)
-        pred = _predict(model, data, chosen_scale, torch_device, precision)
+        pred = _predict(model, data, chosen_scale, engine, out, torch_device, precision)
         source = {"model": str(model), "data": str(data), "scale": chosen_scale}
         runtime = {**inference_runtime(torch_device), "precision": precision}
     else:

@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import sensors_option, stage_options
+from dali_cli.commands.common import (
+    executor_options,
+    sensors_option,
+    stage_options,
+    workers_option,
+)
 
 
 def ppcg_options(function):
@@ -66,15 +71,10 @@ def ppcg_options(function):
             show_default=True,
             help="Process boxes of this label; other rows pass through as 'raw'.",
         ),
-        click.option(
-            "--workers",
-            type=click.IntRange(min=1),
-            default=1,
-            show_default=True,
-            help="Processes; the output does not depend on it.",
-        ),
+        workers_option("1"),
         click.option("--no-progress", is_flag=True, help="No progress bar."),
     ]
+    function = executor_options(function)
     for decorator in reversed(decorators):
         function = decorator(function)
     return function

@@ -168,7 +168,7 @@ def command(source, boxes, out, size_norm, target_profile, target_size, ros_rang
 
     Distributed: `torchrun --nproc-per-node N $(which dali) pretrain ...` trains with
     DistributedDataParallel (gloo on the CPU, nccl on CUDA), --batch-size frames per process;
-    rank 0 alone writes OUT. See docs/scale-out-training.md.
+    rank 0 alone writes OUT. See docs/scale-out.md.
     """
     import json
 

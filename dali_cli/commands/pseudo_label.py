@@ -6,9 +6,11 @@ import click
 
 from dali_cli.commands.common import (
     device_options,
+    executor_options,
     model_target_out_options,
     sensors_option,
     stage_options,
+    workers_option,
 )
 
 
@@ -59,6 +61,8 @@ from dali_cli.commands.common import (
     help="per-dim: multiply l, w, h by E_est / mean pseudo-box size per dimension (bottom face "
     "kept), removing the bias one isotropic ŝ leaves; E_est from --scale-from's scale.json.",
 )
+@workers_option("1")
+@executor_options
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @device_options
 @sensors_option

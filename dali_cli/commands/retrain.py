@@ -87,7 +87,7 @@ def command(init, source, ppcg, out, init_from, mix, labels, epochs, minutes, se
     (frames.zarr + boxes.parquet); raw target frames are not used. The source keeps INIT's size
     normalization (SN delta or ROS). An epoch is one pass over the source frames. Writes OUT/model.pt,
     model.json, train_log.parquet and manifest.json (same format as pretrain); an interrupted run
-    resumes from OUT.resume/. Runs under torchrun like pretrain (docs/scale-out-training.md).
+    resumes from OUT.resume/. Runs under torchrun like pretrain (docs/scale-out.md).
     """
     from stages.retrain import run_retrain
 

@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import sensors_option, stage_options
+from dali_cli.commands.common import (
+    executor_options,
+    sensors_option,
+    stage_options,
+    workers_option,
+)
 
 
 @click.command(name="synth")
@@ -27,12 +32,8 @@ from dali_cli.commands.common import sensors_option, stage_options
     show_default=True,
     help="Run seed; frame k depends only on (seed, k).",
 )
-@click.option(
-    "--workers",
-    type=click.IntRange(min=1),
-    default=None,
-    help="Worker processes (default: cores available). The output does not depend on it.",
-)
+@workers_option("the cores available")
+@executor_options
 @click.option(
     "--threads",
     type=click.IntRange(min=1),
@@ -44,7 +45,18 @@ from dali_cli.commands.common import sensors_option, stage_options
 @sensors_option
 @stage_options
 def command(
-    sensor, cars_profile, frames, seed, workers, threads, out, sensors_path, force, dry_run
+    sensor,
+    cars_profile,
+    frames,
+    seed,
+    workers,
+    executor,
+    ray_address,
+    threads,
+    out,
+    sensors_path,
+    force,
+    dry_run,
 ):
     """Synthesize a labeled LiDAR domain: street scenes of 5-30 procedural cars with clutter
     (walls, poles, trees, bushes, curbs, containers), scanned with the full --sensor pattern.
@@ -61,6 +73,7 @@ def command(
     import hashlib
     import json
 
+    from dali_cli.executors import make_executor, run_on
     from dali_cli.manifest import run_stage
     from dali_cli.raycast import available_cores
     from dali_cli.sensors import get_profile
@@ -68,7 +81,12 @@ def command(
 
     sensor_profile = get_profile(sensor, sensors_path)
     cars = get_profile(cars_profile or sensor, sensors_path)
-    workers = workers or available_cores()
+    engine = make_executor(
+        executor,
+        workers or (available_cores() if executor == "local" else None),
+        ray_address,
+        cpus_per_worker=threads,
+    )
     params = {
         "sensor": sensor,
         "cars": cars.name,
@@ -85,7 +103,13 @@ def command(
         out,
         {},
         params,
-        lambda tmp: build_synth(tmp, sensor_profile, cars, frames, seed, workers, threads=threads),
+        lambda tmp: run_on(
+            engine,
+            "synth",
+            lambda pool: build_synth(
+                tmp, sensor_profile, cars, frames, seed, threads=threads, executor=pool
+            ),
+        ),
         force=force,
         dry_run=dry_run,
         seed=seed,

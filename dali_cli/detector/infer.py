@@ -303,9 +303,12 @@ def predict_frameset(
     sensors_path: str | Path | None = None,
     device: torch.device | None = None,
     precision: str = "fp32",
+    executor=None,
+    shards_dir: str | Path | None = None,
 ) -> BoxTable:
     """Run the detector of `model_dir` on every frame of the FrameSet `data_dir` on `device`
-    (default: the CPU) with `precision` (fp32 or bf16 autocast).
+    (default: the CPU) with `precision` (fp32 or bf16 autocast), in this process or (a parallel
+    `executor` of dali_cli.executors) as shards written under `shards_dir`.
 
     The ground (for the network and for PTSN scaling) is the frame set's sensor profile mount height.
     Returns a BoxTable with score and num_points (points of the original frame inside each box).
@@ -313,36 +316,26 @@ def predict_frameset(
     from tqdm import tqdm
 
     from dali_cli.detector.runtime import available_cores
-    from dali_cli.geometry import count_points_in_boxes
+    from dali_cli.pseudo_labeler import FrameLabeler
     from dali_cli.sensors import get_profile
 
     torch.set_num_threads(available_cores())
-    detector = Detector.load(model_dir, device=device, precision=precision)
     frames = FrameSet(data_dir)
     mount = (
-        get_profile(frames.sensor, sensors_path).mount_height_m
-        if frames.sensor
-        else detector.config.mount_height_m
-    )
+        get_profile(frames.sensor, sensors_path).mount_height_m if frames.sensor else None
+    )  # None: the checkpoint's
+    predictor = FrameLabeler(
+        str(model_dir), str(data_dir), scale, mount, None, score_min, 1.0, batch_size,
+        Detector.load, raw=True, device=device, precision=precision,
+    )  # fmt: skip
     ids, all_boxes, all_scores, all_counts = [], [], [], []
     bar = tqdm(total=len(frames), desc="predict", unit="frame", disable=not progress, leave=False)
-    buffer: list[tuple[str, np.ndarray]] = []
-    for item in (*frames.iter_frames(), None):
-        if item is not None:
-            buffer.append(item)
-        if buffer and (item is None or len(buffer) == batch_size):
-            predictions = detector.predict(
-                [p for _, p in buffer], scale=scale, mount_height_m=mount
-            )
-            for (frame_id, points), (boxes, scores) in zip(buffer, predictions, strict=True):
-                keep = scores >= score_min
-                boxes, scores = boxes[keep], scores[keep]
-                ids.extend([frame_id] * len(boxes))
-                all_boxes.append(boxes)
-                all_scores.append(scores)
-                all_counts.append(count_points_in_boxes(points, boxes))
-            bar.update(len(buffer))
-            buffer = []
+    for labels in predictor.frame_labels(executor, shards_dir, frames):
+        ids.extend([labels.frame_id] * len(labels.boxes))
+        all_boxes.append(labels.boxes)
+        all_scores.append(labels.scores)
+        all_counts.append(labels.counts)
+        bar.update(1)
     bar.close()
     if not ids:
         return BoxTable.empty()

@@ -1,17 +1,17 @@
-"""Run RC or CF over a whole frame set, in order, on one process or several.
+"""Run RC or CF over a whole frame set, in order, in this process or as shards on an executor
+(dali_cli.executors: a local process pool or Ray actors).
 
 Each frame depends only on its points, its boxes (in table order) and the run seed, so the output
-is the same for any number of workers. Workers are spawned processes (no fork after Zarr has
-started its threads); each loads the model library once and builds a model's BVH on first use.
-Frames without boxes pass through without any ray casting.
+is the same for any number of workers and any engine. Each worker loads the model library once
+and builds a model's BVH on first use. Frames without boxes pass through without any ray casting.
 """
 
 from __future__ import annotations
 
 import time
-from collections import deque
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from pathlib import Path
 
 import numpy as np
 
@@ -20,7 +20,7 @@ from dali_cli.ppcg.frame import BoxRecords
 from dali_cli.ppcg.models import ModelBank
 from dali_cli.ppcg.rc import RcParams, rc_frame
 
-_CHUNK_FRAMES = 16  # frames per worker task
+_CHUNK_FRAMES = 16  # at most this many frames per shard
 
 
 @dataclass(frozen=True)
@@ -60,8 +60,10 @@ class _Worker:
         self.frames = FrameSet(job.target_dir)
         self.profile = get_profile(job.sensor, job.sensors_path)
         if bank is None:
+            from dali_cli.executors import count_load
             from dali_cli.library import read_library
 
+            count_load("model library")
             bank = ModelBank.from_library(
                 read_library(job.library_dir), job.models, job.library_dir
             )
@@ -91,43 +93,106 @@ class _Worker:
             yield result
 
 
-_state: _Worker | None = None
+@dataclass(frozen=True)
+class PpcgShards:
+    """Worker factory of the sharded path: each engine worker makes one (loading the model
+    library once) and runs shards of frames; a shard's payload is its frames' boxes."""
+
+    job: Job
+
+    def __call__(self) -> PpcgShards:
+        return _ShardWorker(_Worker(self.job))
 
 
-def _init_worker(job: Job) -> None:
-    global _state
-    _state = _Worker(job)
+class _ShardWorker:
+    def __init__(self, state: _Worker):
+        self.state = state
+
+    def run(self, shard, directory: Path) -> dict:
+        """The shard's new frames (shard files) and records.npz: every BoxRecords field
+        concatenated over its frames, the boxes per frame, compute and read seconds."""
+        from dali_cli.executors import naming_frames
+        from dali_cli.executors.shards import ShardFramesWriter
+
+        writer = ShardFramesWriter(directory)
+        results = self.state.run(list(range(shard.start, shard.stop)), list(shard.payload))
+        columns: dict[str, list] = {f.name: [] for f in fields(BoxRecords)}
+        boxes, seconds, reads = [], [], []
+        for frame_id in shard.frame_ids:
+            with naming_frames(frame_id):
+                result = next(results)
+            writer.append(result.frame_id, result.points)
+            for name, values in columns.items():
+                values.append(getattr(result.records, name))
+            boxes.append(len(result.records.ppcg))
+            seconds.append(result.seconds)
+            reads.append(result.read_seconds)
+        writer.close()
+        arrays = {
+            name: _stored(np.concatenate(values)) if values else np.zeros(0)
+            for name, values in columns.items()
+        }
+        np.savez(directory / "records.npz", boxes=boxes, seconds=seconds, reads=reads, **arrays)
+        return {}
 
 
-def _run_chunk(task: tuple[list[int], list[np.ndarray]]) -> list[FrameResult]:
-    return list(_state.run(*task))
+def _stored(values: np.ndarray) -> np.ndarray:
+    """Object (string) columns as fixed-width unicode: npz then needs no pickle."""
+    return values.astype(str) if values.dtype == object else values
+
+
+def _read_shard(directory: Path) -> Iterator[FrameResult]:
+    """The FrameResults of a shard the _ShardWorker wrote, in order."""
+    from dali_cli.executors.shards import read_shard_frames
+
+    with np.load(directory / "records.npz") as stored:
+        data = {name: stored[name] for name in stored.files}
+    ends = np.cumsum(data["boxes"])
+    starts = ends - data["boxes"]
+    for i, (frame_id, points) in enumerate(read_shard_frames(directory)):
+        part = slice(int(starts[i]), int(ends[i]))
+        records = BoxRecords(
+            **{
+                f.name: data[f.name][part].astype(object)
+                if data[f.name].dtype.kind == "U"
+                else data[f.name][part]
+                for f in fields(BoxRecords)
+            }
+        )
+        yield FrameResult(
+            frame_id, points, records, float(data["seconds"][i]), float(data["reads"][i])
+        )
 
 
 def run_frames(
     job: Job,
     boxes_by_frame: list[np.ndarray],
-    workers: int = 1,
+    executor=None,
     bank: ModelBank | None = None,
+    directory: Path | None = None,
 ) -> Iterator[FrameResult]:
     """Process every frame of `job.target_dir` in order; boxes_by_frame[i] `(k_i, 7)` are frame
-    i's boxes. Yields FrameResults in frame order. `bank` (single process only) skips reading
-    the library, for tests."""
+    i's boxes. Yields FrameResults in frame order. In this process when `executor` is None or
+    serial (`bank`, for tests, then replaces the library), else as shards on the executor's
+    workers, written under `directory` (the artifact's temporary directory)."""
     count = len(boxes_by_frame)
-    if workers <= 1:
+    if executor is None or executor.serial:
         worker = _Worker(job, bank)
         if len(worker.frames) != count:
             raise ValueError(f"{count} box lists for {len(worker.frames)} frames")
         yield from worker.run(None, boxes_by_frame)
         return
-    from dali_cli.workers import process_pool
+    from dali_cli.artifacts import FrameSet
+    from dali_cli.executors import plan_shards, shard_results
 
-    chunks = [list(range(a, min(a + _CHUNK_FRAMES, count))) for a in range(0, count, _CHUNK_FRAMES)]
-    tasks = [(chunk, [boxes_by_frame[i] for i in chunk]) for chunk in chunks]
-    with process_pool(workers, _init_worker, (job,)) as pool:
-        pending = deque()
-        for task in tasks:  # at most 2 chunks per worker in flight bounds the memory held
-            pending.append(pool.submit(_run_chunk, task))
-            if len(pending) >= 2 * workers:
-                yield from pending.popleft().result()
-        while pending:
-            yield from pending.popleft().result()
+    frame_ids = FrameSet(job.target_dir).frame_ids
+    if len(frame_ids) != count:
+        raise ValueError(f"{count} box lists for {len(frame_ids)} frames")
+    shards = plan_shards(
+        frame_ids,
+        executor.workers,
+        max_frames=_CHUNK_FRAMES,
+        payloads=lambda start, stop: boxes_by_frame[start:stop],
+    )
+    for _, shard_dir, _ in shard_results(executor, PpcgShards(job), shards, directory):
+        yield from _read_shard(shard_dir)
