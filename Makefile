@@ -23,12 +23,13 @@ TARGET     ?= $(RUN)/data/target
 TARGET_VAL ?= $(RUN)/data/target_val
 LIBRARY    ?= $(RUN)/library
 
-.PHONY: help install test demo bench lint format clean-runs
+.PHONY: help install test demo bench pareto pareto-quick lint format clean-runs
 
 help:
 	@echo "make demo    - install and run a small synthetic adaptation end to end"
 	@echo "make test    - install and run the test suite"
 	@echo "make bench   - run the benchmarks (results in bench/results/*.json)"
+	@echo "make pareto  - run time vs error of every stage's speed knobs (docs/pareto.md; pareto-quick: smoke test)"
 	@echo "make lint    - ruff check + format check"
 
 $(STAMP): pyproject.toml
@@ -55,6 +56,13 @@ format: install
 bench: install
 	@mkdir -p bench/results
 	@for script in bench/*.py; do echo "== $$script"; $(BIN)/python $$script || exit 1; done
+
+# run time against error (bench/pareto.py, part of `make bench`): bench/results/pareto.json and
+# docs/pareto/*.png; builds a small model under runs/bench_pareto when none is given
+pareto: install
+	nice -n 5 $(BIN)/python bench/pareto.py
+pareto-quick: install
+	$(BIN)/python bench/pareto.py --quick
 
 # ---------------------------------------------------------------------------------------------
 # The pipeline. Every step's target is its artifact's manifest.json (written last, atomically), so an

@@ -17,7 +17,7 @@ import numpy as np
 from dali_cli.ppcg.fitting import box_rng, box_uniform
 from dali_cli.ppcg.frame import CF, BoxRecords, assemble, car_points, ground_heights
 from dali_cli.ppcg.models import ModelBank
-from dali_cli.ppcg.window import box_windows, window_rays
+from dali_cli.ppcg.window import box_windows, windows_directions
 from dali_cli.sensors import SensorProfile
 
 
@@ -43,6 +43,18 @@ def move_radially(boxes: np.ndarray, ranges_m: np.ndarray) -> np.ndarray:
     unit = np.where((distance > 1e-9)[:, None], boxes[:, :2] / safe[:, None], [1.0, 0.0])
     shift = unit * (np.asarray(ranges_m, dtype=np.float64) - distance)[:, None]
     return np.concatenate([shift, np.zeros((len(boxes), 1))], axis=1)
+
+
+def median(values: np.ndarray) -> np.floating:
+    """np.median of a non-empty 1-D array without NaN, with the same result bits (the mean of
+    the two middle values is their sum in the array's dtype, halved), at a fraction of its
+    per-call cost."""
+    count = len(values)
+    middle = count // 2
+    if count % 2:
+        return np.partition(values, middle)[middle]
+    low, high = np.partition(values, (middle - 1, middle))[middle - 1 : middle + 1]
+    return (low + high) / 2
 
 
 def cf_frame(
@@ -74,18 +86,8 @@ def cf_frame(
     if params.top_k > 1:
         rngs = [box_rng(params.seed, frame_id, i) for i in range(len(boxes))]
     models = bank.select(boxes, params.top_k, rngs)
-    directions = [
-        window_rays(
-            profile,
-            windows.azimuth_lo[i],
-            windows.azimuth_hi[i],
-            windows.elevation_lo[i],
-            windows.elevation_hi[i],
-        ).directions
-        for i in range(len(boxes))
-    ]  # each box casts only its window's rays
-    bounds = np.r_[0, np.cumsum([len(d) for d in directions])]  # (k + 1,)
-    hit, xyz = bank.cast_many(models, moved, np.concatenate(directions), bounds, params.theta_rad)
+    directions, bounds = windows_directions(profile, windows)  # only each window's rays
+    hit, xyz = bank.cast_many(models, moved, directions, bounds, params.theta_rad)
     box_of_ray = np.repeat(np.arange(len(boxes)), np.diff(bounds))  # (N,)
     distance = np.linalg.norm(np.where(hit[:, None], xyz, 0.0), axis=1)
     hit &= (distance >= profile.min_range_m) & (distance <= profile.max_range_m)
@@ -98,7 +100,7 @@ def cf_frame(
     done = np.flatnonzero(counts > 0)
     intensity = np.array(
         [
-            np.median(points[members[i], 3]) if len(members[i]) else profile.intensity_car
+            median(points[members[i], 3]) if len(members[i]) else profile.intensity_car
             for i in range(len(boxes))
         ]
     )
