@@ -118,11 +118,11 @@ data: $(SOURCE)/manifest.json $(TARGET)/manifest.json $(TARGET_VAL)/manifest.jso
 # iteration 0: the source-only detector
 $(RUN)/iter0/model/manifest.json: $(SOURCE)/manifest.json
 	$(TRAIN_DALI) pretrain --source $(SOURCE) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
-$(RUN)/iter0/eval/metrics.json: $(RUN)/iter0/model/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) $(EXEC_FLAGS) --out $@
-$(RUN)/iter0/eval_ptsn/metrics.json: $(RUN)/iter1/ptsn/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale-from $(RUN)/iter1/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $@
-iter0: $(RUN)/iter0/eval/metrics.json $(RUN)/iter0/eval_ptsn/metrics.json
+$(RUN)/iter0/eval/manifest.json: $(RUN)/iter0/model/manifest.json $(TARGET_VAL)/manifest.json
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
+$(RUN)/iter0/eval_ptsn/manifest.json: $(RUN)/iter1/ptsn/manifest.json $(TARGET_VAL)/manifest.json
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale-from $(RUN)/iter1/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
+iter0: $(RUN)/iter0/eval/manifest.json $(RUN)/iter0/eval_ptsn/manifest.json
 
 # ptsn-sweep N uses model N-1 (ITER_PTSN), iteration N builds model N (ITER)
 define ITER_PTSN
@@ -138,9 +138,9 @@ $(RUN)/iter$(1)/cf/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY
 	$(DALI) ppcg-cf --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/model/manifest.json: $(RUN)/iter$(1)/rc/manifest.json $(RUN)/iter$(1)/cf/manifest.json $(SOURCE)/manifest.json
 	$(TRAIN_DALI) retrain --init $(RUN)/iter$(2)/model --source $(SOURCE) --ppcg $(RUN)/iter$(1)/rc $(RUN)/iter$(1)/cf --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $$(@D)
-$(RUN)/iter$(1)/eval/metrics.json: $(RUN)/iter$(3)/ptsn/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter$(1)/model --data $(TARGET_VAL) --scale-from $(RUN)/iter$(3)/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $$@
-iter$(1): iter$(2) $(RUN)/iter$(1)/eval/metrics.json
+$(RUN)/iter$(1)/eval/manifest.json: $(RUN)/iter$(3)/ptsn/manifest.json $(TARGET_VAL)/manifest.json
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter$(1)/model --data $(TARGET_VAL) --scale-from $(RUN)/iter$(3)/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $$(@D)
+iter$(1): iter$(2) $(RUN)/iter$(1)/eval/manifest.json
 .PHONY: iter$(1)
 endef
 $(foreach n,1 2 3 4 5 6,$(eval $(call ITER_PTSN,$(n),$(shell echo $$(( $(n) - 1 ))))))
@@ -157,12 +157,12 @@ $(RUN)/baselines/rc_only/model/manifest.json: $(RUN)/iter1/rc/manifest.json $(SO
 	$(TRAIN_DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/rc --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/cf_only/model/manifest.json: $(RUN)/iter1/cf/manifest.json $(SOURCE)/manifest.json
 	$(TRAIN_DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/cf --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
-$(RUN)/baselines/%/eval/metrics.json: $(RUN)/baselines/%/model/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) $(EXEC_FLAGS) --out $@
+$(RUN)/baselines/%/eval/manifest.json: $(RUN)/baselines/%/model/manifest.json $(TARGET_VAL)/manifest.json
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 $(RUN)/baselines/%/ptsn/manifest.json: $(RUN)/baselines/%/model/manifest.json $(TARGET)/manifest.json
 	$(DALI) ptsn-sweep $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --target $(TARGET) --expected-size $(EXPECTED) --score-min $(SCORE_MIN) --seed $(SEED) --out $(@D)
-$(RUN)/baselines/%/eval_ptsn/metrics.json: $(RUN)/baselines/%/ptsn/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale-from $(RUN)/baselines/$*/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $@
+$(RUN)/baselines/%/eval_ptsn/manifest.json: $(RUN)/baselines/%/ptsn/manifest.json $(TARGET_VAL)/manifest.json
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale-from $(RUN)/baselines/$*/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 # controls: as many training frames as DALI's models saw (pretrain E epochs, each retrain 2 x RE
 # epochs of source + PPCG): source only with x1's budget (+ test-time PTSN), oracle with x2's
 X1_BUDGET = $(if $(MINUTES),--minutes $$(( 2 * $(MINUTES) )),--epochs $$(( $(EPOCHS) + 2 * $(RETRAIN_EPOCHS) )))
@@ -180,30 +180,30 @@ ST_FLAGS  ?= --lr 1e-3
 ST_BUDGET  = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(ST_EPOCHS))
 $(RUN)/iter2_st/model/manifest.json: $(RUN)/iter3/pseudo/manifest.json $(TARGET)/manifest.json
 	$(TRAIN_DALI) self-train --init $(RUN)/iter2/model --target $(TARGET) --pseudo $(RUN)/iter3/pseudo --seed $(SEED) $(ST_BUDGET) $(ST_FLAGS) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
-$(RUN)/iter2_st/eval/metrics.json: $(RUN)/iter2_st/model/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter2_st/model --data $(TARGET_VAL) --scale-from $(RUN)/iter3/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $@
+$(RUN)/iter2_st/eval/manifest.json: $(RUN)/iter2_st/model/manifest.json $(TARGET_VAL)/manifest.json
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter2_st/model --data $(TARGET_VAL) --scale-from $(RUN)/iter3/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 # KITTI easy / moderate / hard of the same predictions (synthetic labels carry KITTI's columns)
 KITTI_EVAL_FLAGS ?= --protocol kitti --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
-$(RUN)/%/metrics_kitti.json: $(RUN)/%/metrics.json
+$(RUN)/%/metrics_kitti.json: $(RUN)/%/manifest.json
 	$(DALI) eval --pred $(RUN)/$*/predictions.parquet --gt $(TARGET_VAL) $(KITTI_EVAL_FLAGS) --out $@
 # cross-domain check: every model on the source validation set at s = 1
-$(RUN)/%/eval_source/metrics.json: $(RUN)/%/model/manifest.json $(RUN)/data/source_val/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/$*/model --data $(RUN)/data/source_val --scale 1.0 $(EVAL_FLAGS) $(EXEC_FLAGS) --out $@
+$(RUN)/%/eval_source/manifest.json: $(RUN)/%/model/manifest.json $(RUN)/data/source_val/manifest.json
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/$*/model --data $(RUN)/data/source_val --scale 1.0 $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 
 # phony goals (evaluated inside the sub-make, so they follow its RUN)
-baseline-sn: $(RUN)/baselines/sn/eval/metrics.json
-baseline-ros: $(RUN)/baselines/ros/eval/metrics.json
-baseline-oracle: $(RUN)/baselines/oracle/eval/metrics.json
-ablation-rc: $(RUN)/baselines/rc_only/eval_ptsn/metrics.json
-ablation-cf: $(RUN)/baselines/cf_only/eval_ptsn/metrics.json
+baseline-sn: $(RUN)/baselines/sn/eval/manifest.json
+baseline-ros: $(RUN)/baselines/ros/eval/manifest.json
+baseline-oracle: $(RUN)/baselines/oracle/eval/manifest.json
+ablation-rc: $(RUN)/baselines/rc_only/eval_ptsn/manifest.json
+ablation-cf: $(RUN)/baselines/cf_only/eval_ptsn/manifest.json
 baselines: baseline-sn baseline-ros baseline-oracle ablation-rc ablation-cf
-cross-domain: $(RUN)/iter0/eval_source/metrics.json $(RUN)/iter2/eval_source/metrics.json
+cross-domain: $(RUN)/iter0/eval_source/manifest.json $(RUN)/iter2/eval_source/manifest.json
 # equal-budget controls (standard rows of `make experiment`; "gap closed" is measured against
 # them): source only with x2's training frames + test-time PTSN, oracle with x2's frames
-controls: $(RUN)/baselines/source_x2_budget/eval_ptsn/metrics.json \
-    $(RUN)/baselines/oracle_x2_budget/eval/metrics.json
-controls-x1: $(RUN)/baselines/source_x1_budget/eval_ptsn/metrics.json
-iter2-st: iter2 $(RUN)/iter2_st/eval/metrics.json
+controls: $(RUN)/baselines/source_x2_budget/eval_ptsn/manifest.json \
+    $(RUN)/baselines/oracle_x2_budget/eval/manifest.json
+controls-x1: $(RUN)/baselines/source_x1_budget/eval_ptsn/manifest.json
+iter2-st: iter2 $(RUN)/iter2_st/eval/manifest.json
 # every target evaluation of the run also under KITTI's easy / moderate / hard
 KITTI_ROWS = iter0/eval iter0/eval_ptsn iter1/eval iter2/eval iter2_st/eval baselines/sn/eval \
     baselines/ros/eval baselines/oracle/eval baselines/rc_only/eval_ptsn baselines/cf_only/eval_ptsn \

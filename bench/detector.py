@@ -20,6 +20,7 @@ import argparse
 import json
 import os
 import resource
+import sys
 import time
 from pathlib import Path
 
@@ -38,10 +39,11 @@ from dali_cli.detector import (
 )
 from dali_cli.detector.augment import ObjectDatabase
 from dali_cli.detector.data import detection_region
-from dali_cli.detector.toy import place_cars, scan
 from dali_cli.sensors import get_profile
 
 RESULTS = Path(__file__).resolve().parent / "results"
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the toy scenes
+from toy_scenes import place_cars, scan  # noqa: E402  (a test fixture, not part of the package)
 
 
 def peak_rss_mb() -> float:

@@ -31,10 +31,11 @@ def main() -> None:
 
     from dali_cli import synth
     from dali_cli.sensors import get_profile
+    from dali_cli.world import cars, scene
 
     started = time.perf_counter()
-    for index in range(synth.POOL_SIZE):
-        synth.pool_car(index).bvh()
+    for index in range(cars.POOL_SIZE):
+        cars.pool_car(index).bvh()
     pool_seconds = time.perf_counter() - started
 
     result = {
@@ -43,8 +44,8 @@ def main() -> None:
             "load_average_1m": os.getloadavg()[0],
         },
         "pool": {
-            "cars": synth.POOL_SIZE,
-            "triangles_each": synth.POOL_LOD,
+            "cars": cars.POOL_SIZE,
+            "triangles_each": cars.POOL_LOD,
             "build_seconds": round(pool_seconds, 2),
         },
         "profiles": {},
@@ -84,7 +85,7 @@ def main() -> None:
     for name in ("kitti", "waymo", "nuscenes"):
         cars = get_profile(name)
         boxes = np.concatenate(
-            [synth.generate_scene(synth.frame_rng(2, k), kitti, cars).cars for k in range(100)]
+            [scene.generate_scene(synth.frame_rng(2, k), kitti, cars).cars for k in range(100)]
         )
         sizes[name] = {
             "mean_lwh_m": boxes[:, 3:6].mean(axis=0).round(3).tolist(),

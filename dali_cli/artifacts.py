@@ -22,13 +22,13 @@ from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import click
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from dali_cli import raw_chunks
+from dali_cli.errors import StageError
 from dali_cli.frame_ids import FrameIdError, check_name, first_bad_name
 
 FRAMES_NAME = "frames.zarr"
@@ -37,7 +37,7 @@ DEFAULT_CHUNK_POINTS = 2**21  # ~2 M points (32 MiB uncompressed) per chunk
 BOX_FIELDS = ("x", "y", "z", "l", "w", "h", "yaw")
 
 
-class ArtifactError(click.ClickException):
+class ArtifactError(StageError):
     """A missing or malformed artifact; the message names the path and the problem."""
 
 

@@ -19,15 +19,15 @@ import shutil
 from collections.abc import Callable
 from pathlib import Path
 
-import click
-
+from dali_cli import console
+from dali_cli.errors import StageError
 from dali_cli.output_paths import is_dali_artifact
 
 RENAME_EXCHANGE = 2
 AT_FDCWD = -100
 
 
-class OutputBusyError(click.ClickException):
+class OutputBusyError(StageError):
     """Another live dali process is writing the same output."""
 
 
@@ -65,7 +65,7 @@ def glob_escape(name: str) -> str:
     return "".join(f"[{c}]" if c in "*?[]" else c for c in name)
 
 
-def recover_interrupted(out: Path, echo: Callable[[str], None] = click.echo) -> list[str]:
+def recover_interrupted(out: Path, echo: Callable[[str], None] = console.echo) -> list[str]:
     """Restore or clean what an interrupted run on `out` left; returns what was done.
 
     - `<out>` missing and a complete artifact in `<out>.old-<pid>` of a dead process (a crash

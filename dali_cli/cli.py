@@ -11,6 +11,7 @@ import importlib
 import click
 
 from dali_cli import __version__
+from dali_cli.errors import ParameterError, StageError
 
 # command name -> module under dali_cli.commands (each defines `command`)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -44,10 +45,45 @@ class LazyGroup(click.Group):
         module = importlib.import_module(f"dali_cli.commands.{COMMANDS[name][0]}")
         return module.command
 
+    def invoke(self, ctx: click.Context):
+        """Run the subcommand; the one place a stage's plain errors become click errors."""
+        try:
+            return super().invoke(ctx)
+        except StageError as error:
+            raise as_click_error(
+                error, self.get_command(ctx, ctx.invoked_subcommand or "")
+            ) from None
+
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         rows = [(name, help_text) for name, (_, help_text) in COMMANDS.items()]
         with formatter.section("Commands"):
             formatter.write_dl(rows)
+
+
+def flags_of(command: click.Command | None, fields: tuple[str, ...]) -> list[str]:
+    """The command-line flags of stage arguments `fields` (`range_m` -> `--range-m`), searched
+    in `command` and its subcommands; a field no option carries is shown as is."""
+    params: dict[str, click.Parameter] = {}
+    pending = [command] if command is not None else []
+    while pending:
+        current = pending.pop()
+        for param in current.params:
+            params.setdefault(param.name, param)
+        if isinstance(current, click.Group):
+            pending.extend(current.commands.values())
+    flags = []
+    for field in fields:
+        param = params.get(field)
+        opts = [o for o in getattr(param, "opts", []) if o.startswith("--")]
+        flags.append(opts[0] if opts else field)
+    return flags
+
+
+def as_click_error(error: StageError, command: click.Command | None) -> click.ClickException:
+    """A `ParameterError` -> usage error (exit 2) naming the flags; other StageErrors -> exit 1."""
+    if isinstance(error, ParameterError):
+        return click.UsageError(f"{' / '.join(flags_of(command, error.fields))}: {error.message}")
+    return click.ClickException(error.message)
 
 
 @click.group(cls=LazyGroup)

@@ -10,25 +10,25 @@ from __future__ import annotations
 import contextlib
 import re
 
-import click
+from dali_cli.errors import ParameterError, StageError
 
 DEVICE_SPECS = "auto, cpu, cuda or cuda:N"
 PRECISIONS = ("fp32", "bf16")
 
 
-class DeviceError(click.ClickException):
+class DeviceError(StageError):
     """A device that was asked for but is not there (exit 1, before anything is written)."""
 
 
 def parse_device_spec(spec: str) -> tuple[str, int | None]:
-    """'auto' | 'cpu' | 'cuda' | 'cuda:N' -> (kind, index or None); click.BadParameter otherwise."""
+    """'auto' | 'cpu' | 'cuda' | 'cuda:N' -> (kind, index or None); ParameterError (field `device`) otherwise."""
     text = str(spec).strip().lower()
     if text in ("auto", "cpu", "cuda"):
         return text, None
     match = re.fullmatch(r"cuda:(\d+)", text)
     if match:
         return "cuda", int(match.group(1))
-    raise click.BadParameter(f"'{spec}' is not a device; use {DEVICE_SPECS}", param_hint="--device")
+    raise ParameterError("device", f"'{spec}' is not a device; use {DEVICE_SPECS}")
 
 
 def resolve_device(spec: str = "auto", local_rank: int | None = None):
@@ -68,7 +68,7 @@ def check_precision(precision: str, device) -> None:
     import torch
 
     if precision not in PRECISIONS:
-        raise click.BadParameter(f"'{precision}' is not one of {', '.join(PRECISIONS)}")
+        raise ParameterError("precision", f"'{precision}' is not one of {', '.join(PRECISIONS)}")
     if precision == "bf16" and device.type == "cuda" and not torch.cuda.is_bf16_supported():
         raise DeviceError(
             f"--precision bf16: {torch.cuda.get_device_name(device)} does not support bf16; "

@@ -476,52 +476,14 @@ def evaluate(
     and detection range) before any protocol, as if the clouds were FOV-cropped like KITTI's; with
     "range" this gives the bands of the front region, with "st3d" it also drops predictions there.
     """
-    if recall_positions not in (11, 40):
-        raise EvaluationError(f"recall_positions must be 11 or 40, got {recall_positions}")
-    if protocol not in PROTOCOLS:
-        raise EvaluationError(f"unknown protocol '{protocol}' (choose from {', '.join(PROTOCOLS)})")
-    if not 0.0 <= iou < 1.0:
-        raise EvaluationError(f"iou must be in [0, 1), got {iou}")
-    if protocol == "auto":
-        protocol = "kitti" if has_kitti_columns(gt) else "range"
-    if protocol == "kitti" and not has_kitti_columns(gt):
-        missing = [name for name in KITTI_GT_COLUMNS if name not in gt.columns]
-        raise EvaluationError(f"ground truth lacks the KITTI columns {', '.join(missing)}")
-    if front_only:
-        gt = gt.select(in_st3d_region(gt, st3d_fov_deg, st3d_range_m))
-        pred = pred.select(in_st3d_region(pred, st3d_fov_deg, st3d_range_m))
-    if protocol == "st3d":
-        gt = _st3d_ground_truth(gt, st3d_fov_deg, st3d_range_m)
-        pred = pred.with_columns(
-            bbox_top=np.zeros(len(pred), np.float32),
-            bbox_bottom=np.full(len(pred), 50.0, np.float32),
-        )
-
+    protocol = _checked_protocol(gt, iou, recall_positions, protocol)
+    pred, gt = _restricted(pred, gt, protocol, front_only, st3d_fov_deg, st3d_range_m)
     universe = _frame_universe(pred, gt, frame_ids)
     num_frames = len(universe)
-    class_key = class_name.lower()
     pred_boxes, gt_boxes = _prepare(pred, universe), _prepare(gt, universe)
     pairs = _frame_pairs(pred_boxes, gt_boxes, num_frames)
     bev, volume = geometry.iou_pairs_bev_3d(pred_boxes.boxes[pairs[0]], gt_boxes.boxes[pairs[1]])
-    gt_points = np.asarray(gt_boxes.columns["num_points"])
-    if min_gt_points > 0 and len(gt_points) and not gt_points.any():
-        raise EvaluationError(
-            "min_gt_points needs ground-truth point counts, but num_points is all 0"
-        )
-    few_points = gt_points < min_gt_points
-
-    if protocol == "range":
-        groups = {
-            name: _band_flags(pred_boxes, gt_boxes, class_key, band, few_points)
-            for name, band in RANGE_BANDS_M.items()
-        }
-    else:  # st3d gives every box the same 2D box: the three levels coincide, compute one
-        levels = DIFFICULTIES[:1] if protocol == "st3d" else DIFFICULTIES
-        groups = {
-            name: _difficulty_flags(pred_boxes, gt_boxes, class_key, level, few_points)
-            for level, name in enumerate(levels)
-        }
-
+    groups = _groups(pred_boxes, gt_boxes, class_name.lower(), protocol, min_gt_points)
     result = {
         "iou": float(iou),
         "recall_positions": int(recall_positions),
@@ -552,6 +514,58 @@ def evaluate(
             for name in DIFFICULTIES[1:]:
                 section[name] = section[DIFFICULTIES[0]]
     return {class_name: result}
+
+
+def _checked_protocol(gt: BoxTable, iou: float, recall_positions: int, protocol: str) -> str:
+    """The protocol to run ("auto" resolved); EvaluationError for a parameter it cannot take."""
+    if recall_positions not in (11, 40):
+        raise EvaluationError(f"recall_positions must be 11 or 40, got {recall_positions}")
+    if protocol not in PROTOCOLS:
+        raise EvaluationError(f"unknown protocol '{protocol}' (choose from {', '.join(PROTOCOLS)})")
+    if not 0.0 <= iou < 1.0:
+        raise EvaluationError(f"iou must be in [0, 1), got {iou}")
+    if protocol == "auto":
+        protocol = "kitti" if has_kitti_columns(gt) else "range"
+    if protocol == "kitti" and not has_kitti_columns(gt):
+        missing = [name for name in KITTI_GT_COLUMNS if name not in gt.columns]
+        raise EvaluationError(f"ground truth lacks the KITTI columns {', '.join(missing)}")
+    return protocol
+
+
+def _restricted(pred, gt, protocol, front_only, fov_deg, range_m) -> tuple[BoxTable, BoxTable]:
+    """(pred, gt) restricted to the front region (`front_only`) and, for st3d, its ground truth
+    with every prediction given the same (easy) 2D box."""
+    if front_only:
+        gt = gt.select(in_st3d_region(gt, fov_deg, range_m))
+        pred = pred.select(in_st3d_region(pred, fov_deg, range_m))
+    if protocol == "st3d":
+        gt = _st3d_ground_truth(gt, fov_deg, range_m)
+        pred = pred.with_columns(
+            bbox_top=np.zeros(len(pred), np.float32),
+            bbox_bottom=np.full(len(pred), 50.0, np.float32),
+        )
+    return pred, gt
+
+
+def _groups(pred_boxes, gt_boxes, class_key: str, protocol: str, min_gt_points: int) -> dict:
+    """Per range band or difficulty: the (ignored_gt, ignored_pred) flags of the evaluation."""
+    gt_points = np.asarray(gt_boxes.columns["num_points"])
+    if min_gt_points > 0 and len(gt_points) and not gt_points.any():
+        raise EvaluationError(
+            "min_gt_points needs ground-truth point counts, but num_points is all 0"
+        )
+    few_points = gt_points < min_gt_points
+    if protocol == "range":
+        return {
+            name: _band_flags(pred_boxes, gt_boxes, class_key, band, few_points)
+            for name, band in RANGE_BANDS_M.items()
+        }
+    # st3d gives every box the same 2D box: the three levels coincide, compute one
+    levels = DIFFICULTIES[:1] if protocol == "st3d" else DIFFICULTIES
+    return {
+        name: _difficulty_flags(pred_boxes, gt_boxes, class_key, level, few_points)
+        for level, name in enumerate(levels)
+    }
 
 
 def format_table(metrics: dict) -> str:

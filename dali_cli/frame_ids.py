@@ -12,7 +12,7 @@ import re
 from collections.abc import Iterable
 from pathlib import Path
 
-import click
+from dali_cli.errors import StageError
 
 # NAME_MAX is 255 bytes on Linux/macOS file systems; writers add suffixes such as ".txt" or
 # ".npy" (and temp names), so ids keep a margin below it.
@@ -22,7 +22,7 @@ _CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
 _SEPARATORS = ("/", "\\")
 
 
-class FrameIdError(click.ClickException, ValueError):
+class FrameIdError(StageError, ValueError):
     """A name from data that cannot be a frame id; the message says where it came from and why.
 
     Both a ClickException (a clean CLI error, exit 1) and a ValueError (what the writers raise

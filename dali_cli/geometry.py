@@ -19,12 +19,19 @@ _PAIR_BLOCK = 1 << 14  # pairs clipped per block: bounds temporary memory to a f
 # Angles, rotations, corners
 
 
-def normalize_yaw(yaw: float | np.ndarray) -> float | np.ndarray:
-    """Wrap angles (rad) into [-pi, pi); scalars stay scalars, arrays keep their shape."""
-    wrapped = np.mod(np.asarray(yaw, dtype=np.float64) + np.pi, 2.0 * np.pi) - np.pi
+def wrap_angle(angle: float | np.ndarray) -> float | np.ndarray:
+    """Angles (rad) wrapped into [-pi, pi): the one yaw wrapping of dali.
+
+    Float arrays keep their dtype (a float32 yaw column stays float32, computed in float32);
+    integers become float64; scalars stay scalars, arrays keep their shape.
+    """
+    array = np.asarray(angle)
+    if not np.issubdtype(array.dtype, np.floating):
+        array = array.astype(np.float64)
+    wrapped = np.mod(array + np.pi, 2.0 * np.pi) - np.pi
     # np.mod can round up to exactly 2 pi for tiny negative inputs, which would give +pi
     wrapped = np.where(wrapped >= np.pi, wrapped - 2.0 * np.pi, wrapped)
-    return float(wrapped) if np.ndim(yaw) == 0 else wrapped
+    return float(wrapped) if np.ndim(angle) == 0 else wrapped
 
 
 def rotation_z(yaw: float | np.ndarray) -> np.ndarray:
@@ -43,6 +50,12 @@ def _as_boxes(boxes: np.ndarray) -> np.ndarray:
     if boxes.ndim != 2 or boxes.shape[1] != 7:
         raise ValueError(f"boxes must be (N, 7), got {boxes.shape}")
     return boxes
+
+
+def rotate_xy(xy: np.ndarray, angle: float) -> np.ndarray:
+    """`(..., 2)` x, y rotated counter-clockwise by `angle` (rad) about the origin."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.stack([c * xy[..., 0] - s * xy[..., 1], s * xy[..., 0] + c * xy[..., 1]], axis=-1)
 
 
 def bev_corners(boxes: np.ndarray) -> np.ndarray:
@@ -66,32 +79,43 @@ def box_corners(boxes: np.ndarray) -> np.ndarray:
     )
 
 
-def points_to_box_frame(points: np.ndarray, box: np.ndarray) -> np.ndarray:
-    """Points `(M, >=3)` in the box's local frame `(M, 3)` float64: x along l, y along w, z up."""
-    box = np.asarray(box, dtype=np.float64).reshape(7)
-    offset = np.asarray(points, dtype=np.float64)[:, :3] - box[:3]  # (M, 3)
-    c, s = np.cos(box[6]), np.sin(box[6])
-    return np.stack(
-        [c * offset[:, 0] + s * offset[:, 1], -s * offset[:, 0] + c * offset[:, 1], offset[:, 2]],
-        axis=1,
+def footprints_overlap(candidate: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """Separating-axis test of one footprint `(4, 2)` against many `(M, 4, 2)` → `(M,)` bool."""
+    if len(others) == 0:
+        return np.zeros(0, bool)
+    cand_edges = np.diff(candidate[[0, 1, 2]], axis=0)  # (2, 2)
+    other_edges = others[:, 1:3] - others[:, 0:2]  # (M, 2, 2)
+    axes = np.concatenate([np.broadcast_to(cand_edges, other_edges.shape), other_edges], axis=1)
+    axes = np.stack([-axes[..., 1], axes[..., 0]], axis=-1)  # (M, 4, 2) edge normals
+    project_candidate = np.einsum("mak,ck->mac", axes, candidate)  # (M, 4, 4)
+    project_others = np.einsum("mak,mck->mac", axes, others)  # (M, 4, 4)
+    separated = (project_candidate.max(-1) < project_others.min(-1)) | (
+        project_others.max(-1) < project_candidate.min(-1)
     )
+    return ~separated.any(axis=1)
 
 
 # ---------------------------------------------------------------------------------------------
 # Points in boxes
 
 
-def _inside(points: np.ndarray, boxes: np.ndarray, margin_m: float) -> np.ndarray:
-    """Row-wise test: is points[k] `(K, >=3)` inside boxes[k] `(K, 7)` (boundaries included)?"""
-    offset = points[:, :3] - boxes[:, :3]  # (K, 3)
-    c, s = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
-    local_x = c * offset[:, 0] + s * offset[:, 1]
-    local_y = -s * offset[:, 0] + c * offset[:, 1]
-    return (
-        (np.abs(local_x) <= boxes[:, 3] / 2 + margin_m)
-        & (np.abs(local_y) <= boxes[:, 4] / 2 + margin_m)
-        & (np.abs(offset[:, 2]) <= boxes[:, 5] / 2 + margin_m)
-    )
+def inside_boxes(points: np.ndarray, boxes: np.ndarray, margin_m: float = 0.0) -> np.ndarray:
+    """Row-wise containment: is points[k] `(K, >=3)` inside boxes[k] `(K, 7)` (or every point in
+    one box `(7,)`), grown by `margin_m` on each side, boundaries included? -> `(K,)` bool.
+
+    Computed in the points' float dtype (float32 frames are tested in float32, the box's
+    parameters rounded to it), so callers that cast nothing pay no float64 copy of a frame.
+    """
+    dtype = points.dtype if points.dtype in (np.float32, np.float64) else np.dtype(np.float64)
+    boxes = np.asarray(boxes, np.float64)
+    cos, sin = np.cos(boxes[..., 6]).astype(dtype), np.sin(boxes[..., 6]).astype(dtype)
+    dx = points[:, 0] - boxes[..., 0].astype(dtype)
+    dy = points[:, 1] - boxes[..., 1].astype(dtype)
+    inside = np.abs(cos * dx + sin * dy) <= (0.5 * boxes[..., 3] + margin_m).astype(dtype)
+    inside &= np.abs(cos * dy - sin * dx) <= (0.5 * boxes[..., 4] + margin_m).astype(dtype)
+    dz = points[:, 2] - boxes[..., 2].astype(dtype)
+    inside &= np.abs(dz) <= (0.5 * boxes[..., 5] + margin_m).astype(dtype)
+    return inside
 
 
 def _cell_keys(ix: np.ndarray, iy: np.ndarray) -> np.ndarray:
@@ -133,7 +157,7 @@ def point_box_pairs(
     point_index = np.repeat(np.arange(len(points), dtype=np.int64), counts)
     first = np.repeat(start - np.cumsum(counts) + counts, counts)  # start of each run, repeated
     box_index = box_ids[first + np.arange(len(point_index))]
-    inside = _inside(
+    inside = inside_boxes(
         np.asarray(points[point_index, :3], dtype=np.float64), boxes[box_index], margin_m
     )
     return point_index[inside], box_index[inside]
@@ -325,24 +349,25 @@ def overlapping_pairs(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndar
     return np.concatenate(found_i).astype(np.int64), np.concatenate(found_j).astype(np.int64)
 
 
-def bev_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Pairwise rotated BEV IoU `(N, M)` float64 of boxes a `(N, 7)` and b `(M, 7)`."""
+def _pairwise(a: np.ndarray, b: np.ndarray, pairs_fn) -> np.ndarray:
+    """`(N, M)` float64 of `pairs_fn` over the box pairs of a `(N, 7)` x b `(M, 7)` that can
+    overlap (bounding circles touch); 0 elsewhere."""
     a, b = _as_boxes(a), _as_boxes(b)
     result = np.zeros((len(a), len(b)))
     i, j = overlapping_pairs(a, b)
     if len(i):
-        result[i, j] = bev_iou_pairs(a[i], b[j])
+        result[i, j] = pairs_fn(a[i], b[j])
     return result
+
+
+def bev_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Pairwise rotated BEV IoU `(N, M)` float64 of boxes a `(N, 7)` and b `(M, 7)`."""
+    return _pairwise(a, b, bev_iou_pairs)
 
 
 def iou_3d(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Pairwise 3D IoU `(N, M)` float64 of boxes a `(N, 7)` and b `(M, 7)` (yaw about z only)."""
-    a, b = _as_boxes(a), _as_boxes(b)
-    result = np.zeros((len(a), len(b)))
-    i, j = overlapping_pairs(a, b)
-    if len(i):
-        result[i, j] = iou_3d_pairs(a[i], b[j])
-    return result
+    return _pairwise(a, b, iou_3d_pairs)
 
 
 def nms_bev(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float) -> np.ndarray:
@@ -380,7 +405,8 @@ def nms_bev(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float) -> np.n
 
 
 def sensor_to_ground(xyz: np.ndarray, mount_height_m: float) -> np.ndarray:
-    """Copy of `(N, >=3)` coordinates with z raised by the mount height (ground near z = 0)."""
+    """Copy of `(N, >=3)` coordinates with z raised by the mount height (ground near z = 0);
+    dtype kept."""
     out = np.array(xyz, copy=True)
     out[..., 2] += mount_height_m
     return out
@@ -393,34 +419,50 @@ def ground_to_sensor(xyz: np.ndarray, mount_height_m: float) -> np.ndarray:
     return out
 
 
-def scale_points_about_ground(points: np.ndarray, s: float, mount_height_m: float) -> np.ndarray:
-    """Points `(N, >=3)` scaled by `s` about the ground point below the sensor; dtype kept.
+# The one PTSN scaling about the ground (the detector's network input, self-training, tests):
+# in the ground frame, x, y, z of points and the centres and sizes of boxes are multiplied by s
+# (the ground plane stays put, intensity and yaw unchanged); boxes come back divided by s.
 
-    Only x, y, z change (z is scaled in the ground frame, so the ground plane stays put);
-    other columns (intensity) are copied untouched.
-    """
+
+def scale_ground_points(points: np.ndarray, s: float) -> np.ndarray:
+    """Ground-frame points `(N, >=3)` with x, y, z multiplied by `s`; dtype kept (float32 points
+    are scaled in float32), other columns copied untouched."""
     out = np.array(points, copy=True)
-    xyz = out[:, :3].astype(np.float64)
-    xyz[:, 2] += mount_height_m
-    xyz *= s
-    xyz[:, 2] -= mount_height_m
-    out[:, :3] = xyz
+    out[:, :3] *= s
     return out
+
+
+def scale_ground_boxes(boxes: np.ndarray, s: float) -> np.ndarray:
+    """Ground-frame boxes `(N, 7)` float64 with centres and l, w, h multiplied by `s`, yaw kept."""
+    out = np.array(boxes, np.float64, copy=True).reshape(-1, 7)
+    out[:, :6] *= s
+    return out
+
+
+def unscale_ground_boxes(boxes: np.ndarray, s: float) -> np.ndarray:
+    """Undo scale_ground_boxes: centres and l, w, h divided by `s` `(N, 7)` float64."""
+    out = np.array(boxes, np.float64, copy=True).reshape(-1, 7)
+    out[:, :6] /= s
+    return out
+
+
+def scale_points_about_ground(points: np.ndarray, s: float, mount_height_m: float) -> np.ndarray:
+    """Sensor-frame points `(N, >=3)` as PTSN sees them, back in the sensor frame: scaled by `s`
+    about the ground point below the sensor; dtype kept."""
+    ground = scale_ground_points(sensor_to_ground(points, mount_height_m), s)
+    return ground_to_sensor(ground, mount_height_m)
 
 
 def scale_boxes_about_ground(boxes: np.ndarray, s: float, mount_height_m: float) -> np.ndarray:
-    """Boxes `(N, 7)` scaled by `s` about the ground point below the sensor: centres and sizes
-    scale, yaw is kept."""
-    out = _as_boxes(boxes).copy()
-    out[:, 2] += mount_height_m
-    out[:, :6] *= s
-    out[:, 2] -= mount_height_m
-    return out
+    """Sensor-frame boxes `(N, 7)` scaled by `s` about the ground point below the sensor."""
+    ground = scale_ground_boxes(sensor_to_ground(_as_boxes(boxes), mount_height_m), s)
+    return ground_to_sensor(ground, mount_height_m)
 
 
 def descale_boxes_about_ground(boxes: np.ndarray, s: float, mount_height_m: float) -> np.ndarray:
-    """Undo scale_boxes_about_ground: scale by 1 / s."""
-    return scale_boxes_about_ground(boxes, 1.0 / s, mount_height_m)
+    """Undo scale_boxes_about_ground (what Detector.predict does to the network's boxes)."""
+    ground = unscale_ground_boxes(sensor_to_ground(_as_boxes(boxes), mount_height_m), s)
+    return ground_to_sensor(ground, mount_height_m)
 
 
 def iou_pairs_bev_3d(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

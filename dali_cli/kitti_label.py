@@ -17,7 +17,7 @@ import numpy as np
 
 from dali_cli.artifacts import ArtifactError, BoxTable
 from dali_cli.frame_ids import check_name, child_path
-from dali_cli.geometry import normalize_yaw
+from dali_cli.geometry import wrap_angle
 
 LABEL_SUFFIX = ".txt"
 BBOX_COLUMNS = ("bbox_left", "bbox_top", "bbox_right", "bbox_bottom")
@@ -41,7 +41,7 @@ def camera_to_pseudo_lidar(hwl: np.ndarray, location: np.ndarray, ry: np.ndarray
             hwl[:, 2],
             hwl[:, 1],
             hwl[:, 0],
-            normalize_yaw(-ry - np.pi / 2),
+            wrap_angle(-ry - np.pi / 2),
         ],
         axis=1,
     ).reshape(-1, 7)
@@ -52,7 +52,7 @@ def pseudo_lidar_to_camera(boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
     boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
     hwl = boxes[:, [5, 4, 3]]
     location = np.stack([-boxes[:, 1], -(boxes[:, 2] - boxes[:, 5] / 2), boxes[:, 0]], axis=1)
-    ry = normalize_yaw(-boxes[:, 6] - np.pi / 2)
+    ry = wrap_angle(-boxes[:, 6] - np.pi / 2)
     return hwl, location, np.asarray(ry).reshape(-1)
 
 
@@ -188,7 +188,7 @@ def format_label_lines(table: BoxTable, with_score: bool = True, decimals: int =
     columns = table.columns
     truncated = np.asarray(columns.get("truncated", np.zeros(count)), dtype=np.float64)
     occluded = np.asarray(columns.get("occluded", np.zeros(count)), dtype=np.int64)
-    default_alpha = normalize_yaw(ry - np.arctan2(location[:, 0], location[:, 2]))
+    default_alpha = wrap_angle(ry - np.arctan2(location[:, 0], location[:, 2]))
     alpha = np.asarray(columns.get("alpha", default_alpha), dtype=np.float64)
     bbox = np.stack(
         [

@@ -31,6 +31,7 @@ from dali_cli.artifacts import (
     read_boxes,
     read_whole_array,
 )
+from dali_cli.geometry import point_box_indices, wrap_angle
 from dali_cli.procedural import KINDS, generate_car_mesh
 
 LIBRARY_ZARR = "library.zarr"
@@ -343,26 +344,6 @@ class PointModels:
         )
 
 
-def _wrap_angle(angle: np.ndarray) -> np.ndarray:
-    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
-
-
-def _point_box_indices(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
-    """Index of the box holding each point `(M,)` int64, -1 if none (geometry module if present)."""
-    try:
-        from dali_cli.geometry import point_box_indices
-    except ImportError:
-        point_box_indices = None
-    if point_box_indices is not None:
-        return np.asarray(point_box_indices(points, boxes), np.int64)
-    owner = np.full(len(points), -1, np.int64)
-    for index, box in enumerate(np.asarray(boxes, np.float64)):  # loop over boxes, not points
-        local = _to_box_frame(points[:, :3], np.broadcast_to(box, (len(points), 7)))
-        inside = np.all(np.abs(local) <= 0.5 * box[3:6], axis=1) & (owner < 0)
-        owner[inside] = index
-    return owner
-
-
 def _to_box_frame(xyz: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     """Points `(M, 3)` into the frames of per-point boxes `(M, 7)` → `(M, 3)` (metres, unscaled)."""
     offset = np.asarray(xyz, np.float64) - boxes[:, :3]
@@ -394,7 +375,7 @@ def point_models_from_frame(
     points = np.asarray(points, np.float32)
     if len(boxes) == 0 or len(points) == 0:
         return PointModels.empty()
-    owner = _point_box_indices(points, boxes)
+    owner = point_box_indices(points, boxes)
     counts = np.bincount(owner[owner >= 0], minlength=len(boxes))
     keep = np.flatnonzero(counts >= int(min_points))
     if len(keep) == 0:
@@ -410,7 +391,7 @@ def point_models_from_frame(
     return PointModels(
         points=normalized,
         offsets=np.r_[0, np.cumsum(counts[keep])].astype(np.int64),
-        view_angle_rad=_wrap_angle(np.arctan2(sensor_local[:, 1], sensor_local[:, 0])),
+        view_angle_rad=wrap_angle(np.arctan2(sensor_local[:, 1], sensor_local[:, 0])),
         lwh=kept[:, 3:6].copy(),
         yaw=kept[:, 6].copy(),
         range_m=np.linalg.norm(kept[:, :2] - origin[:2], axis=1),
@@ -470,15 +451,30 @@ def write_library(
     point_models: PointModels | None = None,
 ) -> dict:
     """Write a library artifact into `directory` (a stage's temp dir); returns counts."""
-    import zarr
-
     directory = Path(directory)
     point_models = point_models if point_models is not None else PointModels.empty()
     ids = [m.model_id for m in meshes]
     if len(set(ids)) != len(ids):
         duplicate = next(i for i in ids if ids.count(i) > 1)
         raise LibraryError(f"{directory}: duplicate mesh model id '{duplicate}'")
-    root = zarr.open_group(str(directory / LIBRARY_ZARR), mode="w", zarr_format=3)
+    _write_library_arrays(directory / LIBRARY_ZARR, meshes, point_models)
+    vertex_counts = [len(m.vertices) for m in meshes]
+    face_counts = [len(m.faces) for m in meshes]
+    _write_mesh_index(directory / MESHES_INDEX, meshes, ids, vertex_counts, face_counts)
+    _write_point_index(directory / POINTS_INDEX, point_models)
+    return {
+        "meshes": len(meshes),
+        "mesh_triangles": int(sum(face_counts)),
+        "point_models": len(point_models),
+        "model_points": int(point_models.offsets[-1]),
+    }
+
+
+def _write_library_arrays(path: Path, meshes: Sequence[CarModel], point_models: PointModels):
+    """library.zarr: meshes (vertices, faces, offsets) and point models (points, offsets)."""
+    import zarr
+
+    root = zarr.open_group(str(path), mode="w", zarr_format=3)
     group = root.create_group("meshes")
     vertex_counts = [len(m.vertices) for m in meshes]
     face_counts = [len(m.faces) for m in meshes]
@@ -520,6 +516,9 @@ def write_library(
         }
     )
 
+
+def _write_mesh_index(path: Path, meshes, ids, vertex_counts, face_counts) -> None:
+    """meshes.parquet: one row per mesh (id, kind, source, native size, vertex/face counts)."""
     lwh = np.array([m.native_lwh for m in meshes], np.float64).reshape(-1, 3)
     pq.write_table(
         pa.table(
@@ -534,9 +533,13 @@ def write_library(
                 "num_faces": pa.array(face_counts, pa.int64()),
             }
         ),
-        directory / MESHES_INDEX,
+        path,
     )
-    pm = point_models
+
+
+def _write_point_index(path: Path, pm: PointModels) -> None:
+    """point_models.parquet: one row per point model (ids, view angle, size, yaw, range, points)."""
+    lwh = np.asarray(pm.lwh, np.float64).reshape(-1, 3)
     pq.write_table(
         pa.table(
             {
@@ -544,22 +547,16 @@ def write_library(
                 "frame_id": pa.array(pm.frame_id.tolist(), pa.string()),
                 "sensor": pa.array(pm.sensor.tolist(), pa.string()),
                 "view_angle_rad": np.asarray(pm.view_angle_rad, np.float64),
-                "l": np.asarray(pm.lwh, np.float64).reshape(-1, 3)[:, 0],
-                "w": np.asarray(pm.lwh, np.float64).reshape(-1, 3)[:, 1],
-                "h": np.asarray(pm.lwh, np.float64).reshape(-1, 3)[:, 2],
+                "l": lwh[:, 0],
+                "w": lwh[:, 1],
+                "h": lwh[:, 2],
                 "yaw": np.asarray(pm.yaw, np.float64),
                 "range_m": np.asarray(pm.range_m, np.float64),
                 "num_points": pa.array(pm.num_points, pa.int32()),
             }
         ),
-        directory / POINTS_INDEX,
+        path,
     )
-    return {
-        "meshes": len(meshes),
-        "mesh_triangles": int(sum(face_counts)),
-        "point_models": len(pm),
-        "model_points": int(pm.offsets[-1]),
-    }
 
 
 def read_library(directory: str | Path) -> ModelLibrary:

@@ -20,10 +20,10 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
-import click
-
-from dali_cli import __version__
+from dali_cli import __version__, console
 from dali_cli.atomic_dir import OutputLock, recover_interrupted, replace_directory
+from dali_cli.atomic_file import write_text_atomically
+from dali_cli.errors import StageError
 from dali_cli.file_hashes import hash_tree as _hash_files
 from dali_cli.output_paths import check_output_path
 
@@ -42,7 +42,7 @@ def content_hash(path: str | Path) -> str:
     never the hash its own manifest claims, which a hand edit would leave unchanged."""
     path = Path(path)
     if not path.exists():
-        raise click.ClickException(f"{path}: input not found")
+        raise StageError(f"{path}: input not found")
     return hash_tree(path)
 
 
@@ -60,7 +60,7 @@ def check_made_from(artifact: str | Path, role: str, expected_input: str | Path)
     expected = content_hash(expected_input)
     if expected not in {record.get("hash") for record in records}:
         made_from = ", ".join(str(record.get("path")) for record in records)
-        raise click.ClickException(
+        raise StageError(
             f"{artifact}: made from {role} {made_from}, not from {expected_input} "
             f"(content hashes differ); pass the {role} it was made from"
         )
@@ -109,14 +109,16 @@ def _input_records(inputs: Mapping[str, str | Path | list]) -> dict:
     return records
 
 
-def why_stale(out: Path, stage: str, inputs: dict, params: dict) -> str | None:
+def why_stale(
+    out: Path, stage: str, inputs: dict, params: dict, derived: tuple[str, ...] = ()
+) -> str | None:
     """Why `out` must be (re)built, or None when its manifest matches exactly."""
     manifest = read_manifest(out)
     if manifest is None:
         return "no output yet" if not out.exists() else "output has no valid manifest"
     if manifest.get("hash_method") != HASH_METHOD:
         return "output was written by an older dali (content hashes are computed differently)"
-    if manifest.get("content_hash") != hash_tree(out):
+    if manifest.get("content_hash") != hash_tree(out, (MANIFEST_NAME, *derived)):
         return "output files were changed since the stage wrote them"
     if manifest.get("stage") != stage:
         return f"output was written by stage '{manifest.get('stage')}'"
@@ -137,9 +139,7 @@ def why_stale(out: Path, stage: str, inputs: dict, params: dict) -> str | None:
 
 
 def _write_json_atomic(path: Path, document: dict) -> None:
-    temporary = path.with_name(path.name + ".part")
-    temporary.write_text(json.dumps(document, indent=2, sort_keys=False, default=str) + "\n")
-    os.replace(temporary, path)
+    write_text_atomically(path, json.dumps(document, indent=2, sort_keys=False, default=str) + "\n")
 
 
 def run_stage(
@@ -152,19 +152,22 @@ def run_stage(
     force: bool = False,
     dry_run: bool = False,
     seed: int | None = None,
-    echo: Callable[[str], None] = click.echo,
+    echo: Callable[[str], None] = console.echo,
+    derived: tuple[str, ...] = (),
 ) -> StageOutcome:
     """Run `build(tmp_dir)` unless `out` is up to date, then move the result into place atomically.
 
     inputs: name → path (or list of paths) of input artifacts, hashed by content.
     params: JSON-serializable parameters; together with input hashes they decide staleness.
     build: writes the outputs into the given (empty) directory and returns counts/timings.
+    derived: names of files other commands may add to the artifact later (e.g. eval's
+    metrics_kitti.json): not part of its content hash, gone when the stage rebuilds it.
     """
     given = Path(out)
     out = check_output_path(given, inputs)
     params = _normalized(params)
     if dry_run:
-        reason = why_stale(out, stage, _input_records(inputs), params)
+        reason = why_stale(out, stage, _input_records(inputs), params, derived)
         if reason is None and not force:
             echo(f"{stage}: {given} is up to date (use --force to rerun)")
             return StageOutcome("skipped", "up to date", read_manifest(out))
@@ -173,18 +176,24 @@ def run_stage(
     with OutputLock(out):
         recover_interrupted(out, echo)
         records = _input_records(inputs)
-        reason = why_stale(out, stage, records, params)
+        reason = why_stale(out, stage, records, params, derived)
         if reason is None and not force:
             echo(f"{stage}: {given} is up to date (use --force to rerun)")
             return StageOutcome("skipped", "up to date", read_manifest(out))
         reason = reason or "forced"
-        manifest, wall = _build_and_commit(stage, out, records, params, build, seed)
+        manifest, wall = _build_and_commit(stage, out, records, params, build, seed, derived)
     echo(f"{stage}: wrote {given} ({wall:.1f} s)")
     return StageOutcome("ran", reason, manifest)
 
 
 def _build_and_commit(
-    stage: str, out: Path, records: dict, params: dict, build: Callable, seed: int | None
+    stage: str,
+    out: Path,
+    records: dict,
+    params: dict,
+    build: Callable,
+    seed: int | None,
+    derived: tuple[str, ...] = (),
 ) -> tuple[dict, float]:
     """Build into `<out>.tmp-<pid>`, write the manifest last, commit atomically; on any error
     (or Ctrl-C) remove the temporary directory and leave `out` as it was."""
@@ -217,7 +226,7 @@ def _build_and_commit(
             "notes": list(result.notes),
             **_normalized(result.extra),
             "hash_method": HASH_METHOD,
-            "content_hash": hash_tree(temporary),
+            "content_hash": hash_tree(temporary, (MANIFEST_NAME, *derived)),
         }
         _write_json_atomic(temporary / MANIFEST_NAME, manifest)
         replace_directory(temporary, out)

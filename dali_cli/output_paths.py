@@ -13,12 +13,12 @@ import json
 from collections.abc import Mapping
 from pathlib import Path
 
-import click
+from dali_cli.errors import StageError
 
 MANIFEST_NAME = "manifest.json"
 
 
-class OutputPathError(click.ClickException):
+class OutputPathError(StageError):
     """An `--out` dali must not write to; the message names it and says why."""
 
 
@@ -82,7 +82,11 @@ def check_output_path(
                 f"--out {given} lies inside the {role} input {path}: writing there would change "
                 "that input; choose a path outside it"
             )
-    if directory and target.exists() and not (target.is_dir() and is_dali_artifact(target)):
+    if (
+        directory
+        and target.exists()
+        and not (target.is_dir() and (is_dali_artifact(target) or is_unmanaged_eval_dir(target)))
+    ):
         what = "a file" if not target.is_dir() else "a directory without a dali manifest.json"
         raise OutputPathError(
             f"--out {given} exists and is {what}. dali replaces its output as a whole, so it "
@@ -115,3 +119,22 @@ def check_metrics_output(
             "delete it yourself"
         )
     return target
+
+
+# what `dali eval --out DIR/metrics.json` wrote into a directory before eval had a manifest
+EVAL_FILES = ("metrics.json", "predictions.parquet", "metrics_kitti.json")
+
+
+def is_unmanaged_eval_dir(path: Path) -> bool:
+    """A directory holding only the files dali eval writes (its metrics.json a dali metrics
+    file): an evaluation of an older run, which `dali eval --out DIR` may replace."""
+    try:
+        names = {p.name for p in path.iterdir()}
+    except OSError:
+        return False
+    return (
+        "metrics.json" in names
+        and names <= set(EVAL_FILES)
+        and all((path / name).is_file() for name in names)
+        and is_dali_metrics_file(path / "metrics.json")
+    )

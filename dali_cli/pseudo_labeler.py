@@ -11,10 +11,10 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-import click
 import numpy as np
 
 from dali_cli import plausibility
+from dali_cli.errors import StageError
 
 
 @dataclass
@@ -89,7 +89,7 @@ class FrameLabeler:
         )
         seconds = time.perf_counter() - started
         if len(predictions) != len(batch):
-            raise click.ClickException(
+            raise StageError(
                 f"{self.model_dir}: detector returned {len(predictions)} results for {len(batch)} frames"
             )
         labels = []

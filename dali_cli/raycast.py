@@ -16,7 +16,6 @@ thread but releases the GIL, so large batches are chunked over a thread pool.
 from __future__ import annotations
 
 import hashlib
-import os
 import threading
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -24,17 +23,11 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from dali_cli.cores import available_cores
+
 _MIN_RAYS_PER_THREAD = 16_384
 _CACHE_SIZE = 512
 _FAR = np.float32(1e30)  # "no limit" for Embree's tfar
-
-
-def available_cores() -> int:
-    """CPU cores this process may run on."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not Linux
-        return max(1, os.cpu_count() or 1)
 
 
 class RayHits:

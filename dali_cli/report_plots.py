@@ -7,6 +7,8 @@ Each plot is drawn only from artifacts the run holds; a missing artifact means a
 from __future__ import annotations
 
 import json
+import math
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -279,3 +281,36 @@ def draw_plots(run: Path, out_dir: Path) -> list[Path]:
         *plot_ppcg(run, out_dir),
     ]
     return [path for path in drawn if path is not None]
+
+
+def plot_sweep(rows: Sequence[dict], scale: float, e_est, path, title: str = "") -> None:
+    """Mean predicted volume vs scale with the E_est volume line and ŝ marked (paper Fig. 3)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axis = plt.subplots(figsize=(6.4, 4.2), dpi=120)
+    for subset, marker, colour in (("all", "o-", "tab:blue"), ("subsample", "x", "tab:gray")):
+        points = sorted(
+            (r["scale"], r["mean_volume"])
+            for r in rows
+            if r["subset"] == subset and math.isfinite(r["mean_volume"])
+        )
+        if points:
+            xs, ys = zip(*points, strict=True)
+            label = "E_pred, all frames" if subset == "all" else "E_pred, subsample"
+            axis.plot(xs, ys, marker, color=colour, markersize=4, label=label)
+    target_volume = float(np.prod(e_est))
+    axis.axhline(
+        target_volume, color="tab:red", linestyle="--", label=f"E_est {target_volume:.2f} m³"
+    )
+    axis.axvline(scale, color="tab:green", linestyle=":", label=f"ŝ = {scale:.3f}")
+    axis.set_xlabel("scale s")
+    axis.set_ylabel("mean predicted volume (m³)")
+    axis.set_title(title or "PTSN sweep")
+    axis.grid(alpha=0.3)
+    axis.legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(path)
+    plt.close(figure)

@@ -2,14 +2,16 @@
 pseudo-label, self-train and eval through `read_scale`, one reader with one set of rules.
 
 `"scale"` is ŝ exactly as the search found it (JSON floats round-trip exactly), never rounded:
-the pseudo labels are made at the very scale the sweep chose. The rest of the document (E_est,
-E_pred at ŝ, the search record) is for people and `dali report` (docs/ptsn.md).
+the pseudo labels are made at the very scale the sweep chose. `read_scale` returns it typed as a
+`ScaleResult` (ŝ, E_est, E_pred at ŝ, the pivot: the mount height scaled about, and the whole
+record for people and `dali report`, docs/ptsn.md).
 """
 
 from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from dali_cli.artifacts import ArtifactError
@@ -23,9 +25,26 @@ def scale_path(scale_from: str | Path) -> Path:
     return path / SCALE_NAME if path.is_dir() else path
 
 
-def read_scale(scale_from: str | Path) -> tuple[float, dict]:
-    """(ŝ, the whole document) of a ptsn-sweep directory or its scale.json. ArtifactError naming
-    the file when it is missing, not JSON, or its "scale" is not a finite positive number."""
+@dataclass(frozen=True)
+class ScaleResult:
+    """What a ptsn-sweep found: `scale` ŝ (exact), `e_est` and `e_pred` (l, w, h) in metres
+    (E_pred at ŝ; None when not recorded), `pivot_m` the mount height the points were scaled
+    about (None when not recorded) and `record`, the whole scale.json."""
+
+    scale: float
+    e_est: tuple[float, float, float] | None = None
+    e_pred: tuple[float | None, ...] | None = None
+    pivot_m: float | None = None
+    record: dict = field(default_factory=dict)
+
+
+def _triple(value) -> tuple | None:
+    return tuple(value) if isinstance(value, list) and len(value) == 3 else None
+
+
+def read_scale(scale_from: str | Path) -> ScaleResult:
+    """The ScaleResult of a ptsn-sweep directory or its scale.json. ArtifactError naming the file
+    when it is missing, not JSON, or its "scale" is not a finite positive number."""
     path = scale_path(scale_from)
     if not path.is_file():
         raise ArtifactError(f"{path}: scale file not found (is {scale_from} a ptsn-sweep output?)")
@@ -40,7 +59,14 @@ def read_scale(scale_from: str | Path) -> tuple[float, dict]:
         or not (math.isfinite(scale) and scale > 0)
     ):
         raise ArtifactError(f"{path}: field 'scale' must be a positive number, got {scale!r}")
-    return float(scale), document
+    pivot = document.get("mount_height_m")
+    return ScaleResult(
+        scale=float(scale),
+        e_est=_triple(document.get("E_est")),
+        e_pred=_triple(document.get("E_pred_at_scale")),
+        pivot_m=float(pivot) if isinstance(pivot, int | float) and math.isfinite(pivot) else None,
+        record=document,
+    )
 
 
 def write_scale(directory: str | Path, document: dict) -> Path:

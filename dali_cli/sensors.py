@@ -12,8 +12,9 @@ from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
-import click
 import numpy as np
+
+from dali_cli.errors import StageError
 
 DEFAULT_SENSORS_PATH = Path(__file__).resolve().parent.parent / "sensors.toml"
 
@@ -35,7 +36,7 @@ _KNOWN = set(_REQUIRED) | {
 }
 
 
-class SensorConfigError(click.ClickException):
+class SensorConfigError(StageError):
     """A sensors.toml problem; the message names the file, profile and key."""
 
 
@@ -157,30 +158,15 @@ def _triple(table: dict, key: str, source: str, name: str, default=None) -> tupl
     return tuple(float(v) for v in value)
 
 
-def parse_profile(name: str, table: dict, source: str = "<sensors>") -> SensorProfile:
-    """Validate one TOML table and build a SensorProfile; errors name source, profile and key."""
-    if not isinstance(table, dict):
-        raise _fail(source, name, "-", "profile must be a table")
-    unknown = sorted(set(table) - _KNOWN)
-    if unknown:
-        raise _fail(source, name, unknown[0], f"unknown key (known: {', '.join(sorted(_KNOWN))})")
-    for key in _REQUIRED:
-        if key not in table:
-            raise _fail(source, name, key, "missing")
+def _positive_int(table: dict, key: str, source: str, name: str) -> int:
+    value = table[key]
+    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+        raise _fail(source, name, key, f"must be an integer > 0, got {value!r}")
+    return value
 
-    beams = table["beams"]
-    if isinstance(beams, bool) or not isinstance(beams, int) or beams <= 0:
-        raise _fail(source, name, "beams", f"must be an integer > 0, got {beams!r}")
-    points_per_beam = table["points_per_beam"]
-    if (
-        isinstance(points_per_beam, bool)
-        or not isinstance(points_per_beam, int)
-        or points_per_beam <= 0
-    ):
-        raise _fail(
-            source, name, "points_per_beam", f"must be an integer > 0, got {points_per_beam!r}"
-        )
 
+def _elevations(table: dict, beams: int, source: str, name: str) -> list[float]:
+    """The beams' elevations (deg, ascending): listed, or evenly spaced from min to max."""
     if "elevations_deg" in table:
         elevations = table["elevations_deg"]
         if not isinstance(elevations, list) or len(elevations) != beams:
@@ -190,22 +176,20 @@ def parse_profile(name: str, table: dict, source: str = "<sensors>") -> SensorPr
         elevations = sorted(float(e) for e in elevations)
         if any(not -90.0 < e < 90.0 for e in elevations):
             raise _fail(source, name, "elevations_deg", "angles must lie in (-90, 90)")
-    else:
-        low = _number(table, "elevation_min_deg", source, name)
-        high = _number(table, "elevation_max_deg", source, name)
-        if not low < high:
-            raise _fail(
-                source, name, "elevation_min_deg", f"must be < elevation_max_deg ({low} >= {high})"
-            )
-        if low <= -90.0 or high >= 90.0:
-            raise _fail(source, name, "elevation_min_deg", "elevations must lie in (-90, 90)")
-        elevations = np.linspace(low, high, beams).tolist() if beams > 1 else [0.5 * (low + high)]
+        return elevations
+    low = _number(table, "elevation_min_deg", source, name)
+    high = _number(table, "elevation_max_deg", source, name)
+    if not low < high:
+        raise _fail(
+            source, name, "elevation_min_deg", f"must be < elevation_max_deg ({low} >= {high})"
+        )
+    if low <= -90.0 or high >= 90.0:
+        raise _fail(source, name, "elevation_min_deg", "elevations must lie in (-90, 90)")
+    return np.linspace(low, high, beams).tolist() if beams > 1 else [0.5 * (low + high)]
 
-    az_min = _number(table, "azimuth_min_deg", source, name, -180.0)
-    az_max = _number(table, "azimuth_max_deg", source, name, 180.0)
-    if not az_min < az_max or az_max - az_min > 360.0:
-        raise _fail(source, name, "azimuth_min_deg", "need azimuth_min < azimuth_max, span <= 360")
 
+def _ranges_and_noise(table: dict, source: str, name: str) -> dict:
+    """mount_height_m, max/min_range_m, range_noise_sigma_m, ray_dropout, checked."""
     mount = _number(table, "mount_height_m", source, name)
     if mount < 0:
         raise _fail(source, name, "mount_height_m", f"must be >= 0, got {mount}")
@@ -223,6 +207,16 @@ def parse_profile(name: str, table: dict, source: str = "<sensors>") -> SensorPr
     dropout = _number(table, "ray_dropout", source, name, 0.0)
     if not 0.0 <= dropout < 1.0:
         raise _fail(source, name, "ray_dropout", f"must satisfy 0 <= dropout < 1, got {dropout}")
+    return {
+        "mount_height_m": mount,
+        "max_range_m": max_range,
+        "min_range_m": min_range,
+        "range_noise_sigma_m": noise,
+        "ray_dropout": dropout,
+    }
+
+
+def _intensities(table: dict, source: str, name: str) -> dict:
     intensities = {}
     for key, default in (
         ("intensity_car", 0.3),
@@ -233,12 +227,33 @@ def parse_profile(name: str, table: dict, source: str = "<sensors>") -> SensorPr
         if not 0.0 <= value <= 1.0:
             raise _fail(source, name, key, f"must lie in [0, 1], got {value}")
         intensities[key] = value
+    return intensities
+
+
+def parse_profile(name: str, table: dict, source: str = "<sensors>") -> SensorProfile:
+    """Validate one TOML table and build a SensorProfile; errors name source, profile and key."""
+    if not isinstance(table, dict):
+        raise _fail(source, name, "-", "profile must be a table")
+    unknown = sorted(set(table) - _KNOWN)
+    if unknown:
+        raise _fail(source, name, unknown[0], f"unknown key (known: {', '.join(sorted(_KNOWN))})")
+    for key in _REQUIRED:
+        if key not in table:
+            raise _fail(source, name, key, "missing")
+    beams = _positive_int(table, "beams", source, name)
+    points_per_beam = _positive_int(table, "points_per_beam", source, name)
+    elevations = _elevations(table, beams, source, name)
+    az_min = _number(table, "azimuth_min_deg", source, name, -180.0)
+    az_max = _number(table, "azimuth_max_deg", source, name, 180.0)
+    if not az_min < az_max or az_max - az_min > 360.0:
+        raise _fail(source, name, "azimuth_min_deg", "need azimuth_min < azimuth_max, span <= 360")
+    ranges = _ranges_and_noise(table, source, name)
+    intensities = _intensities(table, source, name)
     mean_lwh = _triple(table, "car_mean_lwh_m", source, name)
     std_lwh = _triple(table, "car_std_lwh_m", source, name, tuple(0.08 * v for v in mean_lwh))
     description = table.get("description", "")
     if not isinstance(description, str):
         raise _fail(source, name, "description", "must be a string")
-
     return SensorProfile(
         name=name,
         description=description,
@@ -246,13 +261,9 @@ def parse_profile(name: str, table: dict, source: str = "<sensors>") -> SensorPr
         points_per_beam=points_per_beam,
         azimuth_min_deg=az_min,
         azimuth_max_deg=az_max,
-        mount_height_m=mount,
-        max_range_m=max_range,
-        min_range_m=min_range,
-        range_noise_sigma_m=noise,
-        ray_dropout=dropout,
         car_mean_lwh_m=mean_lwh,
         car_std_lwh_m=std_lwh,
+        **ranges,
         **intensities,
     )
 

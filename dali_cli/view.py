@@ -4,7 +4,6 @@ several sources in different colours, and optionally a side view (x-z) below it.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -169,13 +168,12 @@ def render_frame(
         axis.set_ylabel("z (m)")
     axes[-1, 0].set_xlabel("x (m)")
     figure.tight_layout()
-    out_path = Path(out_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = out_path.with_name(f".{out_path.stem}.tmp-{os.getpid()}.png")
+    from dali_cli.atomic_file import write_atomically
+
     try:
-        figure.savefig(temporary, dpi=dpi, format="png")
-        os.replace(temporary, out_path)
+        write_atomically(
+            out_path, lambda temporary: figure.savefig(temporary, dpi=dpi, format="png")
+        )
     finally:
         plt.close(figure)
-        temporary.unlink(missing_ok=True)
     return out_path

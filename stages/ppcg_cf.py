@@ -1,18 +1,17 @@
-"""Stage ppcg_cf: CF pseudo point clouds of the target frames (I/O shared with stages.ppcg_rc)."""
+"""Stage ppcg_cf: constraint-free pseudo point clouds of the target frames (body and outputs:
+dali_cli.ppcg.run)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import click
-
 from dali_cli.artifacts import FrameSet
+from dali_cli.errors import ParameterError
 from dali_cli.manifest import StageOutcome
 from dali_cli.ppcg.cf import CfParams
 from dali_cli.ppcg.models import ModelBank
 from dali_cli.ppcg.point_models import angular_threshold_rad
-from dali_cli.sensors import get_profile
-from stages.ppcg_rc import run_ppcg
+from dali_cli.ppcg.run import run_ppcg, target_profile
 
 
 def ppcg_cf(
@@ -40,12 +39,8 @@ def ppcg_cf(
     """CF pseudo point clouds (see dali_cli.ppcg.cf); `bank` replaces the library (tests)."""
     low, high = (float(v) for v in range_m)
     if not 0 < low <= high:
-        raise click.UsageError(f"--range-m: need 0 < LOW <= HIGH, got {low}:{high}")
-    frames = FrameSet(target_dir)
-    name = sensor or frames.sensor
-    if not name:
-        raise click.UsageError(f"{frames.path}: no 'sensor' attribute; give --sensor")
-    profile = get_profile(name, sensors_path)
+        raise ParameterError("range_m", f"need 0 < LOW <= HIGH, got {low}:{high}")
+    _, profile = target_profile(FrameSet(target_dir), sensor, sensors_path)
     params = CfParams(
         theta_rad=angular_threshold_rad(profile.points_per_beam),
         range_m=(low, high),

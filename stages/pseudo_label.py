@@ -11,12 +11,12 @@ import math
 import sys
 from pathlib import Path
 
-import click
 import numpy as np
 
-from dali_cli import ptsn, size_correction
+from dali_cli import console, ptsn, size_correction
 from dali_cli.artifacts import BoxTable, FrameSet, write_boxes
 from dali_cli.device import inference_device, inference_runtime
+from dali_cli.errors import ParameterError, StageError
 from dali_cli.executors import make_executor, run_on
 from dali_cli.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.pseudo_labeler import FrameLabeler, label_frame  # noqa: F401 (public here)
@@ -98,21 +98,21 @@ def pseudo_label(
     model_dir, target_dir = Path(model_dir), Path(target_dir)
     torch_device = inference_device(device, precision)  # a missing GPU: error, nothing written
     if scale is None and scale_from is None:
-        raise click.UsageError("give --scale-from PTSN_DIR (from `dali ptsn-sweep`) or --scale S")
+        raise ParameterError(
+            ("scale_from", "scale"), "give a ptsn-sweep output (its scale.json) or a scale"
+        )
     if not model_dir.is_dir():
-        raise click.ClickException(f"{model_dir}: model directory not found")
-    scale_document: dict = {}
-    if scale_from is not None:
-        found, scale_document = read_scale(scale_from)
-        scale_source = "option" if scale is not None else str(scale_from)
-        scale = found if scale is None else scale
-    else:
-        scale_source = "option"
-    e_est = scale_document.get("E_est")
+        raise StageError(f"{model_dir}: model directory not found")
+    found = read_scale(scale_from) if scale_from is not None else None
+    scale_source = str(scale_from) if found is not None and scale is None else "option"
+    scale = found.scale if scale is None else scale  # ŝ exactly as the sweep found it
+    e_est = list(found.e_est) if found is not None and found.e_est is not None else None
+    if mount_height_m is None and found is not None and found.pivot_m is not None:
+        mount_height_m = found.pivot_m  # scale about the very point the sweep scaled about
     if size_correction_method not in size_correction.METHODS:
-        raise click.UsageError(
-            f"--size-correction must be one of {', '.join(size_correction.METHODS)}, "
-            f"got '{size_correction_method}'"
+        raise ParameterError(
+            "size_correction_method",
+            f"must be one of {', '.join(size_correction.METHODS)}, got '{size_correction_method}'",
         )
     skipped_correction = size_correction_method != "none" and e_est is None
     if skipped_correction:  # --scale without a sweep: no E_est to correct towards
@@ -190,13 +190,13 @@ def pseudo_label(
                 f"dropped {implausible} implausible boxes with score >= {score_min} (size or "
                 "distance beyond dali_cli.plausibility's limits)"
             )
-            click.secho(f"WARNING: {notes[-1]}", fg="red", bold=True, err=True)
+            console.warn(notes[-1])
         if skipped_correction:
             notes.append("size correction skipped: no E_est (give --scale-from PTSN_DIR)")
-            click.secho(f"WARNING: {notes[-1]}", fg="yellow", err=True)
+            console.warn(notes[-1], colour="yellow", bold=False)
         if not len(table):
             notes.append(f"no boxes with score >= {score_min} on any frame")
-            click.secho(f"WARNING: {notes[-1]}", fg="red", bold=True, err=True)
+            console.warn(notes[-1])
         return BuildResult(
             counts={"frames": len(target), "boxes": len(table), "boxes_implausible": implausible},
             timings={"detector_seconds": round(seconds, 3)},
@@ -248,14 +248,14 @@ def print_summary(summary: dict) -> None:
             "—" if values is None else ", ".join("nan" if v is None else f"{v:.2f}" for v in values)
         )
 
-    click.echo(
+    console.echo(
         f"pseudo-label: {summary['boxes']} boxes on {summary['frames']} frames "
         f"({summary['boxes_per_frame']:.2f}/frame) at s = {summary['scale']:.4f}; "
         f"mean l/w/h ({triple(summary['mean_lwh'])}) m vs E_est ({triple(summary['E_est'])}) m"
     )
     correction = summary.get("size_correction")
     if correction:
-        click.echo(
+        console.echo(
             f"size correction (per dimension, target statistics only): factors "
             f"{triple(correction['factors_lwh'])}; mean l/w/h before "
             f"({triple(correction['mean_lwh_before'])}) m"

@@ -7,14 +7,14 @@ import math
 import sys
 from pathlib import Path
 
-import click
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from dali_cli import ptsn
+from dali_cli import console, ptsn
 from dali_cli.artifacts import FrameSet
 from dali_cli.device import inference_device, inference_runtime, place
+from dali_cli.errors import ParameterError, StageError
 from dali_cli.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.model_card import ModelCard, read_card
 from dali_cli.scale_file import write_scale
@@ -39,17 +39,7 @@ def read_model_card(model_dir: str | Path) -> ModelCard:
     return read_card(model_dir)
 
 
-def detector_bev_range(detector) -> tuple[float, float, float, float] | None:
-    """(x0, y0, x1, y1) of the detector's input range (metres), if it has one."""
-    config = getattr(detector, "config", None)
-    try:
-        x, y = config.x_range_m, config.y_range_m
-    except AttributeError:
-        return None
-    return (float(x[0]), float(y[0]), float(x[1]), float(y[1]))
-
-
-def resolve_expected_size(
+def resolve_e_est(
     spec: str,
     *,
     target_profile: str | None,
@@ -61,9 +51,9 @@ def resolve_expected_size(
     """E_est (3,) and a record of where it came from. spec: sn | ros | L,W,H."""
     if spec == "sn":
         if not target_profile:
-            raise click.UsageError(
-                "--expected-size sn needs the target's sensor profile: the frame set names none; "
-                "give --target-profile"
+            raise ParameterError(
+                ("expected_size", "target_profile"),
+                "E_est sn needs the target's sensor profile: the frame set names none; name it",
             )
         lwh = np.asarray(get_profile(target_profile, sensors_path).car_mean_lwh_m)
         return lwh, {"mode": "sn", "profile": target_profile}
@@ -76,8 +66,9 @@ def resolve_expected_size(
             return ptsn.ros_expected_size(list(measured), factor), record
         profile = source_profile or card.source_sensor
         if not profile:
-            raise click.UsageError(
-                "--expected-size ros needs --source-profile (model.json names none)"
+            raise ParameterError(
+                ("expected_size", "source_profile"),
+                "E_est ros needs the source's sensor profile (model.json names none)",
             )
         source_lwh = get_profile(profile, sensors_path).car_mean_lwh_m
         lwh = ptsn.ros_expected_size(source_lwh, factor)
@@ -85,7 +76,7 @@ def resolve_expected_size(
     try:
         lwh = np.asarray(ptsn.parse_size(spec))
     except ValueError as error:
-        raise click.BadParameter(str(error), param_hint="--expected-size") from None
+        raise ParameterError("expected_size", str(error)) from None
     return lwh, {"mode": "explicit"}
 
 
@@ -125,10 +116,6 @@ def _progress_bar(enabled: bool, description: str):
     return tqdm(desc=description, unit="frame", file=sys.stderr, disable=not enabled, leave=False)
 
 
-def _warn(message: str) -> None:
-    click.secho(f"WARNING: {message}", fg="red", bold=True, err=True)
-
-
 def ptsn_sweep(
     model_dir: str | Path,
     target_dir: str | Path,
@@ -165,12 +152,12 @@ def ptsn_sweep(
     model_dir, target_dir = Path(model_dir), Path(target_dir)
     torch_device = inference_device(device, precision)  # a missing GPU: error, nothing written
     if frames is not None and frame_fraction is not None:
-        raise click.UsageError("give --frames or --frame-fraction, not both")
+        raise ParameterError(("frames", "frame_fraction"), "give one of the two, not both")
     if not model_dir.is_dir():
-        raise click.ClickException(f"{model_dir}: model directory not found")
+        raise StageError(f"{model_dir}: model directory not found")
     target = FrameSet(target_dir)
     target_profile = target_profile or target.sensor or None
-    target_lwh, expected_record = resolve_expected_size(
+    e_est, expected_record = resolve_e_est(
         expected_size,
         target_profile=target_profile,
         card=read_model_card(model_dir),
@@ -180,14 +167,15 @@ def ptsn_sweep(
     )
     if mount_height_m is None:
         if not target_profile:
-            raise click.UsageError(
-                f"{target_dir}: the frame set names no sensor; give --target-profile or --mount-height-m"
+            raise ParameterError(
+                ("target_profile", "mount_height_m"),
+                f"{target_dir}: the frame set names no sensor; name its profile or mount height",
             )
         mount_height_m = get_profile(target_profile, sensors_path).mount_height_m
     params = {
         "scales": scale_range.as_list(),
         "expected_size": expected_size,
-        "expected_lwh_m": [round(float(v), 6) for v in target_lwh],
+        "expected_lwh_m": [round(float(v), 6) for v in e_est],
         "search": search,
         "frames": frames,
         "frame_fraction": frame_fraction,
@@ -213,9 +201,9 @@ def ptsn_sweep(
         loader = detector_loader or load_detector
         detector = place(loader(model_dir), torch_device, precision)
         selected = ptsn.select_frames(len(target), frames, frame_fraction, seed)
-        bev_range = detector_bev_range(detector)
+        visible = getattr(detector, "visible_range", None)  # test doubles may see everything
         store = FrameStore(
-            target, lambda p: ptsn.crop_for_scales(p, bev_range, scale_range.low, scale_range.high)
+            target, lambda p: ptsn.crop_for_scales(p, visible, scale_range.low, scale_range.high)
         )
         counts = np.zeros(len(selected), dtype=np.int64)  # points some swept scale brings in range
         for k, (_, points) in enumerate(target.iter_frames(selected)):
@@ -236,7 +224,7 @@ def ptsn_sweep(
             result = ptsn.find_scale(
                 cache,
                 scale_range,
-                target_lwh,
+                e_est,
                 usable,
                 search=search,
                 match=match,
@@ -246,7 +234,7 @@ def ptsn_sweep(
                 no_detections=no_detections,
             )
         except ptsn.PTSNError as error:
-            raise click.ClickException(f"{target_dir}: {error}") from None
+            raise StageError(f"{target_dir}: {error}") from None
         finally:
             bar.close()
         rows = [evaluation.row() for evaluation in result.evaluations]
@@ -254,7 +242,7 @@ def ptsn_sweep(
         grid_frame_passes = len(scale_range.grid()) * len(usable)
         document = scale_document(
             result,
-            target_lwh,
+            e_est,
             expected_record,
             cache,
             frames_selected=len(selected),
@@ -267,11 +255,15 @@ def ptsn_sweep(
         write_scale(directory, document)
         if plot:
             title = f"PTSN sweep: ŝ = {result.scale:.3f} ({search}, {match})"
-            ptsn.plot_sweep(rows, result.scale, target_lwh, directory / PLOT_NAME, title)
+            from dali_cli.report_plots import plot_sweep
+
+            plot_sweep(rows, result.scale, e_est, directory / PLOT_NAME, title)
         for message in result.warnings:
-            _warn(message)
+            console.warn(message)
         if skipped:
-            _warn(f"{skipped} of {len(selected)} selected frames have no points in range: skipped")
+            console.warn(
+                f"{skipped} of {len(selected)} selected frames have no points in range: skipped"
+            )
         print_summary(document)
         return BuildResult(
             counts={
@@ -302,7 +294,7 @@ def ptsn_sweep(
 
 def scale_document(
     result: ptsn.SearchResult,
-    target_lwh: np.ndarray,
+    e_est: np.ndarray,
     expected_record: dict,
     cache: ptsn.DetectionCache,
     *,
@@ -321,12 +313,12 @@ def scale_document(
 
     return {
         "scale": float(result.scale),  # exact: pseudo-label runs at the ŝ found
-        "E_est": listed(target_lwh),
-        "E_est_volume": round(float(np.prod(target_lwh)), 6),
+        "E_est": listed(e_est),
+        "E_est_volume": round(float(np.prod(e_est)), 6),
         "expected_size": expected_record,
         "E_pred_at_scale": listed(e_pred),
         "E_pred": listed(e_pred),  # alias read by `dali report`
-        "bias_lwh": listed(e_pred - target_lwh),
+        "bias_lwh": listed(e_pred - e_est),
         "search": result.strategy,
         "match": params["match"],
         "mean": params["mean"],
@@ -354,7 +346,7 @@ def scale_document(
 def print_summary(document: dict) -> None:
     e_est = ", ".join(f"{v:.2f}" for v in document["E_est"])
     e_pred = ", ".join("nan" if v is None else f"{v:.2f}" for v in document["E_pred_at_scale"])
-    click.echo(
+    console.echo(
         f"ptsn-sweep: ŝ = {document['scale']:.4f} ({document['search']}, match {document['match']}"
         f"{', ' + document['fallback'] if document['fallback'] else ''}); "
         f"E_est = ({e_est}) m, E_pred(ŝ) = ({e_pred}) m; "

@@ -7,11 +7,12 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import click
 import numpy as np
 
+from dali_cli import console
+from dali_cli.errors import ParameterError, StageError
 from dali_cli.manifest import BuildResult, StageOutcome, content_hash
-from stages.pretrain import attach_database, fit_and_save, run_training_stage
+from dali_cli.training_stage import attach_database, fit_and_save, run_training_stage
 
 INIT_FROM = ("previous", "scratch")
 
@@ -21,11 +22,12 @@ def parse_mix(text: str, ppcg_count: int) -> tuple[int, ...]:
     try:
         parts = tuple(int(p) for p in text.split(":"))
     except ValueError:
-        raise click.BadParameter(f"--mix must look like 1:1, got '{text}'") from None
+        raise ParameterError("mix", f"must look like 1:1, got '{text}'") from None
     if len(parts) not in (2, 1 + ppcg_count) or min(parts) < 1:
-        raise click.BadParameter(
-            f"--mix '{text}': give source:ppcg (pooled) or one positive weight per set "
-            f"(source + {ppcg_count} PPCG sets)"
+        raise ParameterError(
+            "mix",
+            f"'{text}': give source:ppcg (pooled) or one positive weight per set "
+            f"(source + {ppcg_count} PPCG sets)",
         )
     return parts
 
@@ -99,10 +101,10 @@ def run_retrain(
     init, source, out = Path(init), Path(source), Path(out)
     ppcg = [Path(p) for p in ppcg]
     if not ppcg:
-        raise click.UsageError("--ppcg needs at least one PPCG frame set directory")
+        raise ParameterError("ppcg", "needs at least one PPCG frame set directory")
     if init_from not in INIT_FROM:
-        raise click.UsageError(
-            f"--init-from must be one of {', '.join(INIT_FROM)}, got '{init_from}'"
+        raise ParameterError(
+            "init_from", f"must be one of {', '.join(INIT_FROM)}, got '{init_from}'"
         )
     weights = parse_mix(mix, len(ppcg))
     params = {
@@ -146,10 +148,10 @@ def run_retrain(
         pseudo_sets = [load_labeled(p, **load) for p in ppcg]
         for path, data in zip(ppcg, pseudo_sets, strict=True):
             if len(data) == 0:
-                raise click.ClickException(f"{path}: PPCG frame set has no frames")
+                raise StageError(f"{path}: PPCG frame set has no frames")
         pseudo_sets, mix, skipped = drop_boxless_sets(ppcg, pseudo_sets, weights)
         for message in skipped:
-            click.secho(f"WARNING: {message}", fg="red", bold=True, err=True)
+            console.warn(message)
         pooled = len(weights) == 2 and pseudo_sets
         datasets = [source_data, *([pool(pseudo_sets, "ppcg")] if pooled else pseudo_sets)]
         for data in datasets:

@@ -16,11 +16,11 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import click
 import numpy as np
 
+from dali_cli.errors import StageError
 from dali_cli.manifest import BuildResult, StageOutcome, check_made_from, content_hash
-from stages.pretrain import attach_database, fit_and_save, run_training_stage
+from dali_cli.training_stage import attach_database, fit_and_save, run_training_stage
 
 
 def pseudo_label_scale(pseudo: Path) -> float:
@@ -29,13 +29,13 @@ def pseudo_label_scale(pseudo: Path) -> float:
 
     table = read_boxes(pseudo)
     if "scale" not in table.columns:
-        raise click.ClickException(
+        raise StageError(
             f"{pseudo}/boxes.parquet: no 'scale' column (not from `dali pseudo-label`); "
-            "give --scale S"
+            "give the scale"
         )
     scales = np.unique(np.asarray(table["scale"], np.float64))
     if len(scales) != 1 or not (np.isfinite(scales[0]) and scales[0] > 0):
-        raise click.ClickException(
+        raise StageError(
             f"{pseudo}/boxes.parquet: expected one positive 'scale' for every box, "
             f"got {scales[:5].tolist()}; give --scale S"
         )
@@ -94,7 +94,7 @@ def run_self_train(
         # frames from the target, boxes from the pseudo labels: the target's labels stay unread
         data = detector.load_labeled(target, config, boxes_dir=pseudo, sensors_path=sensors_path)
         if data.num_boxes == 0:
-            raise click.ClickException(f"{pseudo}: no pseudo boxes with points to train on")
+            raise StageError(f"{pseudo}: no pseudo boxes with points to train on")
         data = scale_about_ground(data, train_scale)
         attach_database(data, config, augment)
         augmentation = detector.Augmentation() if augment else detector.Augmentation.none()

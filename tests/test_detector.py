@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
+from toy_scenes import place_cars, scan, write_toy_dataset
 
 from dali_cli.artifacts import FrameSet
 from dali_cli.cli import main
@@ -34,7 +35,6 @@ from dali_cli.detector.targets import (
     peak_iou_loss,
     regression_to_boxes,
 )
-from dali_cli.detector.toy import place_cars, scan, write_toy_dataset
 from dali_cli.geometry import count_points_in_boxes, iou_3d, point_box_indices
 from dali_cli.sensors import get_profile
 
@@ -497,3 +497,29 @@ def test_checkpoint_without_refine_key_loads_as_one_stage(tmp_path):
     (tmp_path / "model.json").write_text(json.dumps(meta))
     loaded = Detector.load(tmp_path)
     assert loaded.config.refine is False and loaded.net.refiner is None
+
+
+def test_detector_scales_about_the_ground_as_geometry_does():
+    """One PTSN transform: the network input is geometry.scale_points_about_ground's cloud in the
+    ground frame, and the detector's de-scaling is geometry.descale_boxes_about_ground."""
+    from dali_cli import geometry
+    from dali_cli.detector.infer import ground_boxes_to_sensor, to_network_input
+
+    rng = np.random.default_rng(4)
+    points = rng.uniform(-40, 40, (500, 4)).astype(np.float32)
+    mount, scale = 1.73, 1.17
+    network, batch = to_network_input([points, points[:10]], mount, scale)
+    expected = geometry.sensor_to_ground(
+        geometry.scale_points_about_ground(points, scale, mount), mount
+    )
+    np.testing.assert_allclose(network.numpy()[:500], expected, rtol=1e-6, atol=1e-5)
+    assert network.dtype == torch.float32 and batch.tolist() == [0] * 500 + [1] * 10
+    boxes = np.c_[rng.uniform(-30, 30, (8, 3)), rng.uniform(1, 5, (8, 3)), rng.uniform(-3, 3, 8)]
+    ground = geometry.sensor_to_ground(
+        geometry.scale_boxes_about_ground(boxes, scale, mount), mount
+    )
+    np.testing.assert_allclose(ground_boxes_to_sensor(ground, mount, scale), boxes, atol=1e-9)
+    np.testing.assert_array_equal(
+        ground_boxes_to_sensor(ground, mount, scale),
+        geometry.descale_boxes_about_ground(geometry.ground_to_sensor(ground, mount), scale, mount),
+    )

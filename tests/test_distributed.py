@@ -12,12 +12,12 @@ import subprocess
 import sys
 from pathlib import Path
 
-import click
 import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
 from test_retrain import SMALL, TOY  # the tiny detector and toy frames of the training tests
+from toy_scenes import write_toy_dataset
 
 from dali_cli.cli import main
 from dali_cli.detector import (
@@ -31,10 +31,10 @@ from dali_cli.detector import (
 )
 from dali_cli.detector.distributed import World, join, launched, leave
 from dali_cli.detector.runtime import available_cores
-from dali_cli.detector.toy import write_toy_dataset
 from dali_cli.device import DeviceError, parse_device_spec, resolve_device
+from dali_cli.errors import ParameterError, StageError
 from dali_cli.sensors import get_profile
-from stages.pretrain import attach_database
+from dali_cli.training_stage import attach_database
 
 TORCHRUN = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"]
 DALI = str(Path(sys.executable).with_name("dali"))
@@ -59,7 +59,7 @@ def test_device_specs_resolve_and_fail_cleanly(no_cuda, monkeypatch):
         with pytest.raises(DeviceError, match="no CUDA GPU"):
             resolve_device(spec)
     for spec in ("gpu", "cuda:", "cuda:x", "cpu:0", ""):
-        with pytest.raises(click.BadParameter):
+        with pytest.raises(ParameterError):
             parse_device_spec(spec)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
@@ -88,9 +88,10 @@ def test_cuda_without_a_gpu_is_an_error_and_writes_nothing(no_cuda, toy_dir, tmp
 
 
 def test_threads_are_shared_by_the_local_ranks(monkeypatch):
+    from dali_cli import cores
     from dali_cli.detector import runtime
 
-    monkeypatch.setattr(runtime.os, "sched_getaffinity", lambda pid: set(range(8)), raising=False)
+    monkeypatch.setattr(cores.os, "sched_getaffinity", lambda pid: set(range(8)), raising=False)
     assert runtime.training_threads(None) == 8
     assert runtime.training_threads(None, local_processes=3) == 2
     assert runtime.training_threads(None, local_processes=16) == 1
@@ -98,7 +99,7 @@ def test_threads_are_shared_by_the_local_ranks(monkeypatch):
     assert launched({"WORLD_SIZE": "1"}) == World()
     world = launched({"WORLD_SIZE": "4", "RANK": "3", "LOCAL_RANK": "1", "LOCAL_WORLD_SIZE": "2"})
     assert (world.rank, world.size, world.local_rank, world.local_size) == (3, 4, 1, 2)
-    with pytest.raises(click.ClickException, match="torchrun"):
+    with pytest.raises(StageError, match="torchrun"):
         launched({"WORLD_SIZE": "2"})
 
 

@@ -519,7 +519,7 @@ def test_label_files_round_trip_and_evaluate_identically(tmp_path):
     np.testing.assert_allclose(
         gt_back.boxes[cars[order]][:, :6], gt.boxes[order][cars[order]][:, :6], atol=2e-6
     )
-    yaw_error = geometry.normalize_yaw(gt_back.boxes[:, 6] - gt.boxes[order][:, 6])
+    yaw_error = geometry.wrap_angle(gt_back.boxes[:, 6] - gt.boxes[order][:, 6])
     assert np.abs(yaw_error[cars[order]]).max() < 2e-6
     np.testing.assert_array_equal(
         pred_back["score"],
@@ -797,3 +797,58 @@ def test_cli_several_ious_sizes_and_saved_predictions(tmp_path, monkeypatch):
         main, [*args, "--iou", "0.7", "--iou", "0.7", "--out", str(tmp_path / "x" / "m.json")]
     )
     assert again.exit_code == 2 and not (tmp_path / "x").exists()
+
+
+def test_eval_directory_is_a_manifest_tracked_artifact(tmp_path):
+    """`dali eval --out DIR`: metrics.json + manifest.json under the stage contract; a rerun with
+    the same inputs is skipped, a KITTI metrics file added later does not make it stale, changed
+    inputs or parameters rerun it, and an older run's plain eval directory may be replaced."""
+    from dali_cli.manifest import read_manifest
+
+    cars = row_of_cars(20)
+    for name, rows, score in (("gt", cars, None), ("pred", cars[:15], np.linspace(0.9, 0.3, 15))):
+        (tmp_path / name).mkdir()
+        write_boxes(tmp_path / name, table(rows, score=score))
+    runner = CliRunner()
+    out = tmp_path / "run" / "eval"
+    args = [
+        "eval",
+        "--pred",
+        str(tmp_path / "pred"),
+        "--gt",
+        str(tmp_path / "gt"),
+        "--out",
+        str(out),
+    ]
+    first = runner.invoke(main, args)
+    assert first.exit_code == 0, first.output
+    manifest = read_manifest(out)
+    assert manifest["stage"] == "eval" and set(manifest["inputs"]) == {"pred", "gt"}
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["Car"]["bev"]["all"] == pytest.approx(100 * 14 / 40)
+    assert "AP_BEV" in first.output
+    (out / "metrics_kitti.json").write_text("{}")  # what `make kitti-protocol` adds beside it
+    again = runner.invoke(main, args)
+    assert again.exit_code == 0 and "up to date" in again.output and "AP_BEV" in again.output
+    changed = runner.invoke(main, [*args, "--iou", "0.5"])
+    assert changed.exit_code == 0 and "up to date" not in changed.output
+    assert json.loads((out / "metrics.json").read_text())["Car"]["iou"] == 0.5
+    assert not (out / "metrics_kitti.json").exists()  # rebuilt as a whole
+    write_boxes(tmp_path / "pred", table(cars[:10], score=np.linspace(0.9, 0.3, 10)))
+    rerun = runner.invoke(main, [*args, "--iou", "0.5"])
+    assert rerun.exit_code == 0 and "up to date" not in rerun.output
+    assert (
+        json.loads((out / "metrics.json").read_text())["Car"]["counts"] != metrics["Car"]["counts"]
+    )
+    # an evaluation directory of an older run (no manifest) is replaced; a user's is refused
+    legacy = tmp_path / "old" / "eval"
+    legacy.mkdir(parents=True)
+    (legacy / "metrics.json").write_text(json.dumps({"Car": {}, "sizes": {}}))
+    replaced = runner.invoke(main, [*args[:-1], str(legacy)])
+    assert replaced.exit_code == 0, replaced.output
+    assert read_manifest(legacy)["stage"] == "eval"
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep me")
+    refused = runner.invoke(main, [*args[:-1], str(mine)])
+    assert refused.exit_code == 1 and (mine / "notes.txt").read_text() == "keep me"

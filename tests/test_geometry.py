@@ -144,21 +144,21 @@ def test_iou_properties(box_a, delta, shape_b, turn, shift):
         moved = box.copy()
         rotation = g.rotation_z(turn)
         moved[:, :3] = moved[:, :3] @ rotation.T + np.array([shift[0], shift[1], 0.0])
-        moved[:, 6] = g.normalize_yaw(moved[:, 6] + turn)
+        moved[:, 6] = g.wrap_angle(moved[:, 6] + turn)
         return moved
 
     assert g.bev_iou_pairs(move(a), move(b))[0] == pytest.approx(iou_ab, abs=1e-9)
     assert g.iou_3d_pairs(move(a), move(b))[0] == pytest.approx(iou3, abs=1e-9)
 
 
-def test_normalize_yaw_range_and_equivalence():
+def test_wrap_angle_range_and_equivalence():
     yaw = np.array([-np.pi, np.pi, 3 * np.pi, -1e-20, 7.0, -7.0, 0.0, np.nextafter(np.pi, 0)])
-    wrapped = g.normalize_yaw(yaw)
+    wrapped = g.wrap_angle(yaw)
     assert ((wrapped >= -np.pi) & (wrapped < np.pi)).all()
     np.testing.assert_allclose(np.cos(wrapped), np.cos(yaw), atol=1e-12)
     np.testing.assert_allclose(np.sin(wrapped), np.sin(yaw), atol=1e-12)
-    assert g.normalize_yaw(np.pi) == -np.pi
-    assert isinstance(g.normalize_yaw(4.0), float)
+    assert g.wrap_angle(np.pi) == -np.pi
+    assert isinstance(g.wrap_angle(4.0), float)
 
 
 def test_rotation_and_corners():
@@ -179,8 +179,17 @@ def test_rotation_and_corners():
     )
     assert area == pytest.approx(8.0)
     np.testing.assert_allclose(bev[0], [1 - 1, 2 + 2], atol=1e-12)
-    local = g.points_to_box_frame(corners[0], box[0])
-    np.testing.assert_allclose(np.abs(local), np.tile([2.0, 1.0, 0.5], (8, 1)), atol=1e-12)
+    # corners lie on the boundary (inside, boundaries included); pushed outwards they leave it
+    assert g.inside_boxes(corners[0], box[0], margin_m=1e-9).all()
+    outward = box[0, :3] + (corners[0] - box[0, :3]) * 1.01
+    assert not g.inside_boxes(outward, box[0]).any()
+    # float32 frames are tested in float32, with the same answer away from the boundary
+    assert (g.inside_boxes(corners[0].astype(np.float32), box[0], 1e-3)).all()
+
+
+def to_box_frame(points: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """Reference: points `(M, >=3)` in the box's frame `(M, 3)` by an explicit rotation matrix."""
+    return (points[:, :3] - box[:3]) @ g.rotation_z(box[6])
 
 
 def test_points_in_boxes_grid_matches_brute_force():
@@ -191,7 +200,7 @@ def test_points_in_boxes_grid_matches_brute_force():
         rng.uniform(-25, 25, (20_000, 2)), rng.uniform(-5, 5, 20_000), rng.uniform(0, 1, 20_000)
     ]
     for margin in (0.0, 0.3):
-        local = np.stack([g.points_to_box_frame(points, box) for box in boxes], axis=1)  # (M, N, 3)
+        local = np.stack([to_box_frame(points, box) for box in boxes], axis=1)  # (M, N, 3)
         inside = (np.abs(local) <= boxes[None, :, 3:6] / 2 + margin).all(axis=2)  # (M, N)
         expected = np.where(inside.any(axis=1), inside.argmax(axis=1), -1)
         indices = g.point_box_indices(points, boxes, margin_m=margin)

@@ -4,7 +4,7 @@ calib files missing a matrix). Each must exit non-zero with a clean message (no 
 names the file and the frame, row, line or field, and write nothing: no --out, no `.tmp-*`, no
 file anywhere else (issue 17, issue 22 items 4, 5, 7, 8, 9).
 
-Inputs are tiny: two toy frames (dali_cli.detector.toy), a detector trained for one epoch on
+Inputs are tiny: two toy frames (tests/toy_scenes.py), a detector trained for one epoch on
 them, a two-car procedural library, and copies of the real KITTI / nuScenes test fixtures.
 """
 
@@ -23,10 +23,10 @@ import zarr
 from click.testing import CliRunner
 from test_retrain import SMALL as SMALL_DETECTOR
 from test_retrain import TOY as RETRAIN_TOY
+from toy_scenes import write_toy_dataset
 
 from dali_cli.artifacts import read_boxes, write_boxes
 from dali_cli.cli import main
-from dali_cli.detector.toy import write_toy_dataset
 from dali_cli.sensors import get_profile
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures" / "real"

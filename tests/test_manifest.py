@@ -9,6 +9,7 @@ import pytest
 
 from dali_cli import __version__
 from dali_cli.artifacts import BoxTable, read_boxes, write_boxes
+from dali_cli.errors import StageError
 from dali_cli.manifest import (
     BuildResult,
     check_made_from,
@@ -155,9 +156,8 @@ def test_output_without_manifest_is_refused_not_wiped(tmp_path):
 
 
 def test_missing_input_is_an_error(tmp_path):
-    import click
 
-    with pytest.raises(click.ClickException, match="input not found"):
+    with pytest.raises(StageError, match="input not found"):
         run_stage(
             "demo",
             tmp_path / "out",
@@ -183,13 +183,12 @@ def test_hash_tree_sees_renames_and_content(tmp_path):
 
 
 def test_check_made_from_refuses_an_artifact_of_another_input(tmp_path):
-    import click
 
     target, other = make_input(tmp_path / "target", seed=1), make_input(tmp_path / "other", seed=2)
     out = tmp_path / "pseudo"
     run_stage("demo", out, {"target": target}, {}, CountingBuild(), echo=no_echo)
     check_made_from(out, "target", target)  # the right one passes
-    with pytest.raises(click.ClickException, match="made from target .*target, not from .*other"):
+    with pytest.raises(StageError, match="made from target .*target, not from .*other"):
         check_made_from(out, "target", other)
     check_made_from(out, "library", other)  # a role the manifest does not record: unchecked
     check_made_from(target, "target", other)  # no manifest (hand-made table): unchecked

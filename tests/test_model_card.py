@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
+from toy_scenes import write_toy_dataset
 
 from dali_cli.artifacts import ArtifactError, read_boxes
 from dali_cli.cli import main
 from dali_cli.detector import Detector
-from dali_cli.detector.toy import write_toy_dataset
 from dali_cli.model_card import ModelCard, read_card
 from dali_cli.sensors import get_profile
-from stages.ptsn_sweep import read_model_card, resolve_expected_size
+from stages.ptsn_sweep import read_model_card, resolve_e_est
 from tests.test_retrain import SMALL, TOY
 
 ROS_RANGE = (0.7, 0.9)
@@ -57,7 +57,7 @@ def test_ros_expected_size_uses_the_real_checkpoints_card(ros_world):
         card = read_model_card(ros_world / model)
         assert card.ros_range == ROS_RANGE and card.source_sensor == "waymo"
         np.testing.assert_allclose(card.source_mean_lwh_m, source_mean, rtol=1e-6)
-        lwh, record = resolve_expected_size(
+        lwh, record = resolve_e_est(
             "ros",
             target_profile="kitti",
             card=card,

@@ -493,7 +493,7 @@ def test_cli_errors_name_the_file_frame_and_field(dataset, tmp_path):
     assert result.exit_code == 1 and "no point models" in result.output
     assert not (tmp_path / "o").exists()
     with pytest.raises(click.UsageError):
-        from stages.ppcg_rc import parse_range
+        from dali_cli.commands.ppcg_cf import parse_range
 
         parse_range("20-50")
 

@@ -57,14 +57,14 @@ def make_frames(count, seed=0, empty=()):
     return frames
 
 
-def run_search(detector, frames, target_lwh, **options):
+def run_search(detector, frames, e_est, **options):
     cache = ptsn.DetectionCache(detector, frames, score_min=0.3)
     indices = np.arange(len(frames))
     subsample = ptsn.subsample_for_bracket(indices, 0.25, 4, seed=0)
     result = ptsn.find_scale(
         cache,
         options.pop("scale_range", ptsn.ScaleRange(0.8, 1.4, 0.01)),
-        target_lwh,
+        e_est,
         indices,
         subsample=subsample,
         **options,
@@ -449,7 +449,8 @@ def test_crop_for_scales_keeps_every_point_some_scale_brings_into_range():
     rng = np.random.default_rng(2)
     points = rng.uniform(-120, 120, size=(20000, 4)).astype(np.float32)
     point_range = (0.0, -40.0, 70.4, 40.0)
-    kept = ptsn.crop_for_scales(points, point_range, 0.8, 1.4)
+    fixed_grid = lambda s: tuple(bound / s for bound in point_range)  # noqa: E731
+    kept = ptsn.crop_for_scales(points, fixed_grid, 0.8, 1.4)
     assert 0 < len(kept) < len(points)
     scales = np.linspace(0.8, 1.4, 61)
     xy = points[:, None, :2] * scales[None, :, None]  # (n, S, 2)
@@ -457,3 +458,26 @@ def test_crop_for_scales_keeps_every_point_some_scale_brings_into_range():
     assert reachable.sum() <= len(kept)
     kept_set = {tuple(p) for p in kept.tolist()}
     assert all(tuple(p) in kept_set for p in points[reachable].tolist())
+
+
+def test_crop_follows_the_detectors_visible_range_above_scale_one():
+    """For s > 1 the detector grows its grid by s (inference_config), so it still sees out to
+    the trained range; a sweep above 1 must not crop away what the detector sees at its low end
+    (a fixed-grid crop kept only x <= 70.4 / 1.1)."""
+    from dali_cli.detector.config import DetectorConfig
+    from dali_cli.detector.infer import inference_config, visible_range
+
+    config = DetectorConfig()
+    (x0, x1), (y0, y1) = config.x_range_m, config.y_range_m
+    for scale in (0.8, 1.0, 1.1, 1.4):
+        grid = inference_config(config, scale)
+        bx0, by0, bx1, by1 = visible_range(config, scale)
+        # a point at the visible bound, scaled by s, lands on the grid's bound
+        assert np.isclose(bx1 * scale, grid.x_range_m[1]) and np.isclose(
+            by0 * scale, grid.y_range_m[0]
+        )
+    assert visible_range(config, 1.1) == pytest.approx((x0, y0, x1, y1))
+    points = np.array([[x1 - 1.0, 0.0, 0.0, 0.0], [x1 / 0.8 - 1.0, 0.0, 0.0, 0.0]], np.float32)
+    kept = ptsn.crop_for_scales(points, lambda s: visible_range(config, s), 1.1, 1.4)
+    assert len(kept) == 1 and kept[0, 0] == points[0, 0]  # seen at s = 1.1; the other at no s
+    assert len(ptsn.crop_for_scales(points, lambda s: visible_range(config, s), 0.8, 1.4)) == 2

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from toy_scenes import place_cars, scan
 
 from dali_cli.detector import DetectorConfig
 from dali_cli.detector.refine import (
@@ -16,7 +17,6 @@ from dali_cli.detector.refine import (
     refine_boxes,
     refine_loss,
 )
-from dali_cli.detector.toy import place_cars, scan
 from dali_cli.geometry import count_points_in_boxes, iou_3d_pairs
 from dali_cli.sensors import get_profile
 

@@ -10,6 +10,7 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 from click.testing import CliRunner
+from toy_scenes import write_toy_dataset
 
 from dali_cli.cli import main
 from dali_cli.detector import (
@@ -20,7 +21,6 @@ from dali_cli.detector import (
     load_labeled,
     train,
 )
-from dali_cli.detector.toy import write_toy_dataset
 from dali_cli.detector.train import batch_indices, interleave
 from dali_cli.manifest import read_manifest
 from dali_cli.sensors import get_profile

@@ -10,10 +10,11 @@ import pytest
 import torch
 from click.testing import CliRunner
 from test_retrain import SMALL  # the tiny detector config of the training tests
+from toy_scenes import write_toy_dataset
 
+from dali_cli import cores
 from dali_cli.cli import main
 from dali_cli.detector import runtime
-from dali_cli.detector.toy import write_toy_dataset
 from dali_cli.manifest import read_manifest
 from dali_cli.sensors import get_profile
 
@@ -44,8 +45,8 @@ def test_cpu_model_is_read_from_cpuinfo(tmp_path):
 
 
 def test_training_threads_default_to_every_core_whatever_the_load(monkeypatch):
-    monkeypatch.setattr(runtime.os, "sched_getaffinity", lambda pid: {0, 1, 2}, raising=False)
-    monkeypatch.setattr(runtime.os, "getloadavg", lambda: (7.5, 7.5, 7.5))  # a busy make chain
+    monkeypatch.setattr(cores.os, "sched_getaffinity", lambda pid: {0, 1, 2}, raising=False)
+    monkeypatch.setattr(cores.os, "getloadavg", lambda: (7.5, 7.5, 7.5))  # a busy make chain
     assert runtime.available_cores() == 3
     assert runtime.training_threads(None) == 3
     assert runtime.training_threads(1) == 1
@@ -64,8 +65,8 @@ def pretrain(source, out, *extra):
 def test_pretrain_uses_every_core_and_records_the_machine(
     source, tmp_path, monkeypatch, restore_threads
 ):
-    monkeypatch.setattr(runtime.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
-    monkeypatch.setattr(runtime.os, "getloadavg", lambda: (1.9, 1.0, 0.5))  # the stage before
+    monkeypatch.setattr(cores.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    monkeypatch.setattr(cores.os, "getloadavg", lambda: (1.9, 1.0, 0.5))  # the stage before
     manifest, meta = pretrain(source, tmp_path / "all")
     record = manifest["runtime"]
     assert record["threads"] == 2 and torch.get_num_threads() == 2

@@ -23,8 +23,8 @@ def test_read_scale_refuses_what_is_not_a_positive_finite_number(tmp_path, bad):
 def test_scale_round_trips_exactly_from_a_folder_or_the_file(tmp_path):
     found = 1.1994930481237717  # a secant step's value: more digits than any rounding keeps
     write_scale(tmp_path, {"scale": found, "E_est": [3.89, 1.62, 1.53]})
-    assert read_scale(tmp_path)[0] == found
-    assert read_scale(tmp_path / "scale.json")[0] == found
+    assert read_scale(tmp_path).scale == found
+    assert read_scale(tmp_path / "scale.json").scale == found
 
 
 def test_eval_refuses_an_infinite_scale_it_used_to_accept(tmp_path):
@@ -38,3 +38,37 @@ def test_eval_refuses_an_infinite_scale_it_used_to_accept(tmp_path):
          "--scale-from", str(tmp_path / "ptsn")],
     )  # fmt: skip
     assert result.exit_code == 1 and "scale.json: field 'scale'" in result.output
+
+
+def test_scale_result_is_typed_and_pseudo_label_scales_about_its_pivot(tmp_path):
+    """One scale contract: E_est, E_pred and the pivot (mount height) come typed from scale.json,
+    and pseudo-label scales about the sweep's pivot, not a height it resolves another way."""
+    import numpy as np
+
+    from dali_cli.artifacts import write_frameset
+    from stages.pseudo_label import pseudo_label
+
+    document = {"scale": 1.25, "E_est": [3.9, 1.6, 1.5], "E_pred_at_scale": [3.8, 1.7, None],
+                "mount_height_m": 1.9}  # fmt: skip
+    (tmp_path / "ptsn").mkdir()
+    write_scale(tmp_path / "ptsn", document)
+    result = read_scale(tmp_path / "ptsn")
+    assert result.scale == 1.25 and result.e_est == (3.9, 1.6, 1.5)
+    assert result.e_pred == (3.8, 1.7, None) and result.pivot_m == 1.9
+    assert result.record["mount_height_m"] == 1.9
+    target = tmp_path / "target"
+    target.mkdir()
+    write_frameset(target, [("000", np.zeros((5, 4), np.float32))], sensor="kitti")
+    (tmp_path / "model").mkdir()
+    seen = []
+
+    class Recorder:
+        def predict(self, points_list, scale=1.0, mount_height_m=None):
+            seen.append((scale, mount_height_m))
+            return [(np.zeros((0, 7)), np.zeros(0, np.float32)) for _ in points_list]
+
+    pseudo_label(
+        tmp_path / "model", target, tmp_path / "pseudo", scale_from=tmp_path / "ptsn",
+        progress=False, detector_loader=lambda _: Recorder(),
+    )  # fmt: skip
+    assert seen == [(1.25, 1.9)]  # the kitti profile's 1.73 m would scale about another point

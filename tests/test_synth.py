@@ -8,12 +8,15 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from dali_cli import synth
+from dali_cli import geometry, synth
 from dali_cli.artifacts import FrameSet, read_boxes
 from dali_cli.camera import kitti_label_columns
 from dali_cli.cli import main
 from dali_cli.raycast import cast_into_box
 from dali_cli.sensors import get_profile
+from dali_cli.world import cars as world_cars
+from dali_cli.world import scan as world_scan
+from dali_cli.world import scene as world_scene
 
 
 def _local(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
@@ -49,10 +52,10 @@ def test_car_points_lie_in_their_label_boxes():
         distance = np.hypot(f.boxes[:, 0], f.boxes[:, 1])
         assert ((distance >= 3.0) & (distance <= 80.0)).all()
         assert ((f.boxes[:, 6] >= -np.pi) & (f.boxes[:, 6] < np.pi)).all()
-        corners = synth.bev_corners(f.boxes)
+        corners = geometry.bev_corners(f.boxes)
         for k in range(len(corners)):
             others = np.delete(corners, k, axis=0)
-            assert not synth.footprints_overlap(corners[k], others).any()
+            assert not geometry.footprints_overlap(corners[k], others).any()
         assert np.isfinite(f.points).all() and f.points.dtype == np.float32
         assert (f.points[:, 3] >= 0).all() and (f.points[:, 3] <= 1).all()
         assert ((f.occlusion >= 0) & (f.occlusion <= 1)).all()
@@ -66,17 +69,17 @@ def test_ground_is_at_minus_mount_height_under_the_sensor(name):
     near = np.hypot(ground[:, 0], ground[:, 1]) < 10.0
     assert near.sum() > 100
     assert abs(np.median(ground[near, 2]) + profile.mount_height_m) < 0.03
-    scene = synth.generate_scene(synth.frame_rng(2, 1), profile, profile)
+    scene = world_scene.generate_scene(synth.frame_rng(2, 1), profile, profile)
     assert scene.ground.height(np.zeros(2)) == pytest.approx(-profile.mount_height_m, abs=1e-12)
     # cars stand on the ground: box bottom = ground height at the box center
     bottoms = scene.cars[:, 2] - scene.cars[:, 5] / 2
     np.testing.assert_allclose(bottoms, scene.ground.height(scene.cars[:, :2]), atol=1e-9)
 
 
-def _scene_with_cars(boxes: np.ndarray, mount: float = 1.73) -> synth.SynthScene:
-    ground = synth.Ground(mount, np.zeros(2), np.zeros((1, 2)), np.zeros(1), np.zeros(1))
-    far_wall = synth._box_mesh(np.array([0.0, 300.0, 0.0, 1.0, 1.0, 1.0, 0.0]))
-    return synth.SynthScene(
+def _scene_with_cars(boxes: np.ndarray, mount: float = 1.73) -> world_scene.SynthScene:
+    ground = world_scene.Ground(mount, np.zeros(2), np.zeros((1, 2)), np.zeros(1), np.zeros(1))
+    far_wall = world_scene._box_mesh(np.array([0.0, 300.0, 0.0, 1.0, 1.0, 1.0, 0.0]))
+    return world_scene.SynthScene(
         ground=ground,
         cars=np.asarray(boxes, np.float64),
         car_models=np.arange(len(boxes)),
@@ -93,8 +96,8 @@ def test_cars_occlude_each_other_and_the_estimate_says_so():
     kitti = dataclasses.replace(get_profile("kitti"), range_noise_sigma_m=0.0, ray_dropout=0.0)
     front = [10.0, 0.0, -1.73 + 0.75, 4.0, 1.8, 1.5, 0.0]
     behind = [20.0, 0.0, -1.73 + 0.75, 4.0, 1.8, 1.5, 0.0]
-    alone = synth.scan_scene(_scene_with_cars([behind]), kitti, np.random.default_rng(0))
-    both = synth.scan_scene(_scene_with_cars([front, behind]), kitti, np.random.default_rng(0))
+    alone = world_scan.scan_scene(_scene_with_cars([behind]), kitti, np.random.default_rng(0))
+    both = world_scan.scan_scene(_scene_with_cars([front, behind]), kitti, np.random.default_rng(0))
     behind_alone = int((alone.owner == 0).sum())
     behind_hidden = int((both.owner == 1).sum())
     assert behind_alone > 200 and behind_hidden < 0.3 * behind_alone
@@ -111,9 +114,9 @@ def test_ray_windows_hold_every_ray_that_can_hit_the_car(field_of_view):
     profile = dataclasses.replace(
         get_profile("nuscenes"), azimuth_min_deg=field_of_view[0], azimuth_max_deg=field_of_view[1]
     )
-    pattern = synth._pattern(profile)
+    pattern = world_scan._pattern(profile)
     rng = np.random.default_rng(3)
-    model = synth.pool_car(0)
+    model = world_cars.pool_car(0)
     for _ in range(12):
         distance, azimuth = rng.uniform(3.5, 40), rng.uniform(-np.pi, np.pi)
         box = np.array(
@@ -127,7 +130,7 @@ def test_ray_windows_hold_every_ray_that_can_hit_the_car(field_of_view):
                 rng.uniform(-np.pi, np.pi),
             ]
         )
-        window = synth.box_ray_window(pattern, box)
+        window = world_scan.box_ray_window(pattern, box)
         hits = cast_into_box(model.bvh(), np.zeros(3), pattern.directions, box)
         assert np.isin(np.flatnonzero(hits.hit), window).all()
         assert len(window) < 0.2 * len(pattern.directions)
@@ -138,11 +141,11 @@ def test_footprint_overlap_matches_polygon_intersection():
     rng = np.random.default_rng(8)
     boxes = np.c_[rng.uniform(-6, 6, (200, 2)), np.zeros(200), rng.uniform(0.3, 5, (200, 2)),
                   np.ones(200), rng.uniform(-np.pi, np.pi, 200)]  # fmt: skip
-    corners = synth.bev_corners(boxes)
+    corners = geometry.bev_corners(boxes)
     polygons = [shapely.Polygon(c) for c in corners]
     for k in range(0, 200, 10):
         expected = np.array([polygons[k].intersection(p).area > 1e-9 for p in polygons])
-        np.testing.assert_array_equal(synth.footprints_overlap(corners[k], corners), expected)
+        np.testing.assert_array_equal(geometry.footprints_overlap(corners[k], corners), expected)
 
 
 def test_frames_are_deterministic_per_seed_and_index():
@@ -227,14 +230,16 @@ def test_domain_gap_car_sizes_and_sensor_density():
     nuscenes, kitti, waymo = get_profile("nuscenes"), get_profile("kitti"), get_profile("waymo")
     sizes = {}
     for cars in (kitti, waymo):
-        scenes = [synth.generate_scene(synth.frame_rng(1, k), nuscenes, cars) for k in range(12)]
+        scenes = [
+            world_scene.generate_scene(synth.frame_rng(1, k), nuscenes, cars) for k in range(12)
+        ]
         sizes[cars.name] = np.concatenate([s.cars[:, 3:6] for s in scenes]).mean(axis=0)
     expected_gap = np.subtract(waymo.car_mean_lwh_m, kitti.car_mean_lwh_m)  # 0.77, 0.46, 0.20
     np.testing.assert_allclose(sizes["waymo"] - sizes["kitti"], expected_gap, atol=0.12)
     # the same scene scanned by a 64-beam and a 32-beam sensor: denser points per car
-    scene = synth.generate_scene(synth.frame_rng(1, 0), kitti, kitti)
-    dense = synth.scan_scene(scene, kitti, np.random.default_rng(0))
-    sparse = synth.scan_scene(
+    scene = world_scene.generate_scene(synth.frame_rng(1, 0), kitti, kitti)
+    dense = world_scan.scan_scene(scene, kitti, np.random.default_rng(0))
+    sparse = world_scan.scan_scene(
         scene,
         dataclasses.replace(nuscenes, mount_height_m=kitti.mount_height_m),
         np.random.default_rng(0),

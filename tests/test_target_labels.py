@@ -15,10 +15,10 @@ import pyarrow.parquet as pq
 import pytest
 from click.testing import CliRunner
 from test_retrain import SMALL, TOY
+from toy_scenes import write_toy_dataset
 
 from dali_cli.artifacts import FrameSet, read_boxes, write_boxes
 from dali_cli.cli import main
-from dali_cli.detector.toy import write_toy_dataset
 from dali_cli.geometry import descale_boxes_about_ground, scale_boxes_about_ground
 from dali_cli.library import procedural_car, write_library
 from dali_cli.manifest import read_manifest

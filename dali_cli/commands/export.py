@@ -27,19 +27,6 @@ def _parse_image_size(_ctx, _param, value: str | None) -> tuple[int, int] | None
     return width, height
 
 
-def _frame_ids(table, frames_dir: Path | None) -> list[str]:
-    """Frames of the FrameSet (when given), then any other frame of the box table, in order."""
-    from dali_cli.artifacts import FrameSet
-
-    ids = list(FrameSet(frames_dir).frame_ids) if frames_dir is not None else []
-    known = set(ids)
-    for frame_id in dict.fromkeys(table.frame_id.astype(str).tolist()):
-        if frame_id not in known:
-            ids.append(frame_id)
-            known.add(frame_id)
-    return ids
-
-
 @command.command(name="kitti", short_help="KITTI label_2 files (LiDAR -> camera through calib).")
 @click.argument("boxes_dir", type=click.Path(exists=True))
 @click.option(
@@ -111,47 +98,13 @@ def kitti_command(
     DontCare rows included, unless --project-bbox. Score the files with the KITTI devkit or OpenPCDet's
     kitti_eval, or re-import them with `dali import kitti ROOT --label-dir OUT/data`.
     """
-    from dali_cli.artifacts import FRAMES_NAME, read_boxes
-    from dali_cli.export import build_export_kitti
-    from dali_cli.importers.kitti import find_calib_dir
-    from dali_cli.manifest import run_stage
+    from stages.export import export_kitti
 
-    table = read_boxes(boxes_dir)
-    if score_min is not None:
-        table = table.select(table["score"] >= score_min)
-    if frames_dir is None and (Path(boxes_dir) / FRAMES_NAME).is_dir():
-        frames_dir = Path(boxes_dir)
-    frame_ids = _frame_ids(table, Path(frames_dir) if frames_dir else None)
-    calib_dir = find_calib_dir(calib_root, split)
-    image_dir = calib_dir.parent / "image_2"
-    params = {
-        "split": split,
-        "image_size": image_size,
-        "score_min": score_min,
-        "keep_outside": keep_outside,
-        "project_bbox": project_bbox,
-        "score": not no_score,
-        "frames": len(frame_ids),
-    }
-    outcome = run_stage(
-        "export-kitti",
-        out,
-        {"boxes": boxes_dir, "calib": calib_dir, "frames": frames_dir},
-        params,
-        lambda tmp: build_export_kitti(
-            tmp,
-            table,
-            frame_ids,
-            calib_dir,
-            image_dir if image_dir.is_dir() else None,
-            image_size,
-            keep_outside,
-            reuse_columns=not project_bbox,
-            with_score=not no_score,
-        ),
-        force=force,
-        dry_run=dry_run,
-    )
+    outcome = export_kitti(
+        boxes_dir, calib_root, out, split=split, frames_dir=frames_dir, image_size=image_size,
+        score_min=score_min, keep_outside=keep_outside, project_bbox=project_bbox,
+        with_score=not no_score, force=force, dry_run=dry_run,
+    )  # fmt: skip
     if outcome.status == "ran":
         counts = outcome.manifest["outputs"]["counts"]
         click.echo(
@@ -180,21 +133,14 @@ def kitti_command(
 def openpcdet_command(data_dir, boxes_dir, split, score_min, out, force, dry_run):
     """Write the FrameSet DATA_DIR in OpenPCDet's custom format: OUT/points/<frame>.npy
     ((n, 4) float32) and, with boxes, OUT/labels/<frame>.txt (x y z dx dy dz heading class)."""
-    from dali_cli.artifacts import BOXES_NAME, FrameSet, read_boxes
-    from dali_cli.importers.openpcdet import write_dataset
-    from dali_cli.manifest import run_stage
+    from stages.export import export_openpcdet
 
-    frames = FrameSet(data_dir)
-    if boxes_dir is None and (Path(data_dir) / BOXES_NAME).is_file():
-        boxes_dir = data_dir
-    table = read_boxes(boxes_dir) if boxes_dir is not None else None
-    params = {"split": split, "score_min": score_min}
-    run_stage(
-        "export-openpcdet",
+    export_openpcdet(
+        data_dir,
         out,
-        {"frames": data_dir, "boxes": boxes_dir},
-        params,
-        lambda tmp: write_dataset(tmp, frames.iter_frames(), table, split, score_min),
+        boxes_dir=boxes_dir,
+        split=split,
+        score_min=score_min,
         force=force,
         dry_run=dry_run,
     )

@@ -19,12 +19,6 @@ def command() -> None:
     """
 
 
-def _check_sensor(name: str, sensors_path: str | None) -> None:
-    from dali_cli.sensors import get_profile
-
-    get_profile(name, sensors_path)
-
-
 def _summary(outcome) -> None:
     if outcome.manifest and outcome.status == "ran":
         counts = outcome.manifest["outputs"]["counts"]
@@ -80,27 +74,12 @@ def kitti_command(
     and the in-box point count. Frames without a label file are allowed (an unlabeled target);
     a frame with labels needs its calib file.
     """
-    from dali_cli.importers.common import read_id_list
-    from dali_cli.importers.kitti import KittiLayout, build_import
-    from dali_cli.manifest import run_stage
+    from stages.import_kitti import import_kitti
 
-    _check_sensor(sensor, sensors_path)
-    layout = KittiLayout.of(root, split, label_dir)
-    frame_ids = layout.frame_ids(read_id_list(ids_path) if ids_path else None)
-    inputs = {"velodyne": layout.velodyne_dir, "ids": ids_path}
-    for name, path in (("labels", layout.label_dir), ("calib", layout.calib_dir)):
-        if path.is_dir():
-            inputs[name] = path
-    params = {"split": split, "crop_fov": crop_fov, "sensor": sensor, "frames": len(frame_ids)}
-    outcome = run_stage(
-        "import-kitti",
-        out,
-        inputs,
-        params,
-        lambda tmp: build_import(tmp, layout, frame_ids, crop_fov=crop_fov, sensor=sensor),
-        force=force,
-        dry_run=dry_run,
-    )
+    outcome = import_kitti(
+        root, out, split=split, ids_path=ids_path, label_dir=label_dir, crop_fov=crop_fov,
+        sensor=sensor, sensors_path=sensors_path, force=force, dry_run=dry_run,
+    )  # fmt: skip
     _summary(outcome)
 
 
@@ -174,39 +153,13 @@ def nuscenes_command(
     Writes OUT/frames.zarr and OUT/boxes.parquet (num_points = in-box point count; the dataset's
     num_lidar_pts kept as a column).
     """
-    from dali_cli.importers import nuscenes
-    from dali_cli.manifest import run_stage
+    from stages.import_nuscenes import import_nuscenes
 
-    _check_sensor(sensor, sensors_path)
-    categories = tuple(car_categories) or nuscenes.DEFAULT_CAR_CATEGORIES
-    if boxes_csv:
-        if scenes:
-            raise click.UsageError("--scenes needs the JSON tables, not --boxes-csv")
-        source = nuscenes.CsvSource.of(path, boxes_csv)
-        inputs = {"points": path, "boxes_csv": boxes_csv}
-    else:
-        source = nuscenes.JsonSource.of(path, version, scenes.split(",") if scenes else None)
-        inputs = {"tables": source.table_dir, "points": source.lidar_dir()}
-    samples = source.samples()[:max_frames] if max_frames else source.samples()
-    params = {
-        "version": None if boxes_csv else version,
-        "car_categories": list(categories),
-        "scenes": scenes,
-        "max_frames": max_frames,
-        "x_forward": not lidar_frame,
-        "sensor": sensor,
-    }
-    outcome = run_stage(
-        "import-nuscenes",
-        out,
-        inputs,
-        params,
-        lambda tmp: nuscenes.build_import(
-            tmp, source, samples, categories, x_forward=not lidar_frame, sensor=sensor
-        ),
-        force=force,
-        dry_run=dry_run,
-    )
+    outcome = import_nuscenes(
+        path, out, version=version, boxes_csv=boxes_csv, scenes=scenes,
+        car_categories=tuple(car_categories), max_frames=max_frames, lidar_frame=lidar_frame,
+        sensor=sensor, sensors_path=sensors_path, force=force, dry_run=dry_run,
+    )  # fmt: skip
     _summary(outcome)
 
 
@@ -246,32 +199,12 @@ def openpcdet_command(
     centre, dx along the heading). A frame without a label file has no labels. Writes
     OUT/frames.zarr and OUT/boxes.parquet.
     """
-    from dali_cli.importers import openpcdet
-    from dali_cli.manifest import run_stage
+    from stages.import_openpcdet import import_openpcdet
 
-    _check_sensor(sensor, sensors_path)
-    classes = tuple(car_classes) or openpcdet.DEFAULT_CAR_CLASSES
-    frame_ids = openpcdet.frame_ids(root, split)
-    root = Path(root)
-    inputs = {"points": root / "points"}
-    if (root / "labels").is_dir():
-        inputs["labels"] = root / "labels"
-    params = {
-        "split": split,
-        "car_classes": list(classes),
-        "intensity_max": intensity_max,
-        "sensor": sensor,
-        "frames": len(frame_ids),
-    }
-    outcome = run_stage(
-        "import-openpcdet",
-        out,
-        inputs,
-        params,
-        lambda tmp: openpcdet.build_import(tmp, root, frame_ids, classes, intensity_max, sensor),
-        force=force,
-        dry_run=dry_run,
-    )
+    outcome = import_openpcdet(
+        root, out, sensor=sensor, split=split, car_classes=tuple(car_classes),
+        intensity_max=intensity_max, sensors_path=sensors_path, force=force, dry_run=dry_run,
+    )  # fmt: skip
     _summary(outcome)
 
 
@@ -328,35 +261,10 @@ def waymo_command(
     The manifest records per-segment counts and the TOP calibration (beam elevations, mount
     height) for a sensor profile.
     """
-    from dali_cli.importers.waymo import WaymoFormatError, WaymoSource, build_import
-    from dali_cli.manifest import run_stage
+    from stages.import_waymo import import_waymo
 
-    _check_sensor(sensor, sensors_path)
-    folder = root / split if split else root
-    if not folder.is_dir():
-        raise click.BadParameter(f"{folder}: no such folder", param_hint="--split")
-    try:
-        source = WaymoSource(folder, fmt, segments.split(",") if segments else None)
-    except WaymoFormatError as error:
-        raise click.ClickException(str(error)) from None
-    params = {"format": source.format, "split": split, "every": every, "lidars": lidars,
-              "returns": returns, "segments": source.segments, "sensor": sensor}  # fmt: skip
-
-    def build(tmp):
-        try:
-            return build_import(
-                tmp, source, returns=returns, lidars=lidars, every=every, sensor=sensor
-            )
-        except WaymoFormatError as error:
-            raise click.ClickException(str(error)) from None
-
-    outcome = run_stage(
-        "import-waymo",
-        out,
-        {"segments": source.input_paths()},
-        params,
-        build,
-        force=force,
-        dry_run=dry_run,
-    )
+    outcome = import_waymo(
+        root, out, fmt=fmt, split=split, every=every, lidars=lidars, returns=returns,
+        segments=segments, sensor=sensor, sensors_path=sensors_path, force=force, dry_run=dry_run,
+    )  # fmt: skip
     _summary(outcome)

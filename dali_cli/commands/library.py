@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 
 from dali_cli.commands.common import stage_options
@@ -116,88 +114,23 @@ def build_command(
     --up are applied (probably other axes): the error names the file and the --forward/--up that
     would fix it. --skip-bad skips such files; --force keeps them with a warning in the manifest.
     """
-    from dali_cli.library import (
-        LibraryError,
-        axis_rotation,
-        load_cad_directory,
-        point_models_from_frameset,
-        procedural_library,
-        proportions_problem,
-        write_library,
-    )
-    from dali_cli.manifest import BuildResult, run_stage
+    from stages.library_build import library_build
 
-    if cad_dir is None and procedural_count == 0 and points_dir is None:
-        raise click.UsageError("give at least one of --cad DIR, --procedural N, --points DIR")
-    if cad_dir is not None and not Path(cad_dir).is_dir():
-        raise click.UsageError(f"--cad: {cad_dir}: directory not found")
-    if cad_dir is not None:
-        try:
-            axis_rotation(up, forward)
-        except LibraryError as error:
-            raise click.UsageError(error.message) from None
-
-    params = {
-        "cad": cad_dir is not None,
-        "up": up,
-        "forward": forward,
-        "length_m": length_range,
-        "skip_bad": skip_bad,
-        "procedural": procedural_count,
-        "seed": seed,
-        "lod": lod,
-        "points": points_dir is not None,
-        "min_points": min_points,
-        "label": label,
-    }
-
-    def build(tmp: Path) -> BuildResult:
-        import time
-
-        timings, notes, meshes, odd = {}, [], [], 0
-        started = time.perf_counter()
-        skipped = []
-        if cad_dir is not None:
-            cad, skipped = load_cad_directory(
-                cad_dir, up, forward, length_range, skip_bad, keep_odd_proportions=force
-            )
-            meshes += cad
-            notes += [f"skipped {message}" for message in skipped]
-            for model in cad:  # only with --force: otherwise such models were refused or skipped
-                problem = proportions_problem(model.native_lwh, up, forward)
-                if problem:
-                    odd += 1
-                    file = Path(cad_dir) / Path(model.model_id).parent / model.source
-                    message = f"kept (--force) {file}: {problem}"
-                    click.secho(f"WARNING: {message}", fg="red", bold=True, err=True)
-                    notes.append(message)
-        timings["cad_seconds"] = round(time.perf_counter() - started, 3)
-        started = time.perf_counter()
-        if procedural_count:
-            meshes += procedural_library(procedural_count, seed, lod)
-        timings["procedural_seconds"] = round(time.perf_counter() - started, 3)
-        started = time.perf_counter()
-        point_models = (
-            point_models_from_frameset(points_dir, min_points, label) if points_dir else None
-        )
-        timings["point_models_seconds"] = round(time.perf_counter() - started, 3)
-        counts = write_library(tmp, meshes, point_models)
-        counts["cad_skipped"] = len(skipped)
-        counts["cad_odd_proportions_kept"] = odd
-        notes.append(
-            "meshes normalized to the unit box (l along +x, w along +y, up +z), native size kept"
-        )
-        return BuildResult(counts=counts, timings=timings, notes=notes)
-
-    outcome = run_stage(
-        "library",
+    outcome = library_build(
         out,
-        {"cad": cad_dir, "points": points_dir},
-        params,
-        build,
+        cad_dir=cad_dir,
+        up=up,
+        forward=forward,
+        length_range=length_range,
+        skip_bad=skip_bad,
+        procedural_count=procedural_count,
+        seed=seed,
+        lod=lod,
+        points_dir=points_dir,
+        min_points=min_points,
+        label=label,
         force=force,
         dry_run=dry_run,
-        seed=seed if procedural_count else None,
     )
     if outcome.status == "ran":
         counts = outcome.manifest["outputs"]["counts"]

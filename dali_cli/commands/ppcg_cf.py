@@ -8,6 +8,15 @@ from dali_cli.commands.common import sensors_option, stage_options
 from dali_cli.commands.ppcg_rc import ppcg_options
 
 
+def parse_range(text: str) -> tuple[float, float]:
+    """'20:50' -> (20.0, 50.0) (the stage checks 0 < LOW <= HIGH); a usage error names the option."""
+    try:
+        low, high = (float(part) for part in str(text).split(":"))
+    except ValueError:
+        raise click.UsageError(f"--range-m: expected LOW:HIGH in metres, got '{text}'") from None
+    return low, high
+
+
 @click.command(name="ppcg-cf")
 @ppcg_options
 @click.option(
@@ -30,7 +39,6 @@ def command(target_dir, boxes_dir, library_dir, out, no_progress, range_m, **opt
     OUT/manifest.json (counts, per-frame timing).
     """
     from stages.ppcg_cf import ppcg_cf
-    from stages.ppcg_rc import parse_range
 
     ppcg_cf(
         target_dir,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 
 from dali_cli.commands.common import device_options, sensors_option, stage_options
@@ -86,6 +88,18 @@ def training_options(function):
     return device_options(function)
 
 
+def read_json_option(path: str | None) -> dict | None:
+    """The JSON document of an option's file (None without one); not JSON is a usage error."""
+    import json
+
+    if path is None:
+        return None
+    try:
+        return json.loads(Path(path).read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise click.BadParameter(f"{path}: not JSON ({error})") from None
+
+
 @click.command(name="pretrain")
 @click.option(
     "--source",
@@ -140,8 +154,10 @@ def training_options(function):
 )
 @click.option(
     "--detector-config",
+    "config_overrides",
     type=click.Path(exists=True, dir_okay=False),
     default=None,
+    callback=lambda _ctx, _param, path: read_json_option(path),
     help="JSON file of DetectorConfig fields to override (ranges, pillar size, widths; see docs/detector.md).",
 )
 @click.option(
@@ -156,7 +172,7 @@ def training_options(function):
 @sensors_option
 @stage_options
 def command(source, boxes, out, size_norm, target_profile, target_size, ros_range, features,
-            detector_config, labels,
+            config_overrides, labels,
             epochs, minutes, seed, batch_size, lr, compile_net, threads, no_augment, quiet,
             device, precision, sensors_path, force, dry_run):  # fmt: skip
     """Train the CPU detector (pillars + CenterPoint heads + IoU score) on a labeled source.
@@ -170,23 +186,13 @@ def command(source, boxes, out, size_norm, target_profile, target_size, ros_rang
     DistributedDataParallel (gloo on the CPU, nccl on CUDA), --batch-size frames per process;
     rank 0 alone writes OUT. See docs/scale-out.md.
     """
-    import json
-
     from stages.pretrain import run_pretrain
 
-    overrides = None
-    if detector_config:
-        try:
-            overrides = json.loads(open(detector_config).read())
-        except json.JSONDecodeError as error:
-            raise click.BadParameter(
-                f"{detector_config}: not JSON ({error})", param_hint="--detector-config"
-            ) from None
     outcome = run_pretrain(
         source, out, boxes=boxes, size_norm=size_norm, target_profile=target_profile,
         target_size=target_size, ros_range=ros_range, epochs=epochs, minutes=minutes, seed=seed,
         batch_size=batch_size, lr=lr, features=features, precision=precision, threads=threads,
-        compile_net=compile_net, augment=not no_augment, labels=tuple(labels), config_overrides=overrides,
+        compile_net=compile_net, augment=not no_augment, labels=tuple(labels), config_overrides=config_overrides,
         sensors_path=sensors_path, force=force, dry_run=dry_run, progress=not quiet, device=device,
     )  # fmt: skip
     if outcome.status == "ran":

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import click
 
+from dali_cli.atomic_file import write_text_atomically
 from dali_cli.report import build_report
 
 
@@ -69,8 +70,6 @@ def write_report(out_dir: Path, text: str, document: dict) -> None:
         ("report.md", text),
         ("report.json", json.dumps(document, indent=2, default=str)),
     ):
-        temporary = out_dir / f".{name}.part"
-        temporary.write_text(content)
-        os.replace(temporary, out_dir / name)
+        write_text_atomically(out_dir / name, content)
     click.echo(text)
     click.echo(f"report written to {out_dir}")

@@ -69,51 +69,13 @@ def command(
     occluded, alpha, bbox_left/top/right/bottom of a virtual KITTI camera at the sensor, so
     `dali eval --protocol kitti` gives easy/moderate/hard) and OUT/manifest.json.
     """
-    import dataclasses
-    import hashlib
-    import json
+    from stages.synth import synth
 
-    from dali_cli.executors import make_executor, run_on
-    from dali_cli.manifest import run_stage
-    from dali_cli.raycast import available_cores
-    from dali_cli.sensors import get_profile
-    from dali_cli.synth import build_synth
-
-    sensor_profile = get_profile(sensor, sensors_path)
-    cars = get_profile(cars_profile or sensor, sensors_path)
-    engine = make_executor(
-        executor,
-        workers or (available_cores() if executor == "local" else None),
-        ray_address,
-        cpus_per_worker=threads,
-    )
-    params = {
-        "sensor": sensor,
-        "cars": cars.name,
-        "frames": frames,
-        "seed": seed,
-        # a digest of the profile's values, so that editing sensors.toml makes the output stale
-        "sensor_profile_digest": hashlib.blake2b(
-            json.dumps(dataclasses.asdict(sensor_profile), sort_keys=True).encode(), digest_size=8
-        ).hexdigest(),
-        "cars_lwh_m": {"mean": cars.car_mean_lwh_m, "std": cars.car_std_lwh_m},
-    }
-    outcome = run_stage(
-        "synth",
-        out,
-        {},
-        params,
-        lambda tmp: run_on(
-            engine,
-            "synth",
-            lambda pool: build_synth(
-                tmp, sensor_profile, cars, frames, seed, threads=threads, executor=pool
-            ),
-        ),
-        force=force,
-        dry_run=dry_run,
-        seed=seed,
-    )
+    outcome = synth(
+        out, sensor=sensor, cars_profile=cars_profile, frames=frames, seed=seed, workers=workers,
+        threads=threads, sensors_path=sensors_path, force=force, dry_run=dry_run,
+        executor=executor, ray_address=ray_address,
+    )  # fmt: skip
     if outcome.status == "ran":
         counts = outcome.manifest["outputs"]["counts"]
         lwh = counts["mean_label_lwh_m"]

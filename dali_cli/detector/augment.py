@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dali_cli.geometry import bev_iou, point_box_indices
+from dali_cli.geometry import bev_iou, point_box_indices, wrap_angle
 
 
 def rotate_z(xyz: np.ndarray, angle: np.ndarray | float) -> np.ndarray:
@@ -21,16 +21,12 @@ def rotate_z(xyz: np.ndarray, angle: np.ndarray | float) -> np.ndarray:
     return np.stack([cos * x - sin * y, sin * x + cos * y, xyz[:, 2]], axis=1)
 
 
-def wrap_yaw(yaw: np.ndarray) -> np.ndarray:
-    return (yaw + np.pi) % (2 * np.pi) - np.pi
-
-
 def flip_y(points: np.ndarray, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mirror about the x-z plane: y -> -y, yaw -> -yaw."""
     points, boxes = points.copy(), boxes.copy()
     points[:, 1] *= -1
     boxes[:, 1] *= -1
-    boxes[:, 6] = wrap_yaw(-boxes[:, 6])
+    boxes[:, 6] = wrap_angle(-boxes[:, 6])
     return points, boxes
 
 
@@ -41,7 +37,7 @@ def rotate_scene(
     points, boxes = points.copy(), boxes.copy()
     points[:, :3] = rotate_z(points[:, :3].astype(np.float64), angle)
     boxes[:, :3] = rotate_z(boxes[:, :3], angle)
-    boxes[:, 6] = wrap_yaw(boxes[:, 6] + angle)
+    boxes[:, 6] = wrap_angle(boxes[:, 6] + angle)
     return points, boxes
 
 
@@ -98,7 +94,7 @@ def object_noise(
     turn = rng.uniform(-rotation_max_rad, rotation_max_rad, size=m)  # (m,)
     moved = boxes.copy()
     moved[:, :3] += shift
-    moved[:, 6] = wrap_yaw(moved[:, 6] + turn)
+    moved[:, 6] = wrap_angle(moved[:, 6] + turn)
     overlap = bev_iou(moved, moved) > 0  # (m, m)
     np.fill_diagonal(overlap, False)
     collides = overlap.any(axis=1)

@@ -142,14 +142,10 @@ def scale_about_ground(frames: LabeledFrames, scale: float) -> LabeledFrames:
     """PTSN's view of a labeled set: points (x, y, z) and boxes (centres and l, w, h) multiplied
     by `scale` in the ground frame (the ground plane stays put; intensity and yaw unchanged).
     This is the cloud `Detector.predict(..., scale=scale)` feeds the network."""
-    points, boxes = [], []
-    for frame_points, frame_boxes in zip(frames.points, frames.boxes, strict=True):
-        frame_points = frame_points.copy()
-        frame_points[:, :3] *= np.float32(scale)  # (n, 4): xyz scaled, intensity kept
-        frame_boxes = np.array(frame_boxes, np.float64, copy=True)
-        frame_boxes[:, :6] *= scale  # (m, 7): centre and size scaled, yaw kept
-        points.append(frame_points)
-        boxes.append(frame_boxes)
+    from dali_cli.geometry import scale_ground_boxes, scale_ground_points
+
+    points = [scale_ground_points(p, scale) for p in frames.points]  # (n, 4): intensity kept
+    boxes = [scale_ground_boxes(b, scale) for b in frames.boxes]  # (m, 7): yaw kept
     return LabeledFrames(
         frames.name, frames.sensor, frames.mount_height_m, frames.frame_ids, points, boxes
     )

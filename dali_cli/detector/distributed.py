@@ -27,10 +27,11 @@ import warnings
 from dataclasses import dataclass, replace
 from datetime import timedelta
 
-import click
 import torch
 import torch.distributed as dist
 from torch import nn
+
+from dali_cli.errors import StageError
 
 DEFAULT_TIMEOUT_S = 1800.0  # a collective waiting longer than this fails the run
 
@@ -69,7 +70,7 @@ def launched(environ=None) -> World:
     try:
         rank = int(environ["RANK"])
     except KeyError:
-        raise click.ClickException(
+        raise StageError(
             f"WORLD_SIZE={size} but RANK is not set: start distributed training with torchrun "
             "(torchrun --nproc-per-node N $(which dali) pretrain ...)"
         ) from None
@@ -90,7 +91,7 @@ def join(world: World, device: torch.device, timeout_s: float = DEFAULT_TIMEOUT_
             torch.cuda.set_device(device)
         dist.init_process_group(backend, timeout=timedelta(seconds=timeout_s))
     if dist.get_world_size() != world.size or dist.get_rank() != world.rank:
-        raise click.ClickException(
+        raise StageError(
             f"process group is rank {dist.get_rank()} of {dist.get_world_size()}, the environment "
             f"says {world.rank} of {world.size}"
         )
@@ -264,6 +265,4 @@ def all_succeeded(world: World) -> None:
     done = torch.ones(1, device=world.device)
     dist.all_reduce(done)
     if int(done.item()) != world.size:
-        raise click.ClickException(
-            f"only {int(done.item())} of {world.size} ranks finished: nothing written"
-        )
+        raise StageError(f"only {int(done.item())} of {world.size} ranks finished: nothing written")

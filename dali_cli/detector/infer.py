@@ -19,6 +19,13 @@ from dali_cli.detector.config import DetectorConfig
 from dali_cli.detector.model import PillarCenterNet
 from dali_cli.detector.refine import BoxRefiner, refine_boxes
 from dali_cli.detector.targets import gather_cells, peaks_and_boxes
+from dali_cli.geometry import (
+    ground_to_sensor,
+    scale_ground_points,
+    sensor_to_ground,
+    unscale_ground_boxes,
+    wrap_angle,
+)
 from dali_cli.model_card import ModelCard, read_meta
 
 WEIGHTS_NAME = "model.pt"
@@ -51,7 +58,7 @@ def decode(
         keep = score[b] >= config.score_threshold
         frame_boxes = boxes[b][keep]
         frame_scores = score[b][keep].astype(np.float32)
-        frame_boxes[:, 6] = (frame_boxes[:, 6] + np.pi) % (2 * np.pi) - np.pi
+        frame_boxes[:, 6] = wrap_angle(frame_boxes[:, 6])
         kept = nms_bev(frame_boxes, frame_scores, config.nms_iou)
         frame_boxes, frame_scores = frame_boxes[kept], frame_scores[kept]
         if refiner is not None:
@@ -85,14 +92,14 @@ def rescore_refined(
 
 
 def to_network_input(points_list: list[np.ndarray], mount_height_m: float, scale: float = 1.0):
-    """Sensor-frame points -> ground-frame, PTSN-scaled (x, y, z, i) tensor (P, 4), batch index (P,)."""
-    arrays = []
-    for points in points_list:
-        points = np.asarray(points, np.float32).reshape(-1, 4)
-        ground = points.copy()
-        ground[:, 2] += mount_height_m
-        ground[:, :3] *= scale
-        arrays.append(ground)
+    """Sensor-frame points -> ground-frame, PTSN-scaled (x, y, z, i) tensor (P, 4), batch index (P,)
+    (geometry.sensor_to_ground then geometry.scale_ground_points, in float32)."""
+    arrays = [
+        scale_ground_points(
+            sensor_to_ground(np.asarray(points, np.float32).reshape(-1, 4), mount_height_m), scale
+        )
+        for points in points_list
+    ]
     sizes = [len(a) for a in arrays]
     stacked = np.concatenate(arrays) if arrays else np.zeros((0, 4), np.float32)
     batch_index = np.repeat(np.arange(len(arrays)), sizes)
@@ -103,16 +110,7 @@ def ground_boxes_to_sensor(
     boxes: np.ndarray, mount_height_m: float, scale: float = 1.0
 ) -> np.ndarray:
     """Undo `to_network_input`: (M, 7) ground-frame boxes on s-scaled points -> sensor frame, unscaled."""
-    boxes = np.asarray(boxes, np.float64).reshape(-1, 7).copy()
-    boxes[:, :6] /= scale
-    boxes[:, 2] -= mount_height_m
-    return boxes
-
-
-def sensor_boxes_to_ground(boxes: np.ndarray, mount_height_m: float) -> np.ndarray:
-    boxes = np.asarray(boxes, np.float64).reshape(-1, 7).copy()
-    boxes[:, 2] += mount_height_m
-    return boxes
+    return ground_to_sensor(unscale_ground_boxes(boxes, scale), mount_height_m)
 
 
 def load_weights_only(path: Path, what: str):
@@ -198,6 +196,10 @@ class Detector:
             ) from None
         return cls(net, meta, device=device or torch.device("cpu"), precision=precision)
 
+    def visible_range(self, scale: float) -> tuple[float, float, float, float]:
+        """(x0, y0, x1, y1) in metres (sensor frame) the detector sees at PTSN scale `scale`."""
+        return visible_range(self.config, scale)
+
     @torch.no_grad()
     def predict(
         self,
@@ -277,6 +279,16 @@ def average_mirrored(name: str, maps: torch.Tensor, batch_size: int) -> torch.Te
         mean = (torch.sigmoid(direct) + torch.sigmoid(mirrored)) / 2
         return torch.logit(mean, eps=1e-6)
     return (direct + mirrored) / 2
+
+
+def visible_range(config: DetectorConfig, scale: float) -> tuple[float, float, float, float]:
+    """(x0, y0, x1, y1) in metres of the original sensor frame: where a point must lie for the
+    detector, run at PTSN scale `scale`, to see it (the `inference_config` grid divided by s).
+    Monotone in s: every bound moves towards the sensor as s grows, so the range over a scale
+    interval is the hull of its two ends."""
+    grid = inference_config(config, scale)
+    (x0, x1), (y0, y1) = grid.x_range_m, grid.y_range_m
+    return (x0 / scale, y0 / scale, x1 / scale, y1 / scale)
 
 
 def inference_config(config: DetectorConfig, scale: float) -> DetectorConfig:

@@ -20,7 +20,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from dali_cli.detector.config import DetectorConfig
-from dali_cli.geometry import bev_iou, iou_3d, point_box_pairs
+from dali_cli.geometry import bev_iou, iou_3d, point_box_pairs, wrap_angle
 
 POINT_FEATURES = 9
 CROP_CELL_M = 1.0  # cell of the coarse grid that crops a frame's points to the proposals' areas
@@ -138,7 +138,7 @@ def apply_residuals(proposals: np.ndarray, residuals: np.ndarray) -> np.ndarray:
     refined[:, 1] += s * dx + c * dy
     refined[:, 2] += residuals[:, 2] * proposals[:, 5]
     refined[:, 3:6] *= np.exp(np.clip(residuals[:, 3:6], -1.0, 1.0))
-    refined[:, 6] = (proposals[:, 6] + residuals[:, 6] + np.pi) % (2 * np.pi) - np.pi
+    refined[:, 6] = wrap_angle(proposals[:, 6] + residuals[:, 6])
     return refined
 
 

@@ -3,25 +3,12 @@ the machine (CPU model, device, torch version) for every training manifest."""
 
 from __future__ import annotations
 
-import os
 import platform
 from pathlib import Path
 
+from dali_cli.cores import available_cores
+
 CPUINFO = Path("/proc/cpuinfo")
-
-
-def available_cores() -> int:
-    """CPU cores this process may run on (its affinity mask), at least 1.
-
-    A stage that runs alone uses every one of them. The 1-minute load average is not a guide: in
-    a `make` chain it still counts the stage that just finished, so a load-based choice trained
-    `make demo` on 1 of 2 cores (1.7 vs 2.4 frames/s, issue 18). To share the machine, pass
-    `--threads` (e.g. `TRAIN_FLAGS="--threads 1"` for `make -j2` on two cores).
-    """
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not Linux
-        return max(1, os.cpu_count() or 1)
 
 
 def training_threads(requested: int | None, local_processes: int = 1) -> int:

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -302,17 +301,14 @@ def save_resume_state(
     path: Path, key: str, net, optimizer, step: int, elapsed: float, log: list
 ) -> None:
     """Everything needed to continue: weights, optimizer, step, elapsed time, log (atomic write)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(path.name + ".part")
-    torch.save(
-        {
-            "key": key,
-            "net": net.state_dict(),
-            "optimizer": optimizer.state_dict(),
-            "step": step,
-            "elapsed_s": elapsed,
-            "log": log,
-        },
-        temporary,
-    )
-    os.replace(temporary, path)
+    from dali_cli.atomic_file import write_atomically
+
+    state = {
+        "key": key,
+        "net": net.state_dict(),
+        "optimizer": optimizer.state_dict(),
+        "step": step,
+        "elapsed_s": elapsed,
+        "log": log,
+    }
+    write_atomically(path, lambda temporary: torch.save(state, temporary))

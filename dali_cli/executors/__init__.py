@@ -28,7 +28,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
-import click
+from dali_cli import console
+from dali_cli.errors import ParameterError, StageError
 
 ENGINES = ("local", "ray")
 SHARDS_DIR = "shards"  # inside the artifact's temporary directory; removed before the commit
@@ -67,7 +68,7 @@ class FrameFailed(Exception):
         return f"frame{'s' if len(self.frame_ids) > 1 else ''} {names}: {self.message}"
 
 
-class ShardsFailed(click.ClickException):
+class ShardsFailed(StageError):
     """Shards that failed after the engine's retries; the message names their frames."""
 
     def __init__(self, engine: str, failures: list[tuple[Shard, str]]):
@@ -260,23 +261,21 @@ class Executor:
     def echo_report(self, stage: str) -> None:
         report = self.report()
         if self.serial:
-            click.echo(f"{stage}: ran on {report['engine']}, in this process", err=True)
+            console.info(f"{stage}: ran on {report['engine']}, in this process")
             return
-        click.echo(
+        console.info(
             f"{stage}: ran on {report['engine']} with {report['workers']} worker(s)"
             + (
                 f" (start-up {report['startup_seconds']:.1f} s)"
                 if report["startup_seconds"]
                 else ""
-            ),
-            err=True,
+            )
         )
         for worker, r in report["per_worker"].items():
             loads = ", ".join(f"{k} x{v}" for k, v in sorted(r["loads"].items())) or "nothing"
-            click.echo(
+            console.info(
                 f"  {worker}: {r['shards']} shards, {r['frames']} frames, "
-                f"{r['busy_seconds']:.1f} s busy, loaded {loads}",
-                err=True,
+                f"{r['busy_seconds']:.1f} s busy, loaded {loads}"
             )
 
 
@@ -297,7 +296,9 @@ def make_executor(
     1; ray, every CPU of the cluster (or of this machine for a local instance)."""
     if engine == "local":
         if address is not None:
-            raise click.UsageError("--ray-address needs --executor ray")
+            raise ParameterError(
+                ("ray_address", "executor"), "a Ray address needs the ray executor"
+            )
         from dali_cli.executors.local import LocalExecutor
 
         return LocalExecutor(workers or 1)
@@ -305,7 +306,7 @@ def make_executor(
         from dali_cli.executors.ray import RayExecutor
 
         return RayExecutor(workers, address, cpus_per_worker=cpus_per_worker)
-    raise click.UsageError(f"--executor must be one of {', '.join(ENGINES)}, got '{engine}'")
+    raise ParameterError("executor", f"must be one of {', '.join(ENGINES)}, got '{engine}'")
 
 
 def run_on(executor: Executor, stage: str, body: Callable[[Executor], Any]) -> Any:

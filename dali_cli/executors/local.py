@@ -7,6 +7,7 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, wait
 from pathlib import Path
 
+from dali_cli import console
 from dali_cli.executors import Executor, Shard, ShardWorker, run_shard
 
 _worker: ShardWorker | None = None  # the pool process's worker, made once by _start
@@ -41,14 +42,10 @@ class LocalExecutor(Executor):
                 except Exception as error:
                     yield shard, error
             return
-        import click
-
         from dali_cli.workers import process_pool
 
         count = min(self.workers, len(shards))
-        click.echo(
-            f"executor: local process pool, {count} worker(s), {len(shards)} shards", err=True
-        )
+        console.info(f"executor: local process pool, {count} worker(s), {len(shards)} shards")
         pool = process_pool(count, _start, (factory,))  # processes start on first use
         try:
             queue = list(reversed(shards))

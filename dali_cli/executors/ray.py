@@ -16,8 +16,8 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-import click
-
+from dali_cli import console
+from dali_cli.errors import StageError
 from dali_cli.executors import Executor, Shard, ShardWorker, run_shard
 
 RESTARTS = 2  # times Ray restarts a lost actor and retries its shard
@@ -38,7 +38,7 @@ def _import_ray():
     try:
         import ray
     except ImportError:
-        raise click.ClickException(
+        raise StageError(
             "--executor ray needs Ray: pip install -e '.[ray]' (or pip install 'dali[ray]')"
         ) from None
     return ray
@@ -83,7 +83,7 @@ class RayExecutor(Executor):
             self.workers = max(1, cluster_cpus // self.cpus_per_worker)
         self.where = where
         self.started_seconds = time.perf_counter() - started
-        click.echo(f"executor: ray on {where}, {self.workers} worker(s)", err=True)
+        console.info(f"executor: ray on {where}, {self.workers} worker(s)")
         return self
 
     def close(self) -> None:

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import click
 import numpy as np
 
+from dali_cli.errors import StageError
 from dali_cli.frame_ids import name_problem
 
 
-class ImportFormatError(click.ClickException):
+class ImportFormatError(StageError):
     """Malformed input data; the message names the file, the line or point, and the field."""
 
 

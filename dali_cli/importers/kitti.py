@@ -20,7 +20,7 @@ import numpy as np
 
 from dali_cli import kitti_label
 from dali_cli.artifacts import BoxTable
-from dali_cli.geometry import count_points_in_boxes, normalize_yaw
+from dali_cli.geometry import count_points_in_boxes, wrap_angle
 from dali_cli.importers.common import (
     ImportFormatError,
     check_id,
@@ -223,7 +223,7 @@ def camera_boxes_to_lidar(
         np.cos(rotation_y), np.zeros_like(rotation_y), -np.sin(rotation_y)
     ]  # (N, 3)
     heading = heading_rect @ calib.rect_to_velo[:3, :3].T  # (N, 3)
-    yaw = normalize_yaw(np.arctan2(heading[:, 1], heading[:, 0]))
+    yaw = wrap_angle(np.arctan2(heading[:, 1], heading[:, 0]))
     return np.c_[centre, hwl[:, 2], hwl[:, 1], hwl[:, 0], yaw]
 
 
@@ -238,14 +238,14 @@ def lidar_boxes_to_camera(
     location = centre_rect + np.c_[np.zeros(len(boxes)), hwl[:, 0] / 2, np.zeros(len(boxes))]
     yaw = boxes[:, 6]
     heading = np.c_[np.cos(yaw), np.sin(yaw), np.zeros_like(yaw)] @ calib.velo_to_rect[:3, :3].T
-    rotation_y = normalize_yaw(np.arctan2(-heading[:, 2], heading[:, 0]))
+    rotation_y = wrap_angle(np.arctan2(-heading[:, 2], heading[:, 0]))
     return location, hwl, rotation_y
 
 
 def observation_angle(location: np.ndarray, rotation_y: np.ndarray) -> np.ndarray:
     """KITTI alpha: rotation_y minus the viewing ray's angle, atan2(x, z), in [-pi, pi). `(N,)`."""
     location = np.asarray(location, np.float64).reshape(-1, 3)
-    return normalize_yaw(np.asarray(rotation_y) - np.arctan2(location[:, 0], location[:, 2]))
+    return wrap_angle(np.asarray(rotation_y) - np.arctan2(location[:, 0], location[:, 2]))
 
 
 def camera_box_corners(location: np.ndarray, hwl: np.ndarray, rotation_y: np.ndarray) -> np.ndarray:

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.artifacts import BoxTable, TableValueError, int32_column
-from dali_cli.geometry import count_points_in_boxes, normalize_yaw
+from dali_cli.geometry import count_points_in_boxes, wrap_angle
 from dali_cli.importers.common import (
     ImportFormatError,
     check_id,
@@ -83,7 +83,7 @@ def global_boxes_to_lidar(
     ) @ ego_r  # (N, 3)
     centre = (centre - sensor_translation) @ sensor_r  # (N, 3)
     box_r = to_lidar @ quaternion_to_matrix(rotation)  # (N, 3, 3)
-    yaw = normalize_yaw(np.arctan2(box_r[:, 1, 0], box_r[:, 0, 0]))
+    yaw = wrap_angle(np.arctan2(box_r[:, 1, 0], box_r[:, 0, 0]))
     size = np.asarray(size_wlh, np.float64).reshape(-1, 3)
     return np.c_[centre, size[:, 1], size[:, 0], size[:, 2], yaw]
 
@@ -97,7 +97,7 @@ def to_x_forward(points: np.ndarray | None, boxes: np.ndarray | None):
     if boxes is not None:
         boxes = boxes.copy()
         boxes[:, 0], boxes[:, 1] = boxes[:, 1].copy(), -boxes[:, 0]
-        boxes[:, 6] = normalize_yaw(boxes[:, 6] - np.pi / 2)
+        boxes[:, 6] = wrap_angle(boxes[:, 6] - np.pi / 2)
     return points, boxes
 
 
@@ -472,7 +472,7 @@ def read_boxes_csv(path: str | Path):
     except (OSError, UnicodeDecodeError, csv.Error) as error:
         raise ImportFormatError(f"{path}: cannot read CSV ({error})") from None
     boxes = np.asarray(values, np.float64).reshape(-1, 7)
-    boxes[:, 6] = normalize_yaw(boxes[:, 6])
+    boxes[:, 6] = wrap_angle(boxes[:, 6])
     frame_ids = np.asarray(frames, dtype=object) if "frame_id" in header else None
     return frame_ids, boxes, np.asarray(categories, dtype=object), np.asarray(lidar_pts, np.int32)
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from dali_cli.artifacts import BoxTable
 from dali_cli.frame_ids import child_path
-from dali_cli.geometry import count_points_in_boxes, normalize_yaw
+from dali_cli.geometry import count_points_in_boxes, wrap_angle
 from dali_cli.importers.common import (
     ImportFormatError,
     check_finite_points,
@@ -99,7 +99,7 @@ def read_labels(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         values.append(row)
         classes.append(fields[7])
     boxes = np.asarray(values, np.float64).reshape(-1, 7)
-    boxes[:, 6] = normalize_yaw(boxes[:, 6])
+    boxes[:, 6] = wrap_angle(boxes[:, 6])
     return boxes, np.asarray(classes, dtype=object)
 
 

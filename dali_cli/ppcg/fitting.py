@@ -16,6 +16,8 @@ import hashlib
 
 import numpy as np
 
+from dali_cli.geometry import wrap_angle
+
 
 def box_rng(seed: int, frame_id: str, box_index: int) -> np.random.Generator:
     """A generator seeded by (run seed, frame id, index of the box within its frame)."""
@@ -138,8 +140,7 @@ def viewing_angle(boxes: np.ndarray) -> np.ndarray:
     so 0 means the sensor is ahead of the car (it sees the front), pi behind it (it sees the back).
     """
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
-    angle = np.arctan2(-boxes[:, 1], -boxes[:, 0]) - boxes[:, 6]
-    return np.mod(angle + np.pi, 2.0 * np.pi) - np.pi
+    return wrap_angle(np.arctan2(-boxes[:, 1], -boxes[:, 0]) - boxes[:, 6])
 
 
 def select_point_models(

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from dali_cli.geometry import inside_boxes
+
 _CELL_M = 1.0  # grid cell (m) unless the boxes spread over more than _MAX_CELLS cells
 _MAX_CELLS = 2**20
 _NONE, _SHARED = -1, -2  # cell owners that are not a box index
@@ -65,26 +67,14 @@ def points_per_box(
     members = []
     for box_index, box in enumerate(boxes):  # cells of one box: test against that box only
         a, b = bounds[box_index + 2], bounds[box_index + 3]
-        members.append(candidates[a:b][_inside(near[a:b], box, margin_m)])
+        members.append(candidates[a:b][inside_boxes(near[a:b], box, margin_m)])
     shared = candidates[bounds[0] : bounds[1]]  # cells several boxes cover: first box wins
     shared_points = near[bounds[0] : bounds[1]]
     for box_index, box in enumerate(boxes):
         if len(shared) == 0:
             break
-        hit = _inside(shared_points, box, margin_m)
+        hit = inside_boxes(shared_points, box, margin_m)
         if hit.any():
             members[box_index] = np.sort(np.concatenate([members[box_index], shared[hit]]))
             shared, shared_points = shared[~hit], shared_points[~hit]
     return members
-
-
-def _inside(points: np.ndarray, box: np.ndarray, margin_m: float) -> np.ndarray:
-    """Whether each point `(c, >=3)` float32 lies in `box` `(7,)` enlarged by margin_m -> `(c,)`."""
-    x, y, z, length, width, height, yaw = (float(v) for v in box)
-    cos, sin = np.float32(np.cos(yaw)), np.float32(np.sin(yaw))
-    dx = points[:, 0] - np.float32(x)
-    dy = points[:, 1] - np.float32(y)
-    inside = np.abs(cos * dx + sin * dy) <= np.float32(0.5 * length + margin_m)
-    inside &= np.abs(cos * dy - sin * dx) <= np.float32(0.5 * width + margin_m)
-    inside &= np.abs(points[:, 2] - np.float32(z)) <= np.float32(0.5 * height + margin_m)
-    return inside

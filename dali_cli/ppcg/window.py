@@ -17,6 +17,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from dali_cli.geometry import wrap_angle
 from dali_cli.sensors import SensorProfile
 
 _EPS = 1e-9  # rad: rays exactly on a window edge are kept
@@ -70,7 +71,7 @@ def box_windows(boxes: np.ndarray) -> AngularWindows:
     corner_y = boxes[:, 1:2] + sin[:, None] * dx + cos[:, None] * dy  # (N, 4)
     centre_azimuth = np.arctan2(boxes[:, 1], boxes[:, 0])  # (N,)
     relative = np.arctan2(corner_y, corner_x) - centre_azimuth[:, None]  # (N, 4)
-    relative = np.mod(relative + np.pi, 2.0 * np.pi) - np.pi
+    relative = wrap_angle(relative)
     near, far = footprint_distances(boxes)
     full = near <= 0.0
     azimuth_lo = np.where(full, -np.pi, centre_azimuth + relative.min(axis=1) - _EPS)

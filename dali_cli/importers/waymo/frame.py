@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dali_cli.geometry import wrap_angle
 from dali_cli.importers.waymo.range_image import (
     intensity_to_unit,
     range_image_to_points,
@@ -130,5 +131,5 @@ def to_top_frame(frame: WaymoFrame, points: np.ndarray) -> tuple[np.ndarray, np.
         boxes[:, :3] = (boxes[:, :3] - translation) @ rotation
         heading = np.stack([np.cos(boxes[:, 6]), np.sin(boxes[:, 6]), np.zeros(len(boxes))], 1)
         turned = heading @ rotation
-        boxes[:, 6] = (np.arctan2(turned[:, 1], turned[:, 0]) + np.pi) % (2 * np.pi) - np.pi
+        boxes[:, 6] = wrap_angle(np.arctan2(turned[:, 1], turned[:, 0]))
     return out, boxes

@@ -1,4 +1,4 @@
-"""Tiny synthetic scenes for tests and benchmarks: box-shaped cars on a flat ground, scanned with a
+"""Test fixture (tests and bench/detector.py, not part of the package). Tiny synthetic scenes: box-shaped cars on a flat ground, scanned with a
 sensor profile's beams by an exact numpy ray/box (slab) intersection. Not `dali synth` (no meshes,
 no clutter): just enough structure to check that the detector learns and that its I/O is right."""
 

@@ -1,0 +1,185 @@
+"""The training body the pretrain, retrain and self-train stages share: resume handling, the
+checkpoint's metadata and training summary, the training log, and `run_training_stage` (the
+manifest contract around one training run, on a device, under torchrun with DDP when launched
+so). torch is imported only when a model is trained."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from dali_cli import console
+from dali_cli.manifest import BuildResult, StageOutcome, content_hash, run_stage
+
+
+def resume_path_for(out: Path) -> Path:
+    """Where an interrupted training run keeps its state: beside the output, stable across runs."""
+    return out.parent / f"{out.name}.resume" / "state.pt"
+
+
+def resume_key(inputs: dict, params: dict) -> str:
+    """A run may resume only from a state written with the same inputs and parameters."""
+    hashes = {
+        name: [content_hash(p) for p in (value if isinstance(value, list | tuple) else [value])]
+        for name, value in inputs.items()
+        if value is not None
+    }
+    document = json.dumps({"inputs": hashes, "params": params}, sort_keys=True, default=str)
+    return hashlib.blake2b(document.encode(), digest_size=16).hexdigest()
+
+
+def write_train_log(directory: Path, rows: list[dict]) -> None:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    pq.write_table(pa.Table.from_pylist(rows), directory / "train_log.parquet")
+
+
+def training_summary(result, settings) -> dict:
+    tail = result.log[-5:]
+    return {
+        "steps": result.steps,
+        "frames": result.frames,
+        "seconds": round(result.seconds, 1),
+        "frames_per_s": round(result.frames / max(result.seconds, 1e-9), 2),
+        "resumed_from_step": result.resumed_from_step,
+        "final_loss": float(np.mean([r["loss"] for r in tail])) if tail else None,
+        "settings": asdict(settings),
+        "runtime": result.runtime,
+    }
+
+
+def attach_database(data, config, augment: bool) -> None:
+    """Give `data` its gt-sampling database (its own boxes inside the detection region), or
+    none when augmentation is off."""
+    from dali_cli.detector.augment import ObjectDatabase
+    from dali_cli.detector.data import detection_region
+
+    data.database = (
+        ObjectDatabase.build(data.points, data.boxes, region=detection_region(config))
+        if augment
+        else None
+    )
+
+
+def fit_and_save(
+    tmp: Path,
+    net,
+    datasets: list,
+    augmentations: list,
+    settings,
+    resume: Path,
+    key: str,
+    *,
+    meta: dict,
+    counts: dict,
+    notes: list[str],
+    load_s: float,
+    progress: bool,
+    world=None,
+) -> BuildResult | None:
+    """The training body pretrain, retrain and self-train share: train `net` on `datasets` on
+    `world` (its device; the ranks of a torchrun run), write model.pt + model.json (`meta` plus
+    the training summary) + train_log.parquet into `tmp`, and return the manifest's counts,
+    timings and runtime (threads, device, world size, CPU/GPU model, torch). A rank other than
+    0 of a distributed run trains with the others and writes nothing (`tmp` None)."""
+    from dali_cli.detector import save_checkpoint, train
+    from dali_cli.detector.distributed import SINGLE
+
+    world = world or SINGLE
+    result = train(
+        net, datasets, augmentations, settings, resume, key, progress=progress,
+        device=world.device, world=world,
+    )  # fmt: skip
+    report_ranks(result, world)
+    if tmp is None:
+        return None
+    save_checkpoint(tmp, net, {**meta, "train": training_summary(result, settings)})
+    write_train_log(tmp, result.log)
+    if result.resumed_from_step:
+        notes = [*notes, f"resumed from step {result.resumed_from_step}"]
+    return BuildResult(
+        counts={**counts, "steps": result.steps, "frames_seen": result.frames},
+        timings={"load_seconds": round(load_s, 2), "train_seconds": round(result.seconds, 2)},
+        notes=notes,
+        extra={"runtime": result.runtime},
+    )
+
+
+def report_ranks(result, world) -> None:
+    """One log line per rank: which engine, and what this rank did."""
+    runtime = result.runtime
+    engine = (
+        f"rank {world.rank} of {world.size} ({world.backend}, DDP)"
+        if world.distributed
+        else "1 process"
+    )
+    console.info(
+        f"train: {engine} on {runtime.get('device')}, {runtime.get('threads')} threads: "
+        f"{result.steps} steps, {result.frames} frames (all ranks) in {result.seconds:.1f} s"
+    )
+
+
+def run_training_stage(
+    stage: str,
+    out: Path,
+    inputs: dict,
+    params: dict,
+    train_fn,
+    force: bool,
+    dry_run: bool,
+    seed: int,
+    device: str = "auto",
+) -> StageOutcome:
+    """run_stage around `train_fn(tmp_dir, resume_path, resume_key, world) -> BuildResult`, then
+    drop the resume state once the checkpoint is in place.
+
+    `device` (auto | cpu | cuda | cuda:N) is resolved first: a missing GPU fails before anything
+    is written. Under torchrun (dali_cli.detector.distributed) rank 0 runs the stage as usual and
+    tells the other ranks whether to train; they train with it and write nothing, and rank 0
+    commits only after every rank finished (a failing rank fails the stage, no artifact)."""
+    from dali_cli.detector import distributed
+    from dali_cli.device import resolve_device
+
+    world = distributed.launched()
+    torch_device = resolve_device(device, world.local_rank if world.distributed else None)
+    if world.distributed:  # the global batch is batch_size x world size: another training
+        params = {**params, "world_size": world.size}
+    resume = resume_path_for(out)
+    key = None
+    world = distributed.join(world, torch_device)
+    started = False
+
+    def build(tmp: Path) -> BuildResult:
+        nonlocal started
+        distributed.broadcast_object("train", world)
+        started = True
+        result = train_fn(tmp, resume, resume_key(inputs, params), world)
+        distributed.all_succeeded(world)
+        return result
+
+    try:
+        if not world.is_main:  # a follower: train when rank 0 does, write nothing
+            decision = distributed.broadcast_object(None, world)
+            if decision != "train":
+                return StageOutcome("follower", f"rank 0: {decision}")
+            train_fn(None, resume, key, world)
+            distributed.all_succeeded(world)
+            return StageOutcome(
+                "follower", f"rank {world.rank} of {world.size}; rank 0 wrote {out}"
+            )
+        outcome = run_stage(
+            stage, out, inputs, params, build, force=force, dry_run=dry_run, seed=seed
+        )
+        if not started:
+            distributed.broadcast_object(outcome.status, world)
+    finally:
+        distributed.leave()
+    if outcome.status == "ran":
+        shutil.rmtree(resume.parent, ignore_errors=True)
+    return outcome

@@ -1,0 +1,292 @@
+"""Stage eval: KITTI-protocol AP_BEV / AP_3D of predictions against labels (dali_cli.evaluate).
+
+The predictions are a box table (or KITTI label directory), or come from running a model on a
+frame set at a scale (1, or ŝ of a ptsn-sweep's scale.json) through the detector's one predict
+loop (`dali_cli.detector.predict_frameset`). Output, either:
+- an artifact directory (`out` not ending in .json; what the Makefile uses): OUT/metrics.json,
+  OUT/predictions.parquet (model runs) and OUT/manifest.json under the stage contract (written
+  atomically as a whole, skipped when inputs and parameters are unchanged); a KITTI-protocol
+  OUT/metrics_kitti.json added later is not part of its content hash; or
+- a metrics file (`out` ending in .json): FILE and predictions.parquet beside it, each atomic.
+Returns the metrics for the command to print."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dali_cli.artifacts import BOXES_NAME, BoxTable, FrameSet, read_boxes
+from dali_cli.atomic_file import write_atomically, write_text_atomically
+from dali_cli.errors import ParameterError, StageError
+
+PREDICTIONS_NAME = "predictions.parquet"
+METRICS_NAME = "metrics.json"
+KITTI_METRICS_NAME = "metrics_kitti.json"  # written beside metrics.json by a second eval
+
+
+@dataclass
+class EvalResult:
+    """The metrics document (as written to metrics.json), the paths written and, for an
+    artifact directory, what the stage runner did ("ran", "skipped", "dry-run")."""
+
+    metrics: dict
+    written: list[Path] = field(default_factory=list)
+    status: str = "ran"
+
+
+def read_table(path: Path, role: str) -> tuple[BoxTable, list[str] | None]:
+    """A box table from a parquet dir/file or a label directory, plus the label files' frames."""
+    from dali_cli.kitti_label import list_label_frames, read_label_dir
+
+    path = Path(path)
+    if path.is_file() and path.suffix == ".parquet":
+        return read_boxes(path), None
+    if path.is_dir() and (path / BOXES_NAME).is_file():
+        return read_boxes(path), None
+    if path.is_dir() and (path / "label_2").is_dir():
+        path = path / "label_2"
+    if path.is_dir() and any(path.glob("*.txt")):
+        return read_label_dir(path), list_label_frames(path)
+    raise ParameterError(
+        f"{role}_path",
+        f"{path}: neither a box table ({BOXES_NAME}) nor a directory of label .txt files",
+    )
+
+
+def resolve_scale(scale: float | None, scale_from: str | Path | None) -> float:
+    """The inference scale: `scale`, ŝ of `scale_from`'s scale.json, or 1."""
+    if scale is not None and scale_from is not None:
+        raise ParameterError(("scale", "scale_from"), "give one of the two, not both")
+    if scale_from is None:
+        value = 1.0 if scale is None else scale
+    else:
+        from dali_cli.scale_file import read_scale
+
+        value = read_scale(scale_from).scale
+    if not value > 0:
+        raise ParameterError("scale", f"the scale must be positive, got {value}")
+    return float(value)
+
+
+def predict(model, data, scale: float, device, precision: str, engine=None, near=None) -> BoxTable:
+    """Every prediction (all scores) of the model of `model` on the frame set `data`, on the
+    torch `device` at `precision`, on `engine` (dali_cli.executors; None: this process); a
+    parallel engine's shards go to a temporary folder in `near` (workers must see it)."""
+    import shutil
+    import tempfile
+
+    try:
+        from dali_cli.detector import predict_frameset
+    except ImportError as error:
+        raise StageError(f"the detector is not available ({error})") from None
+    from dali_cli.executors import run_on
+
+    options = dict(scale=scale, score_min=0.0, progress=True, device=device, precision=precision)
+    if engine is None or engine.serial:  # the reference path: in this process
+        if engine is None:
+            return predict_frameset(model, data, **options)
+        return run_on(engine, "eval", lambda _: predict_frameset(model, data, **options))
+    if near is not None:
+        Path(near).mkdir(parents=True, exist_ok=True)
+    where = Path(tempfile.mkdtemp(prefix=".dali-eval-shards-", dir=near))
+    try:
+        return run_on(
+            engine,
+            "eval",
+            lambda pool: predict_frameset(model, data, executor=pool, shards_dir=where, **options),
+        )
+    finally:
+        shutil.rmtree(where, ignore_errors=True)
+
+
+def mean_box_size(table: BoxTable, class_name: str, score_min: float | None = None):
+    """Mean [l, w, h] in metres of the table's `class_name` boxes (score >= score_min), or None."""
+    keep = np.asarray(table["label"]) == class_name
+    if score_min is not None:
+        keep &= np.asarray(table["score"]) >= score_min
+    if not keep.any():
+        return None
+    lwh = table.boxes[keep, 3:6]
+    return [round(float(v), 4) for v in lwh.mean(axis=0)]
+
+
+def check_ious(ious: tuple[float, ...]) -> None:
+    for iou in ious:
+        if not 0.0 <= iou < 1.0:
+            raise ParameterError("ious", f"must be in [0, 1), got {iou}")
+    if len(set(ious)) != len(ious):
+        raise ParameterError("ious", f"repeated threshold in {list(ious)}")
+
+
+def predictions_and_truth(
+    pred_path, gt_path, model, data, scale, scale_from, device="auto", precision="fp32",
+    engine=None, near=None,
+):  # fmt: skip
+    """(pred, gt, frame ids evaluated or None, source record, gt path, runtime or None) from
+    either the model route (`model` on `data`) or the table route (`pred_path` vs `gt_path`)."""
+    frame_ids = runtime = None
+    if model is not None or data is not None:
+        if model is None or data is None:
+            raise ParameterError(("model", "data"), "the model and its frame set go together")
+        if pred_path is not None:
+            raise ParameterError(("pred_path", "model"), "give predictions or a model, not both")
+        from dali_cli.device import inference_device, inference_runtime
+
+        torch_device = inference_device(device, precision)  # a missing GPU: error, no output
+        chosen_scale = resolve_scale(scale, scale_from)
+        frame_ids = FrameSet(data).frame_ids
+        gt_path = Path(data) if gt_path is None else gt_path
+        pred = predict(model, data, chosen_scale, torch_device, precision, engine, near)
+        source = {"model": str(model), "data": str(data), "scale": chosen_scale}
+        runtime = {**inference_runtime(torch_device), "precision": precision}
+    else:
+        if scale is not None or scale_from is not None:
+            raise ParameterError(("scale", "scale_from"), "a scale only applies with a model")
+        if pred_path is None or gt_path is None:
+            raise ParameterError(("pred_path", "gt_path"), "give predictions and ground truth")
+        pred, _ = read_table(pred_path, "pred")
+        source = {"pred": str(pred_path)}
+    gt, label_frames = read_table(gt_path, "gt")
+    source["gt"] = str(gt_path)
+    frames = frame_ids if frame_ids is not None else label_frames
+    return pred, gt, frames, source, gt_path, runtime
+
+
+def run_eval(
+    *,
+    pred_path: str | Path | None = None,
+    gt_path: str | Path | None = None,
+    model: str | Path | None = None,
+    data: str | Path | None = None,
+    scale: float | None = None,
+    scale_from: str | Path | None = None,
+    ious: tuple[float, ...] = (0.7,),
+    size_score_min: float = 0.3,
+    recall_positions: int = 40,
+    protocol: str = "auto",
+    front_only: bool = False,
+    class_name: str = "Car",
+    min_gt_points: int = 0,
+    out: str | Path | None = None,
+    save_predictions: bool = True,
+    device: str = "auto",
+    precision: str = "fp32",
+    executor: str = "local",
+    workers: int | None = 1,
+    ray_address: str | None = None,
+    force: bool = False,
+    dry_run: bool = False,
+) -> EvalResult:
+    """Evaluate (see the module docstring). `out`: None (print only), a metrics file (.json) or
+    an artifact directory; `force` and `dry_run` apply to the directory."""
+    check_ious(tuple(ious))
+    options = dict(
+        ious=tuple(ious), size_score_min=size_score_min, recall_positions=int(recall_positions),
+        protocol=protocol, front_only=front_only, class_name=class_name,
+        min_gt_points=min_gt_points,
+    )  # fmt: skip
+    from dali_cli.executors import make_executor
+
+    routes = dict(
+        pred_path=pred_path, gt_path=gt_path, model=model, data=data, scale=scale,
+        scale_from=scale_from, device=device, precision=precision,
+        engine=make_executor(executor, workers, ray_address),
+        near=Path(out).parent if out is not None else None,
+    )  # fmt: skip
+    inputs = {"model": model, "data": data, "pred": pred_path, "gt": gt_path, "scale": scale_from}
+    if out is not None and Path(out).suffix != ".json":
+        return eval_artifact(Path(out), inputs, routes, options, save_predictions, force, dry_run)
+    out = Path(out) if out is not None else None
+    if out is not None:  # before any work: an output dali must not write fails at once
+        from dali_cli.output_paths import check_metrics_output
+
+        check_metrics_output(out, inputs)
+    metrics, pred = compute_metrics(routes, options)
+    written = []
+    if out is not None:
+        written = write_outputs(out, metrics, pred if save_predictions and model else None)
+    return EvalResult(metrics, written)
+
+
+def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
+    """(the metrics document, the predictions evaluated) of one evaluation."""
+    from dali_cli.evaluate import EvaluationError, evaluate
+
+    pred, gt, frame_ids, source, gt_path, runtime = predictions_and_truth(**routes)
+    class_name = options["class_name"]
+    metrics: dict = {}
+    for index, iou in enumerate(options["ious"]):
+        try:
+            result = evaluate(
+                pred, gt, iou=iou, recall_positions=options["recall_positions"],
+                protocol=options["protocol"], class_name=class_name,
+                min_gt_points=options["min_gt_points"], frame_ids=frame_ids,
+                front_only=options["front_only"],
+            )  # fmt: skip
+        except EvaluationError as error:
+            raise StageError(
+                f"cannot evaluate {source.get('pred', routes['model'])} against {gt_path}: {error}"
+            ) from None
+        block = result[class_name]
+        block["source"] = source
+        metrics[class_name if index == 0 else f"{class_name}@{iou:g}"] = block
+    metrics["sizes"] = {
+        "pred": mean_box_size(pred, class_name, score_min=options["size_score_min"]),
+        "gt": mean_box_size(gt, class_name),
+    }
+    if "scale" in source:
+        metrics["scale"] = source["scale"]
+    if runtime is not None:
+        metrics["runtime"] = runtime
+    return metrics, pred
+
+
+def write_outputs(metrics_path: Path, metrics: dict, pred: BoxTable | None) -> list[Path]:
+    """metrics.json at `metrics_path` and (given `pred`) predictions.parquet beside it."""
+    written = []
+    if pred is not None:
+        import pyarrow.parquet as pq
+
+        path = metrics_path.parent / PREDICTIONS_NAME
+        write_atomically(
+            path, lambda partial: pq.write_table(pred.to_arrow(), partial, compression="zstd")
+        )
+        written.append(path)
+    write_text_atomically(metrics_path, json.dumps(metrics, indent=2) + "\n")
+    return [*written, metrics_path]
+
+
+def eval_artifact(out, inputs, routes, options, save_predictions, force, dry_run) -> EvalResult:
+    """The evaluation as the artifact directory `out` under the stage contract."""
+    from dali_cli.manifest import BuildResult, run_stage
+
+    computed: dict = {}
+
+    def build(directory: Path) -> BuildResult:
+        metrics, pred = compute_metrics(routes, options)
+        keep = pred if save_predictions and routes["model"] is not None else None
+        write_outputs(directory / METRICS_NAME, metrics, keep)
+        computed["metrics"] = metrics
+        counts = {"predictions": len(pred), "frames": metrics[options["class_name"]]["frames"]}
+        return BuildResult(counts=counts)
+
+    params = {
+        **{k: v for k, v in options.items()},
+        "scale": routes["scale"],
+        "save_predictions": save_predictions,
+        "precision": routes["precision"],
+    }
+    outcome = run_stage(
+        "eval", out, inputs, params, build, force=force, dry_run=dry_run,
+        derived=(KITTI_METRICS_NAME,),
+    )  # fmt: skip
+    if outcome.status == "dry-run":
+        return EvalResult({}, [], outcome.status)
+    metrics = computed.get("metrics") or json.loads((out / METRICS_NAME).read_text())
+    names = (
+        [PREDICTIONS_NAME, METRICS_NAME] if (out / PREDICTIONS_NAME).is_file() else [METRICS_NAME]
+    )
+    return EvalResult(metrics, [out / name for name in names], outcome.status)

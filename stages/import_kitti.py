@@ -1,0 +1,45 @@
+"""Stage import_kitti: KITTI object data (velodyne, label_2, calib) -> a FrameSet with boxes
+(dali_cli.importers.kitti)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from dali_cli.manifest import StageOutcome, run_stage
+from dali_cli.sensors import get_profile
+
+
+def import_kitti(
+    root: str | Path,
+    out: str | Path,
+    *,
+    split: str = "training",
+    ids_path: str | Path | None = None,
+    label_dir: str | Path | None = None,
+    crop_fov: bool = False,
+    sensor: str = "kitti",
+    sensors_path: str | None = None,
+    force: bool = False,
+    dry_run: bool = False,
+) -> StageOutcome:
+    """Import ROOT[/split] (every scan, or the ids of `ids_path`) into `out`."""
+    from dali_cli.importers.common import read_id_list
+    from dali_cli.importers.kitti import KittiLayout, build_import
+
+    get_profile(sensor, sensors_path)  # an unknown profile fails before any work
+    layout = KittiLayout.of(root, split, label_dir)
+    frame_ids = layout.frame_ids(read_id_list(ids_path) if ids_path else None)
+    inputs = {"velodyne": layout.velodyne_dir, "ids": ids_path}
+    for name, path in (("labels", layout.label_dir), ("calib", layout.calib_dir)):
+        if path.is_dir():
+            inputs[name] = path
+    params = {"split": split, "crop_fov": crop_fov, "sensor": sensor, "frames": len(frame_ids)}
+    return run_stage(
+        "import-kitti",
+        out,
+        inputs,
+        params,
+        lambda tmp: build_import(tmp, layout, frame_ids, crop_fov=crop_fov, sensor=sensor),
+        force=force,
+        dry_run=dry_run,
+    )

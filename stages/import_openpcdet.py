@@ -1,0 +1,49 @@
+"""Stage import_openpcdet: OpenPCDet's custom format (points/*.npy, labels/*.txt) -> a FrameSet
+with boxes (dali_cli.importers.openpcdet)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from dali_cli.manifest import StageOutcome, run_stage
+from dali_cli.sensors import get_profile
+
+
+def import_openpcdet(
+    root: str | Path,
+    out: str | Path,
+    *,
+    sensor: str,
+    split: str | None = None,
+    car_classes: tuple[str, ...] = (),
+    intensity_max: float = 1.0,
+    sensors_path: str | None = None,
+    force: bool = False,
+    dry_run: bool = False,
+) -> StageOutcome:
+    """Import ROOT (the ids of ImageSets/`split`.txt, or every points/*.npy) into `out`."""
+    from dali_cli.importers import openpcdet
+
+    get_profile(sensor, sensors_path)
+    classes = tuple(car_classes) or openpcdet.DEFAULT_CAR_CLASSES
+    frame_ids = openpcdet.frame_ids(root, split)
+    root = Path(root)
+    inputs = {"points": root / "points"}
+    if (root / "labels").is_dir():
+        inputs["labels"] = root / "labels"
+    params = {
+        "split": split,
+        "car_classes": list(classes),
+        "intensity_max": intensity_max,
+        "sensor": sensor,
+        "frames": len(frame_ids),
+    }
+    return run_stage(
+        "import-openpcdet",
+        out,
+        inputs,
+        params,
+        lambda tmp: openpcdet.build_import(tmp, root, frame_ids, classes, intensity_max, sensor),
+        force=force,
+        dry_run=dry_run,
+    )

@@ -1,0 +1,58 @@
+"""Stage import_waymo: Waymo Open Dataset v2 Parquet or v1 TFRecord -> a FrameSet with boxes
+(dali_cli.importers.waymo; no TensorFlow)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from dali_cli.errors import ParameterError, StageError
+from dali_cli.manifest import StageOutcome, run_stage
+from dali_cli.sensors import get_profile
+
+
+def import_waymo(
+    root: str | Path,
+    out: str | Path,
+    *,
+    fmt: str = "auto",
+    split: str | None = None,
+    every: int = 1,
+    lidars: str = "top",
+    returns: int = 1,
+    segments: str | None = None,
+    sensor: str = "waymo",
+    sensors_path: str | None = None,
+    force: bool = False,
+    dry_run: bool = False,
+) -> StageOutcome:
+    """Import ROOT[/split] (every `every`-th frame of each segment, or of `segments`) into `out`."""
+    from dali_cli.importers.waymo import WaymoFormatError, WaymoSource, build_import
+
+    get_profile(sensor, sensors_path)
+    folder = Path(root) / split if split else Path(root)
+    if not folder.is_dir():
+        raise ParameterError("split", f"{folder}: no such folder")
+    try:
+        source = WaymoSource(folder, fmt, segments.split(",") if segments else None)
+    except WaymoFormatError as error:
+        raise StageError(str(error)) from None
+    params = {"format": source.format, "split": split, "every": every, "lidars": lidars,
+              "returns": returns, "segments": source.segments, "sensor": sensor}  # fmt: skip
+
+    def build(tmp):
+        try:
+            return build_import(
+                tmp, source, returns=returns, lidars=lidars, every=every, sensor=sensor
+            )
+        except WaymoFormatError as error:
+            raise StageError(str(error)) from None
+
+    return run_stage(
+        "import-waymo",
+        out,
+        {"segments": source.input_paths()},
+        params,
+        build,
+        force=force,
+        dry_run=dry_run,
+    )
