@@ -84,7 +84,9 @@ def measure(model_dir, val_dir, sensor: str, quick: bool = False, frames=None) -
                 ids, np.concatenate(boxes), score=np.concatenate(scores).astype(np.float32)
             )
             frame_ids = [frame_id for frame_id, _ in frames]
-            in_range = evaluate(pred, gt, iou=0.7, protocol="range", frame_ids=frame_ids)
+            in_range = evaluate(
+                pred, gt, iou=0.7, protocol="range", frame_ids=frame_ids, front_only=True
+            )  # the experiment's protocol: front region, detection range
             kitti = evaluate(pred, gt, iou=0.7, protocol="kitti", frame_ids=frame_ids)
             points.append(
                 {
