@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
+from toy_scenes import SMALL_NET as SMALL
 from toy_scenes import place_cars, scan, write_toy_dataset
 
 from dali_cli.artifacts import FrameSet
@@ -38,15 +39,6 @@ from dali_cli.detector.targets import (
 from dali_cli.geometry import count_points_in_boxes, iou_3d, point_box_indices
 from dali_cli.sensors import get_profile
 
-SMALL = dict(
-    x_range_m=(0.0, 25.6),
-    y_range_m=(-12.8, 12.8),
-    pfn_channels=16,
-    block_channels=(16, 32, 64),
-    block_layers=(1, 2, 2),
-    up_channels=16,
-    head_channels=32,
-)
 PLACE = dict(x_range_m=(6.0, 22.0), y_range_m=(-9.0, 9.0))
 SCAN = dict(beams=32, points_per_beam=400, azimuth_range_deg=(-60.0, 60.0))
 

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
+from toy_scenes import SMALL_NET
 
 from dali_cli.artifacts import FrameSet, read_boxes
 from dali_cli.cli import main
@@ -25,15 +26,6 @@ from dali_cli.executors.local import LocalExecutor
 from dali_cli.manifest import read_manifest
 
 FRAMES = 6
-SMALL_NET = dict(
-    x_range_m=(0.0, 25.6),
-    y_range_m=(-12.8, 12.8),
-    pfn_channels=16,
-    block_channels=(16, 32, 64),
-    block_layers=(1, 2, 2),
-    up_channels=16,
-    head_channels=32,
-)
 
 
 @pytest.fixture(scope="module")

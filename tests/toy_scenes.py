@@ -11,6 +11,17 @@ import numpy as np
 from dali_cli.artifacts import BoxTable, write_boxes, write_frameset
 from dali_cli.sensors import SensorProfile, spherical_directions
 
+# a small detector configuration (a 25.6 m x 25.6 m grid, narrow layers) for fast tests
+SMALL_NET = dict(
+    x_range_m=(0.0, 25.6),
+    y_range_m=(-12.8, 12.8),
+    pfn_channels=16,
+    block_channels=(16, 32, 64),
+    block_layers=(1, 2, 2),
+    up_channels=16,
+    head_channels=32,
+)
+
 
 def place_cars(
     rng: np.random.Generator,
