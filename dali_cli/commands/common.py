@@ -1,8 +1,38 @@
-"""Options and helpers shared by the stage commands."""
+"""Options and helpers shared by the stage commands: every option two commands share is
+defined here once (the stage switches, --out, --sensors, --device, --executor, the training
+budget, the target-scaling options of ptsn-sweep and pseudo-label), plus small factories for
+the common option kinds (an existing input directory, a choice with a shown default)."""
 
 from __future__ import annotations
 
 import click
+
+INPUT_DIR = click.Path(exists=True, file_okay=False)
+"""An existing directory (a frame set, a model, a library...)."""
+
+
+def input_dir_option(*decls: str, help: str, required: bool = True):
+    """An existing input directory, required unless told otherwise."""
+    return click.option(*decls, type=INPUT_DIR, required=required, help=help)
+
+
+def out_dir_option(help: str = "Output directory.", *decls: str):
+    """--out DIR: the artifact directory a stage writes (atomically)."""
+    return click.option("--out", *decls, type=click.Path(file_okay=False), required=True, help=help)
+
+
+def choice_option(*decls: str, choices: list[str], default: str | None, help: str):
+    """One of `choices`, with the default shown in --help."""
+    return click.option(
+        *decls, type=click.Choice(choices), default=default, show_default=True, help=help
+    )
+
+
+def apply_options(function, options: list):
+    """Decorate `function` with `options` so they list in --help in the given order."""
+    for option in reversed(options):
+        function = option(function)
+    return function
 
 
 def stage_options(function):
@@ -132,3 +162,102 @@ def executor_options(function):
         "into the output's temporary directory (needs pip install -e '.[ray]'). The output "
         "does not depend on it.",
     )(function)
+
+
+def training_options(function):
+    """Budget, optimizer and input options shared by pretrain, retrain and self-train, with
+    --device/--precision, --sensors and the stage switches."""
+    options = [
+        click.option(
+            "--epochs",
+            type=click.FloatRange(min=0, min_open=True),
+            default=10.0,
+            show_default=True,
+            help="Passes over the (source) training frames.",
+        ),
+        click.option(
+            "--minutes",
+            type=click.FloatRange(min=0, min_open=True),
+            default=None,
+            help="Wall-clock training budget instead of --epochs; the learning-rate "
+            "schedule follows the elapsed fraction of the budget.",
+        ),
+        click.option(
+            "--seed",
+            type=int,
+            default=0,
+            show_default=True,
+            help="Seed of initialization, sampling and augmentation.",
+        ),
+        click.option("--batch-size", type=click.IntRange(min=1), default=1, show_default=True),
+        click.option(
+            "--lr",
+            type=click.FloatRange(min=0, min_open=True),
+            default=5e-3,
+            show_default=True,
+            help="Peak learning rate of the one-cycle schedule (AdamW).",
+        ),
+        click.option(
+            "--compile",
+            "compile_net",
+            is_flag=True,
+            help="torch.compile the backbone and heads for training (~1 min cold start; "
+            "pays off only where inductor beats eager convolutions, not on this project's "
+            "AVX2 test machine).",
+        ),
+        click.option(
+            "--threads",
+            type=click.IntRange(min=1),
+            default=None,
+            help="torch threads per process (default: every core this process may use, divided "
+            "by the processes torchrun starts on this machine; recorded in the manifest).",
+        ),
+        click.option(
+            "--no-augment",
+            "no_augment",
+            is_flag=True,
+            help="Disable gt-sampling, flip, rotation, scaling, object noise.",
+        ),
+        click.option("--quiet", is_flag=True, help="No progress bar."),
+    ]
+    return apply_options(function, [device_options, *options, sensors_option, stage_options])
+
+
+def no_progress_option(function):
+    return click.option("--no-progress", is_flag=True, help="No progress bar.")(function)
+
+
+def score_min_option(function):
+    return click.option(
+        "--score-min",
+        type=click.FloatRange(0, 1),
+        default=0.3,
+        show_default=True,
+        help="Box score cut.",
+    )(function)
+
+
+def target_profile_option(function):
+    return click.option(
+        "--target-profile", default=None, help="Target sensor profile (default: the frame set's)."
+    )(function)
+
+
+def target_scaling_options(function):
+    """--mount-height-m, --batch-size and --no-progress of the commands that run the model on
+    the target scaled about the ground (ptsn-sweep, pseudo-label), with --device/--precision,
+    --sensors and the stage switches."""
+    options = [
+        click.option(
+            "--mount-height-m",
+            type=float,
+            default=None,
+            help="Target sensor height above ground for scaling (default: the target profile's).",
+        ),
+        click.option("--batch-size", type=click.IntRange(min=1), default=8, show_default=True),
+        no_progress_option,
+        device_options,
+        sensors_option,
+        stage_options,
+    ]
+    return apply_options(function, options)

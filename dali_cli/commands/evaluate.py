@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from dali_cli.commands.common import (
+    choice_option,
     device_options,
     executor_options,
     stage_options,
@@ -87,18 +88,16 @@ the class (predictions: score >= --size-score-min) and, with --model, "scale").
     show_default=True,
     help="Predictions with at least this score enter the mean predicted size in metrics.json.",
 )
-@click.option(
+@choice_option(
     "--recall-positions",
-    type=click.Choice(["40", "11"]),
+    choices=["40", "11"],
     default="40",
-    show_default=True,
     help="R40 or R11 AP.",
 )
-@click.option(
+@choice_option(
     "--protocol",
-    type=click.Choice(["auto", "kitti", "range", "st3d"]),
+    choices=["auto", "kitti", "range", "st3d"],
     default="auto",
-    show_default=True,
     help="Difficulty filters (see below).",
 )
 @click.option(

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import stage_options
+from dali_cli.commands.common import choice_option, out_dir_option, stage_options
 
 
 @click.group(name="export")
@@ -35,11 +35,10 @@ def _parse_image_size(_ctx, _param, value: str | None) -> tuple[int, int] | None
     required=True,
     help="KITTI root (ROOT/SPLIT/calib or ROOT/calib) or the calib directory itself.",
 )
-@click.option(
+@choice_option(
     "--split",
-    type=click.Choice(["training", "testing"]),
+    choices=["training", "testing"],
     default="training",
-    show_default=True,
     help="Split directory under --calib-root.",
 )
 @click.option(
@@ -71,9 +70,7 @@ def _parse_image_size(_ctx, _param, value: str | None) -> tuple[int, int] | None
 @click.option(
     "--no-score", is_flag=True, help="Write 15-field lines (ground-truth format) without the score."
 )
-@click.option(
-    "--out", "out", type=click.Path(file_okay=False), required=True, help="Output directory."
-)
+@out_dir_option()
 @stage_options
 def kitti_command(
     boxes_dir,
@@ -126,9 +123,7 @@ def kitti_command(
 )
 @click.option("--split", default=None, help="Also write ImageSets/SPLIT.txt listing the frames.")
 @click.option("--score-min", type=float, default=None, help="Write only boxes with score >= this.")
-@click.option(
-    "--out", "out", type=click.Path(file_okay=False), required=True, help="Output directory."
-)
+@out_dir_option()
 @stage_options
 def openpcdet_command(data_dir, boxes_dir, split, score_min, out, force, dry_run):
     """Write the FrameSet DATA_DIR in OpenPCDet's custom format: OUT/points/<frame>.npy

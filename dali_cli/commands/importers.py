@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import import_options
+from dali_cli.commands.common import choice_option, import_options
 
 
 @click.group(name="import")
@@ -35,11 +35,10 @@ def _summary(outcome) -> None:
 
 @command.command(name="kitti", short_help="KITTI velodyne + label_2 + calib.")
 @click.argument("root", type=click.Path(exists=True, file_okay=False))
-@click.option(
+@choice_option(
     "--split",
-    type=click.Choice(["training", "testing"]),
+    choices=["training", "testing"],
     default="training",
-    show_default=True,
     help="Split directory under ROOT (ignored when ROOT itself holds velodyne/).",
 )
 @click.option(
@@ -229,11 +228,10 @@ def openpcdet_command(
     show_default=True,
     help="Keep every K-th frame of each segment (the paper trains on every 5th).",
 )
-@click.option(
+@choice_option(
     "--lidars",
-    type=click.Choice(["top", "all"]),
+    choices=["top", "all"],
     default="top",
-    show_default=True,
     help="Points of the TOP LiDAR only, or of all five.",
 )
 @click.option(

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import stage_options
+from dali_cli.commands.common import out_dir_option, stage_options
 
 
 @click.group(name="library")
@@ -83,9 +83,7 @@ def _parse_range(_ctx, _param, value: str | None) -> tuple[float, float] | None:
     help="Point models: instances with at least this many points in their box.",
 )
 @click.option("--label", default="Car", show_default=True, help="Point models: box label to use.")
-@click.option(
-    "--out", type=click.Path(file_okay=False), required=True, help="Output library directory."
-)
+@out_dir_option("Output library directory.")
 @stage_options
 def build_command(
     cad_dir,

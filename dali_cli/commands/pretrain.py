@@ -6,7 +6,12 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import device_options, sensors_option, stage_options
+from dali_cli.commands.common import (
+    choice_option,
+    input_dir_option,
+    out_dir_option,
+    training_options,
+)
 
 
 def parse_floats(count: int):
@@ -28,66 +33,6 @@ def parse_floats(count: int):
     return callback
 
 
-def training_options(function):
-    """Budget, optimizer and input options shared by pretrain, retrain and self-train."""
-    options = [
-        click.option(
-            "--epochs",
-            type=click.FloatRange(min=0, min_open=True),
-            default=10.0,
-            show_default=True,
-            help="Passes over the (source) training frames.",
-        ),
-        click.option(
-            "--minutes",
-            type=click.FloatRange(min=0, min_open=True),
-            default=None,
-            help="Wall-clock training budget instead of --epochs; the learning-rate "
-            "schedule follows the elapsed fraction of the budget.",
-        ),
-        click.option(
-            "--seed",
-            type=int,
-            default=0,
-            show_default=True,
-            help="Seed of initialization, sampling and augmentation.",
-        ),
-        click.option("--batch-size", type=click.IntRange(min=1), default=1, show_default=True),
-        click.option(
-            "--lr",
-            type=click.FloatRange(min=0, min_open=True),
-            default=5e-3,
-            show_default=True,
-            help="Peak learning rate of the one-cycle schedule (AdamW).",
-        ),
-        click.option(
-            "--compile",
-            "compile_net",
-            is_flag=True,
-            help="torch.compile the backbone and heads for training (~1 min cold start; "
-            "pays off only where inductor beats eager convolutions, not on this project's "
-            "AVX2 test machine).",
-        ),
-        click.option(
-            "--threads",
-            type=click.IntRange(min=1),
-            default=None,
-            help="torch threads per process (default: every core this process may use, divided "
-            "by the processes torchrun starts on this machine; recorded in the manifest).",
-        ),
-        click.option(
-            "--no-augment",
-            "no_augment",
-            is_flag=True,
-            help="Disable gt-sampling, flip, rotation, scaling, object noise.",
-        ),
-        click.option("--quiet", is_flag=True, help="No progress bar."),
-    ]
-    for option in reversed(options):
-        function = option(function)
-    return device_options(function)
-
-
 def read_json_option(path: str | None) -> dict | None:
     """The JSON document of an option's file (None without one); not JSON is a usage error."""
     import json
@@ -101,29 +46,18 @@ def read_json_option(path: str | None) -> dict | None:
 
 
 @click.command(name="pretrain")
-@click.option(
-    "--source",
-    type=click.Path(exists=True, file_okay=False),
-    required=True,
-    help="Labeled source: a FrameSet directory with boxes.parquet.",
-)
+@input_dir_option("--source", help="Labeled source: a FrameSet directory with boxes.parquet.")
 @click.option(
     "--boxes",
     type=click.Path(exists=True),
     default=None,
     help="Labels to train on, if not SOURCE/boxes.parquet.",
 )
-@click.option(
-    "--out",
-    type=click.Path(file_okay=False),
-    required=True,
-    help="Checkpoint directory to write (e.g. RUN/iter0/model).",
-)
-@click.option(
+@out_dir_option("Checkpoint directory to write (e.g. RUN/iter0/model).")
+@choice_option(
     "--size-norm",
-    type=click.Choice(["none", "sn", "ros"]),
+    choices=["none", "sn", "ros"],
     default="none",
-    show_default=True,
     help="sn: shift source box sizes to the target mean (points scaled with them); "
     "ros: random object scaling U(--ros-range) per object, as augmentation.",
 )
@@ -145,11 +79,10 @@ def read_json_option(path: str | None) -> dict | None:
     callback=parse_floats(2),
     help="ROS scale range 'lo,hi'.",
 )
-@click.option(
+@choice_option(
     "--features",
-    type=click.Choice(["xyz", "xyzi"]),
+    choices=["xyz", "xyzi"],
     default="xyz",
-    show_default=True,
     help="Point features fed to the pillar encoder.",
 )
 @click.option(
@@ -169,8 +102,6 @@ def read_json_option(path: str | None) -> dict | None:
     help="Box labels to train on (repeatable).",
 )
 @training_options
-@sensors_option
-@stage_options
 def command(source, boxes, out, size_norm, target_profile, target_size, ros_range, features,
             config_overrides, labels,
             epochs, minutes, seed, batch_size, lr, compile_net, threads, no_augment, quiet,

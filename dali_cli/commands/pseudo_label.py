@@ -5,11 +5,12 @@ from __future__ import annotations
 import click
 
 from dali_cli.commands.common import (
-    device_options,
+    choice_option,
     executor_options,
     model_target_out_options,
-    sensors_option,
-    stage_options,
+    score_min_option,
+    target_profile_option,
+    target_scaling_options,
     workers_option,
 )
 
@@ -28,13 +29,7 @@ from dali_cli.commands.common import (
     default=None,
     help="Use this scale instead (overrides --scale-from's ŝ).",
 )
-@click.option(
-    "--score-min",
-    type=click.FloatRange(0, 1),
-    default=0.3,
-    show_default=True,
-    help="Box score cut.",
-)
+@score_min_option
 @click.option(
     "--nms-iou",
     type=click.FloatRange(0, 1),
@@ -42,31 +37,18 @@ from dali_cli.commands.common import (
     show_default=True,
     help="BEV NMS IoU threshold after de-scaling.",
 )
-@click.option(
-    "--target-profile", default=None, help="Target sensor profile (default: the frame set's)."
-)
-@click.option(
-    "--mount-height-m",
-    type=float,
-    default=None,
-    help="Target sensor height above ground for scaling (default: the target profile's).",
-)
-@click.option("--batch-size", type=click.IntRange(min=1), default=8, show_default=True)
-@click.option(
+@target_profile_option
+@choice_option(
     "--size-correction",
     "size_correction_method",
-    type=click.Choice(["per-dim", "none"]),
+    choices=["per-dim", "none"],
     default="per-dim",
-    show_default=True,
     help="per-dim: multiply l, w, h by E_est / mean pseudo-box size per dimension (bottom face "
     "kept), removing the bias one isotropic ŝ leaves; E_est from --scale-from's scale.json.",
 )
 @workers_option("1")
 @executor_options
-@click.option("--no-progress", is_flag=True, help="No progress bar.")
-@device_options
-@sensors_option
-@stage_options
+@target_scaling_options
 def command(model_dir, target_dir, out, sensors_path, no_progress, **options):
     """Pseudo-label the target: run the model on the target points scaled by ŝ about the ground,
     de-scale the boxes, keep score >= --score-min, BEV NMS at --nms-iou, then (by default)

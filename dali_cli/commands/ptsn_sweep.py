@@ -5,10 +5,11 @@ from __future__ import annotations
 import click
 
 from dali_cli.commands.common import (
-    device_options,
+    choice_option,
     model_target_out_options,
-    sensors_option,
-    stage_options,
+    score_min_option,
+    target_profile_option,
+    target_scaling_options,
 )
 from dali_cli.ptsn import ScaleRange, parse_scale_range
 
@@ -49,11 +50,10 @@ SCALE_RANGE = ScaleRangeType()
     help="E_est: 'sn' (target profile's mean car size, sensors.toml), 'ros' (source mean x mean "
     "ROS factor) or explicit L,W,H in metres.",
 )
-@click.option(
+@choice_option(
     "--search",
-    type=click.Choice(["bracket", "grid"]),
+    choices=["bracket", "grid"],
     default="bracket",
-    show_default=True,
     help="bracket: secant on a frame subsample, confirmed on all frames; grid: every scale.",
 )
 @click.option("--frames", type=click.IntRange(min=1), default=None, help="Use N seeded frames.")
@@ -63,33 +63,24 @@ SCALE_RANGE = ScaleRangeType()
     default=None,
     help="Use this fraction of the frames (seeded).",
 )
-@click.option(
-    "--score-min",
-    type=click.FloatRange(0, 1),
-    default=0.3,
-    show_default=True,
-    help="Box score cut.",
-)
-@click.option(
+@score_min_option
+@choice_option(
     "--no-detections",
-    type=click.Choice(["identity", "error"]),
+    choices=["identity", "error"],
     default="identity",
-    show_default=True,
     help="When no box reaches --score-min at any tried scale: identity = write ŝ = 1 (no size "
     "normalization) with a warning recorded in scale.json and the manifest; error = exit 1.",
 )
-@click.option(
+@choice_option(
     "--mean",
-    type=click.Choice(["per-frame", "pooled"]),
+    choices=["per-frame", "pooled"],
     default="per-frame",
-    show_default=True,
     help="per-frame: mean of per-frame means (paper Eq. 1); pooled: one mean over all boxes.",
 )
-@click.option(
+@choice_option(
     "--match",
-    type=click.Choice(["volume", "lwh"]),
+    choices=["volume", "lwh"],
     default="volume",
-    show_default=True,
     help="Match mean volume (a 1-D root) or l, w, h in the least-squares sense.",
 )
 @click.option(
@@ -116,9 +107,7 @@ SCALE_RANGE = ScaleRangeType()
     show_default=True,
     help="How far the criterion may rise with s and still count as monotone (volume: log ratio).",
 )
-@click.option(
-    "--target-profile", default=None, help="Target sensor profile (default: the frame set's)."
-)
+@target_profile_option
 @click.option("--source-profile", default=None, help="Source profile for --expected-size ros.")
 @click.option(
     "--ros-factor",
@@ -126,18 +115,8 @@ SCALE_RANGE = ScaleRangeType()
     default=None,
     help="Mean ROS factor for --expected-size ros (default: model.json, else 0.875).",
 )
-@click.option(
-    "--mount-height-m",
-    type=float,
-    default=None,
-    help="Target sensor height above ground for scaling (default: the target profile's).",
-)
 @click.option("--plot", is_flag=True, help="Also write sweep.png (mean volume vs scale).")
-@click.option("--batch-size", type=click.IntRange(min=1), default=8, show_default=True)
-@click.option("--no-progress", is_flag=True, help="No progress bar.")
-@device_options
-@sensors_option
-@stage_options
+@target_scaling_options
 def command(model_dir, target_dir, out, scale_range, sensors_path, no_progress, **options):
     """Find the PTSN scale ŝ: the point-cloud scale at which the model's mean predicted car size
     E_pred(s) (boxes de-scaled, score >= --score-min) matches the expected target size E_est.

@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import sensors_option, stage_options
-from dali_cli.commands.pretrain import training_options
+from dali_cli.commands.common import (
+    choice_option,
+    input_dir_option,
+    out_dir_option,
+    training_options,
+)
 
 
 class GreedyOption(click.Option):
@@ -31,18 +35,11 @@ class GreedyOption(click.Option):
 
 
 @click.command(name="retrain")
-@click.option(
+@input_dir_option(
     "--init",
-    type=click.Path(exists=True, file_okay=False),
-    required=True,
     help="Previous model directory (RUN/iterN/model): its config and, by default, weights.",
 )
-@click.option(
-    "--source",
-    type=click.Path(exists=True, file_okay=False),
-    required=True,
-    help="Labeled source FrameSet directory with boxes.parquet.",
-)
+@input_dir_option("--source", help="Labeled source FrameSet directory with boxes.parquet.")
 @click.option(
     "--ppcg",
     cls=GreedyOption,
@@ -51,14 +48,11 @@ class GreedyOption(click.Option):
     type=click.Path(exists=True, file_okay=False),
     help="PPCG frame set directories (each a FrameSet + boxes.parquet): --ppcg RC CF.",
 )
-@click.option(
-    "--out", type=click.Path(file_okay=False), required=True, help="Checkpoint directory to write."
-)
-@click.option(
+@out_dir_option("Checkpoint directory to write.")
+@choice_option(
     "--init-from",
-    type=click.Choice(["previous", "scratch"]),
+    choices=["previous", "scratch"],
     default="previous",
-    show_default=True,
     help="Start from the --init weights (paper) or from a fresh network (the authors' code).",
 )
 @click.option(
@@ -76,8 +70,6 @@ class GreedyOption(click.Option):
     help="Box labels to train on.",
 )
 @training_options
-@sensors_option
-@stage_options
 def command(init, source, ppcg, out, init_from, mix, labels, epochs, minutes, seed, batch_size, lr,
             compile_net, threads, no_augment, quiet, device, precision, sensors_path, force,
             dry_run):  # fmt: skip

@@ -4,32 +4,19 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import sensors_option, stage_options
-from dali_cli.commands.pretrain import training_options
+from dali_cli.commands.common import input_dir_option, out_dir_option, training_options
 
 
 @click.command(name="self-train")
-@click.option(
-    "--init",
-    type=click.Path(exists=True, file_okay=False),
-    required=True,
-    help="Model to fine-tune (e.g. RUN/iter2/model, the final DALI model).",
+@input_dir_option("--init", help="Model to fine-tune (e.g. RUN/iter2/model, the final DALI model).")
+@input_dir_option(
+    "--target", help="Target FrameSet directory (its frames only; its labels are never read)."
 )
-@click.option(
-    "--target",
-    type=click.Path(exists=True, file_okay=False),
-    required=True,
-    help="Target FrameSet directory (its frames only; its labels are never read).",
-)
-@click.option(
+@input_dir_option(
     "--pseudo",
-    type=click.Path(exists=True, file_okay=False),
-    required=True,
     help="Pseudo labels of INIT on TARGET from `dali pseudo-label` (e.g. RUN/iter3/pseudo).",
 )
-@click.option(
-    "--out", type=click.Path(file_okay=False), required=True, help="Checkpoint directory to write."
-)
+@out_dir_option("Checkpoint directory to write.")
 @click.option(
     "--scale",
     type=click.FloatRange(0, min_open=True),
@@ -37,8 +24,6 @@ from dali_cli.commands.pretrain import training_options
     help="Train in the frame scaled by this s (default: the pseudo labels' own PTSN scale ŝ).",
 )
 @training_options
-@sensors_option
-@stage_options
 def command(init, target, pseudo, out, scale, epochs, minutes, seed, batch_size, lr,
             compile_net, threads, no_augment, quiet, device, precision, sensors_path, force,
             dry_run):  # fmt: skip

@@ -6,6 +6,7 @@ import click
 
 from dali_cli.commands.common import (
     executor_options,
+    out_dir_option,
     sensors_option,
     stage_options,
     workers_option,
@@ -41,7 +42,7 @@ from dali_cli.commands.common import (
     show_default=True,
     help="Ray casting threads per worker (embreex releases the GIL). The output does not depend on it.",
 )
-@click.option("--out", required=True, type=click.Path(file_okay=False), help="Output directory.")
+@out_dir_option()
 @sensors_option
 @stage_options
 def command(

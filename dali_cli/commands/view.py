@@ -6,6 +6,8 @@ from pathlib import Path
 
 import click
 
+from dali_cli.commands.common import choice_option
+
 
 def _parse_boxes(value: str) -> tuple[str, Path]:
     """`NAME=DIR` or `DIR` (named after the directory)."""
@@ -41,11 +43,10 @@ def _parse_boxes(value: str) -> tuple[str, Path]:
     default=None,
     help="Show x, y in [-R, R]. Default: fitted to the points and boxes.",
 )
-@click.option(
+@choice_option(
     "--colour-by",
-    type=click.Choice(["z", "intensity"]),
+    choices=["z", "intensity"],
     default="z",
-    show_default=True,
     help="Point colour.",
 )
 @click.option("--annotate", is_flag=True, help="Write each box's score (or label) at its centre.")
