@@ -8,13 +8,77 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
-from dataclasses import asdict
+import time
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from dali_cli import console
 from dali_cli.manifest import BuildResult, StageOutcome, content_hash, run_stage
+
+
+@dataclass(frozen=True)
+class TrainingOptions:
+    """The training budget, optimizer and runtime pretrain, retrain and self-train share
+    (the commands' training options). Exactly one of epochs / minutes is used (minutes wins)."""
+
+    epochs: float = 10.0
+    minutes: float | None = None
+    seed: int = 0
+    batch_size: int = 1
+    lr: float = 5e-3
+    precision: str = "fp32"
+    compile_net: bool = False
+    threads: int | None = None  # None: this process's share of the cores
+    augment: bool = True
+    device: str = "auto"  # auto | cpu | cuda | cuda:N
+    progress: bool = True
+
+    def params(self) -> dict:
+        """The manifest parameters they set (threads, device and progress do not change the
+        model: they are recorded in the manifest's runtime, not here)."""
+        return {
+            "epochs": None if self.minutes else self.epochs,
+            "minutes": self.minutes,
+            "seed": self.seed,
+            "batch_size": self.batch_size,
+            "lr": self.lr,
+            "precision": self.precision,
+            "compile": self.compile_net,
+            "augment": self.augment,
+        }
+
+    def settings(self, **extra):
+        """dali_cli.detector.TrainSettings of these options (`extra`: e.g. mix)."""
+        from dali_cli.detector import TrainSettings
+
+        return TrainSettings(
+            epochs=self.epochs, minutes=self.minutes, batch_size=self.batch_size, lr=self.lr,
+            seed=self.seed, precision=self.precision, compile=self.compile_net,
+            threads=self.threads, device=self.device, **extra,
+        )  # fmt: skip
+
+    def augmentation(self):
+        """The default augmentation, or none when augmentation is off."""
+        from dali_cli.detector import Augmentation
+
+        return Augmentation() if self.augment else Augmentation.none()
+
+
+def seeded_network(config, seed: int, weights=None):
+    """A PillarCenterNet of `config` initialized from torch seed `seed`, then given `weights`
+    (a state dict) when not None (the seeded draw happens either way, as the stages always
+    did, so a run's random stream does not depend on where its weights come from)."""
+    import torch
+
+    from dali_cli.detector import PillarCenterNet
+
+    torch.manual_seed(seed)
+    net = PillarCenterNet(config)
+    if weights is not None:
+        net.load_state_dict(weights)
+    return net
 
 
 def resume_path_for(out: Path) -> Path:
@@ -67,44 +131,55 @@ def attach_database(data, config, augment: bool) -> None:
     )
 
 
+@dataclass
+class PreparedTraining:
+    """What a training stage hands the shared body: the network to train, its data sets with
+    their augmentations (the first one's frames define an epoch), the TrainSettings, and the
+    checkpoint's `meta` (card, provenance, metrics), the manifest's counts and notes."""
+
+    net: object
+    datasets: list
+    augmentations: list
+    settings: object
+    meta: dict
+    counts: dict
+    notes: list[str]
+
+
 def fit_and_save(
-    tmp: Path,
-    net,
-    datasets: list,
-    augmentations: list,
-    settings,
+    tmp: Path | None,
+    job: PreparedTraining,
     resume: Path,
     key: str,
     *,
-    meta: dict,
-    counts: dict,
-    notes: list[str],
     load_s: float,
     progress: bool,
     world=None,
 ) -> BuildResult | None:
-    """The training body pretrain, retrain and self-train share: train `net` on `datasets` on
-    `world` (its device; the ranks of a torchrun run), write model.pt + model.json (`meta` plus
-    the training summary) + train_log.parquet into `tmp`, and return the manifest's counts,
-    timings and runtime (threads, device, world size, CPU/GPU model, torch). A rank other than
-    0 of a distributed run trains with the others and writes nothing (`tmp` None)."""
+    """The training body pretrain, retrain and self-train share: train `job.net` on its data
+    sets on `world` (its device; the ranks of a torchrun run), write model.pt + model.json
+    (`job.meta` plus the training summary) + train_log.parquet into `tmp`, and return the
+    manifest's counts, timings and runtime (threads, device, world size, CPU/GPU model, torch).
+    A rank other than 0 of a distributed run trains with the others and writes nothing (`tmp`
+    None)."""
     from dali_cli.detector import save_checkpoint, train
     from dali_cli.detector.distributed import SINGLE
 
     world = world or SINGLE
     result = train(
-        net, datasets, augmentations, settings, resume, key, progress=progress,
+        job.net, job.datasets, job.augmentations, job.settings, resume, key, progress=progress,
         device=world.device, world=world,
     )  # fmt: skip
     report_ranks(result, world)
     if tmp is None:
         return None
-    save_checkpoint(tmp, net, {**meta, "train": training_summary(result, settings)})
+    save_checkpoint(tmp, job.net, {**job.meta, "train": training_summary(result, job.settings)})
     write_train_log(tmp, result.log)
+    notes = job.notes
     if result.resumed_from_step:
         notes = [*notes, f"resumed from step {result.resumed_from_step}"]
     return BuildResult(
-        counts={**counts, "steps": result.steps, "frames_seen": result.frames},
+        counts={**job.counts, "steps": result.steps, "frames_seen": result.frames},
         timings={"load_seconds": round(load_s, 2), "train_seconds": round(result.seconds, 2)},
         notes=notes,
         extra={"runtime": result.runtime},
@@ -130,16 +205,17 @@ def run_training_stage(
     out: Path,
     inputs: dict,
     params: dict,
-    train_fn,
+    prepare,
     force: bool,
     dry_run: bool,
-    seed: int,
-    device: str = "auto",
+    training: TrainingOptions,
 ) -> StageOutcome:
-    """run_stage around `train_fn(tmp_dir, resume_path, resume_key, world) -> BuildResult`, then
-    drop the resume state once the checkpoint is in place.
+    """run_stage around one training run: `prepare() -> PreparedTraining` loads the data and
+    builds the network (timed as loading), fit_and_save trains it and writes the checkpoint;
+    then the resume state is dropped once the checkpoint is in place. `params` are the stage's own
+    parameters; the training options' are added to them.
 
-    `device` (auto | cpu | cuda | cuda:N) is resolved first: a missing GPU fails before anything
+    `training.device` (auto | cpu | cuda | cuda:N) is resolved first: a missing GPU fails before anything
     is written. Under torchrun (dali_cli.detector.distributed) rank 0 runs the stage as usual and
     tells the other ranks whether to train; they train with it and write nothing, and rank 0
     commits only after every rank finished (a failing rank fails the stage, no artifact)."""
@@ -147,11 +223,22 @@ def run_training_stage(
     from dali_cli.device import resolve_device
 
     world = distributed.launched()
-    torch_device = resolve_device(device, world.local_rank if world.distributed else None)
+    params = {**params, **training.params()}
+    seed = training.seed
+    torch_device = resolve_device(training.device, world.local_rank if world.distributed else None)
     if world.distributed:  # the global batch is batch_size x world size: another training
         params = {**params, "world_size": world.size}
     resume = resume_path_for(out)
     key = None
+
+    def train_fn(tmp: Path | None, resume: Path, key: str | None, world) -> BuildResult | None:
+        started = time.perf_counter()
+        job = prepare()
+        load_s = time.perf_counter() - started
+        return fit_and_save(
+            tmp, job, resume, key, load_s=load_s, progress=training.progress, world=world
+        )
+
     world = distributed.join(world, torch_device)
     started = False
 

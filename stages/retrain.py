@@ -4,15 +4,20 @@ Raw target frames are never read. Same checkpoint format as pretrain."""
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
 
 from dali_cli import console
 from dali_cli.errors import ParameterError, StageError
-from dali_cli.manifest import BuildResult, StageOutcome, content_hash
-from dali_cli.training_stage import attach_database, fit_and_save, run_training_stage
+from dali_cli.manifest import StageOutcome, content_hash
+from dali_cli.training_stage import (
+    PreparedTraining,
+    TrainingOptions,
+    attach_database,
+    run_training_stage,
+    seeded_network,
+)
 
 INIT_FROM = ("previous", "scratch")
 
@@ -75,25 +80,16 @@ def run_retrain(
     ppcg: list[str | Path],
     out: str | Path,
     *,
+    training: TrainingOptions = TrainingOptions(),
     init_from: str = "previous",
     mix: str = "1:1",
-    epochs: float = 10.0,
-    minutes: float | None = None,
-    seed: int = 0,
-    batch_size: int = 1,
-    lr: float = 5e-3,
-    precision: str = "fp32",
-    compile_net: bool = False,
-    threads: int | None = None,
-    augment: bool = True,
     labels: tuple[str, ...] = ("Car",),
     sensors_path: str | Path | None = None,
     force: bool = False,
     dry_run: bool = False,
-    progress: bool = True,
-    device: str = "auto",
 ) -> StageOutcome:
-    """Retrain the detector of `init` on `source` + the PPCG sets `ppcg`; write a checkpoint to `out`.
+    """Retrain the detector of `init` on `source` + the PPCG sets `ppcg` with `training`; write
+    a checkpoint to `out`.
 
     The source keeps the size normalization the initial model was trained with (SN delta or ROS
     range, from its model.json), so source and pseudo labels agree on car sizes.
@@ -107,93 +103,51 @@ def run_retrain(
             "init_from", f"must be one of {', '.join(INIT_FROM)}, got '{init_from}'"
         )
     weights = parse_mix(mix, len(ppcg))
-    params = {
-        "init_from": init_from,
-        "mix": list(weights),
-        "epochs": None if minutes else epochs,
-        "minutes": minutes,
-        "seed": seed,
-        "batch_size": batch_size,
-        "lr": lr,
-        "precision": precision,
-        "compile": compile_net,
-        "augment": augment,
-        "labels": list(labels),
-    }
+    params = {"init_from": init_from, "mix": list(weights), "labels": list(labels)}
     inputs = {"init": init, "source": source, "ppcg": ppcg}
 
-    def train_fn(tmp: Path | None, resume: Path, key: str, world) -> BuildResult | None:
-        import torch
+    def prepare() -> PreparedTraining:
+        from dali_cli.detector import Detector
 
-        from dali_cli.detector import (
-            Augmentation,
-            Detector,
-            PillarCenterNet,
-            TrainSettings,
-            load_labeled,
-            size_normalize,
-        )
-
-        started = time.perf_counter()
         previous = Detector.load(init)
-        config = previous.config
-        card = previous.card
-        load = dict(config=config, labels=labels, sensors_path=sensors_path)
-        source_data = load_labeled(source, **load)
-        source_augmentation = Augmentation() if augment else Augmentation.none()
-        if card.sn_delta_lwh_m is not None:
-            source_data = size_normalize(source_data, np.asarray(card.sn_delta_lwh_m))
-        if card.ros_range is not None:
-            source_augmentation.object_scale = card.ros_range
-        pseudo_sets = [load_labeled(p, **load) for p in ppcg]
-        for path, data in zip(ppcg, pseudo_sets, strict=True):
-            if len(data) == 0:
-                raise StageError(f"{path}: PPCG frame set has no frames")
-        pseudo_sets, mix, skipped = drop_boxless_sets(ppcg, pseudo_sets, weights)
-        for message in skipped:
-            console.warn(message)
+        load = dict(config=previous.config, labels=labels, sensors_path=sensors_path)
+        source_data, source_augmentation = load_source(source, previous.card, load, training)
+        pseudo_sets, mix, skipped = load_ppcg_sets(ppcg, weights, load)
         pooled = len(weights) == 2 and pseudo_sets
         datasets = [source_data, *([pool(pseudo_sets, "ppcg")] if pooled else pseudo_sets)]
         for data in datasets:
-            attach_database(data, config, augment)
-        augmentations = [source_augmentation] + [
-            Augmentation() if augment else Augmentation.none() for _ in datasets[1:]
-        ]
-        load_s = time.perf_counter() - started
-        torch.manual_seed(seed)
-        net = PillarCenterNet(config)
-        if init_from == "previous":
-            net.load_state_dict(previous.net.state_dict())
-        settings = TrainSettings(
-            epochs=epochs, minutes=minutes, batch_size=batch_size, lr=lr, seed=seed,
-            precision=precision, compile=compile_net, threads=threads, device=device, mix=mix,
-        )  # fmt: skip
-        meta = {
-            "card": card.carried_forward("retrain").to_dict(),
-            "provenance": {
-                "stage": "retrain",
-                "init": str(init),
-                "init_hash": content_hash(init),
-                "init_from": init_from,
-                "source": str(source),
-                "source_sensor": source_data.sensor,
-                "ppcg": [str(p) for p in ppcg],
-                "mix": list(weights),
-                "size_norm": card.size_norm,
-                "sn_delta_lwh": None if card.sn_delta_lwh_m is None else list(card.sn_delta_lwh_m),
-                "ros_range": None if card.ros_range is None else list(card.ros_range),
-                "target_profile": card.target_profile,
-                "seed": seed,
-            },
-            "metrics": {
-                "frames": {d.name: len(d) for d in datasets},
-                "boxes": {d.name: d.num_boxes for d in datasets},
-                "mean_lwh_m": {d.name: d.mean_lwh().tolist() for d in datasets},
-            },
+            attach_database(data, previous.config, training.augment)
+        augmentations = [source_augmentation] + [training.augmentation() for _ in datasets[1:]]
+        state = previous.net.state_dict() if init_from == "previous" else None
+        net = seeded_network(previous.config, training.seed, state)
+        card = previous.card
+        provenance = {
+            "stage": "retrain",
+            "init": str(init),
+            "init_hash": content_hash(init),
+            "init_from": init_from,
+            "source": str(source),
+            "source_sensor": source_data.sensor,
+            "ppcg": [str(p) for p in ppcg],
+            "mix": list(weights),
+            "size_norm": card.size_norm,
+            "sn_delta_lwh": None if card.sn_delta_lwh_m is None else list(card.sn_delta_lwh_m),
+            "ros_range": None if card.ros_range is None else list(card.ros_range),
+            "target_profile": card.target_profile,
+            "seed": training.seed,
         }
-        return fit_and_save(
-            tmp, net, datasets, augmentations, settings, resume, key,
-            meta=meta,
+        metrics = {
+            "frames": {d.name: len(d) for d in datasets},
+            "boxes": {d.name: d.num_boxes for d in datasets},
+            "mean_lwh_m": {d.name: d.mean_lwh().tolist() for d in datasets},
+        }
+        return PreparedTraining(
+            net, datasets, augmentations, training.settings(mix=mix),
+            meta={
+                "card": card.carried_forward("retrain").to_dict(),
+                "provenance": provenance,
+                "metrics": metrics,
+            },
             counts={
                 "source_frames": len(source_data),
                 "ppcg_frames": int(sum(len(d) for d in pseudo_sets)),
@@ -203,11 +157,36 @@ def run_retrain(
                 "raw target frames not used: source + PPCG frame sets only",
                 *skipped,
             ],
-            load_s=load_s,
-            progress=progress,
-            world=world,
         )  # fmt: skip
 
-    return run_training_stage(
-        "retrain", out, inputs, params, train_fn, force, dry_run, seed, device
-    )
+    return run_training_stage("retrain", out, inputs, params, prepare, force, dry_run, training)
+
+
+def load_source(source: Path, card, load: dict, training: TrainingOptions):
+    """The labeled source with the initial model's size normalization (SN delta applied to
+    the boxes and their points, or ROS as the augmentation's object scaling); returns
+    (data, augmentation)."""
+    from dali_cli.detector import load_labeled, size_normalize
+
+    data = load_labeled(source, **load)
+    augmentation = training.augmentation()
+    if card.sn_delta_lwh_m is not None:
+        data = size_normalize(data, np.asarray(card.sn_delta_lwh_m))
+    if card.ros_range is not None:
+        augmentation.object_scale = card.ros_range
+    return data, augmentation
+
+
+def load_ppcg_sets(ppcg: list[Path], weights: tuple[int, ...], load: dict):
+    """The PPCG frame sets (an empty one is an error), those without boxes left out with a
+    warning; returns (sets, mix, messages) as drop_boxless_sets."""
+    from dali_cli.detector import load_labeled
+
+    sets = [load_labeled(p, **load) for p in ppcg]
+    for path, data in zip(ppcg, sets, strict=True):
+        if len(data) == 0:
+            raise StageError(f"{path}: PPCG frame set has no frames")
+    sets, mix, skipped = drop_boxless_sets(ppcg, sets, weights)
+    for message in skipped:
+        console.warn(message)
+    return sets, mix, skipped

@@ -13,14 +13,19 @@ would teach it target-sized cars at s = 1, and evaluating that with ŝ would shr
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
 
 from dali_cli.errors import StageError
-from dali_cli.manifest import BuildResult, StageOutcome, check_made_from, content_hash
-from dali_cli.training_stage import attach_database, fit_and_save, run_training_stage
+from dali_cli.manifest import StageOutcome, check_made_from, content_hash
+from dali_cli.training_stage import (
+    PreparedTraining,
+    TrainingOptions,
+    attach_database,
+    run_training_stage,
+    seeded_network,
+)
 
 
 def pseudo_label_scale(pseudo: Path) -> float:
@@ -48,47 +53,25 @@ def run_self_train(
     pseudo: str | Path,
     out: str | Path,
     *,
+    training: TrainingOptions = TrainingOptions(),
     scale: float | None = None,
-    epochs: float = 10.0,
-    minutes: float | None = None,
-    seed: int = 0,
-    batch_size: int = 1,
-    lr: float = 5e-3,
-    precision: str = "fp32",
-    compile_net: bool = False,
-    threads: int | None = None,
-    augment: bool = True,
     sensors_path: str | Path | None = None,
     force: bool = False,
     dry_run: bool = False,
-    progress: bool = True,
-    device: str = "auto",
 ) -> StageOutcome:
     """Fine-tune the model of `init` on `target`'s frames with the boxes of `pseudo` (made from
-    `target`), both scaled by ŝ (default: the pseudo labels' own scale); write to `out`."""
+    `target`), both scaled by ŝ (default: the pseudo labels' own scale), with `training`;
+    write to `out`."""
     init, target, pseudo, out = Path(init), Path(target), Path(pseudo), Path(out)
     check_made_from(pseudo, "target", target)
     train_scale = pseudo_label_scale(pseudo) if scale is None else float(scale)
-    params = {
-        "scale": train_scale,
-        "epochs": None if minutes else epochs,
-        "minutes": minutes,
-        "seed": seed,
-        "batch_size": batch_size,
-        "lr": lr,
-        "precision": precision,
-        "compile": compile_net,
-        "augment": augment,
-    }
+    params = {"scale": train_scale}
     inputs = {"init": init, "target": target, "pseudo": pseudo}
 
-    def train_fn(tmp: Path | None, resume: Path, key: str, world) -> BuildResult | None:
-        import torch
-
+    def prepare() -> PreparedTraining:
         from dali_cli import detector
         from dali_cli.detector.data import scale_about_ground
 
-        started = time.perf_counter()
         previous = detector.Detector.load(init)
         config = previous.config
         # frames from the target, boxes from the pseudo labels: the target's labels stay unread
@@ -96,42 +79,30 @@ def run_self_train(
         if data.num_boxes == 0:
             raise StageError(f"{pseudo}: no pseudo boxes with points to train on")
         data = scale_about_ground(data, train_scale)
-        attach_database(data, config, augment)
-        augmentation = detector.Augmentation() if augment else detector.Augmentation.none()
-        load_s = time.perf_counter() - started
-        torch.manual_seed(seed)
-        net = detector.PillarCenterNet(config)
-        net.load_state_dict(previous.net.state_dict())
-        budget = dict(epochs=epochs, minutes=minutes, batch_size=batch_size, lr=lr)
-        settings = detector.TrainSettings(
-            **budget,
-            seed=seed,
-            precision=precision,
-            compile=compile_net,
-            threads=threads,
-            device=device,
-        )
-        meta = {
-            "card": previous.card.carried_forward("self-train").to_dict(),
-            "provenance": {
-                **previous.meta.get("provenance", {}),
-                "stage": "self_train",
-                "init": str(init),
-                "init_hash": content_hash(init),
-                "target": str(target),
-                "pseudo": str(pseudo),
-                "train_scale": train_scale,
-                "seed": seed,
-            },
-            "metrics": {
-                "frames": len(data),
-                "boxes": data.num_boxes,
-                "scaled_mean_lwh_m": data.mean_lwh().tolist(),
-            },
+        attach_database(data, config, training.augment)
+        net = seeded_network(config, training.seed, previous.net.state_dict())
+        provenance = {
+            **previous.meta.get("provenance", {}),
+            "stage": "self_train",
+            "init": str(init),
+            "init_hash": content_hash(init),
+            "target": str(target),
+            "pseudo": str(pseudo),
+            "train_scale": train_scale,
+            "seed": training.seed,
         }
-        return fit_and_save(
-            tmp, net, [data], [augmentation], settings, resume, key,
-            meta=meta,
+        metrics = {
+            "frames": len(data),
+            "boxes": data.num_boxes,
+            "scaled_mean_lwh_m": data.mean_lwh().tolist(),
+        }
+        return PreparedTraining(
+            net, [data], [training.augmentation()], training.settings(),
+            meta={
+                "card": previous.card.carried_forward("self-train").to_dict(),
+                "provenance": provenance,
+                "metrics": metrics,
+            },
             counts={"target_frames": len(data), "pseudo_boxes": data.num_boxes},
             notes=[
                 f"detector: {net.config.name} (not the paper's SECOND-IoU)",
@@ -139,11 +110,6 @@ def run_self_train(
                 "--scale-from of the sweep that made the pseudo labels",
                 "target labels not read: boxes from the pseudo labels",
             ],
-            load_s=load_s,
-            progress=progress,
-            world=world,
         )  # fmt: skip
 
-    return run_training_stage(
-        "self_train", out, inputs, params, train_fn, force, dry_run, seed, device
-    )
+    return run_training_stage("self_train", out, inputs, params, prepare, force, dry_run, training)

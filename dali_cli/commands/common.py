@@ -261,3 +261,33 @@ def target_scaling_options(function):
         stage_options,
     ]
     return apply_options(function, options)
+
+
+def pop_training(options: dict):
+    """The TrainingOptions of a training command's parsed `options` (training_options), which
+    are removed from `options`; the rest are the stage's own."""
+    from dali_cli.training_stage import TrainingOptions
+
+    return TrainingOptions(
+        epochs=options.pop("epochs"),
+        minutes=options.pop("minutes"),
+        seed=options.pop("seed"),
+        batch_size=options.pop("batch_size"),
+        lr=options.pop("lr"),
+        precision=options.pop("precision"),
+        compile_net=options.pop("compile_net"),
+        threads=options.pop("threads"),
+        augment=not options.pop("no_augment"),
+        device=options.pop("device"),
+        progress=not options.pop("quiet"),
+    )
+
+
+def echo_training(stage: str, outcome, extra: str = "") -> None:
+    """The one line a training command prints after a run: steps and frames seen."""
+    if outcome.status == "ran":
+        counts = (outcome.manifest or {}).get("outputs", {}).get("counts", {})
+        click.echo(
+            f"{stage}: {counts.get('steps')} steps, {counts.get('frames_seen')} frames seen"
+            + (extra.format(**counts) if extra else "")
+        )

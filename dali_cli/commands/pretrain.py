@@ -8,8 +8,10 @@ import click
 
 from dali_cli.commands.common import (
     choice_option,
+    echo_training,
     input_dir_option,
     out_dir_option,
+    pop_training,
     training_options,
 )
 
@@ -102,10 +104,7 @@ def read_json_option(path: str | None) -> dict | None:
     help="Box labels to train on (repeatable).",
 )
 @training_options
-def command(source, boxes, out, size_norm, target_profile, target_size, ros_range, features,
-            config_overrides, labels,
-            epochs, minutes, seed, batch_size, lr, compile_net, threads, no_augment, quiet,
-            device, precision, sensors_path, force, dry_run):  # fmt: skip
+def command(source, out, labels, **options):
     """Train the CPU detector (pillars + CenterPoint heads + IoU score) on a labeled source.
 
     Reads SOURCE/frames.zarr and SOURCE/boxes.parquet (or --boxes). Writes OUT/model.pt (weights),
@@ -119,13 +118,6 @@ def command(source, boxes, out, size_norm, target_profile, target_size, ros_rang
     """
     from stages.pretrain import run_pretrain
 
-    outcome = run_pretrain(
-        source, out, boxes=boxes, size_norm=size_norm, target_profile=target_profile,
-        target_size=target_size, ros_range=ros_range, epochs=epochs, minutes=minutes, seed=seed,
-        batch_size=batch_size, lr=lr, features=features, precision=precision, threads=threads,
-        compile_net=compile_net, augment=not no_augment, labels=tuple(labels), config_overrides=config_overrides,
-        sensors_path=sensors_path, force=force, dry_run=dry_run, progress=not quiet, device=device,
-    )  # fmt: skip
-    if outcome.status == "ran":
-        train = (outcome.manifest or {}).get("outputs", {}).get("counts", {})
-        click.echo(f"pretrain: {train.get('steps')} steps, {train.get('frames_seen')} frames seen")
+    training = pop_training(options)
+    outcome = run_pretrain(source, out, training=training, labels=tuple(labels), **options)
+    echo_training("pretrain", outcome)

@@ -6,8 +6,10 @@ import click
 
 from dali_cli.commands.common import (
     choice_option,
+    echo_training,
     input_dir_option,
     out_dir_option,
+    pop_training,
     training_options,
 )
 
@@ -70,9 +72,7 @@ class GreedyOption(click.Option):
     help="Box labels to train on.",
 )
 @training_options
-def command(init, source, ppcg, out, init_from, mix, labels, epochs, minutes, seed, batch_size, lr,
-            compile_net, threads, no_augment, quiet, device, precision, sensors_path, force,
-            dry_run):  # fmt: skip
+def command(init, source, ppcg, out, labels, **options):
     """Retrain on the labeled source plus PPCG frame sets, alternating source and PPCG batches.
 
     Reads INIT/model.pt + model.json, SOURCE (frames.zarr + boxes.parquet) and each PPCG directory
@@ -83,12 +83,8 @@ def command(init, source, ppcg, out, init_from, mix, labels, epochs, minutes, se
     """
     from stages.retrain import run_retrain
 
+    training = pop_training(options)
     outcome = run_retrain(
-        init, source, list(ppcg), out, init_from=init_from, mix=mix, epochs=epochs, minutes=minutes,
-        seed=seed, batch_size=batch_size, lr=lr, precision=precision, threads=threads,
-        compile_net=compile_net, augment=not no_augment, labels=tuple(labels), sensors_path=sensors_path, force=force,
-        dry_run=dry_run, progress=not quiet, device=device,
-    )  # fmt: skip
-    if outcome.status == "ran":
-        counts = (outcome.manifest or {}).get("outputs", {}).get("counts", {})
-        click.echo(f"retrain: {counts.get('steps')} steps, {counts.get('frames_seen')} frames seen")
+        init, source, list(ppcg), out, training=training, labels=tuple(labels), **options
+    )
+    echo_training("retrain", outcome)

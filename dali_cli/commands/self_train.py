@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import input_dir_option, out_dir_option, training_options
+from dali_cli.commands.common import (
+    echo_training,
+    input_dir_option,
+    out_dir_option,
+    pop_training,
+    training_options,
+)
 
 
 @click.command(name="self-train")
@@ -24,9 +30,7 @@ from dali_cli.commands.common import input_dir_option, out_dir_option, training_
     help="Train in the frame scaled by this s (default: the pseudo labels' own PTSN scale ŝ).",
 )
 @training_options
-def command(init, target, pseudo, out, scale, epochs, minutes, seed, batch_size, lr,
-            compile_net, threads, no_augment, quiet, device, precision, sensors_path, force,
-            dry_run):  # fmt: skip
+def command(init, target, pseudo, out, **options):
     """Self-training (the paper's ‡): fine-tune INIT on the raw TARGET frames with its own pseudo
     labels, both scaled by ŝ about the ground, as the model sees the target at test time.
 
@@ -37,15 +41,6 @@ def command(init, target, pseudo, out, scale, epochs, minutes, seed, batch_size,
     """
     from stages.self_train import run_self_train
 
-    outcome = run_self_train(
-        init, target, pseudo, out, scale=scale, epochs=epochs, minutes=minutes, seed=seed,
-        batch_size=batch_size, lr=lr, precision=precision, compile_net=compile_net,
-        threads=threads, augment=not no_augment, sensors_path=sensors_path, force=force,
-        dry_run=dry_run, progress=not quiet, device=device,
-    )  # fmt: skip
-    if outcome.status == "ran":
-        counts = (outcome.manifest or {}).get("outputs", {}).get("counts", {})
-        click.echo(
-            f"self-train: {counts.get('steps')} steps, {counts.get('frames_seen')} frames seen, "
-            f"{counts.get('pseudo_boxes')} pseudo boxes"
-        )
+    training = pop_training(options)
+    outcome = run_self_train(init, target, pseudo, out, training=training, **options)
+    echo_training("self-train", outcome, ", {pseudo_boxes} pseudo boxes")
