@@ -4,14 +4,14 @@ dali_cli.ppcg.run)."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Unpack
 
 from dali_cli.artifacts import FrameSet
 from dali_cli.errors import ParameterError
 from dali_cli.manifest import StageOutcome
 from dali_cli.ppcg.cf import CfParams
-from dali_cli.ppcg.models import ModelBank
 from dali_cli.ppcg.point_models import angular_threshold_rad
-from dali_cli.ppcg.run import run_ppcg, target_profile
+from dali_cli.ppcg.run import PpcgOptions, run_ppcg, target_profile
 
 
 def ppcg_cf(
@@ -20,43 +20,25 @@ def ppcg_cf(
     library_dir: str | Path,
     out: str | Path,
     *,
-    sensor: str | None = None,
-    sensors_path: str | None = None,
-    models: str | None = None,
     range_m: tuple[float, float] = (20.0, 50.0),
     top_k: int = 1,
     seed: int = 0,
     ground_margin_m: float = 0.1,
-    label: str | None = "Car",
-    workers: int | None = 1,
-    force: bool = False,
-    dry_run: bool = False,
-    progress: bool = True,
-    bank: ModelBank | None = None,
-    executor: str = "local",
-    ray_address: str | None = None,
+    **options: Unpack[PpcgOptions],
 ) -> StageOutcome:
-    """CF pseudo point clouds (see dali_cli.ppcg.cf); `bank` replaces the library (tests)."""
+    """CF pseudo point clouds (see dali_cli.ppcg.cf); `options` as ppcg_rc's."""
     low, high = (float(v) for v in range_m)
     if not 0 < low <= high:
         raise ParameterError("range_m", f"need 0 < LOW <= HIGH, got {low}:{high}")
-    _, profile = target_profile(FrameSet(target_dir), sensor, sensors_path)
-    params = CfParams(
-        theta_rad=angular_threshold_rad(profile.points_per_beam),
-        range_m=(low, high),
-        top_k=top_k,
-        seed=seed,
-        ground_margin_m=ground_margin_m,
+    _, profile = target_profile(
+        FrameSet(target_dir), options.get("sensor"), options.get("sensors_path")
     )
-    stage_params = {
-        "range_m": [low, high],
-        "top_k": top_k,
-        "seed": seed,
-        "ground_margin_m": ground_margin_m,
-    }
+    shared = {"top_k": top_k, "seed": seed, "ground_margin_m": ground_margin_m}
+    params = CfParams(
+        theta_rad=angular_threshold_rad(profile.points_per_beam), range_m=(low, high), **shared
+    )
+    stage_params = {"range_m": [low, high], **shared}
     return run_ppcg(
         "cf", target_dir, boxes_dir, library_dir, out,
-        params=params, stage_params=stage_params, sensor=sensor, sensors_path=sensors_path,
-        models=models, label=label, workers=workers, force=force, dry_run=dry_run,
-        progress=progress, bank=bank, executor=executor, ray_address=ray_address,
+        params=params, stage_params=stage_params, **options,
     )  # fmt: skip

@@ -16,6 +16,7 @@ import dataclasses
 import sys
 import time
 from pathlib import Path
+from typing import TypedDict, Unpack
 
 import numpy as np
 
@@ -118,6 +119,22 @@ def target_profile(frames: FrameSet, sensor: str | None, sensors_path: str | Non
     return name, get_profile(name, sensors_path)
 
 
+class PpcgOptions(TypedDict, total=False):
+    """The keyword arguments ppcg-rc and ppcg-cf share besides their method's parameters."""
+
+    sensor: str | None  # target sensor profile (default: the frame set's)
+    sensors_path: str | None
+    models: str | None  # cad | points (default: cad when the library has meshes)
+    label: str | None  # boxes of this label are processed, the others pass through as raw
+    workers: int | None
+    force: bool
+    dry_run: bool
+    progress: bool
+    bank: ModelBank | None  # replaces the library (tests)
+    executor: str  # local | ray (dali_cli.executors)
+    ray_address: str | None
+
+
 def run_ppcg(
     mode: str,
     target_dir: str | Path,
@@ -127,29 +144,20 @@ def run_ppcg(
     *,
     params: RcParams | CfParams,
     stage_params: dict,
-    sensor: str | None,
-    sensors_path: str | None,
-    models: str | None,
-    label: str | None,
-    workers: int | None,
-    force: bool,
-    dry_run: bool,
-    progress: bool,
-    bank: ModelBank | None = None,
-    executor: str = "local",
-    ray_address: str | None = None,
+    **options: Unpack[PpcgOptions],
 ) -> StageOutcome:
     """The shared body of ppcg-rc and ppcg-cf (mode "rc" or "cf"); `executor`, `workers`,
     `ray_address`: the engine of the per-frame work (dali_cli.executors)."""
-    engine = make_executor(executor, workers, ray_address)
+    sensor, sensors_path = options.get("sensor"), options.get("sensors_path")
+    label, bank = options.get("label", "Car"), options.get("bank")
+    engine = make_executor(
+        options.get("executor", "local"), options.get("workers", 1), options.get("ray_address")
+    )
     target_dir, boxes_dir, library_dir = Path(target_dir), Path(boxes_dir), Path(library_dir)
     frames = FrameSet(target_dir)
     check_made_from(boxes_dir, "target", target_dir)  # pseudo boxes of this very frame set
     sensor, profile = target_profile(frames, sensor, sensors_path)
-    if bank is not None:
-        models = bank.kind
-    elif models is None:
-        models = "cad" if library_mesh_count(library_dir) else "points"
+    models = model_kind(bank, options.get("models"), library_dir)
     params_record = {
         **stage_params,
         "sensor": sensor,
@@ -165,117 +173,38 @@ def run_ppcg(
         return run_on(engine, f"ppcg-{mode}", lambda pool: build_on(pool, directory))
 
     def build_on(pool, directory: Path) -> BuildResult:
-        from tqdm import tqdm
-
-        nonlocal bank
-        if bank is None and pool.serial:  # loaded only when the stage runs in this process
-            from dali_cli.library import read_library
-
-            try:
-                bank = ModelBank.from_library(read_library(library_dir), models, str(library_dir))
-            except ValueError as error:
-                raise StageError(str(error)) from None
-        table = read_boxes(boxes_dir)
-        boxes_path = boxes_dir / "boxes.parquet" if boxes_dir.is_dir() else boxes_dir
-        table, implausible, implausible_note = drop_implausible(
-            table, label, profile.max_range_m, boxes_path
+        local_bank = bank
+        if local_bank is None and pool.serial:  # loaded only when the stage runs in this process
+            local_bank = load_bank(library_dir, models)
+        table, implausible_note, implausible = read_ppcg_boxes(
+            boxes_dir, label, profile.max_range_m
         )
-        if implausible_note:
-            console.warn(implausible_note)
+        boxes_path = boxes_dir / "boxes.parquet" if boxes_dir.is_dir() else boxes_dir
         rows, frame_boxes = boxes_by_frame(table, frames, label, boxes_path)
-        count = len(table)
-        ppcg = np.full(count, "raw", dtype=object)
-        reason = np.full(count, "label", dtype=object)
-        before = np.zeros(count, np.int32)
-        after = np.zeros(count, np.int32)
-        model_id = np.full(count, "", dtype=object)
-        num_points = np.asarray(table["num_points"], np.int32).copy()
-        seconds = np.zeros(len(frames))
-        read_seconds = write_seconds = 0.0
         attrs = {k: v for k, v in frames.attrs.items() if k not in ("count", "frame_convention")}
         attrs.update({"sensor": frames.sensor or sensor, "ppcg": mode, "ppcg_models": models})
-        points_in = points_out = 0
-        started, started_cpu = time.perf_counter(), time.process_time()
-        bar = tqdm(
-            total=len(frames), desc=f"ppcg-{mode}", unit="frame", file=sys.stderr,
-            disable=not progress, leave=False,
+        outcomes = BoxOutcomes.start(table)
+        tally = write_frames(
+            directory, attrs, frames, rows,
+            lambda: run_frames(job, frame_boxes, pool, local_bank, directory),
+            outcomes, mode, options.get("progress", True),
         )  # fmt: skip
-        # raw chunks: zstd saves ~8% on LiDAR coordinates at about the cost of the whole RC step
-        with FrameSetWriter(directory, attrs.pop("sensor"), attrs, compress=False) as writer:
-            results = run_frames(job, frame_boxes, pool, bank, directory)
-            for index, result in enumerate(results):
-                frame_rows = rows[index]
-                write_started = time.perf_counter()
-                writer.append(result.frame_id, result.points)
-                write_seconds += time.perf_counter() - write_started
-                read_seconds += result.read_seconds
-                records = result.records
-                ppcg[frame_rows] = records.ppcg
-                reason[frame_rows] = records.reason
-                before[frame_rows] = records.points_before
-                after[frame_rows] = records.points_after
-                model_id[frame_rows] = records.model_id
-                num_points[frame_rows] = records.ground_points + records.points_after
-                seconds[index] = result.seconds
-                points_in += int(frames.offsets[index + 1] - frames.offsets[index])
-                points_out += len(result.points)
-                bar.update(1)
-            close_started = time.perf_counter()
-        write_seconds += time.perf_counter() - close_started  # the last chunk and the index
-        bar.close()
-        wall, cpu = time.perf_counter() - started, time.process_time() - started_cpu
-        table = table.with_columns(
-            ppcg=ppcg,
-            ppcg_reason=reason,
-            points_before=before,
-            points_after=after,
-            model_id=model_id,
-            num_points=num_points,
-        )
-        write_boxes(directory, table)
-        processed = reason != "label"
-        counts = {
-            "frames": len(frames),
-            "frames_with_boxes": int(sum(len(r) > 0 for r in rows)),
-            "frames_without_boxes": int(sum(len(r) == 0 for r in rows)),
-            "boxes": int(processed.sum()),
-            "boxes_other_label": int((~processed).sum()),
-            f"boxes_{mode}": int((ppcg == mode).sum()),
-            "skipped_dense": int((reason == "dense").sum()),
-            "skipped_too_few_points": int((reason == "too_few_points").sum()),
-            "skipped_no_hits": int((reason == "no_hits").sum()),
-            "dropped_implausible": implausible,
-            "points_in": points_in,
-            "points_out": points_out,
-        }
-        busy = seconds[[len(r) > 0 for r in rows]] if len(rows) else seconds
-        timings = {
-            "frames_seconds": round(wall, 4),
-            "seconds_per_frame": round(wall / max(len(frames), 1), 6),
-            "frames_cpu_seconds": round(cpu, 4),  # all threads of this process (zarr I/O too)
-            "cpu_seconds_per_frame": round(cpu / max(len(frames), 1), 6),
-            "read_seconds_per_frame": round(read_seconds / max(len(frames), 1), 6),
-            "compute_seconds_per_frame": round(float(seconds.sum()) / max(len(frames), 1), 6),
-            "write_seconds_per_frame": round(write_seconds / max(len(frames), 1), 6),
-            "compute_seconds_per_frame_with_boxes": {
-                "mean": round(float(busy.mean()), 6) if len(busy) else None,
-                "median": round(float(np.median(busy)), 6) if len(busy) else None,
-                "p95": round(float(np.percentile(busy, 95)), 6) if len(busy) else None,
-                "max": round(float(busy.max()), 6) if len(busy) else None,
-            },
-        }
+        write_boxes(directory, outcomes.table(table))
+        counts = ppcg_counts(mode, frames, rows, outcomes, implausible, tally)
+        timings = ppcg_timings(frames, rows, tally)
         console.echo(
             f"ppcg-{mode}: {counts[f'boxes_{mode}']}/{counts['boxes']} boxes replaced on "
             f"{counts['frames_with_boxes']} of {len(frames)} frames; skipped: "
             f"{counts['skipped_dense']} dense, {counts['skipped_too_few_points']} too few points, "
-            f"{counts['skipped_no_hits']} no hits; {wall / max(len(frames), 1) * 1e3:.1f} ms/frame"
+            f"{counts['skipped_no_hits']} no hits; "
+            f"{tally.wall / max(len(frames), 1) * 1e3:.1f} ms/frame"
         )
         return BuildResult(
             counts=counts,
             timings=timings,
             notes=[*NOTES, *([implausible_note] if implausible_note else [])],
             extra={
-                "per_frame_compute_seconds": [round(float(s), 6) for s in seconds],
+                "per_frame_compute_seconds": [round(float(s), 6) for s in tally.seconds],
                 "executor": pool.report(),
             },
         )
@@ -286,7 +215,189 @@ def run_ppcg(
         inputs=inputs,
         params=params_record,
         build=build,
-        force=force,
-        dry_run=dry_run,
+        force=options.get("force", False),
+        dry_run=options.get("dry_run", False),
         seed=stage_params.get("seed"),
     )
+
+
+def model_kind(bank: ModelBank | None, models: str | None, library_dir: Path) -> str:
+    """The kind of models fitted: the bank's, else `models`, else cad when the library has
+    meshes and points when it has none."""
+    if bank is not None:
+        return bank.kind
+    if models is None:
+        return "cad" if library_mesh_count(library_dir) else "points"
+    return models
+
+
+def load_bank(library_dir: Path, models: str) -> ModelBank:
+    """The library's models of kind `models`, ready to fit (a bad library is a StageError)."""
+    from dali_cli.library import read_library
+
+    try:
+        return ModelBank.from_library(read_library(library_dir), models, str(library_dir))
+    except ValueError as error:
+        raise StageError(str(error)) from None
+
+
+def read_ppcg_boxes(boxes_dir: Path, label: str | None, max_range_m: float):
+    """The box table to process, implausible boxes of `label` dropped with a warning; returns
+    (table, the note naming the first dropped box or None, the dropped count)."""
+    table = read_boxes(boxes_dir)
+    boxes_path = boxes_dir / "boxes.parquet" if boxes_dir.is_dir() else boxes_dir
+    table, implausible, implausible_note = drop_implausible(table, label, max_range_m, boxes_path)
+    if implausible_note:
+        console.warn(implausible_note)
+    return table, implausible_note, implausible
+
+
+@dataclasses.dataclass
+class BoxOutcomes:
+    """Per row of the box table `(n,)`: its PPCG outcome (rc | cf | raw), the reason, the
+    points above its ground before / after, the fitted model and the box's new point count."""
+
+    ppcg: np.ndarray
+    reason: np.ndarray
+    before: np.ndarray
+    after: np.ndarray
+    model_id: np.ndarray
+    num_points: np.ndarray
+
+    @classmethod
+    def start(cls, table: BoxTable) -> BoxOutcomes:
+        """Every row raw (reason label) until its frame's result says otherwise."""
+        count = len(table)
+        return cls(
+            ppcg=np.full(count, "raw", dtype=object),
+            reason=np.full(count, "label", dtype=object),
+            before=np.zeros(count, np.int32),
+            after=np.zeros(count, np.int32),
+            model_id=np.full(count, "", dtype=object),
+            num_points=np.asarray(table["num_points"], np.int32).copy(),
+        )
+
+    def record(self, frame_rows: np.ndarray, records) -> None:
+        """The outcomes of one frame's processed rows (driver records, row order)."""
+        self.ppcg[frame_rows] = records.ppcg
+        self.reason[frame_rows] = records.reason
+        self.before[frame_rows] = records.points_before
+        self.after[frame_rows] = records.points_after
+        self.model_id[frame_rows] = records.model_id
+        self.num_points[frame_rows] = records.ground_points + records.points_after
+
+    def table(self, table: BoxTable) -> BoxTable:
+        """`table` with the outcome columns (boxes.parquet of the output)."""
+        return table.with_columns(
+            ppcg=self.ppcg,
+            ppcg_reason=self.reason,
+            points_before=self.before,
+            points_after=self.after,
+            model_id=self.model_id,
+            num_points=self.num_points,
+        )
+
+
+@dataclasses.dataclass
+class FrameTally:
+    """What writing the frames measured: per-frame compute seconds `(frames,)`, points in and
+    out, and the wall, CPU, read and write seconds of the whole loop."""
+
+    seconds: np.ndarray
+    points_in: int = 0
+    points_out: int = 0
+    wall: float = 0.0
+    cpu: float = 0.0
+    read_seconds: float = 0.0
+    write_seconds: float = 0.0
+
+
+def write_frames(
+    directory: Path,
+    attrs: dict,
+    frames: FrameSet,
+    rows: list[np.ndarray],
+    run,
+    outcomes: BoxOutcomes,
+    mode: str,
+    progress: bool,
+) -> FrameTally:
+    """Write each frame's result of `run()` (the per-frame results in frame order, started once
+    the output's frame writer is open) into directory/frames.zarr and record its boxes'
+    outcomes; returns the loop's tally."""
+    from tqdm import tqdm
+
+    tally = FrameTally(seconds=np.zeros(len(frames)))
+    started, started_cpu = time.perf_counter(), time.process_time()
+    bar = tqdm(
+        total=len(frames), desc=f"ppcg-{mode}", unit="frame", file=sys.stderr,
+        disable=not progress, leave=False,
+    )  # fmt: skip
+    # raw chunks: zstd saves ~8% on LiDAR coordinates at about the cost of the whole RC step
+    with FrameSetWriter(directory, attrs.pop("sensor"), attrs, compress=False) as writer:
+        for index, result in enumerate(run()):
+            write_started = time.perf_counter()
+            writer.append(result.frame_id, result.points)
+            tally.write_seconds += time.perf_counter() - write_started
+            tally.read_seconds += result.read_seconds
+            outcomes.record(rows[index], result.records)
+            tally.seconds[index] = result.seconds
+            tally.points_in += int(frames.offsets[index + 1] - frames.offsets[index])
+            tally.points_out += len(result.points)
+            bar.update(1)
+        close_started = time.perf_counter()
+    tally.write_seconds += time.perf_counter() - close_started  # the last chunk and the index
+    bar.close()
+    tally.wall, tally.cpu = time.perf_counter() - started, time.process_time() - started_cpu
+    return tally
+
+
+def ppcg_counts(
+    mode: str,
+    frames: FrameSet,
+    rows: list[np.ndarray],
+    outcomes: BoxOutcomes,
+    implausible: int,
+    tally: FrameTally,
+) -> dict:
+    """The manifest's counts: frames with / without boxes, boxes processed and skipped by
+    reason, points in and out."""
+    processed = outcomes.reason != "label"
+    reason = outcomes.reason
+    return {
+        "frames": len(frames),
+        "frames_with_boxes": int(sum(len(r) > 0 for r in rows)),
+        "frames_without_boxes": int(sum(len(r) == 0 for r in rows)),
+        "boxes": int(processed.sum()),
+        "boxes_other_label": int((~processed).sum()),
+        f"boxes_{mode}": int((outcomes.ppcg == mode).sum()),
+        "skipped_dense": int((reason == "dense").sum()),
+        "skipped_too_few_points": int((reason == "too_few_points").sum()),
+        "skipped_no_hits": int((reason == "no_hits").sum()),
+        "dropped_implausible": implausible,
+        "points_in": tally.points_in,
+        "points_out": tally.points_out,
+    }
+
+
+def ppcg_timings(frames: FrameSet, rows: list[np.ndarray], tally: FrameTally) -> dict:
+    """The manifest's timings: per frame (wall, CPU, read, compute, write) and the compute
+    time of the frames with boxes (mean, median, p95, max)."""
+    count = max(len(frames), 1)
+    seconds = tally.seconds
+    busy = seconds[[len(r) > 0 for r in rows]] if len(rows) else seconds
+    return {
+        "frames_seconds": round(tally.wall, 4),
+        "seconds_per_frame": round(tally.wall / count, 6),
+        "frames_cpu_seconds": round(tally.cpu, 4),  # all threads of this process (zarr I/O too)
+        "cpu_seconds_per_frame": round(tally.cpu / count, 6),
+        "read_seconds_per_frame": round(tally.read_seconds / count, 6),
+        "compute_seconds_per_frame": round(float(seconds.sum()) / count, 6),
+        "write_seconds_per_frame": round(tally.write_seconds / count, 6),
+        "compute_seconds_per_frame_with_boxes": {
+            "mean": round(float(busy.mean()), 6) if len(busy) else None,
+            "median": round(float(np.median(busy)), 6) if len(busy) else None,
+            "p95": round(float(np.percentile(busy, 95)), 6) if len(busy) else None,
+            "max": round(float(busy.max()), 6) if len(busy) else None,
+        },
+    }
