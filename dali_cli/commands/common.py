@@ -283,8 +283,11 @@ def pop_training(options: dict):
     )
 
 
-def echo_training(stage: str, outcome, extra: str = "") -> None:
-    """The one line a training command prints after a run: steps and frames seen."""
+def run_training_command(stage: str, run, *args, extra: str = "", **options) -> None:
+    """Run a training stage function `run(*args, training=..., **rest)` from a command's parsed
+    options and print its one line: steps and frames seen (+ `extra`, formatted with the
+    manifest's counts)."""
+    outcome = run(*args, training=pop_training(options), **options)
     if outcome.status == "ran":
         counts = (outcome.manifest or {}).get("outputs", {}).get("counts", {})
         click.echo(

@@ -8,10 +8,9 @@ import click
 
 from dali_cli.commands.common import (
     choice_option,
-    echo_training,
     input_dir_option,
     out_dir_option,
-    pop_training,
+    run_training_command,
     training_options,
 )
 
@@ -118,6 +117,4 @@ def command(source, out, labels, **options):
     """
     from stages.pretrain import run_pretrain
 
-    training = pop_training(options)
-    outcome = run_pretrain(source, out, training=training, labels=tuple(labels), **options)
-    echo_training("pretrain", outcome)
+    run_training_command("pretrain", run_pretrain, source, out, labels=tuple(labels), **options)

@@ -6,10 +6,9 @@ import click
 
 from dali_cli.commands.common import (
     choice_option,
-    echo_training,
     input_dir_option,
     out_dir_option,
-    pop_training,
+    run_training_command,
     training_options,
 )
 
@@ -83,8 +82,6 @@ def command(init, source, ppcg, out, labels, **options):
     """
     from stages.retrain import run_retrain
 
-    training = pop_training(options)
-    outcome = run_retrain(
-        init, source, list(ppcg), out, training=training, labels=tuple(labels), **options
+    run_training_command(
+        "retrain", run_retrain, init, source, list(ppcg), out, labels=tuple(labels), **options
     )
-    echo_training("retrain", outcome)

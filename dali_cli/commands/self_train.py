@@ -5,10 +5,9 @@ from __future__ import annotations
 import click
 
 from dali_cli.commands.common import (
-    echo_training,
     input_dir_option,
     out_dir_option,
-    pop_training,
+    run_training_command,
     training_options,
 )
 
@@ -41,6 +40,7 @@ def command(init, target, pseudo, out, **options):
     """
     from stages.self_train import run_self_train
 
-    training = pop_training(options)
-    outcome = run_self_train(init, target, pseudo, out, training=training, **options)
-    echo_training("self-train", outcome, ", {pseudo_boxes} pseudo boxes")
+    run_training_command(
+        "self-train", run_self_train, init, target, pseudo, out,
+        extra=", {pseudo_boxes} pseudo boxes", **options,
+    )  # fmt: skip

@@ -300,16 +300,21 @@ class BoxOutcomes:
 
 @dataclasses.dataclass
 class FrameTally:
-    """What writing the frames measured: per-frame compute seconds `(frames,)`, points in and
-    out, and the wall, CPU, read and write seconds of the whole loop."""
+    """What writing the frames measured."""
 
     seconds: np.ndarray
-    points_in: int = 0
-    points_out: int = 0
-    wall: float = 0.0
-    cpu: float = 0.0
-    read_seconds: float = 0.0
-    write_seconds: float = 0.0
+    """compute seconds per frame `(frames,)`"""
+    points_in: int
+    points_out: int
+    """seconds of the whole loop: wall clock, CPU (all threads of this process), read, write"""
+    wall: float
+    cpu: float
+    read_seconds: float
+    write_seconds: float
+
+    @classmethod
+    def start(cls, frames: int) -> FrameTally:
+        return cls(np.zeros(frames), 0, 0, 0.0, 0.0, 0.0, 0.0)
 
 
 def write_frames(
@@ -327,7 +332,7 @@ def write_frames(
     outcomes; returns the loop's tally."""
     from tqdm import tqdm
 
-    tally = FrameTally(seconds=np.zeros(len(frames)))
+    tally = FrameTally.start(len(frames))
     started, started_cpu = time.perf_counter(), time.process_time()
     bar = tqdm(
         total=len(frames), desc=f"ppcg-{mode}", unit="frame", file=sys.stderr,
