@@ -42,94 +42,42 @@ the class (predictions: score >= --size-score-min) and, with --model, "scale").
 
 
 @click.command(name="eval", epilog=EPILOG)
-@click.option(
-    "--pred",
-    "pred_path",
-    type=click.Path(exists=True, path_type=Path),
-    help="Predictions (box table or label_2 dir).",
-)
-@click.option(
-    "--gt",
-    "gt_path",
-    type=click.Path(exists=True, path_type=Path),
-    help="Ground truth (box table or label_2 dir).",
-)
-@click.option(
-    "--model",
-    type=click.Path(exists=True, file_okay=False),
-    help="Detector checkpoint dir: predict first.",
-)
-@click.option(
-    "--data",
-    type=click.Path(exists=True, file_okay=False),
-    help="Frame set to run --model on (its boxes.parquet is the default --gt).",
-)
-@click.option(
-    "--scale", type=float, default=None, help="PTSN scale for --model inference (default 1)."
-)
-@click.option(
-    "--scale-from",
-    type=click.Path(exists=True, file_okay=False),
-    help="Read the scale from PTSN_DIR/scale.json.",
-)
-@click.option(
-    "--iou",
-    "ious",
-    type=float,
-    multiple=True,
-    default=(0.7,),
-    show_default=True,
-    help="IoU threshold (a match needs IoU > this); repeat for several (--iou 0.7 --iou 0.5).",
-)
-@click.option(
-    "--size-score-min",
-    type=click.FloatRange(0.0, 1.0),
-    default=0.3,
-    show_default=True,
-    help="Predictions with at least this score enter the mean predicted size in metrics.json.",
-)
-@choice_option(
-    "--recall-positions",
-    choices=["40", "11"],
-    default="40",
-    help="R40 or R11 AP.",
-)
-@choice_option(
-    "--protocol",
-    choices=["auto", "kitti", "range", "st3d"],
-    default="auto",
-    help="Difficulty filters (see below).",
-)
-@click.option(
-    "--front-only",
-    "--crop-predictions",
-    "front_only",
-    is_flag=True,
-    help="Keep only ground truth and predictions centred in the front 90 deg FOV and the detection "
-    "range (x 0..70.4, |y| <= 40 m), as on KITTI's FOV-cropped clouds; for 360-degree frames "
-    "such as dali synth's.",
-)
+@click.option("--pred", "pred_path", type=click.Path(exists=True, path_type=Path),
+              help="Predictions (box table or label_2 dir).")  # fmt: skip
+@click.option("--gt", "gt_path", type=click.Path(exists=True, path_type=Path),
+              help="Ground truth (box table or label_2 dir).")  # fmt: skip
+@click.option("--model", type=click.Path(exists=True, file_okay=False),
+              help="Detector checkpoint dir: predict first.")  # fmt: skip
+@click.option("--data", type=click.Path(exists=True, file_okay=False),
+              help="Frame set to run --model on (its boxes.parquet is the default --gt).")  # fmt: skip
+@click.option("--scale", type=float, default=None,
+              help="PTSN scale for --model inference (default 1).")  # fmt: skip
+@click.option("--scale-from", type=click.Path(exists=True, file_okay=False),
+              help="Read the scale from PTSN_DIR/scale.json.")  # fmt: skip
+@click.option("--iou", "ious", type=float, multiple=True, default=(0.7,), show_default=True,
+              help="IoU threshold (a match needs IoU > this); repeat for several (--iou 0.7 "
+                   "--iou 0.5).")  # fmt: skip
+@click.option("--size-score-min", type=click.FloatRange(0.0, 1.0), default=0.3, show_default=True,
+              help="Predictions with at least this score enter the mean predicted size in "
+                   "metrics.json.")  # fmt: skip
+@choice_option("--recall-positions", choices=["40", "11"], default="40", help="R40 or R11 AP.")  # fmt: skip
+@choice_option("--protocol", choices=["auto", "kitti", "range", "st3d"], default="auto",
+               help="Difficulty filters (see below).")  # fmt: skip
+@click.option("--front-only", "--crop-predictions", "front_only", is_flag=True,
+              help="Keep only ground truth and predictions centred in the front 90 deg FOV and "
+                   "the detection range (x 0..70.4, |y| <= 40 m), as on KITTI's FOV-cropped "
+                   "clouds; for 360-degree frames such as dali synth's.")  # fmt: skip
 @click.option("--class", "class_name", default="Car", show_default=True, help="Class to evaluate.")
-@click.option(
-    "--min-gt-points",
-    type=click.IntRange(min=0),
-    default=0,
-    show_default=True,
-    help="Ignore ground-truth boxes with fewer points (needs num_points).",
-)
-@click.option(
-    "--out",
-    type=click.Path(path_type=Path),
-    help="A metrics file (FILE.json), or an artifact directory (any other path): DIR/metrics.json, "
-    "DIR/predictions.parquet and DIR/manifest.json, skipped when up to date (what make uses).",
-)
-@click.option(
-    "--save-predictions/--no-save-predictions",
-    default=True,
-    show_default=True,
-    help="With --model and --out: also write the predictions (all scores) as "
-    "predictions.parquet beside metrics.json (read by `dali report` for size plots).",
-)
+@click.option("--min-gt-points", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Ignore ground-truth boxes with fewer points (needs num_points).")  # fmt: skip
+@click.option("--out", type=click.Path(path_type=Path),
+              help="A metrics file (FILE.json), or an artifact directory (any other path): "
+                   "DIR/metrics.json, DIR/predictions.parquet and DIR/manifest.json, skipped "
+                   "when up to date (what make uses).")  # fmt: skip
+@click.option("--save-predictions/--no-save-predictions", default=True, show_default=True,
+              help="With --model and --out: also write the predictions (all scores) as "
+                   "predictions.parquet beside metrics.json (read by `dali report` for size "
+                   "plots).")  # fmt: skip
 @device_options
 @workers_option("1")
 @executor_options

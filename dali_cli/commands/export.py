@@ -29,47 +29,27 @@ def _parse_image_size(_ctx, _param, value: str | None) -> tuple[int, int] | None
 
 @command.command(name="kitti", short_help="KITTI label_2 files (LiDAR -> camera through calib).")
 @click.argument("boxes_dir", type=click.Path(exists=True))
-@click.option(
-    "--calib-root",
-    type=click.Path(exists=True, file_okay=False),
-    required=True,
-    help="KITTI root (ROOT/SPLIT/calib or ROOT/calib) or the calib directory itself.",
-)
-@choice_option(
-    "--split",
-    choices=["training", "testing"],
-    default="training",
-    help="Split directory under --calib-root.",
-)
-@click.option(
-    "--frames",
-    "frames_dir",
-    type=click.Path(exists=True, file_okay=False),
-    default=None,
-    help="FrameSet whose frames all get a file (frames without boxes an empty one). "
-    "Default: BOXES_DIR when it holds frames.zarr, else the frames of the box table.",
-)
-@click.option(
-    "--image-size",
-    default=None,
-    callback=_parse_image_size,
-    help="WIDTHxHEIGHT for clipping 2D boxes. Default: each frame's image_2 PNG, else 1242x375.",
-)
+@click.option("--calib-root", type=click.Path(exists=True, file_okay=False), required=True,
+              help="KITTI root (ROOT/SPLIT/calib or ROOT/calib) or the calib directory itself.")  # fmt: skip
+@choice_option("--split", choices=["training", "testing"], default="training",
+               help="Split directory under --calib-root.")  # fmt: skip
+@click.option("--frames", "frames_dir", type=click.Path(exists=True, file_okay=False),
+              default=None,
+              help="FrameSet whose frames all get a file (frames without boxes an empty one). "
+                   "Default: BOXES_DIR when it holds frames.zarr, else the frames of the box "
+                   "table.")  # fmt: skip
+@click.option("--image-size", default=None, callback=_parse_image_size,
+              help="WIDTHxHEIGHT for clipping 2D boxes. Default: each frame's image_2 PNG, else "
+                   "1242x375.")  # fmt: skip
 @click.option("--score-min", type=float, default=None, help="Export only boxes with score >= this.")
-@click.option(
-    "--keep-outside",
-    is_flag=True,
-    help="Also write boxes behind the camera or outside the image (default: left out, counted).",
-)
-@click.option(
-    "--project-bbox",
-    is_flag=True,
-    help="Always compute alpha and the 2D box from the 3D box, even when the table has the "
-    "KITTI label columns (an imported label set).",
-)
-@click.option(
-    "--no-score", is_flag=True, help="Write 15-field lines (ground-truth format) without the score."
-)
+@click.option("--keep-outside", is_flag=True,
+              help="Also write boxes behind the camera or outside the image (default: left out, "
+                   "counted).")  # fmt: skip
+@click.option("--project-bbox", is_flag=True,
+              help="Always compute alpha and the 2D box from the 3D box, even when the table has "
+                   "the KITTI label columns (an imported label set).")  # fmt: skip
+@click.option("--no-score", is_flag=True,
+              help="Write 15-field lines (ground-truth format) without the score.")  # fmt: skip
 @out_dir_option()
 @stage_options
 def kitti_command(
@@ -114,13 +94,8 @@ def kitti_command(
     name="openpcdet", short_help="OpenPCDet custom format (points/*.npy, labels/*.txt)."
 )
 @click.argument("data_dir", type=click.Path(exists=True, file_okay=False))
-@click.option(
-    "--boxes",
-    "boxes_dir",
-    type=click.Path(exists=True),
-    default=None,
-    help="Box table to write as labels. Default: DATA_DIR/boxes.parquet when present.",
-)
+@click.option("--boxes", "boxes_dir", type=click.Path(exists=True), default=None,
+              help="Box table to write as labels. Default: DATA_DIR/boxes.parquet when present.")  # fmt: skip
 @click.option("--split", default=None, help="Also write ImageSets/SPLIT.txt listing the frames.")
 @click.option("--score-min", type=float, default=None, help="Write only boxes with score >= this.")
 @out_dir_option()

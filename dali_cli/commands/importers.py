@@ -35,30 +35,16 @@ def _summary(outcome) -> None:
 
 @command.command(name="kitti", short_help="KITTI velodyne + label_2 + calib.")
 @click.argument("root", type=click.Path(exists=True, file_okay=False))
-@choice_option(
-    "--split",
-    choices=["training", "testing"],
-    default="training",
-    help="Split directory under ROOT (ignored when ROOT itself holds velodyne/).",
-)
-@click.option(
-    "--ids",
-    "ids_path",
-    type=click.Path(exists=True, dir_okay=False),
-    default=None,
-    help="Text file of frame ids, one per line (e.g. ImageSets/val.txt). Default: every scan.",
-)
-@click.option(
-    "--label-dir",
-    type=click.Path(exists=True, file_okay=False),
-    default=None,
-    help="Read labels from here instead of <split>/label_2 (e.g. exported predictions).",
-)
-@click.option(
-    "--crop-fov",
-    is_flag=True,
-    help="Keep only points that project into the camera image (KITTI labels cover only it).",
-)
+@choice_option("--split", choices=["training", "testing"], default="training",
+               help="Split directory under ROOT (ignored when ROOT itself holds velodyne/).")  # fmt: skip
+@click.option("--ids", "ids_path", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="Text file of frame ids, one per line (e.g. ImageSets/val.txt). Default: "
+                   "every scan.")  # fmt: skip
+@click.option("--label-dir", type=click.Path(exists=True, file_okay=False), default=None,
+              help="Read labels from here instead of <split>/label_2 (e.g. exported predictions).")  # fmt: skip
+@click.option("--crop-fov", is_flag=True,
+              help="Keep only points that project into the camera image (KITTI labels cover only "
+                   "it).")  # fmt: skip
 @import_options("kitti")
 def kitti_command(
     root, split, ids_path, label_dir, crop_fov, sensor, out, sensors_path, force, dry_run
@@ -87,44 +73,23 @@ def kitti_command(
 
 @command.command(name="nuscenes", short_help="nuScenes LIDAR_TOP, JSON tables or LiDAR-frame CSV.")
 @click.argument("path", type=click.Path(exists=True))
-@click.option(
-    "--version",
-    "version",
-    default="v1.0-mini",
-    show_default=True,
-    help="Table directory under the data root (v1.0-trainval, v1.0-mini, ...).",
-)
-@click.option(
-    "--boxes-csv",
-    type=click.Path(exists=True, dir_okay=False),
-    default=None,
-    help="Boxes already in the LiDAR frame (columns category,x,y,z,l,w,h,yaw[,num_lidar_pts]"
-    "[,frame_id]); PATH is then a .pcd.bin file or a directory of them.",
-)
-@click.option(
-    "--car-category",
-    "car_categories",
-    multiple=True,
-    help="Category mapped to label 'Car' (repeatable). Default: vehicle.car and car. "
-    "Other categories keep their name as label.",
-)
-@click.option(
-    "--scenes",
-    default=None,
-    help="Comma-separated scene names to import (JSON tables only). Default: all key frames.",
-)
-@click.option(
-    "--max-frames",
-    type=click.IntRange(min=1),
-    default=None,
-    help="Import only the first N key frames (in time order per scene).",
-)
-@click.option(
-    "--lidar-frame",
-    is_flag=True,
-    help="Keep nuScenes' LiDAR axes (x right, y forward) instead of turning them to dali's "
-    "x forward, y left.",
-)
+@click.option("--version", "version", default="v1.0-mini", show_default=True,
+              help="Table directory under the data root (v1.0-trainval, v1.0-mini, ...).")  # fmt: skip
+@click.option("--boxes-csv", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="Boxes already in the LiDAR frame (columns "
+                   "category,x,y,z,l,w,h,yaw[,num_lidar_pts][,frame_id]); PATH is then a "
+                   ".pcd.bin file or a directory of them.")  # fmt: skip
+@click.option("--car-category", "car_categories", multiple=True,
+              help="Category mapped to label 'Car' (repeatable). Default: vehicle.car and car. "
+                   "Other categories keep their name as label.")  # fmt: skip
+@click.option("--scenes", default=None,
+              help="Comma-separated scene names to import (JSON tables only). Default: all key "
+                   "frames.")  # fmt: skip
+@click.option("--max-frames", type=click.IntRange(min=1), default=None,
+              help="Import only the first N key frames (in time order per scene).")  # fmt: skip
+@click.option("--lidar-frame", is_flag=True,
+              help="Keep nuScenes' LiDAR axes (x right, y forward) instead of turning them to "
+                   "dali's x forward, y left.")  # fmt: skip
 @import_options("nuscenes")
 def nuscenes_command(
     path,
@@ -169,24 +134,14 @@ def nuscenes_command(
     name="openpcdet", short_help="OpenPCDet custom format (points/*.npy, labels/*.txt)."
 )
 @click.argument("root", type=click.Path(exists=True, file_okay=False))
-@click.option(
-    "--split",
-    default=None,
-    help="Read ids from ROOT/ImageSets/SPLIT.txt (e.g. train, val). Default: every points/*.npy.",
-)
-@click.option(
-    "--car-class",
-    "car_classes",
-    multiple=True,
-    help="Class name mapped to label 'Car' (repeatable). Default: Car and Vehicle.",
-)
-@click.option(
-    "--intensity-max",
-    type=click.FloatRange(min=0, min_open=True),
-    default=1.0,
-    show_default=True,
-    help="Intensities are divided by this (255 for 8-bit intensities).",
-)
+@click.option("--split", default=None,
+              help="Read ids from ROOT/ImageSets/SPLIT.txt (e.g. train, val). Default: every "
+                   "points/*.npy.")  # fmt: skip
+@click.option("--car-class", "car_classes", multiple=True,
+              help="Class name mapped to label 'Car' (repeatable). Default: Car and Vehicle.")  # fmt: skip
+@click.option("--intensity-max", type=click.FloatRange(min=0, min_open=True), default=1.0,
+              show_default=True,
+              help="Intensities are divided by this (255 for 8-bit intensities).")  # fmt: skip
 @import_options(None)
 def openpcdet_command(
     root, split, car_classes, intensity_max, sensor, out, sensors_path, force, dry_run
@@ -212,35 +167,16 @@ def openpcdet_command(
 
 @command.command(name="waymo", short_help="Waymo Open Dataset v2 Parquet or v1 TFRecord.")
 @click.argument("root", type=click.Path(exists=True, file_okay=False, path_type=Path))
-@click.option(
-    "--format",
-    "fmt",
-    type=click.Choice(["auto", "v2", "v1"]),
-    default="auto",
-    show_default=True,
-    help="auto: v2 when ROOT has lidar/*.parquet, v1 when it has *.tfrecord.",
-)
+@click.option("--format", "fmt", type=click.Choice(["auto", "v2", "v1"]), default="auto",
+              show_default=True,
+              help="auto: v2 when ROOT has lidar/*.parquet, v1 when it has *.tfrecord.")  # fmt: skip
 @click.option("--split", default=None, help="Read ROOT/SPLIT (e.g. training, validation).")
-@click.option(
-    "--every",
-    type=click.IntRange(min=1),
-    default=1,
-    show_default=True,
-    help="Keep every K-th frame of each segment (the paper trains on every 5th).",
-)
-@choice_option(
-    "--lidars",
-    choices=["top", "all"],
-    default="top",
-    help="Points of the TOP LiDAR only, or of all five.",
-)
-@click.option(
-    "--returns",
-    type=click.IntRange(1, 2),
-    default=1,
-    show_default=True,
-    help="First return only, or both returns.",
-)
+@click.option("--every", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Keep every K-th frame of each segment (the paper trains on every 5th).")  # fmt: skip
+@choice_option("--lidars", choices=["top", "all"], default="top",
+               help="Points of the TOP LiDAR only, or of all five.")  # fmt: skip
+@click.option("--returns", type=click.IntRange(1, 2), default=1, show_default=True,
+              help="First return only, or both returns.")  # fmt: skip
 @click.option("--segments", default=None, help="Comma-separated segment names (default: all).")
 @import_options("waymo")
 def waymo_command(

@@ -19,12 +19,8 @@ def parse_range(text: str) -> tuple[float, float]:
 
 @click.command(name="ppcg-cf")
 @ppcg_options
-@click.option(
-    "--range-m",
-    default="20:50",
-    show_default=True,
-    help="LOW:HIGH: each box is moved radially to a range drawn uniformly from it (m).",
-)
+@click.option("--range-m", default="20:50", show_default=True,
+              help="LOW:HIGH: each box is moved radially to a range drawn uniformly from it (m).")  # fmt: skip
 @sensors_option
 @stage_options
 def command(target_dir, boxes_dir, library_dir, out, no_progress, range_m, **options):

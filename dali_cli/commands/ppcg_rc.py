@@ -5,7 +5,11 @@ from __future__ import annotations
 import click
 
 from dali_cli.commands.common import (
+    apply_options,
     executor_options,
+    input_dir_option,
+    no_progress_option,
+    out_dir_option,
     sensors_option,
     stage_options,
     workers_option,
@@ -15,87 +19,38 @@ from dali_cli.commands.common import (
 def ppcg_options(function):
     """Options shared by ppcg-rc and ppcg-cf."""
     decorators = [
-        click.option(
-            "--target",
-            "target_dir",
-            required=True,
-            type=click.Path(exists=True, file_okay=False),
-            help="Target frame set (frames.zarr).",
-        ),
-        click.option(
-            "--boxes",
-            "boxes_dir",
-            required=True,
-            type=click.Path(exists=True),
-            help="Box table directory (boxes.parquet): pseudo labels, or labels for controlled runs.",
-        ),
-        click.option(
-            "--library",
-            "library_dir",
-            required=True,
-            type=click.Path(exists=True, file_okay=False),
-            help="Model library of `dali library build`.",
-        ),
-        click.option(
-            "--out", required=True, type=click.Path(file_okay=False), help="Output directory."
-        ),
-        click.option(
-            "--sensor",
-            default=None,
-            help="Target sensor profile (default: the frame set's 'sensor' attribute).",
-        ),
-        click.option(
-            "--models",
-            type=click.Choice(["cad", "points"]),
-            default=None,
-            help="Model kind to fit  [default: cad if the library has meshes, else points]",
-        ),
-        click.option(
-            "--top-k",
-            type=click.IntRange(min=1),
-            default=1,
-            show_default=True,
-            help="Pick at random among the K best models (per-box seed); 1 = the best.",
-        ),
+        input_dir_option("--target", "target_dir", help="Target frame set (frames.zarr)."),
+        click.option("--boxes", "boxes_dir", required=True, type=click.Path(exists=True),
+                     help="Box table directory (boxes.parquet): pseudo labels, or labels for "
+                          "controlled runs."),
+        input_dir_option("--library", "library_dir", help="Model library of `dali library build`."),
+        out_dir_option(),
+        click.option("--sensor", default=None,
+                     help="Target sensor profile (default: the frame set's 'sensor' attribute)."),
+        click.option("--models", type=click.Choice(["cad", "points"]), default=None,
+                     help="Model kind to fit  [default: cad if the library has meshes, else points]"),
+        click.option("--top-k", type=click.IntRange(min=1), default=1, show_default=True,
+                     help="Pick at random among the K best models (per-box seed); 1 = the best."),
         click.option("--seed", type=int, default=0, show_default=True, help="Run seed."),
-        click.option(
-            "--ground-margin-m",
-            type=click.FloatRange(min=0),
-            default=0.1,
-            show_default=True,
-            help="Points of a box below max(box bottom, -mount height) + this are ground: kept.",
-        ),
-        click.option(
-            "--label",
-            default="Car",
-            show_default=True,
-            help="Process boxes of this label; other rows pass through as 'raw'.",
-        ),
+        click.option("--ground-margin-m", type=click.FloatRange(min=0), default=0.1,
+                     show_default=True,
+                     help="Points of a box below max(box bottom, -mount height) + this are "
+                          "ground: kept."),
+        click.option("--label", default="Car", show_default=True,
+                     help="Process boxes of this label; other rows pass through as 'raw'."),
         workers_option("1"),
-        click.option("--no-progress", is_flag=True, help="No progress bar."),
-    ]
+        no_progress_option,
+    ]  # fmt: skip
     function = executor_options(function)
-    for decorator in reversed(decorators):
-        function = decorator(function)
-    return function
+    return apply_options(function, decorators)
 
 
 @click.command(name="ppcg-rc")
 @ppcg_options
-@click.option(
-    "--max-points",
-    type=click.IntRange(min=2),
-    default=300,
-    show_default=True,
-    help="Boxes with this many points or more are dense: skipped.",
-)
-@click.option(
-    "--min-points",
-    type=click.IntRange(min=1),
-    default=3,
-    show_default=True,
-    help="Boxes with fewer points are skipped; fewer hits keep the raw points.",
-)
+@click.option("--max-points", type=click.IntRange(min=2), default=300, show_default=True,
+              help="Boxes with this many points or more are dense: skipped.")  # fmt: skip
+@click.option("--min-points", type=click.IntRange(min=1), default=3, show_default=True,
+              help="Boxes with fewer points are skipped; fewer hits keep the raw points.")  # fmt: skip
 @sensors_option
 @stage_options
 def command(target_dir, boxes_dir, library_dir, out, no_progress, **options):

@@ -48,60 +48,27 @@ def read_json_option(path: str | None) -> dict | None:
 
 @click.command(name="pretrain")
 @input_dir_option("--source", help="Labeled source: a FrameSet directory with boxes.parquet.")
-@click.option(
-    "--boxes",
-    type=click.Path(exists=True),
-    default=None,
-    help="Labels to train on, if not SOURCE/boxes.parquet.",
-)
+@click.option("--boxes", type=click.Path(exists=True), default=None,
+              help="Labels to train on, if not SOURCE/boxes.parquet.")  # fmt: skip
 @out_dir_option("Checkpoint directory to write (e.g. RUN/iter0/model).")
-@choice_option(
-    "--size-norm",
-    choices=["none", "sn", "ros"],
-    default="none",
-    help="sn: shift source box sizes to the target mean (points scaled with them); "
-    "ros: random object scaling U(--ros-range) per object, as augmentation.",
-)
-@click.option(
-    "--target-profile",
-    default=None,
-    help="Sensor profile whose car_mean_lwh_m is the SN target (e.g. kitti).",
-)
-@click.option(
-    "--target-size",
-    default=None,
-    callback=parse_floats(3),
-    help="SN target mean size 'l,w,h' in m (overrides the profile).",
-)
-@click.option(
-    "--ros-range",
-    default="0.75,1.0",
-    show_default=True,
-    callback=parse_floats(2),
-    help="ROS scale range 'lo,hi'.",
-)
-@choice_option(
-    "--features",
-    choices=["xyz", "xyzi"],
-    default="xyz",
-    help="Point features fed to the pillar encoder.",
-)
-@click.option(
-    "--detector-config",
-    "config_overrides",
-    type=click.Path(exists=True, dir_okay=False),
-    default=None,
-    callback=lambda _ctx, _param, path: read_json_option(path),
-    help="JSON file of DetectorConfig fields to override (ranges, pillar size, widths; see docs/detector.md).",
-)
-@click.option(
-    "--label",
-    "labels",
-    multiple=True,
-    default=("Car",),
-    show_default=True,
-    help="Box labels to train on (repeatable).",
-)
+@choice_option("--size-norm", choices=["none", "sn", "ros"], default="none",
+               help="sn: shift source box sizes to the target mean (points scaled with them); "
+                    "ros: random object scaling U(--ros-range) per object, as augmentation.")  # fmt: skip
+@click.option("--target-profile", default=None,
+              help="Sensor profile whose car_mean_lwh_m is the SN target (e.g. kitti).")  # fmt: skip
+@click.option("--target-size", default=None, callback=parse_floats(3),
+              help="SN target mean size 'l,w,h' in m (overrides the profile).")  # fmt: skip
+@click.option("--ros-range", default="0.75,1.0", show_default=True, callback=parse_floats(2),
+              help="ROS scale range 'lo,hi'.")  # fmt: skip
+@choice_option("--features", choices=["xyz", "xyzi"], default="xyz",
+               help="Point features fed to the pillar encoder.")  # fmt: skip
+@click.option("--detector-config", "config_overrides",
+              type=click.Path(exists=True, dir_okay=False), default=None,
+              callback=lambda _ctx, _param, path: read_json_option(path),
+              help="JSON file of DetectorConfig fields to override (ranges, pillar size, widths; "
+                   "see docs/detector.md).")  # fmt: skip
+@click.option("--label", "labels", multiple=True, default=("Car",), show_default=True,
+              help="Box labels to train on (repeatable).")  # fmt: skip
 @training_options
 def command(source, out, labels, **options):
     """Train the CPU detector (pillars + CenterPoint heads + IoU score) on a labeled source.

@@ -17,35 +17,19 @@ from dali_cli.commands.common import (
 
 @click.command(name="pseudo-label")
 @model_target_out_options("Trained model directory (model.pt + model.json).")
-@click.option(
-    "--scale-from",
-    type=click.Path(exists=True),
-    default=None,
-    help="PTSN directory (or scale.json) of `dali ptsn-sweep`: its 'scale' is ŝ.",
-)
-@click.option(
-    "--scale",
-    type=click.FloatRange(0, min_open=True),
-    default=None,
-    help="Use this scale instead (overrides --scale-from's ŝ).",
-)
+@click.option("--scale-from", type=click.Path(exists=True), default=None,
+              help="PTSN directory (or scale.json) of `dali ptsn-sweep`: its 'scale' is ŝ.")  # fmt: skip
+@click.option("--scale", type=click.FloatRange(0, min_open=True), default=None,
+              help="Use this scale instead (overrides --scale-from's ŝ).")  # fmt: skip
 @score_min_option
-@click.option(
-    "--nms-iou",
-    type=click.FloatRange(0, 1),
-    default=0.1,
-    show_default=True,
-    help="BEV NMS IoU threshold after de-scaling.",
-)
+@click.option("--nms-iou", type=click.FloatRange(0, 1), default=0.1, show_default=True,
+              help="BEV NMS IoU threshold after de-scaling.")  # fmt: skip
 @target_profile_option
-@choice_option(
-    "--size-correction",
-    "size_correction_method",
-    choices=["per-dim", "none"],
-    default="per-dim",
-    help="per-dim: multiply l, w, h by E_est / mean pseudo-box size per dimension (bottom face "
-    "kept), removing the bias one isotropic ŝ leaves; E_est from --scale-from's scale.json.",
-)
+@choice_option("--size-correction", "size_correction_method", choices=["per-dim", "none"],
+               default="per-dim",
+               help="per-dim: multiply l, w, h by E_est / mean pseudo-box size per dimension "
+                    "(bottom face kept), removing the bias one isotropic ŝ leaves; E_est from "
+                    "--scale-from's scale.json.")  # fmt: skip
 @workers_option("1")
 @executor_options
 @target_scaling_options

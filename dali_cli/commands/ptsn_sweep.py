@@ -33,88 +33,41 @@ SCALE_RANGE = ScaleRangeType()
 
 @click.command(name="ptsn-sweep")
 @model_target_out_options("Trained model directory (model.pt + model.json), e.g. RUN/iter0/model.")
-@click.option(
-    "--scales",
-    "scale_range",
-    type=SCALE_RANGE,
-    default="0.8:1.4",
-    show_default=True,
-    help="Swept scales LOW:HIGH[:STEP] (STEP default 0.01; the grid and the confirm resolution).",
-)
-@click.option(
-    "--expected-size",
-    "--target-size",
-    "expected_size",
-    default="sn",
-    show_default=True,
-    help="E_est: 'sn' (target profile's mean car size, sensors.toml), 'ros' (source mean x mean "
-    "ROS factor) or explicit L,W,H in metres.",
-)
-@choice_option(
-    "--search",
-    choices=["bracket", "grid"],
-    default="bracket",
-    help="bracket: secant on a frame subsample, confirmed on all frames; grid: every scale.",
-)
+@click.option("--scales", "scale_range", type=SCALE_RANGE, default="0.8:1.4", show_default=True,
+              help="Swept scales LOW:HIGH[:STEP] (STEP default 0.01; the grid and the confirm "
+                   "resolution).")  # fmt: skip
+@click.option("--expected-size", "--target-size", "expected_size", default="sn", show_default=True,
+              help="E_est: 'sn' (target profile's mean car size, sensors.toml), 'ros' (source "
+                   "mean x mean ROS factor) or explicit L,W,H in metres.")  # fmt: skip
+@choice_option("--search", choices=["bracket", "grid"], default="bracket",
+               help="bracket: secant on a frame subsample, confirmed on all frames; grid: every "
+                    "scale.")  # fmt: skip
 @click.option("--frames", type=click.IntRange(min=1), default=None, help="Use N seeded frames.")
-@click.option(
-    "--frame-fraction",
-    type=click.FloatRange(0, 1, min_open=True),
-    default=None,
-    help="Use this fraction of the frames (seeded).",
-)
+@click.option("--frame-fraction", type=click.FloatRange(0, 1, min_open=True), default=None,
+              help="Use this fraction of the frames (seeded).")  # fmt: skip
 @score_min_option
-@choice_option(
-    "--no-detections",
-    choices=["identity", "error"],
-    default="identity",
-    help="When no box reaches --score-min at any tried scale: identity = write ŝ = 1 (no size "
-    "normalization) with a warning recorded in scale.json and the manifest; error = exit 1.",
-)
-@choice_option(
-    "--mean",
-    choices=["per-frame", "pooled"],
-    default="per-frame",
-    help="per-frame: mean of per-frame means (paper Eq. 1); pooled: one mean over all boxes.",
-)
-@choice_option(
-    "--match",
-    choices=["volume", "lwh"],
-    default="volume",
-    help="Match mean volume (a 1-D root) or l, w, h in the least-squares sense.",
-)
-@click.option(
-    "--seed", type=int, default=0, show_default=True, help="Seed of the frame subsamples."
-)
-@click.option(
-    "--subsample-fraction",
-    type=click.FloatRange(0, 1, min_open=True),
-    default=0.25,
-    show_default=True,
-    help="bracket: fraction of the frames used for the secant phase.",
-)
-@click.option(
-    "--subsample-min",
-    type=click.IntRange(min=1),
-    default=16,
-    show_default=True,
-    help="bracket: at least this many frames in the secant phase.",
-)
-@click.option(
-    "--noise",
-    type=click.FloatRange(min=0),
-    default=0.02,
-    show_default=True,
-    help="How far the criterion may rise with s and still count as monotone (volume: log ratio).",
-)
+@choice_option("--no-detections", choices=["identity", "error"], default="identity",
+               help="When no box reaches --score-min at any tried scale: identity = write ŝ = 1 "
+                    "(no size normalization) with a warning recorded in scale.json and the "
+                    "manifest; error = exit 1.")  # fmt: skip
+@choice_option("--mean", choices=["per-frame", "pooled"], default="per-frame",
+               help="per-frame: mean of per-frame means (paper Eq. 1); pooled: one mean over all "
+                    "boxes.")  # fmt: skip
+@choice_option("--match", choices=["volume", "lwh"], default="volume",
+               help="Match mean volume (a 1-D root) or l, w, h in the least-squares sense.")  # fmt: skip
+@click.option("--seed", type=int, default=0, show_default=True,
+              help="Seed of the frame subsamples.")  # fmt: skip
+@click.option("--subsample-fraction", type=click.FloatRange(0, 1, min_open=True), default=0.25,
+              show_default=True, help="bracket: fraction of the frames used for the secant phase.")  # fmt: skip
+@click.option("--subsample-min", type=click.IntRange(min=1), default=16, show_default=True,
+              help="bracket: at least this many frames in the secant phase.")  # fmt: skip
+@click.option("--noise", type=click.FloatRange(min=0), default=0.02, show_default=True,
+              help="How far the criterion may rise with s and still count as monotone (volume: "
+                   "log ratio).")  # fmt: skip
 @target_profile_option
 @click.option("--source-profile", default=None, help="Source profile for --expected-size ros.")
-@click.option(
-    "--ros-factor",
-    type=click.FloatRange(0, min_open=True),
-    default=None,
-    help="Mean ROS factor for --expected-size ros (default: model.json, else 0.875).",
-)
+@click.option("--ros-factor", type=click.FloatRange(0, min_open=True), default=None,
+              help="Mean ROS factor for --expected-size ros (default: model.json, else 0.875).")  # fmt: skip
 @click.option("--plot", is_flag=True, help="Also write sweep.png (mean volume vs scale).")
 @target_scaling_options
 def command(model_dir, target_dir, out, scale_range, sensors_path, no_progress, **options):

@@ -13,16 +13,10 @@ from dali_cli.report import build_report
 
 
 @click.command(name="report")
-@click.argument(
-    "runs", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False, path_type=Path)
-)
-@click.option(
-    "--out",
-    "out_dir",
-    type=click.Path(file_okay=False, path_type=Path),
-    default=None,
-    help="Where to write report.md / report.json / plots (default: RUN/report).",
-)
+@click.argument("runs", nargs=-1, required=True,
+                type=click.Path(exists=True, file_okay=False, path_type=Path))  # fmt: skip
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Where to write report.md / report.json / plots (default: RUN/report).")  # fmt: skip
 @click.option("--plots/--no-plots", default=True, show_default=True, help="Draw PNG plots.")
 def command(runs: tuple[Path, ...], out_dir: Path | None, plots: bool) -> None:
     """Summarize a run: AP_BEV / AP_3D at IoU 0.7 and 0.5 per method row (source only, SN, ROS,

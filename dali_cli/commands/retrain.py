@@ -36,40 +36,22 @@ class GreedyOption(click.Option):
 
 
 @click.command(name="retrain")
-@input_dir_option(
-    "--init",
-    help="Previous model directory (RUN/iterN/model): its config and, by default, weights.",
-)
+@input_dir_option("--init",
+                  help="Previous model directory (RUN/iterN/model): its config and, by default, "
+                       "weights.")  # fmt: skip
 @input_dir_option("--source", help="Labeled source FrameSet directory with boxes.parquet.")
-@click.option(
-    "--ppcg",
-    cls=GreedyOption,
-    multiple=True,
-    required=True,
-    type=click.Path(exists=True, file_okay=False),
-    help="PPCG frame set directories (each a FrameSet + boxes.parquet): --ppcg RC CF.",
-)
+@click.option("--ppcg", cls=GreedyOption, multiple=True, required=True,
+              type=click.Path(exists=True, file_okay=False),
+              help="PPCG frame set directories (each a FrameSet + boxes.parquet): --ppcg RC CF.")  # fmt: skip
 @out_dir_option("Checkpoint directory to write.")
-@choice_option(
-    "--init-from",
-    choices=["previous", "scratch"],
-    default="previous",
-    help="Start from the --init weights (paper) or from a fresh network (the authors' code).",
-)
-@click.option(
-    "--mix",
-    default="1:1",
-    show_default=True,
-    help="Batches source:PPCG (PPCG sets pooled), or source:set1:set2 for separate weights.",
-)
-@click.option(
-    "--label",
-    "labels",
-    multiple=True,
-    default=("Car",),
-    show_default=True,
-    help="Box labels to train on.",
-)
+@choice_option("--init-from", choices=["previous", "scratch"], default="previous",
+               help="Start from the --init weights (paper) or from a fresh network (the authors' "
+                    "code).")  # fmt: skip
+@click.option("--mix", default="1:1", show_default=True,
+              help="Batches source:PPCG (PPCG sets pooled), or source:set1:set2 for separate "
+                   "weights.")  # fmt: skip
+@click.option("--label", "labels", multiple=True, default=("Car",), show_default=True,
+              help="Box labels to train on.")  # fmt: skip
 @training_options
 def command(init, source, ppcg, out, labels, **options):
     """Retrain on the labeled source plus PPCG frame sets, alternating source and PPCG batches.

@@ -14,20 +14,15 @@ from dali_cli.commands.common import (
 
 @click.command(name="self-train")
 @input_dir_option("--init", help="Model to fine-tune (e.g. RUN/iter2/model, the final DALI model).")
-@input_dir_option(
-    "--target", help="Target FrameSet directory (its frames only; its labels are never read)."
-)
-@input_dir_option(
-    "--pseudo",
-    help="Pseudo labels of INIT on TARGET from `dali pseudo-label` (e.g. RUN/iter3/pseudo).",
-)
+@input_dir_option("--target",
+                  help="Target FrameSet directory (its frames only; its labels are never read).")  # fmt: skip
+@input_dir_option("--pseudo",
+                  help="Pseudo labels of INIT on TARGET from `dali pseudo-label` (e.g. "
+                       "RUN/iter3/pseudo).")  # fmt: skip
 @out_dir_option("Checkpoint directory to write.")
-@click.option(
-    "--scale",
-    type=click.FloatRange(0, min_open=True),
-    default=None,
-    help="Train in the frame scaled by this s (default: the pseudo labels' own PTSN scale ŝ).",
-)
+@click.option("--scale", type=click.FloatRange(0, min_open=True), default=None,
+              help="Train in the frame scaled by this s (default: the pseudo labels' own PTSN "
+                   "scale ŝ).")  # fmt: skip
 @training_options
 def command(init, target, pseudo, out, **options):
     """Self-training (the paper's ‡): fine-tune INIT on the raw TARGET frames with its own pseudo

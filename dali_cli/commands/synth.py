@@ -14,34 +14,20 @@ from dali_cli.commands.common import (
 
 
 @click.command(name="synth")
-@click.option(
-    "--sensor",
-    required=True,
-    help="Sensor profile of sensors.toml that scans the scenes (kitti, waymo, nuscenes, ...).",
-)
-@click.option(
-    "--cars",
-    "cars_profile",
-    default=None,
-    help="Profile whose car_mean_lwh_m / car_std_lwh_m size the cars. Default: --sensor.",
-)
+@click.option("--sensor", required=True,
+              help="Sensor profile of sensors.toml that scans the scenes (kitti, waymo, "
+                   "nuscenes, ...).")  # fmt: skip
+@click.option("--cars", "cars_profile", default=None,
+              help="Profile whose car_mean_lwh_m / car_std_lwh_m size the cars. Default: "
+                   "--sensor.")  # fmt: skip
 @click.option("--frames", type=click.IntRange(min=1), required=True, help="Number of frames.")
-@click.option(
-    "--seed",
-    type=int,
-    default=0,
-    show_default=True,
-    help="Run seed; frame k depends only on (seed, k).",
-)
+@click.option("--seed", type=int, default=0, show_default=True,
+              help="Run seed; frame k depends only on (seed, k).")  # fmt: skip
 @workers_option("the cores available")
 @executor_options
-@click.option(
-    "--threads",
-    type=click.IntRange(min=1),
-    default=1,
-    show_default=True,
-    help="Ray casting threads per worker (embreex releases the GIL). The output does not depend on it.",
-)
+@click.option("--threads", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Ray casting threads per worker (embreex releases the GIL). The output does "
+                   "not depend on it.")  # fmt: skip
 @out_dir_option()
 @sensors_option
 @stage_options

@@ -21,45 +21,22 @@ def _parse_boxes(value: str) -> tuple[str, Path]:
 
 @click.command(name="view")
 @click.argument("data_dir", type=click.Path(exists=True, file_okay=False))
-@click.option(
-    "--frame",
-    "frame",
-    required=True,
-    help="Frame id; a number that is not an id is taken as the frame's index.",
-)
-@click.option(
-    "--boxes",
-    "boxes",
-    multiple=True,
-    help="Box table to draw, DIR or NAME=DIR (repeatable; each gets its own colour). "
-    "DATA_DIR's own boxes.parquet is drawn first unless --no-own-boxes.",
-)
+@click.option("--frame", "frame", required=True,
+              help="Frame id; a number that is not an id is taken as the frame's index.")  # fmt: skip
+@click.option("--boxes", "boxes", multiple=True,
+              help="Box table to draw, DIR or NAME=DIR (repeatable; each gets its own colour). "
+                   "DATA_DIR's own boxes.parquet is drawn first unless --no-own-boxes.")  # fmt: skip
 @click.option("--no-own-boxes", is_flag=True, help="Do not draw DATA_DIR/boxes.parquet.")
 @click.option("--score-min", type=float, default=None, help="Draw only boxes with score >= this.")
 @click.option("--side", is_flag=True, help="Add a side view (x-z) under the bird's-eye view.")
-@click.option(
-    "--range-m",
-    type=click.FloatRange(min=0, min_open=True),
-    default=None,
-    help="Show x, y in [-R, R]. Default: fitted to the points and boxes.",
-)
-@choice_option(
-    "--colour-by",
-    choices=["z", "intensity"],
-    default="z",
-    help="Point colour.",
-)
+@click.option("--range-m", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Show x, y in [-R, R]. Default: fitted to the points and boxes.")  # fmt: skip
+@choice_option("--colour-by", choices=["z", "intensity"], default="z", help="Point colour.")  # fmt: skip
 @click.option("--annotate", is_flag=True, help="Write each box's score (or label) at its centre.")
-@click.option(
-    "--width-px",
-    type=click.IntRange(min=200, max=8000),
-    default=1200,
-    show_default=True,
-    help="Image width in pixels.",
-)
-@click.option(
-    "--out", "out", type=click.Path(dir_okay=False), required=True, help="PNG file to write."
-)
+@click.option("--width-px", type=click.IntRange(min=200, max=8000), default=1200,
+              show_default=True, help="Image width in pixels.")  # fmt: skip
+@click.option("--out", "out", type=click.Path(dir_okay=False), required=True,
+              help="PNG file to write.")  # fmt: skip
 def command(
     data_dir,
     frame,
