@@ -78,43 +78,56 @@ def run_pretrain(
         if size_norm == "ros":
             augmentation.object_scale = tuple(ros_range)
         net = seeded_network(config, training.seed)
-        card = ModelCard(
-            detector=config.name,
-            stage="pretrain",
-            source_sensor=data.sensor,
-            mount_height_m=data.mount_height_m,
-            source_mean_lwh_m=tuple(float(v) for v in source_mean),
-            size_norm=size_norm,
-            sn_delta_lwh_m=None if delta is None else tuple(float(v) for v in delta),
-            ros_range=tuple(ros_range) if size_norm == "ros" else None,
-            target_profile=target_profile,
-        )
-        provenance = {
-            "stage": "pretrain",
-            "source": str(source),
-            "source_hash": content_hash(source),
-            "source_sensor": data.sensor,
-            "size_norm": size_norm,
-            "target_profile": target_profile,
-            "sn_delta_lwh": None if delta is None else delta.tolist(),
-            "ros_range": list(ros_range) if size_norm == "ros" else None,
-            "seed": training.seed,
-        }
-        metrics = {
-            "source_mean_lwh_m": source_mean.tolist(),
-            "trained_mean_lwh_m": data.mean_lwh().tolist(),
-            "frames": len(data),
-            "boxes": data.num_boxes,
-            "database_instances": 0 if data.database is None else len(data.database),
-        }
+        meta = pretrain_meta(
+            config, data, source, source_mean, delta, size_norm, ros_range, target_profile,
+            training.seed,
+        )  # fmt: skip
         return PreparedTraining(
             net, [data], [augmentation], training.settings(),
-            meta={"card": card.to_dict(), "provenance": provenance, "metrics": metrics},
+            meta=meta,
             counts={"frames": len(data), "boxes": data.num_boxes},
             notes=[f"detector: {net.config.name} (not the paper's SECOND-IoU), size_norm={size_norm}"],
         )  # fmt: skip
 
     return run_training_stage("pretrain", out, inputs, params, prepare, force, dry_run, training)
+
+
+def pretrain_meta(
+    config, data, source: Path, source_mean: np.ndarray, delta: np.ndarray | None,
+    size_norm: str, ros_range: tuple[float, float], target_profile: str | None, seed: int,
+) -> dict:  # fmt: skip
+    """model.json's card, provenance and metrics of a pretrained model (`data`: the training
+    set after size normalization; `delta` the SN shift of l, w, h in m, or None)."""
+    card = ModelCard(
+        detector=config.name,
+        stage="pretrain",
+        source_sensor=data.sensor,
+        mount_height_m=data.mount_height_m,
+        source_mean_lwh_m=tuple(float(v) for v in source_mean),
+        size_norm=size_norm,
+        sn_delta_lwh_m=None if delta is None else tuple(float(v) for v in delta),
+        ros_range=tuple(ros_range) if size_norm == "ros" else None,
+        target_profile=target_profile,
+    )
+    provenance = {
+        "stage": "pretrain",
+        "source": str(source),
+        "source_hash": content_hash(source),
+        "source_sensor": data.sensor,
+        "size_norm": size_norm,
+        "target_profile": target_profile,
+        "sn_delta_lwh": None if delta is None else delta.tolist(),
+        "ros_range": list(ros_range) if size_norm == "ros" else None,
+        "seed": seed,
+    }
+    metrics = {
+        "source_mean_lwh_m": source_mean.tolist(),
+        "trained_mean_lwh_m": data.mean_lwh().tolist(),
+        "frames": len(data),
+        "boxes": data.num_boxes,
+        "database_instances": 0 if data.database is None else len(data.database),
+    }
+    return {"card": card.to_dict(), "provenance": provenance, "metrics": metrics}
 
 
 def sn_target_size(

@@ -120,34 +120,12 @@ def run_retrain(
         augmentations = [source_augmentation] + [training.augmentation() for _ in datasets[1:]]
         state = previous.net.state_dict() if init_from == "previous" else None
         net = seeded_network(previous.config, training.seed, state)
-        card = previous.card
-        provenance = {
-            "stage": "retrain",
-            "init": str(init),
-            "init_hash": content_hash(init),
-            "init_from": init_from,
-            "source": str(source),
-            "source_sensor": source_data.sensor,
-            "ppcg": [str(p) for p in ppcg],
-            "mix": list(weights),
-            "size_norm": card.size_norm,
-            "sn_delta_lwh": None if card.sn_delta_lwh_m is None else list(card.sn_delta_lwh_m),
-            "ros_range": None if card.ros_range is None else list(card.ros_range),
-            "target_profile": card.target_profile,
-            "seed": training.seed,
-        }
-        metrics = {
-            "frames": {d.name: len(d) for d in datasets},
-            "boxes": {d.name: d.num_boxes for d in datasets},
-            "mean_lwh_m": {d.name: d.mean_lwh().tolist() for d in datasets},
-        }
+        meta = retrain_meta(
+            previous.card, datasets, init, init_from, source, ppcg, weights, training.seed
+        )
         return PreparedTraining(
             net, datasets, augmentations, training.settings(mix=mix),
-            meta={
-                "card": card.carried_forward("retrain").to_dict(),
-                "provenance": provenance,
-                "metrics": metrics,
-            },
+            meta=meta,
             counts={
                 "source_frames": len(source_data),
                 "ppcg_frames": int(sum(len(d) for d in pseudo_sets)),
@@ -160,6 +138,39 @@ def run_retrain(
         )  # fmt: skip
 
     return run_training_stage("retrain", out, inputs, params, prepare, force, dry_run, training)
+
+
+def retrain_meta(
+    card, datasets: list, init: Path, init_from: str, source: Path, ppcg: list[Path],
+    weights: tuple[int, ...], seed: int,
+) -> dict:  # fmt: skip
+    """model.json's card (carried forward from `init`'s), provenance and metrics (frames,
+    boxes and mean l/w/h of each data set) of a retrained model."""
+    provenance = {
+        "stage": "retrain",
+        "init": str(init),
+        "init_hash": content_hash(init),
+        "init_from": init_from,
+        "source": str(source),
+        "source_sensor": datasets[0].sensor,
+        "ppcg": [str(p) for p in ppcg],
+        "mix": list(weights),
+        "size_norm": card.size_norm,
+        "sn_delta_lwh": None if card.sn_delta_lwh_m is None else list(card.sn_delta_lwh_m),
+        "ros_range": None if card.ros_range is None else list(card.ros_range),
+        "target_profile": card.target_profile,
+        "seed": seed,
+    }
+    metrics = {
+        "frames": {d.name: len(d) for d in datasets},
+        "boxes": {d.name: d.num_boxes for d in datasets},
+        "mean_lwh_m": {d.name: d.mean_lwh().tolist() for d in datasets},
+    }
+    return {
+        "card": card.carried_forward("retrain").to_dict(),
+        "provenance": provenance,
+        "metrics": metrics,
+    }
 
 
 def load_source(source: Path, card, load: dict, training: TrainingOptions):

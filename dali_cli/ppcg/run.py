@@ -192,13 +192,7 @@ def run_ppcg(
         write_boxes(directory, outcomes.table(table))
         counts = ppcg_counts(mode, frames, rows, outcomes, implausible, tally)
         timings = ppcg_timings(frames, rows, tally)
-        console.echo(
-            f"ppcg-{mode}: {counts[f'boxes_{mode}']}/{counts['boxes']} boxes replaced on "
-            f"{counts['frames_with_boxes']} of {len(frames)} frames; skipped: "
-            f"{counts['skipped_dense']} dense, {counts['skipped_too_few_points']} too few points, "
-            f"{counts['skipped_no_hits']} no hits; "
-            f"{tally.wall / max(len(frames), 1) * 1e3:.1f} ms/frame"
-        )
+        echo_summary(mode, counts, tally.wall)
         return BuildResult(
             counts=counts,
             timings=timings,
@@ -218,6 +212,17 @@ def run_ppcg(
         force=options.get("force", False),
         dry_run=options.get("dry_run", False),
         seed=stage_params.get("seed"),
+    )
+
+
+def echo_summary(mode: str, counts: dict, wall: float) -> None:
+    """The stage's one line: boxes replaced, frames, skips by reason, time per frame."""
+    frames = counts["frames"]
+    console.echo(
+        f"ppcg-{mode}: {counts[f'boxes_{mode}']}/{counts['boxes']} boxes replaced on "
+        f"{counts['frames_with_boxes']} of {frames} frames; skipped: "
+        f"{counts['skipped_dense']} dense, {counts['skipped_too_few_points']} too few points, "
+        f"{counts['skipped_no_hits']} no hits; {wall / max(frames, 1) * 1e3:.1f} ms/frame"
     )
 
 
