@@ -109,14 +109,7 @@ def pseudo_label(
     e_est = list(found.e_est) if found is not None and found.e_est is not None else None
     if mount_height_m is None and found is not None and found.pivot_m is not None:
         mount_height_m = found.pivot_m  # scale about the very point the sweep scaled about
-    if size_correction_method not in size_correction.METHODS:
-        raise ParameterError(
-            "size_correction_method",
-            f"must be one of {', '.join(size_correction.METHODS)}, got '{size_correction_method}'",
-        )
-    skipped_correction = size_correction_method != "none" and e_est is None
-    if skipped_correction:  # --scale without a sweep: no E_est to correct towards
-        size_correction_method = "none"
+    method = correction_method(size_correction_method, e_est)
     target = FrameSet(target_dir)
     target_profile = target_profile or target.sensor or None
     if mount_height_m is None and target_profile:
@@ -128,7 +121,7 @@ def pseudo_label(
         "nms_iou": nms_iou,
         "target_profile": target_profile,
         "mount_height_m": mount_height_m,
-        "size_correction": size_correction_method,
+        "size_correction": method,
     }
     if precision != "fp32":  # recorded only when not the default: earlier runs stay up to date
         params["precision"] = precision
@@ -146,36 +139,9 @@ def pseudo_label(
         return run_on(engine, "pseudo-label", lambda pool: build_on(pool, directory))
 
     def build_on(pool, directory: Path) -> BuildResult:
-        from tqdm import tqdm
-
-        ids, boxes_all, scores_all, counts_all = [], [], [], []
-        bar = tqdm(
-            total=len(target), desc="pseudo-label", unit="frame", file=sys.stderr,
-            disable=not progress, leave=False,
-        )  # fmt: skip
-        seconds = 0.0
-        implausible = 0  # boxes above the score cut dropped as implausible
-        for labels in labeler.frame_labels(pool, directory, target):
-            ids.extend([labels.frame_id] * len(labels.boxes))
-            boxes_all.append(labels.boxes)
-            scores_all.append(labels.scores)
-            counts_all.append(labels.counts)
-            implausible += labels.implausible
-            seconds += labels.seconds
-            bar.update(1)
-        bar.close()
-        if ids:
-            table = BoxTable.from_arrays(
-                np.asarray(ids),
-                np.concatenate(boxes_all),
-                score=np.concatenate(scores_all),
-                num_points=np.concatenate(counts_all),
-                scale=np.full(len(ids), scale, np.float64),
-            )
-        else:
-            table = BoxTable.empty().with_columns(scale=np.zeros(0, np.float64))
+        table, implausible, seconds = label_frames(labeler, pool, directory, target, progress)
         correction = None
-        if size_correction_method != "none" and len(table):
+        if method != "none" and len(table):
             table, correction = correct_table(table, target, e_est, score_min)
         write_boxes(directory, table)
         summary = summarize(table, len(target), scale, e_est)
@@ -184,27 +150,15 @@ def pseudo_label(
         summary["size_correction"] = correction
         (directory / SUMMARY_NAME).write_text(json.dumps(summary, indent=2) + "\n")
         print_summary(summary)
-        notes = []
-        if implausible:
-            notes.append(
-                f"dropped {implausible} implausible boxes with score >= {score_min} (size or "
-                "distance beyond dali_cli.plausibility's limits)"
-            )
-            console.warn(notes[-1])
-        if skipped_correction:
-            notes.append("size correction skipped: no E_est (give --scale-from PTSN_DIR)")
-            console.warn(notes[-1], colour="yellow", bold=False)
-        if not len(table):
-            notes.append(f"no boxes with score >= {score_min} on any frame")
-            console.warn(notes[-1])
+        skipped_correction = method != size_correction_method
         return BuildResult(
             counts={"frames": len(target), "boxes": len(table), "boxes_implausible": implausible},
             timings={"detector_seconds": round(seconds, 3)},
-            notes=notes,
+            notes=pseudo_label_notes(implausible, skipped_correction, len(table), score_min),
             extra={
                 "pseudo_label": {"scale": scale, "scale_source": scale_source},
                 "runtime": inference_runtime(torch_device),
-                "size_correction": correction or {"method": size_correction_method},
+                "size_correction": correction or {"method": method},
                 "executor": pool.report(),
             },
         )
@@ -212,6 +166,73 @@ def pseudo_label(
     return run_stage(
         STAGE, out, inputs=inputs, params=params, build=build, force=force, dry_run=dry_run
     )
+
+
+def correction_method(method: str, e_est: list | None) -> str:
+    """The size correction to apply: `method`, or none when there is no E_est to correct
+    towards (--scale without a sweep); an unknown method is a ParameterError."""
+    if method not in size_correction.METHODS:
+        raise ParameterError(
+            "size_correction_method",
+            f"must be one of {', '.join(size_correction.METHODS)}, got '{method}'",
+        )
+    return "none" if e_est is None else method
+
+
+def label_frames(
+    labeler: FrameLabeler, pool, directory: Path, target: FrameSet, progress: bool
+) -> tuple[BoxTable, int, float]:
+    """Every target frame's pseudo boxes as one table (with the scale column), the count of
+    boxes above the score cut dropped as implausible, and the detector's seconds."""
+    from tqdm import tqdm
+
+    ids, boxes_all, scores_all, counts_all = [], [], [], []
+    bar = tqdm(
+        total=len(target), desc="pseudo-label", unit="frame", file=sys.stderr,
+        disable=not progress, leave=False,
+    )  # fmt: skip
+    seconds = 0.0
+    implausible = 0  # boxes above the score cut dropped as implausible
+    for labels in labeler.frame_labels(pool, directory, target):
+        ids.extend([labels.frame_id] * len(labels.boxes))
+        boxes_all.append(labels.boxes)
+        scores_all.append(labels.scores)
+        counts_all.append(labels.counts)
+        implausible += labels.implausible
+        seconds += labels.seconds
+        bar.update(1)
+    bar.close()
+    if not ids:
+        return BoxTable.empty().with_columns(scale=np.zeros(0, np.float64)), implausible, seconds
+    table = BoxTable.from_arrays(
+        np.asarray(ids),
+        np.concatenate(boxes_all),
+        score=np.concatenate(scores_all),
+        num_points=np.concatenate(counts_all),
+        scale=np.full(len(ids), labeler.scale, np.float64),
+    )
+    return table, implausible, seconds
+
+
+def pseudo_label_notes(
+    implausible: int, skipped_correction: bool, boxes: int, score_min: float
+) -> list[str]:
+    """The manifest's notes (each also a warning): implausible boxes dropped, size correction
+    skipped, no boxes at all."""
+    notes = []
+    if implausible:
+        notes.append(
+            f"dropped {implausible} implausible boxes with score >= {score_min} (size or "
+            "distance beyond dali_cli.plausibility's limits)"
+        )
+        console.warn(notes[-1])
+    if skipped_correction:
+        notes.append("size correction skipped: no E_est (give --scale-from PTSN_DIR)")
+        console.warn(notes[-1], colour="yellow", bold=False)
+    if not boxes:
+        notes.append(f"no boxes with score >= {score_min} on any frame")
+        console.warn(notes[-1])
+    return notes
 
 
 def correct_table(

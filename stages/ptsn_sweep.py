@@ -158,127 +158,34 @@ def ptsn_sweep(
     target = FrameSet(target_dir)
     target_profile = target_profile or target.sensor or None
     e_est, expected_record = resolve_e_est(
-        expected_size,
-        target_profile=target_profile,
-        card=read_model_card(model_dir),
-        source_profile=source_profile,
-        ros_factor=ros_factor,
-        sensors_path=sensors_path,
-    )
+        expected_size, target_profile=target_profile, card=read_model_card(model_dir),
+        source_profile=source_profile, ros_factor=ros_factor, sensors_path=sensors_path,
+    )  # fmt: skip
     if mount_height_m is None:
-        if not target_profile:
-            raise ParameterError(
-                ("target_profile", "mount_height_m"),
-                f"{target_dir}: the frame set names no sensor; name its profile or mount height",
-            )
-        mount_height_m = get_profile(target_profile, sensors_path).mount_height_m
+        mount_height_m = profile_mount_height(target_profile, target_dir, sensors_path)
     params = {
-        "scales": scale_range.as_list(),
-        "expected_size": expected_size,
-        "expected_lwh_m": [round(float(v), 6) for v in e_est],
-        "search": search,
-        "frames": frames,
-        "frame_fraction": frame_fraction,
-        "score_min": score_min,
-        "mean": mean,
-        "match": match,
-        "seed": seed,
-        "subsample_fraction": subsample_fraction,
-        "subsample_min": subsample_min,
-        "noise": noise,
-        "target_profile": target_profile,
-        "mount_height_m": mount_height_m,
-        "plot": plot,
-    }
-    if no_detections != "identity":
-        # recorded only when not the default: outputs of sweeps that found detections do not
-        # depend on it, so earlier runs stay up to date
-        params["no_detections"] = no_detections
-    if precision != "fp32":
-        params["precision"] = precision
+        "scales": scale_range.as_list(), "expected_size": expected_size,
+        "expected_lwh_m": [round(float(v), 6) for v in e_est], "search": search,
+        "frames": frames, "frame_fraction": frame_fraction, "score_min": score_min, "mean": mean,
+        "match": match, "seed": seed, "subsample_fraction": subsample_fraction,
+        "subsample_min": subsample_min, "noise": noise, "target_profile": target_profile,
+        "mount_height_m": mount_height_m, "plot": plot,
+    }  # fmt: skip
+    # recorded only when not the default: outputs of sweeps that found detections do not
+    # depend on no_detections, and fp32 is the default precision: earlier runs stay up to date
+    params.update(
+        {"no_detections": no_detections} if no_detections != "identity" else {},
+        **({"precision": precision} if precision != "fp32" else {}),
+    )
 
     def build(directory: Path) -> BuildResult:
         loader = detector_loader or load_detector
         detector = place(loader(model_dir), torch_device, precision)
-        selected = ptsn.select_frames(len(target), frames, frame_fraction, seed)
-        visible = getattr(detector, "visible_range", None)  # test doubles may see everything
-        store = FrameStore(
-            target, lambda p: ptsn.crop_for_scales(p, visible, scale_range.low, scale_range.high)
-        )
-        counts = np.zeros(len(selected), dtype=np.int64)  # points some swept scale brings in range
-        for k, (_, points) in enumerate(target.iter_frames(selected)):
-            counts[k] = len(store.keep(selected[k], points))
-        usable = selected[counts > 0]
-        skipped = int(len(selected) - len(usable))
-        subsample = ptsn.subsample_for_bracket(usable, subsample_fraction, subsample_min, seed)
-        bar = _progress_bar(progress, "ptsn detector passes")
-        cache = ptsn.DetectionCache(
-            detector,
-            store,
-            score_min=score_min,
-            mount_height_m=mount_height_m,
-            batch_size=batch_size,
-            progress=bar.update,
-        )
-        try:
-            result = ptsn.find_scale(
-                cache,
-                scale_range,
-                e_est,
-                usable,
-                search=search,
-                match=match,
-                mean=mean,
-                subsample=subsample,
-                noise=noise,
-                no_detections=no_detections,
-            )
-        except ptsn.PTSNError as error:
-            raise StageError(f"{target_dir}: {error}") from None
-        finally:
-            bar.close()
-        rows = [evaluation.row() for evaluation in result.evaluations]
-        pq.write_table(pa.Table.from_pylist(rows), directory / SWEEP_NAME)
-        grid_frame_passes = len(scale_range.grid()) * len(usable)
-        document = scale_document(
-            result,
-            e_est,
-            expected_record,
-            cache,
-            frames_selected=len(selected),
-            frames_used=len(usable),
-            frames_skipped=skipped,
-            subsample=len(subsample) if search == "bracket" else len(usable),
-            params=params,
-            grid_frame_passes=grid_frame_passes,
-        )
-        write_scale(directory, document)
-        if plot:
-            title = f"PTSN sweep: ŝ = {result.scale:.3f} ({search}, {match})"
-            from dali_cli.report_plots import plot_sweep
-
-            plot_sweep(rows, result.scale, e_est, directory / PLOT_NAME, title)
-        for message in result.warnings:
-            console.warn(message)
-        if skipped:
-            console.warn(
-                f"{skipped} of {len(selected)} selected frames have no points in range: skipped"
-            )
-        print_summary(document)
-        return BuildResult(
-            counts={
-                "frames": len(usable),
-                "frames_skipped": skipped,
-                "scales_evaluated": document["passes"],
-                "detector_frames": cache.frame_passes,
-            },
-            timings={"detector_seconds": round(cache.seconds, 3)},
-            notes=list(result.warnings),
-            extra={
-                "ptsn": {"scale": result.scale, "clipped": result.clipped},
-                "runtime": inference_runtime(torch_device),
-            },
-        )
+        return run_sweep(
+            directory, detector, target, scale_range, e_est, expected_record, params,
+            no_detections=no_detections, batch_size=batch_size, progress=progress,
+            torch_device=torch_device,
+        )  # fmt: skip
 
     return run_stage(
         STAGE,
@@ -289,6 +196,114 @@ def ptsn_sweep(
         force=force,
         dry_run=dry_run,
         seed=seed,
+    )
+
+
+def run_sweep(
+    directory: Path,
+    detector,
+    target: FrameSet,
+    scale_range: ptsn.ScaleRange,
+    e_est: np.ndarray,
+    expected_record: dict,
+    params: dict,
+    *,
+    no_detections: str,
+    batch_size: int,
+    progress: bool,
+    torch_device,
+) -> BuildResult:
+    """The sweep with the stage's `params` (frames, search, match, mean, seed, subsample,
+    noise, score cut, pivot, plot): find ŝ on the selected frames, write sweep.parquet,
+    scale.json (and sweep.png), and return the manifest's record."""
+    selected = ptsn.select_frames(
+        len(target), params["frames"], params["frame_fraction"], params["seed"]
+    )
+    store, usable = cropped_frames(target, selected, detector, scale_range)
+    skipped = int(len(selected) - len(usable))
+    subsample = ptsn.subsample_for_bracket(
+        usable, params["subsample_fraction"], params["subsample_min"], params["seed"]
+    )
+    bar = _progress_bar(progress, "ptsn detector passes")
+    cache = ptsn.DetectionCache(
+        detector, store, score_min=params["score_min"], mount_height_m=params["mount_height_m"],
+        batch_size=batch_size, progress=bar.update,
+    )  # fmt: skip
+    search, match = params["search"], params["match"]
+    try:
+        result = ptsn.find_scale(
+            cache, scale_range, e_est, usable, search=search, match=match, mean=params["mean"],
+            subsample=subsample, noise=params["noise"], no_detections=no_detections,
+        )  # fmt: skip
+    except ptsn.PTSNError as error:
+        raise StageError(f"{target.directory}: {error}") from None
+    finally:
+        bar.close()
+    rows = [evaluation.row() for evaluation in result.evaluations]
+    pq.write_table(pa.Table.from_pylist(rows), directory / SWEEP_NAME)
+    document = scale_document(
+        result, e_est, expected_record, cache,
+        frames_selected=len(selected), frames_used=len(usable), frames_skipped=skipped,
+        subsample=len(subsample) if search == "bracket" else len(usable), params=params,
+        grid_frame_passes=len(scale_range.grid()) * len(usable),
+    )  # fmt: skip
+    write_scale(directory, document)
+    if params["plot"]:
+        from dali_cli.report_plots import plot_sweep
+
+        title = f"PTSN sweep: ŝ = {result.scale:.3f} ({search}, {match})"
+        plot_sweep(rows, result.scale, e_est, directory / PLOT_NAME, title)
+    report_sweep(result, document, skipped, len(selected))
+    return sweep_result(result, document, cache, torch_device)
+
+
+def profile_mount_height(target_profile: str | None, target_dir: Path, sensors_path) -> float:
+    """The target profile's mount height (m): the pivot the frames are scaled about."""
+    if not target_profile:
+        raise ParameterError(
+            ("target_profile", "mount_height_m"),
+            f"{target_dir}: the frame set names no sensor; name its profile or mount height",
+        )
+    return get_profile(target_profile, sensors_path).mount_height_m
+
+
+def cropped_frames(target: FrameSet, selected: np.ndarray, detector, scale_range):
+    """The selected frames cropped to what some swept scale brings into the detector's range
+    (kept in memory, FrameStore), and the selected frame indices that have such points."""
+    visible = getattr(detector, "visible_range", None)  # test doubles may see everything
+    store = FrameStore(
+        target, lambda p: ptsn.crop_for_scales(p, visible, scale_range.low, scale_range.high)
+    )
+    counts = np.zeros(len(selected), dtype=np.int64)  # points some swept scale brings in range
+    for k, (_, points) in enumerate(target.iter_frames(selected)):
+        counts[k] = len(store.keep(selected[k], points))
+    return store, selected[counts > 0]
+
+
+def report_sweep(result: ptsn.SearchResult, document: dict, skipped: int, selected: int) -> None:
+    """The search's warnings, the skipped frames and the one-line summary."""
+    for message in result.warnings:
+        console.warn(message)
+    if skipped:
+        console.warn(f"{skipped} of {selected} selected frames have no points in range: skipped")
+    print_summary(document)
+
+
+def sweep_result(result: ptsn.SearchResult, document: dict, cache, torch_device) -> BuildResult:
+    """The manifest's counts, timings, notes and the ŝ record of a sweep."""
+    return BuildResult(
+        counts={
+            "frames": document["frames"]["used"],
+            "frames_skipped": document["frames"]["skipped_no_points"],
+            "scales_evaluated": document["passes"],
+            "detector_frames": cache.frame_passes,
+        },
+        timings={"detector_seconds": round(cache.seconds, 3)},
+        notes=list(result.warnings),
+        extra={
+            "ptsn": {"scale": result.scale, "clipped": result.clipped},
+            "runtime": inference_runtime(torch_device),
+        },
     )
 
 
