@@ -1,14 +1,16 @@
 """Stage pseudo_label: run the detector on the target at the PTSN scale ŝ, de-scale, drop
 implausible boxes (dali_cli.plausibility, counted), keep score >= score_min, BEV NMS, remove the
 remaining per-dimension size bias against E_est (`dali_cli.size_correction`, on by default),
-count the original points in each box; write boxes.parquet and summary.json (boxes per frame,
-mean size vs E_est, score histogram)."""
+count the original points in each box; write boxes.parquet, scale.json (the ScaleResult the
+labels were made at: ŝ stored once, exactly as found) and summary.json (boxes per frame, mean
+size vs E_est, score histogram)."""
 
 from __future__ import annotations
 
 import json
 import math
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +22,7 @@ from dali_cli.errors import ParameterError, StageError
 from dali_cli.executors import make_executor, run_on
 from dali_cli.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.pseudo_labeler import FrameLabeler, label_frame  # noqa: F401 (public here)
-from dali_cli.scale_file import read_scale
+from dali_cli.scale_file import ScaleResult, read_scale, write_scale
 from dali_cli.sensors import get_profile
 
 STAGE = "pseudo_label"
@@ -35,7 +37,7 @@ def load_detector(model_dir: str | Path) -> ptsn.Predictor:
     return Detector.load(model_dir)
 
 
-def summarize(table: BoxTable, frames: int, scale: float, e_est: list | None) -> dict:
+def summarize(table: BoxTable, frames: int, e_est: list | None) -> dict:
     """summary.json: counts, mean size (per-frame mean as paper Eq. 1, and pooled) vs E_est."""
     sizes = table.boxes[:, 3:6]  # (N, 3)
     per_frame = ptsn.expected_prediction(
@@ -48,7 +50,6 @@ def summarize(table: BoxTable, frames: int, scale: float, e_est: list | None) ->
         return [round(float(v), 4) if math.isfinite(v) else None for v in values]
 
     summary = {
-        "scale": scale,
         "frames": frames,
         "frames_with_boxes": per_frame.frames_with_boxes,
         "boxes": len(table),
@@ -103,12 +104,11 @@ def pseudo_label(
         )
     if not model_dir.is_dir():
         raise StageError(f"{model_dir}: model directory not found")
-    found = read_scale(scale_from) if scale_from is not None else None
-    scale_source = str(scale_from) if found is not None and scale is None else "option"
-    scale = found.scale if scale is None else scale  # ŝ exactly as the sweep found it
-    e_est = list(found.e_est) if found is not None and found.e_est is not None else None
-    if mount_height_m is None and found is not None and found.pivot_m is not None:
-        mount_height_m = found.pivot_m  # scale about the very point the sweep scaled about
+    used, scale_source = used_scale(scale, scale_from)
+    scale = used.scale  # ŝ exactly as the sweep found it (or the option's)
+    e_est = list(used.e_est) if used.e_est is not None else None
+    if mount_height_m is None and used.pivot_m is not None:
+        mount_height_m = used.pivot_m  # scale about the very point the sweep scaled about
     method = correction_method(size_correction_method, e_est)
     target = FrameSet(target_dir)
     target_profile = target_profile or target.sensor or None
@@ -144,19 +144,20 @@ def pseudo_label(
         if method != "none" and len(table):
             table, correction = correct_table(table, target, e_est, score_min)
         write_boxes(directory, table)
-        summary = summarize(table, len(target), scale, e_est)
+        write_scale(directory, scale_record(used, scale_source, mount_height_m))
+        summary = summarize(table, len(target), e_est)
         summary["scale_source"] = scale_source
         summary["boxes_implausible"] = implausible
         summary["size_correction"] = correction
         (directory / SUMMARY_NAME).write_text(json.dumps(summary, indent=2) + "\n")
-        print_summary(summary)
+        print_summary(summary, scale)
         skipped_correction = method != size_correction_method
         return BuildResult(
             counts={"frames": len(target), "boxes": len(table), "boxes_implausible": implausible},
             timings={"detector_seconds": round(seconds, 3)},
             notes=pseudo_label_notes(implausible, skipped_correction, len(table), score_min),
             extra={
-                "pseudo_label": {"scale": scale, "scale_source": scale_source},
+                "pseudo_label": {"scale_source": scale_source},
                 "runtime": inference_runtime(torch_device),
                 "size_correction": correction or {"method": method},
                 "executor": pool.report(),
@@ -166,6 +167,25 @@ def pseudo_label(
     return run_stage(
         STAGE, out, inputs=inputs, params=params, build=build, force=force, dry_run=dry_run
     )
+
+
+def used_scale(scale: float | None, scale_from: str | Path | None) -> tuple[ScaleResult, str]:
+    """The ScaleResult the pseudo labels are made at, and where its ŝ comes from: scale_from's
+    scale.json exactly as the sweep wrote it, its ŝ replaced by `scale` when that is given
+    ("option"; E_est and the pivot still from scale_from when given)."""
+    found = read_scale(scale_from) if scale_from is not None else None
+    if scale is None:
+        return found, str(scale_from)
+    if found is None:
+        return ScaleResult(scale=scale, record={"scale": scale}), "option"
+    return replace(found, scale=scale, record={**found.record, "scale": scale}), "option"
+
+
+def scale_record(used: ScaleResult, scale_source: str, mount_height_m: float | None) -> dict:
+    """OUT/scale.json of the pseudo labels: the ScaleResult they were made at (the sweep's
+    record, ŝ exact), where ŝ came from and the pivot the target was scaled about. The one
+    place a pseudo-label output stores ŝ (read by self-train through read_scale)."""
+    return {**used.record, "scale_source": scale_source, "mount_height_m": mount_height_m}
 
 
 def correction_method(method: str, e_est: list | None) -> str:
@@ -182,7 +202,8 @@ def correction_method(method: str, e_est: list | None) -> str:
 def label_frames(
     labeler: FrameLabeler, pool, directory: Path, target: FrameSet, progress: bool
 ) -> tuple[BoxTable, int, float]:
-    """Every target frame's pseudo boxes as one table (with the scale column), the count of
+    """Every target frame's pseudo boxes as one table (ŝ is not a column: OUT/scale.json holds
+    it once), the count of
     boxes above the score cut dropped as implausible, and the detector's seconds."""
     from tqdm import tqdm
 
@@ -203,13 +224,12 @@ def label_frames(
         bar.update(1)
     bar.close()
     if not ids:
-        return BoxTable.empty().with_columns(scale=np.zeros(0, np.float64)), implausible, seconds
+        return BoxTable.empty(), implausible, seconds
     table = BoxTable.from_arrays(
         np.asarray(ids),
         np.concatenate(boxes_all),
         score=np.concatenate(scores_all),
         num_points=np.concatenate(counts_all),
-        scale=np.full(len(ids), labeler.scale, np.float64),
     )
     return table, implausible, seconds
 
@@ -255,7 +275,6 @@ def correct_table(
         boxes,
         score=table["score"],
         num_points=counts,
-        scale=table["scale"],
         size_factor_l=np.full(len(table), record.factors[0]),
         size_factor_w=np.full(len(table), record.factors[1]),
         size_factor_h=np.full(len(table), record.factors[2]),
@@ -263,7 +282,7 @@ def correct_table(
     return corrected, record.to_dict()
 
 
-def print_summary(summary: dict) -> None:
+def print_summary(summary: dict, scale: float) -> None:
     def triple(values) -> str:
         return (
             "—" if values is None else ", ".join("nan" if v is None else f"{v:.2f}" for v in values)
@@ -271,7 +290,7 @@ def print_summary(summary: dict) -> None:
 
     console.echo(
         f"pseudo-label: {summary['boxes']} boxes on {summary['frames']} frames "
-        f"({summary['boxes_per_frame']:.2f}/frame) at s = {summary['scale']:.4f}; "
+        f"({summary['boxes_per_frame']:.2f}/frame) at s = {scale:.4f}; "
         f"mean l/w/h ({triple(summary['mean_lwh'])}) m vs E_est ({triple(summary['E_est'])}) m"
     )
     correction = summary.get("size_correction")

@@ -29,14 +29,19 @@ from dali_cli.training_stage import (
 
 
 def pseudo_label_scale(pseudo: Path) -> float:
-    """The scale ŝ at which the pseudo boxes of `pseudo` were made (their `scale` column)."""
+    """The scale ŝ at which the pseudo boxes of `pseudo` were made: its scale.json (the
+    ScaleResult pseudo-label writes), or, for outputs of earlier versions without one, the
+    boxes' `scale` column."""
     from dali_cli.artifacts import read_boxes
+    from dali_cli.scale_file import read_scale, scale_path
 
+    if scale_path(pseudo).is_file():
+        return read_scale(pseudo).scale
     table = read_boxes(pseudo)
     if "scale" not in table.columns:
         raise StageError(
-            f"{pseudo}/boxes.parquet: no 'scale' column (not from `dali pseudo-label`); "
-            "give the scale"
+            f"{pseudo}: no scale.json and no 'scale' column in boxes.parquet (not from "
+            "`dali pseudo-label`); give the scale"
         )
     scales = np.unique(np.asarray(table["scale"], np.float64))
     if len(scales) != 1 or not (np.isfinite(scales[0]) and scales[0] > 0):

@@ -10,6 +10,7 @@ from click.testing import CliRunner
 
 from dali_cli.artifacts import ArtifactError
 from dali_cli.cli import main
+from dali_cli.manifest import read_manifest
 from dali_cli.scale_file import read_scale, write_scale
 
 
@@ -72,3 +73,36 @@ def test_scale_result_is_typed_and_pseudo_label_scales_about_its_pivot(tmp_path)
         progress=False, detector_loader=lambda _: Recorder(),
     )  # fmt: skip
     assert seen == [(1.25, 1.9)]  # the kitti profile's 1.73 m would scale about another point
+    # ŝ is stored once in the output: its scale.json, the sweep's record exactly (no per-box
+    # column, no copy in summary.json or the manifest's record), and self-train reads it there
+    from stages.self_train import pseudo_label_scale
+
+    stored = read_scale(tmp_path / "pseudo")
+    assert stored.scale == 1.25 and stored.e_est == (3.9, 1.6, 1.5) and stored.pivot_m == 1.9
+    assert stored.record["scale_source"] == str(tmp_path / "ptsn")
+    assert "scale" not in json.loads((tmp_path / "pseudo" / "summary.json").read_text())
+    assert "scale" not in read_manifest(tmp_path / "pseudo")["pseudo_label"]
+    assert pseudo_label_scale(tmp_path / "pseudo") == 1.25
+
+
+def test_self_train_reads_the_scale_of_earlier_pseudo_label_outputs(tmp_path):
+    """Outputs of earlier versions carry ŝ as a per-box 'scale' column and no scale.json."""
+    import numpy as np
+
+    from dali_cli.artifacts import BoxTable, write_boxes
+    from dali_cli.errors import StageError
+    from stages.self_train import pseudo_label_scale
+
+    boxes = np.tile([[5.0, 0.0, -1.0, 3.9, 1.6, 1.5, 0.0]], (3, 1))
+    table = BoxTable.from_arrays(np.array(["000", "000", "001"]), boxes)
+    (tmp_path / "old").mkdir()
+    write_boxes(tmp_path / "old", table.with_columns(scale=np.full(3, 1.0 + 1e-12)))
+    assert pseudo_label_scale(tmp_path / "old") == 1.0 + 1e-12
+    (tmp_path / "mixed").mkdir()
+    write_boxes(tmp_path / "mixed", table.with_columns(scale=np.array([1.0, 1.1, 1.0])))
+    with pytest.raises(StageError, match="one positive 'scale'"):
+        pseudo_label_scale(tmp_path / "mixed")
+    (tmp_path / "none").mkdir()
+    write_boxes(tmp_path / "none", table)
+    with pytest.raises(StageError, match="no scale.json"):
+        pseudo_label_scale(tmp_path / "none")

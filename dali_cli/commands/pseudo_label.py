@@ -40,8 +40,9 @@ def command(model_dir, target_dir, out, sensors_path, no_progress, **options):
 
     Reads MODEL, the TARGET frame set (never its labels) and --scale-from's scale.json.
     Writes OUT/boxes.parquet (one row per pseudo box: frame_id, x, y, z, l, w, h, yaw, score,
-    label, num_points = original target points inside the box, scale = the scale used,
-    size_factor_l/w/h = the correction factors),
+    label, num_points = original target points inside the box, size_factor_l/w/h = the
+    correction factors), OUT/scale.json (the scale used: --scale-from's scale.json with
+    scale_source and the pivot mount_height_m; the one record of ŝ in the output),
     OUT/summary.json (boxes per frame, mean size vs E_est, score histogram) and manifest.json.
     """
     from stages.pseudo_label import pseudo_label
