@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dali_cli.detector.config import DetectorConfig
 from dali_cli.detector.data import Augmentation, LabeledFrames, augmented_sample
 from dali_cli.detector.distributed import (
     SINGLE,
@@ -134,22 +133,8 @@ def train(
     With a distributed `world` (torchrun, see distributed.py) each rank trains on its slice of
     the global batch (batch_size frames per rank) through DistributedDataParallel; rank 0 alone
     saves resume states and shows progress, and every rank leaves with the same weights."""
-    from tqdm import tqdm
-
-    from dali_cli.device import autocast, check_precision, resolve_device
-
-    config: DetectorConfig = net.config
-    device = device if device is not None else resolve_device(settings.device, world.local_rank)
-    check_precision(settings.precision, device)
-    threads = training_threads(settings.threads, world.local_size)
-    torch.set_num_threads(threads)
-    if len(datasets) != len(settings.mix) or len(augmentations) != len(datasets):
-        raise ValueError("need one mix weight and one augmentation setting per data set")
-    for d in datasets:
-        if len(d) == 0:
-            raise ValueError(f"training set {d.name} has no frames")
-    if settings.compile and world.distributed:
-        raise ValueError("--compile is not supported with torchrun (distributed) training")
+    device, threads = training_device(settings, device, world)
+    check_training_inputs(datasets, augmentations, settings, world)
     pattern = interleave(settings.mix)
     budget_s = settings.minutes * 60 if settings.minutes else None
     steps = None if budget_s else total_steps(datasets, settings, world.size)
@@ -160,31 +145,12 @@ def train(
     optimizer = torch.optim.AdamW(
         net.parameters(), lr=settings.lr, weight_decay=settings.weight_decay
     )
-    step, elapsed, log = 0, 0.0, []
     resume_path = Path(resume_path) if resume_path else None
-    state = None
-    if world.is_main and resume_path and resume_path.is_file():
-        from dali_cli.detector.infer import load_weights_only
-
-        state = load_weights_only(resume_path, "a dali training state")
-        state = state if state.get("key") == resume_key else None
-    state = broadcast_object(state, world)  # the other ranks resume from rank 0's file
-    if state is not None:
-        net.load_state_dict(state["net"])
-        optimizer.load_state_dict(state["optimizer"])
-        step, elapsed, log = state["step"], state["elapsed_s"], state["log"]
-    del state
+    step, elapsed, log = resume_training(resume_path, resume_key, net, optimizer, world)
     resumed_from = step
     net.train()
     forward = compiled_forward(net) if settings.compile else model
-    bar = tqdm(
-        total=steps if steps else round(budget_s),
-        initial=step if steps else round(elapsed),
-        desc="train" if not world.distributed else f"train (rank 0 of {world.size})",
-        unit="step" if steps else "s",
-        disable=not (progress and world.is_main),
-        leave=False,
-    )
+    bar = progress_bar(steps, budget_s, step, elapsed, world, progress)
     mine = rank_slice(world, settings.batch_size)  # this rank's positions in the global batch
     global_batch = settings.batch_size * world.size
     last_save = time.perf_counter()
@@ -195,76 +161,173 @@ def train(
         lr = one_cycle(fraction, settings.lr, settings.pct_start)
         for group in optimizer.param_groups:
             group["lr"] = lr
-        d = pattern[step % len(pattern)]
-        cycles, within = divmod(step, len(pattern))
-        batch_number = cycles * pattern.count(d) + pattern[:within].count(d)
-        indices = batch_indices(len(datasets[d]), batch_number, global_batch, settings.seed, d)
-        samples = [  # each frame's draws follow its place in the global batch, not the rank
-            augmented_sample(
-                datasets[d],
-                int(indices[j]),
-                np.random.default_rng([settings.seed, step, j]),
-                augmentations[d],
-            )
-            for j in mine
-        ]
-        points = torch.from_numpy(np.concatenate([p for p, _ in samples])).to(device)  # (P, 4)
-        batch_index = torch.from_numpy(
-            np.repeat(np.arange(len(samples)), [len(p) for p, _ in samples])
-        ).to(device)
-        targets = build_targets([b for _, b in samples], config).to(device)
-        with autocast(device, settings.precision):
-            maps = forward(points, batch_index, len(samples))
-        loss, terms = detection_loss(maps, targets, config)
-        if net.refiner is not None:
-            loss, terms = add_refine_loss(
-                net, maps, [p for p, _ in samples], targets, loss, terms, settings.seed, step,
-                positions=list(mine),
-            )  # fmt: skip
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(net.parameters(), settings.grad_clip)
-        optimizer.step()
+        d, samples = step_samples(
+            datasets, augmentations, pattern, step, global_batch, settings, mine
+        )
+        terms = optimize_step(net, forward, optimizer, samples, settings, device, step, mine)
         step += 1
         took = time.perf_counter() - started
         elapsed = broadcast_float(elapsed + took, world) if budget_s else elapsed + took
         window_frames, window_time = window_frames + global_batch, window_time + took
         bar.update(1 if steps else min(round(elapsed), bar.total) - bar.n)
         if step % settings.log_every == 0 or step == 1 or step == steps:
-            terms = {k: float(v) for k, v in mean_over_ranks(terms).items()}
-            row = {
-                "step": step,
-                "dataset": d,
-                **terms,
-                "lr": lr,
-                "frames_per_s": window_frames / max(window_time, 1e-9),  # all ranks together
-                "elapsed_s": elapsed,
-            }
+            row = log_row(step, d, terms, lr, window_frames / max(window_time, 1e-9), elapsed)
             log.append(row)
             window_frames, window_time = 0, 0.0
             bar.set_postfix(
-                loss=f"{terms['loss']:.3f}", fps=f"{row['frames_per_s']:.1f}", lr=f"{lr:.1e}"
+                loss=f"{row['loss']:.3f}", fps=f"{row['frames_per_s']:.1f}", lr=f"{lr:.1e}"
             )
             if on_log and world.is_main:
                 on_log(row)
-        if (
-            world.is_main
-            and resume_path
-            and time.perf_counter() - last_save > settings.checkpoint_every_s
-        ):
+        due = time.perf_counter() - last_save > settings.checkpoint_every_s
+        if world.is_main and resume_path and due:
             save_resume_state(resume_path, resume_key, net, optimizer, step, elapsed, log)
             last_save = time.perf_counter()
     bar.close()
     net.eval()
-    frames = step * global_batch
     return TrainResult(
         steps=step,
-        frames=frames,
+        frames=step * global_batch,
         seconds=elapsed,
         log=log,
         resumed_from_step=resumed_from,
         runtime=runtime_info(threads, device, world),
     )
+
+
+def training_device(settings: TrainSettings, device, world: World):
+    """(device, torch threads) of this process: `device` or settings.device resolved (for the
+    local rank), its precision checked; torch's thread count set to this process's share."""
+    from dali_cli.device import check_precision, resolve_device
+
+    device = device if device is not None else resolve_device(settings.device, world.local_rank)
+    check_precision(settings.precision, device)
+    threads = training_threads(settings.threads, world.local_size)
+    torch.set_num_threads(threads)
+    return device, threads
+
+
+def progress_bar(
+    steps: int | None, budget_s: float | None, step: int, elapsed: float, world: World,
+    progress: bool,
+):  # fmt: skip
+    """A bar of steps (epoch budget) or seconds (wall-clock budget), shown by rank 0 only."""
+    from tqdm import tqdm
+
+    return tqdm(
+        total=steps if steps else round(budget_s),
+        initial=step if steps else round(elapsed),
+        desc="train" if not world.distributed else f"train (rank 0 of {world.size})",
+        unit="step" if steps else "s",
+        disable=not (progress and world.is_main),
+        leave=False,
+    )
+
+
+def check_training_inputs(
+    datasets: list[LabeledFrames], augmentations: list, settings: TrainSettings, world: World
+) -> None:
+    """One mix weight and one augmentation per data set, no empty set, no --compile under
+    torchrun (ValueError otherwise)."""
+    if len(datasets) != len(settings.mix) or len(augmentations) != len(datasets):
+        raise ValueError("need one mix weight and one augmentation setting per data set")
+    for d in datasets:
+        if len(d) == 0:
+            raise ValueError(f"training set {d.name} has no frames")
+    if settings.compile and world.distributed:
+        raise ValueError("--compile is not supported with torchrun (distributed) training")
+
+
+def resume_training(
+    resume_path: Path | None, resume_key: str, net, optimizer, world: World
+) -> tuple[int, float, list]:
+    """(step, elapsed seconds, log) to continue from: rank 0's resume state when it was written
+    with `resume_key` (weights and optimizer loaded into `net` and `optimizer` on every rank),
+    else a fresh start."""
+    state = None
+    if world.is_main and resume_path and resume_path.is_file():
+        from dali_cli.detector.infer import load_weights_only
+
+        state = load_weights_only(resume_path, "a dali training state")
+        state = state if state.get("key") == resume_key else None
+    state = broadcast_object(state, world)  # the other ranks resume from rank 0's file
+    if state is None:
+        return 0, 0.0, []
+    net.load_state_dict(state["net"])
+    optimizer.load_state_dict(state["optimizer"])
+    return state["step"], state["elapsed_s"], state["log"]
+
+
+def step_samples(
+    datasets: list[LabeledFrames],
+    augmentations: list[Augmentation],
+    pattern: list[int],
+    step: int,
+    global_batch: int,
+    settings: TrainSettings,
+    mine,
+) -> tuple[int, list]:
+    """The data set of optimizer step `step` (the mix's interleaving) and this rank's augmented
+    samples `(points (n, 4), boxes (k, 7))` of its batch: frame j of the global batch is drawn
+    from (seed, step, j), whatever the rank."""
+    d = pattern[step % len(pattern)]
+    cycles, within = divmod(step, len(pattern))
+    batch_number = cycles * pattern.count(d) + pattern[:within].count(d)
+    indices = batch_indices(len(datasets[d]), batch_number, global_batch, settings.seed, d)
+    samples = [  # each frame's draws follow its place in the global batch, not the rank
+        augmented_sample(
+            datasets[d],
+            int(indices[j]),
+            np.random.default_rng([settings.seed, step, j]),
+            augmentations[d],
+        )
+        for j in mine
+    ]
+    return d, samples
+
+
+def optimize_step(
+    net: PillarCenterNet, forward, optimizer, samples: list, settings: TrainSettings, device,
+    step: int, mine,
+) -> dict:  # fmt: skip
+    """One optimizer step on `samples` (forward, detection + refine losses, clipped backward);
+    returns the loss terms (tensors)."""
+    from dali_cli.device import autocast
+
+    config = net.config
+    points = torch.from_numpy(np.concatenate([p for p, _ in samples])).to(device)  # (P, 4)
+    batch_index = torch.from_numpy(
+        np.repeat(np.arange(len(samples)), [len(p) for p, _ in samples])
+    ).to(device)
+    targets = build_targets([b for _, b in samples], config).to(device)
+    with autocast(device, settings.precision):
+        maps = forward(points, batch_index, len(samples))
+    loss, terms = detection_loss(maps, targets, config)
+    if net.refiner is not None:
+        loss, terms = add_refine_loss(
+            net, maps, [p for p, _ in samples], targets, loss, terms, settings.seed, step,
+            positions=list(mine),
+        )  # fmt: skip
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(net.parameters(), settings.grad_clip)
+    optimizer.step()
+    return terms
+
+
+def log_row(
+    step: int, dataset: int, terms: dict, lr: float, frames_per_s: float, elapsed: float
+) -> dict:
+    """A train_log row: the loss terms averaged over the ranks, lr, throughput (all ranks)."""
+    terms = {k: float(v) for k, v in mean_over_ranks(terms).items()}
+    return {
+        "step": step,
+        "dataset": dataset,
+        **terms,
+        "lr": lr,
+        "frames_per_s": frames_per_s,
+        "elapsed_s": elapsed,
+    }
 
 
 def add_refine_loss(
