@@ -63,7 +63,6 @@ def render_frame(
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.collections import LineCollection, PolyCollection
 
     points = np.asarray(points, np.float64)
     xmin, xmax, ymin, ymax = extent or auto_extent(points, box_sets)
@@ -76,20 +75,8 @@ def render_frame(
     shown = points[inside]
     values = shown[:, 2] if colour_by == "z" else shown[:, 3]
     limits = np.quantile(values, [0.01, 0.99]) if len(values) else (0.0, 1.0)
-
-    bev_height = (ymax - ymin) / (xmax - xmin)
-    heights = [bev_height, 0.25] if side else [bev_height]
     dpi = 100
-    width_in = width_px / dpi
-    figure, axes = plt.subplots(
-        len(heights),
-        1,
-        figsize=(width_in, width_in * sum(heights) + 0.6),
-        dpi=dpi,
-        gridspec_kw={"height_ratios": heights},
-        squeeze=False,
-        sharex=True,
-    )
+    figure, axes = frame_figure((xmax - xmin, ymax - ymin), side, width_px, dpi)
     bev = axes[0, 0]
     bev.set_facecolor("black")
     bev.scatter(
@@ -97,44 +84,10 @@ def render_frame(
         linewidths=0, rasterized=True,
     )  # fmt: skip
     bev.plot([0], [0], marker=">", color="white", markersize=8)  # the sensor, facing +x
-    handles = []
-    for index, box_set in enumerate(box_sets):
-        colour = BOX_COLOURS[index % len(BOX_COLOURS)]
-        boxes = np.asarray(box_set.boxes, np.float64).reshape(-1, 7)
-        drawn = (boxes[:, 3:6] > 0).all(axis=1)
-        boxes, labels = boxes[drawn], np.asarray(box_set.labels).astype(str)[drawn]
-        styles = np.where(labels == "Car", "solid", "dashed")
-        corners = bev_corners(boxes) if len(boxes) else np.zeros((0, 4, 2))  # (N, 4, 2)
-        bev.add_collection(
-            PolyCollection(
-                corners,
-                closed=True,
-                facecolors="none",
-                edgecolors=colour,
-                linewidths=1.2,
-                linestyles=list(styles),
-            )  # fmt: skip
-        )
-        front = (corners[:, 0] + corners[:, 3]) / 2  # (N, 2) midpoint of the front edge
-        bev.add_collection(
-            LineCollection(np.stack([boxes[:, :2], front], axis=1), colors=colour, linewidths=1.2)
-        )
-        if annotate:
-            scores = None if box_set.scores is None else np.asarray(box_set.scores)[drawn]
-            for i in range(len(boxes)):
-                text = labels[i] if scores is None else f"{scores[i]:.2f}"
-                bev.text(
-                    boxes[i, 0],
-                    boxes[i, 1],
-                    text,
-                    color=colour,
-                    fontsize=7,
-                    ha="center",
-                    va="center",
-                )
-        handles.append(
-            plt.Line2D([], [], color=colour, label=f"{box_set.name} ({int(drawn.sum())})")
-        )
+    handles = [
+        draw_bev_boxes(bev, box_set, BOX_COLOURS[index % len(BOX_COLOURS)], annotate)
+        for index, box_set in enumerate(box_sets)
+    ]
     bev.set_xlim(xmin, xmax)
     bev.set_ylim(ymin, ymax)
     bev.set_aspect("equal")
@@ -145,27 +98,7 @@ def render_frame(
         )
     bev.set_title(title, fontsize=10)
     if side:
-        axis = axes[1, 0]
-        axis.set_facecolor("black")
-        axis.scatter(shown[:, 0], shown[:, 2], c=values, s=0.4, cmap="viridis", vmin=limits[0], vmax=limits[1],
-                     linewidths=0, rasterized=True)  # fmt: skip
-        for index, box_set in enumerate(box_sets):
-            colour = BOX_COLOURS[index % len(BOX_COLOURS)]
-            boxes = np.asarray(box_set.boxes, np.float64).reshape(-1, 7)
-            boxes = boxes[(boxes[:, 3:6] > 0).all(axis=1)]
-            if len(boxes):
-                corners = box_corners(boxes)  # (N, 8, 3)
-                x0, x1 = corners[:, :, 0].min(axis=1), corners[:, :, 0].max(axis=1)
-                z0, z1 = corners[:, :, 2].min(axis=1), corners[:, :, 2].max(axis=1)
-                rectangles = np.stack(
-                    [np.c_[x0, z0], np.c_[x1, z0], np.c_[x1, z1], np.c_[x0, z1]], axis=1
-                )
-                axis.add_collection(
-                    PolyCollection(rectangles, facecolors="none", edgecolors=colour, linewidths=1)
-                )
-        z = shown[:, 2] if len(shown) else np.zeros(1)
-        axis.set_ylim(float(np.quantile(z, 0.005)) - 0.5, float(np.quantile(z, 0.995)) + 0.5)
-        axis.set_ylabel("z (m)")
+        draw_side_view(axes[1, 0], shown, values, limits, box_sets)
     axes[-1, 0].set_xlabel("x (m)")
     figure.tight_layout()
     from dali_cli.atomic_file import write_atomically
@@ -177,3 +110,81 @@ def render_frame(
     finally:
         plt.close(figure)
     return out_path
+
+
+def frame_figure(bev_size_m: tuple[float, float], side: bool, width_px: int, dpi: int):
+    """(figure, axes (rows, 1)): the BEV axes sized to the x, y extent in metres `bev_size_m`,
+    and a side view a quarter of the width high under it."""
+    import matplotlib.pyplot as plt
+
+    bev_height = bev_size_m[1] / bev_size_m[0]
+    heights = [bev_height, 0.25] if side else [bev_height]
+    width_in = width_px / dpi
+    return plt.subplots(
+        len(heights),
+        1,
+        figsize=(width_in, width_in * sum(heights) + 0.6),
+        dpi=dpi,
+        gridspec_kw={"height_ratios": heights},
+        squeeze=False,
+        sharex=True,
+    )
+
+
+def draw_bev_boxes(bev, box_set: BoxSet, colour: str, annotate: bool):
+    """One source's boxes on the BEV axes (rectangle + centre-to-front line; non-Car dashed;
+    zero-size boxes skipped), with their scores or labels when `annotate`; returns its legend
+    handle."""
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection, PolyCollection
+
+    boxes = np.asarray(box_set.boxes, np.float64).reshape(-1, 7)
+    drawn = (boxes[:, 3:6] > 0).all(axis=1)
+    boxes, labels = boxes[drawn], np.asarray(box_set.labels).astype(str)[drawn]
+    styles = np.where(labels == "Car", "solid", "dashed")
+    corners = bev_corners(boxes) if len(boxes) else np.zeros((0, 4, 2))  # (N, 4, 2)
+    bev.add_collection(
+        PolyCollection(
+            corners, closed=True, facecolors="none", edgecolors=colour, linewidths=1.2,
+            linestyles=list(styles),
+        )
+    )  # fmt: skip
+    front = (corners[:, 0] + corners[:, 3]) / 2  # (N, 2) midpoint of the front edge
+    bev.add_collection(
+        LineCollection(np.stack([boxes[:, :2], front], axis=1), colors=colour, linewidths=1.2)
+    )
+    if annotate:
+        scores = None if box_set.scores is None else np.asarray(box_set.scores)[drawn]
+        for i in range(len(boxes)):
+            text = labels[i] if scores is None else f"{scores[i]:.2f}"
+            bev.text(
+                boxes[i, 0], boxes[i, 1], text, color=colour, fontsize=7, ha="center", va="center"
+            )
+    return plt.Line2D([], [], color=colour, label=f"{box_set.name} ({int(drawn.sum())})")
+
+
+def draw_side_view(axis, shown: np.ndarray, values: np.ndarray, limits, box_sets: list) -> None:
+    """The side view (x horizontal, z up): the shown points `(n, >=3)` coloured by `values`
+    and every box's x-z extent."""
+    from matplotlib.collections import PolyCollection
+
+    axis.set_facecolor("black")
+    axis.scatter(shown[:, 0], shown[:, 2], c=values, s=0.4, cmap="viridis", vmin=limits[0], vmax=limits[1],
+                 linewidths=0, rasterized=True)  # fmt: skip
+    for index, box_set in enumerate(box_sets):
+        colour = BOX_COLOURS[index % len(BOX_COLOURS)]
+        boxes = np.asarray(box_set.boxes, np.float64).reshape(-1, 7)
+        boxes = boxes[(boxes[:, 3:6] > 0).all(axis=1)]
+        if len(boxes):
+            corners = box_corners(boxes)  # (N, 8, 3)
+            x0, x1 = corners[:, :, 0].min(axis=1), corners[:, :, 0].max(axis=1)
+            z0, z1 = corners[:, :, 2].min(axis=1), corners[:, :, 2].max(axis=1)
+            rectangles = np.stack(
+                [np.c_[x0, z0], np.c_[x1, z0], np.c_[x1, z1], np.c_[x0, z1]], axis=1
+            )
+            axis.add_collection(
+                PolyCollection(rectangles, facecolors="none", edgecolors=colour, linewidths=1)
+            )
+    z = shown[:, 2] if len(shown) else np.zeros(1)
+    axis.set_ylim(float(np.quantile(z, 0.005)) - 0.5, float(np.quantile(z, 0.995)) + 0.5)
+    axis.set_ylabel("z (m)")

@@ -6,14 +6,16 @@ Every file under RUN_A and RUN_B (same relative paths) is compared byte for byte
 a field records time, the machine or the run's own path rather than the result:
 
 - manifest.json: compared as JSON without `created`, `timings`, `runtime`, `executor` (workers'
-  timings), the input/output paths (their content hashes are kept) and any string holding the run
+  timings), the input/output paths and content hashes (a model directory's hash covers its
+  model.json's timings; every file is compared itself), and any string holding the run
   directory (RUN_A / RUN_B replaced by one placeholder);
 - model.json: as JSON without train.seconds, train.frames_per_s, train.runtime and paths;
 - train_log.parquet: every column but frames_per_s and elapsed_s, exactly;
 - model.pt: the saved tensors (state dict) exactly, plus the non-tensor metadata as above
   (torch's zip container records file names that differ run to run, not the weights).
 
-Prints one line per difference (and per file only one side has) and a summary; exits 1 when
+Other files must be byte-identical; where a Parquet or JSON file is not, the line says which
+columns or fields differ. Prints one line per difference (and per file only one side has) and a summary; exits 1 when
 anything differs, so it is usable as a check: the refactor of issue 23 was verified with it
 (docs/INTERFACES.md, "Behaviour unchanged").
 """
@@ -29,12 +31,14 @@ TIMING_COLUMNS = {"frames_per_s", "elapsed_s"}
 
 
 def _strip(value, roots: tuple[str, ...]):
-    """`value` without timing keys, with the run directories replaced by '<RUN>'."""
+    """`value` without timing keys, paths and content hashes (a model directory's hash covers
+    its model.json, timings included; the files themselves are compared one by one), with the
+    run directories replaced by '<RUN>'."""
     if isinstance(value, dict):
         return {
             key: _strip(item, roots)
             for key, item in value.items()
-            if key not in TIMING_KEYS and key != "path"
+            if key not in TIMING_KEYS and key != "path" and not key.endswith("hash")
         }
     if isinstance(value, list):
         return [_strip(item, roots) for item in value]
@@ -120,7 +124,30 @@ def _object_differences(left, right, where: str, roots: tuple[str, ...]) -> list
         for index, (x, y) in enumerate(zip(left, right, strict=True)):
             found += _object_differences(x, y, f"{where}[{index}]", roots)
         return found
-    return [] if _strip(left, roots) == _strip(right, roots) else [f"{where}: {left!r} != {right!r}"]
+    return (
+        [] if _strip(left, roots) == _strip(right, roots) else [f"{where}: {left!r} != {right!r}"]
+    )
+
+
+def _table_differences(a: Path, b: Path) -> list[str]:
+    """Why two Parquet files differ: columns on one side only, columns with other values."""
+    import pyarrow.parquet as pq
+
+    left, right = pq.read_table(a), pq.read_table(b)
+    found = [
+        f"column '{c}' only in the first" for c in left.column_names if c not in right.column_names
+    ]
+    found += [
+        f"column '{c}' only in the second" for c in right.column_names if c not in left.column_names
+    ]
+    if left.num_rows != right.num_rows:
+        return [*found, f"rows {left.num_rows} != {right.num_rows}"]
+    found += [
+        f"column '{c}' differs"
+        for c in left.column_names
+        if c in right.column_names and not left[c].equals(right[c])
+    ]
+    return found or ["bytes differ (same columns and values)"]
 
 
 def compare_file(a: Path, b: Path, roots: tuple[str, ...]) -> list[str]:
@@ -131,7 +158,13 @@ def compare_file(a: Path, b: Path, roots: tuple[str, ...]) -> list[str]:
         return _train_log_differences(a, b)
     if a.name == "model.pt":
         return _model_differences(a, b, roots)
-    return [] if a.read_bytes() == b.read_bytes() else ["bytes differ"]
+    if a.read_bytes() == b.read_bytes():
+        return []
+    if a.suffix == ".parquet":
+        return _table_differences(a, b)
+    if a.suffix == ".json":
+        return _json_differences(a, b, roots)
+    return ["bytes differ"]
 
 
 def compare_runs(run_a: Path, run_b: Path) -> tuple[int, list[str]]:
