@@ -258,13 +258,46 @@ def build_report(run: Path) -> tuple[str, dict]:
     source_rows = collect_rows(run, SOURCE_ROWS)
     timings = stage_timings(run)
     scales = ptsn_scales(run)
+    controls = collect_rows(run, CONTROL_ROWS)
     parts = [
         f"# dali report: {run}",
         "",
         "## Target validation (Car AP, R40)",
         "",
         markdown_table(rows),
+        *gap_lines(rows),
+        *controls_section(rows, controls),
     ]
+    by_band = bands_table(rows)
+    if by_band is not None:
+        parts += ["", "### By distance (AP_BEV / AP_3D @0.7)", "", by_band]
+    by_difficulty = kitti_table(rows + controls)
+    if by_difficulty is not None:
+        parts += ["", "### KITTI difficulties (AP_R40)", "", by_difficulty]
+    if any(row.ap for row in source_rows):
+        parts += ["", "## Source validation (cross-domain check)", "", markdown_table(source_rows)]
+    parts += ptsn_section(scales) + timings_section(timings)
+    missing = [row.name for row in rows if not row.ap]
+    if missing:
+        parts += ["", f"Not run in this RUN (shown as —): {', '.join(missing)}."]
+    document = {
+        "run": str(run),
+        "target": [row.__dict__ for row in rows],
+        "source": [row.__dict__ for row in source_rows],
+        "gap_closed_3d_0.7": gap_closed(rows),
+        "gap_closed_bev_0.7": gap_closed(rows, "bev", "0.7"),
+        "controls": [row.__dict__ for row in controls],
+        "gap_closed_equal_budget_3d_0.7": gap_closed_equal_budget(rows + controls),
+        "gap_closed_equal_budget_bev_0.7": gap_closed_equal_budget(rows + controls, "bev"),
+        "ptsn": scales,
+        "timings": timings,
+    }
+    return "\n".join(parts) + "\n", document
+
+
+def gap_lines(rows: list) -> list[str]:
+    """The share of the source-only-to-oracle gap closed, AP_3D and AP_BEV at IoU 0.7."""
+    parts = []
     for metric in ("3d", "bev"):
         share = gap_closed(rows, metric, "0.7")
         if share is not None:
@@ -276,81 +309,74 @@ def build_report(run: Path) -> tuple[str, dict]:
                 f"Gap from source only to oracle closed (AP_{metric.upper()}@0.7): "
                 f"{100 * share:.0f}%{note}",
             ]
-    closed = gap_closed(rows)
-    controls = collect_rows(run, CONTROL_ROWS)
-    if any(row.ap for row in controls):
-        parts += [
-            "",
-            "### Controls: equal training frames",
-            "",
-            markdown_table(
-                [row for row in rows if row.name in ("PTSN only", "PTSN + RC&CF (x1)", "x2")]
-                + controls
-            ),
-        ]
-        for metric, iou in (("3d", "0.7"), ("bev", "0.7")):
-            closed_long = gap_closed(rows + controls, metric, iou, oracle_row=ORACLE_X2_BUDGET)
-            if closed_long is not None:
-                parts.append(
-                    f"\nGap closed against the oracle with x2's budget "
-                    f"(AP_{metric.upper()}@{iou}): {100 * closed_long:.0f}%"
-                )
-            equal = gap_closed_equal_budget(rows + controls, metric, iou)
-            if equal is not None:
-                parts.append(
-                    f"\nGap from source + PTSN to the oracle, both with x2's budget, closed by x2 "
-                    f"(AP_{metric.upper()}@{iou}): {100 * equal:.0f}%"
-                )
-    by_band = bands_table(rows)
-    if by_band is not None:
-        parts += ["", "### By distance (AP_BEV / AP_3D @0.7)", "", by_band]
-    by_difficulty = kitti_table(rows + controls)
-    if by_difficulty is not None:
-        parts += ["", "### KITTI difficulties (AP_R40)", "", by_difficulty]
-    if any(row.ap for row in source_rows):
-        parts += ["", "## Source validation (cross-domain check)", "", markdown_table(source_rows)]
-    if scales:
-        parts += [
-            "",
-            "## PTSN",
-            "",
-            "| sweep | ŝ | E_est l/w/h | E_pred(ŝ) l/w/h | passes |",
-            "|---|---|---|---|---|",
-        ]
-        for name, info in scales.items():
-            est = info.get("expected_lwh") or info.get("E_est")
-            pred = info.get("pred_lwh_at_scale") or info.get("E_pred")
-            fallback = " (no detections: s = 1)" if info.get("fallback") == "no-detections" else ""
+    return parts
+
+
+def controls_section(rows: list, controls: list) -> list[str]:
+    """The equal-training-frames controls table and the gaps closed against them (none when
+    no control was run)."""
+    if not any(row.ap for row in controls):
+        return []
+    parts = [
+        "",
+        "### Controls: equal training frames",
+        "",
+        markdown_table(
+            [row for row in rows if row.name in ("PTSN only", "PTSN + RC&CF (x1)", "x2")] + controls
+        ),
+    ]
+    for metric, iou in (("3d", "0.7"), ("bev", "0.7")):
+        closed_long = gap_closed(rows + controls, metric, iou, oracle_row=ORACLE_X2_BUDGET)
+        if closed_long is not None:
             parts.append(
-                f"| {name} | {info.get('scale', float('nan')):.3f}{fallback} | {_triple(est)} | "
-                f"{_triple(pred)} | "
-                f"{info.get('passes', '—')} |"
+                f"\nGap closed against the oracle with x2's budget "
+                f"(AP_{metric.upper()}@{iou}): {100 * closed_long:.0f}%"
             )
-    if timings:
-        parts += [
-            "",
-            "## Time per stage (s)",
-            "",
-            "| iteration | " + " | ".join(STAGE_DIRS) + " |",
-            "|---|" + "---|" * len(STAGE_DIRS),
-        ]
-        for iteration, stages in timings.items():
+        equal = gap_closed_equal_budget(rows + controls, metric, iou)
+        if equal is not None:
             parts.append(
-                f"| {iteration} | " + " | ".join(_cell(stages.get(s)) for s in STAGE_DIRS) + " |"
+                f"\nGap from source + PTSN to the oracle, both with x2's budget, closed by x2 "
+                f"(AP_{metric.upper()}@{iou}): {100 * equal:.0f}%"
             )
-    missing = [row.name for row in rows if not row.ap]
-    if missing:
-        parts += ["", f"Not run in this RUN (shown as —): {', '.join(missing)}."]
-    document = {
-        "run": str(run),
-        "target": [row.__dict__ for row in rows],
-        "source": [row.__dict__ for row in source_rows],
-        "gap_closed_3d_0.7": closed,
-        "gap_closed_bev_0.7": gap_closed(rows, "bev", "0.7"),
-        "controls": [row.__dict__ for row in controls],
-        "gap_closed_equal_budget_3d_0.7": gap_closed_equal_budget(rows + controls),
-        "gap_closed_equal_budget_bev_0.7": gap_closed_equal_budget(rows + controls, "bev"),
-        "ptsn": scales,
-        "timings": timings,
-    }
-    return "\n".join(parts) + "\n", document
+    return parts
+
+
+def ptsn_section(scales: dict) -> list[str]:
+    """The PTSN table: ŝ, E_est and E_pred(ŝ) of each sweep (none without sweeps)."""
+    if not scales:
+        return []
+    parts = [
+        "",
+        "## PTSN",
+        "",
+        "| sweep | ŝ | E_est l/w/h | E_pred(ŝ) l/w/h | passes |",
+        "|---|---|---|---|---|",
+    ]
+    for name, info in scales.items():
+        est = info.get("expected_lwh") or info.get("E_est")
+        pred = info.get("pred_lwh_at_scale") or info.get("E_pred")
+        fallback = " (no detections: s = 1)" if info.get("fallback") == "no-detections" else ""
+        parts.append(
+            f"| {name} | {info.get('scale', float('nan')):.3f}{fallback} | {_triple(est)} | "
+            f"{_triple(pred)} | "
+            f"{info.get('passes', '—')} |"
+        )
+    return parts
+
+
+def timings_section(timings: dict) -> list[str]:
+    """Seconds per stage and iteration (none without timings)."""
+    if not timings:
+        return []
+    parts = [
+        "",
+        "## Time per stage (s)",
+        "",
+        "| iteration | " + " | ".join(STAGE_DIRS) + " |",
+        "|---|" + "---|" * len(STAGE_DIRS),
+    ]
+    for iteration, stages in timings.items():
+        parts.append(
+            f"| {iteration} | " + " | ".join(_cell(stages.get(s)) for s in STAGE_DIRS) + " |"
+        )
+    return parts
