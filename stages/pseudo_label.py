@@ -98,36 +98,25 @@ def pseudo_label(
     `executor`, `workers`, `ray_address`: the engine of the detector runs (dali_cli.executors)."""
     model_dir, target_dir = Path(model_dir), Path(target_dir)
     torch_device = inference_device(device, precision)  # a missing GPU: error, nothing written
-    if scale is None and scale_from is None:
-        raise ParameterError(
-            ("scale_from", "scale"), "give a ptsn-sweep output (its scale.json) or a scale"
-        )
-    if not model_dir.is_dir():
-        raise StageError(f"{model_dir}: model directory not found")
-    used, scale_source = used_scale(scale, scale_from)
+    used, scale_source = used_scale(model_dir, scale, scale_from)
     scale = used.scale  # ŝ exactly as the sweep found it (or the option's)
     e_est = list(used.e_est) if used.e_est is not None else None
     if mount_height_m is None and used.pivot_m is not None:
         mount_height_m = used.pivot_m  # scale about the very point the sweep scaled about
     method = correction_method(size_correction_method, e_est)
     target = FrameSet(target_dir)
-    target_profile = target_profile or target.sensor or None
-    if mount_height_m is None and target_profile:
-        mount_height_m = get_profile(target_profile, sensors_path).mount_height_m
-    max_range_m = get_profile(target_profile, sensors_path).max_range_m if target_profile else None
+    target_profile, mount_height_m, max_range_m = target_scaling(
+        target, target_profile, mount_height_m, sensors_path
+    )
     params = {
-        "scale": scale,
-        "score_min": score_min,
-        "nms_iou": nms_iou,
-        "target_profile": target_profile,
-        "mount_height_m": mount_height_m,
+        "scale": scale, "score_min": score_min, "nms_iou": nms_iou,
+        "target_profile": target_profile, "mount_height_m": mount_height_m,
         "size_correction": method,
-    }
-    if precision != "fp32":  # recorded only when not the default: earlier runs stay up to date
-        params["precision"] = precision
+        # recorded only when not the default: earlier runs stay up to date
+        **({"precision": precision} if precision != "fp32" else {}),
+    }  # fmt: skip
     inputs = {"model": model_dir, "target": target_dir}
-    if scale_from is not None:
-        inputs["scale_from"] = scale_from
+    inputs.update({"scale_from": scale_from} if scale_from is not None else {})
 
     engine = make_executor(executor, workers, ray_address)
     labeler = FrameLabeler(
@@ -143,14 +132,11 @@ def pseudo_label(
         correction = None
         if method != "none" and len(table):
             table, correction = correct_table(table, target, e_est, score_min)
-        write_boxes(directory, table)
-        write_scale(directory, scale_record(used, scale_source, mount_height_m))
-        summary = summarize(table, len(target), e_est)
-        summary["scale_source"] = scale_source
-        summary["boxes_implausible"] = implausible
-        summary["size_correction"] = correction
-        (directory / SUMMARY_NAME).write_text(json.dumps(summary, indent=2) + "\n")
-        print_summary(summary, scale)
+        write_outputs(
+            directory, table, scale_record(used, scale_source, mount_height_m),
+            summarize(table, len(target), e_est),
+            {"boxes_implausible": implausible, "size_correction": correction},
+        )  # fmt: skip
         skipped_correction = method != size_correction_method
         return BuildResult(
             counts={"frames": len(target), "boxes": len(table), "boxes_implausible": implausible},
@@ -169,10 +155,43 @@ def pseudo_label(
     )
 
 
-def used_scale(scale: float | None, scale_from: str | Path | None) -> tuple[ScaleResult, str]:
+def target_scaling(
+    target: FrameSet, target_profile: str | None, mount_height_m: float | None, sensors_path
+) -> tuple[str | None, float | None, float | None]:
+    """(profile name, pivot mount height in m, max range in m) of the target: the profile given
+    or the frame set's, the pivot given or the profile's."""
+    target_profile = target_profile or target.sensor or None
+    profile = get_profile(target_profile, sensors_path) if target_profile else None
+    if mount_height_m is None and profile is not None:
+        mount_height_m = profile.mount_height_m
+    return target_profile, mount_height_m, profile.max_range_m if profile is not None else None
+
+
+def write_outputs(
+    directory: Path, table: BoxTable, scale_document: dict, summary: dict, extra: dict
+) -> None:
+    """boxes.parquet, scale.json (ŝ, once) and summary.json (+ `extra`) into `directory`; the
+    summary's line on the console."""
+    write_boxes(directory, table)
+    write_scale(directory, scale_document)
+    summary = {**summary, "scale_source": scale_document["scale_source"], **extra}
+    (directory / SUMMARY_NAME).write_text(json.dumps(summary, indent=2) + "\n")
+    print_summary(summary, scale_document["scale"])
+
+
+def used_scale(
+    model_dir: Path, scale: float | None, scale_from: str | Path | None
+) -> tuple[ScaleResult, str]:
     """The ScaleResult the pseudo labels are made at, and where its ŝ comes from: scale_from's
     scale.json exactly as the sweep wrote it, its ŝ replaced by `scale` when that is given
-    ("option"; E_est and the pivot still from scale_from when given)."""
+    ("option"; E_est and the pivot still from scale_from when given). Neither given is a
+    ParameterError, a missing `model_dir` a StageError (checked before the scale file)."""
+    if scale is None and scale_from is None:
+        raise ParameterError(
+            ("scale_from", "scale"), "give a ptsn-sweep output (its scale.json) or a scale"
+        )
+    if not model_dir.is_dir():
+        raise StageError(f"{model_dir}: model directory not found")
     found = read_scale(scale_from) if scale_from is not None else None
     if scale is None:
         return found, str(scale_from)
