@@ -293,24 +293,10 @@ def _statistics(
     pred_index, gt_index, overlap = pred_index[keep], gt_index[keep], overlap[keep]
     num_gt = int(np.sum(ignored_gt == 0))
     scores = pred.score
-
-    # a prediction matching several ground truths makes the greedy order matter: the connected
-    # groups of boxes around such predictions are matched by the reference loop, the rest at once
-    in_loop_gt = np.zeros(len(gt.frame), dtype=bool)
-    in_loop_pred = np.zeros(len(scores), dtype=bool)
-    slow = np.zeros(len(pred_index), dtype=bool)
-    shared = np.bincount(pred_index, minlength=len(scores)) > 1
-    if shared.any():
-        labels = _edge_components(pred_index, gt_index, len(scores), len(gt.frame))
-        slow = np.isin(labels, labels[shared[pred_index]])
-        in_loop_gt[gt_index[slow]] = True
-        in_loop_pred[pred_index[slow]] = True
-    components = (
-        _components(pred_index[slow], gt_index[slow], overlap[slow], labels[slow])
-        if slow.any()
-        else []
+    fast, components, in_loop_gt, in_loop_pred = _split_greedy_groups(
+        pred_index, gt_index, overlap, len(scores), len(gt.frame)
     )
-    pred_index, gt_index, overlap = pred_index[~slow], gt_index[~slow], overlap[~slow]
+    pred_index, gt_index, overlap = fast
 
     # pass 1 (thresholds): each ground truth takes its highest-scoring candidate (first on ties)
     order = np.lexsort((pred_index, -scores[pred_index], gt_index))
@@ -324,35 +310,11 @@ def _statistics(
             )
         )
     thresholds = _sample_thresholds(np.concatenate(tp_scores), num_gt)
-
-    # pass 2: at each threshold (and once with every prediction) match by largest overlap,
-    # preferring non-ignored predictions, then the first ignored one
     levels = np.r_[thresholds, -math.inf]  # (T + 1,)
-    pred_ignored = ignored_pred[pred_index]
-    rank = np.where(pred_ignored == 0, -overlap, 0.0)
-    order = np.lexsort((pred_index, rank, pred_ignored, gt_index))
-    pred_sorted, gt_sorted = pred_index[order], gt_index[order]
-    edges = len(order)
-    starts = np.flatnonzero(np.r_[True, gt_sorted[1:] != gt_sorted[:-1]]) if edges else order
-    group_gt = gt_sorted[starts]  # (G,) one group of candidate pairs per ground truth
-    active = scores[pred_sorted][None, :] >= levels[:, None]  # (T + 1, E)
-    position = np.where(active, np.arange(edges)[None, :], edges)
-    if edges:
-        chosen = np.minimum.reduceat(position, starts, axis=1)  # (T + 1, G) first active pair
-    else:
-        chosen = np.zeros((len(levels), 0), dtype=np.int64)
-    found = chosen < edges
-    chosen_pred = pred_sorted[np.minimum(chosen, edges - 1)] if edges else chosen
-    counted_gt = ignored_gt[group_gt] == 0  # (G,)
-    counted_pred = found & (ignored_pred[chosen_pred] == 0)  # (T + 1, G)
-    tp = np.sum(found & counted_gt[None, :] & counted_pred, axis=1)
-    fn = np.sum(~found & counted_gt[None, :], axis=1)
-    has_pair = np.zeros(len(gt.frame), dtype=bool)
-    has_pair[group_gt] = True
-    fn = fn + np.sum((ignored_gt == 0) & ~has_pair & ~in_loop_gt)
-    eligible = np.sort(scores[(ignored_pred == 0) & ~in_loop_pred])
-    kept = len(eligible) - np.searchsorted(eligible, levels, side="left")  # score >= level
-    fp = kept - np.sum(counted_pred, axis=1)
+    tp, fp, fn = _counts_at_levels(
+        (pred_index, gt_index, overlap), scores, ignored_gt, ignored_pred, levels,
+        in_loop_gt, in_loop_pred,
+    )  # fmt: skip
     for component in components:
         for k, level in enumerate(levels):
             part = _match_sequentially(component, scores, ignored_gt, ignored_pred, level, True)
@@ -367,6 +329,72 @@ def _statistics(
         num_gt=num_gt,
         totals={"tp": int(tp[-1]), "fp": int(fp[-1]), "fn": int(fn[-1])},
     )
+
+
+def _split_greedy_groups(
+    pred_index: np.ndarray, gt_index: np.ndarray, overlap: np.ndarray, num_pred: int, num_gt: int
+):
+    """A prediction matching several ground truths makes the greedy order matter: the connected
+    groups of boxes around such predictions are matched by the reference loop, the rest at once.
+    Returns ((pred_index, gt_index, overlap) of the pairs matched at once, the groups for the
+    loop, and which ground truths `(num_gt,)` and predictions `(num_pred,)` the loop owns)."""
+    in_loop_gt = np.zeros(num_gt, dtype=bool)
+    in_loop_pred = np.zeros(num_pred, dtype=bool)
+    slow = np.zeros(len(pred_index), dtype=bool)
+    shared = np.bincount(pred_index, minlength=num_pred) > 1
+    if shared.any():
+        labels = _edge_components(pred_index, gt_index, num_pred, num_gt)
+        slow = np.isin(labels, labels[shared[pred_index]])
+        in_loop_gt[gt_index[slow]] = True
+        in_loop_pred[pred_index[slow]] = True
+    components = (
+        _components(pred_index[slow], gt_index[slow], overlap[slow], labels[slow])
+        if slow.any()
+        else []
+    )
+    fast = (pred_index[~slow], gt_index[~slow], overlap[~slow])
+    return fast, components, in_loop_gt, in_loop_pred
+
+
+def _counts_at_levels(
+    pairs: tuple[np.ndarray, np.ndarray, np.ndarray],
+    scores: np.ndarray,
+    ignored_gt: np.ndarray,
+    ignored_pred: np.ndarray,
+    levels: np.ndarray,
+    in_loop_gt: np.ndarray,
+    in_loop_pred: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pass 2: at each score level `(L,)` match the candidate `pairs` (pred, gt, overlap) by
+    largest overlap, preferring non-ignored predictions, then the first ignored one; returns
+    tp, fp, fn `(L,)` of everything but the loop's groups."""
+    pred_index, gt_index, overlap = pairs
+    pred_ignored = ignored_pred[pred_index]
+    rank = np.where(pred_ignored == 0, -overlap, 0.0)
+    order = np.lexsort((pred_index, rank, pred_ignored, gt_index))
+    pred_sorted, gt_sorted = pred_index[order], gt_index[order]
+    edges = len(order)
+    starts = np.flatnonzero(np.r_[True, gt_sorted[1:] != gt_sorted[:-1]]) if edges else order
+    group_gt = gt_sorted[starts]  # (G,) one group of candidate pairs per ground truth
+    active = scores[pred_sorted][None, :] >= levels[:, None]  # (L, E)
+    position = np.where(active, np.arange(edges)[None, :], edges)
+    if edges:
+        chosen = np.minimum.reduceat(position, starts, axis=1)  # (L, G) first active pair
+    else:
+        chosen = np.zeros((len(levels), 0), dtype=np.int64)
+    found = chosen < edges
+    chosen_pred = pred_sorted[np.minimum(chosen, edges - 1)] if edges else chosen
+    counted_gt = ignored_gt[group_gt] == 0  # (G,)
+    counted_pred = found & (ignored_pred[chosen_pred] == 0)  # (L, G)
+    tp = np.sum(found & counted_gt[None, :] & counted_pred, axis=1)
+    fn = np.sum(~found & counted_gt[None, :], axis=1)
+    has_pair = np.zeros(len(ignored_gt), dtype=bool)
+    has_pair[group_gt] = True
+    fn = fn + np.sum((ignored_gt == 0) & ~has_pair & ~in_loop_gt)
+    eligible = np.sort(scores[(ignored_pred == 0) & ~in_loop_pred])
+    kept = len(eligible) - np.searchsorted(eligible, levels, side="left")  # score >= level
+    fp = kept - np.sum(counted_pred, axis=1)
+    return tp, fp, fn
 
 
 def _average_precision(curve: _Curve, recall_positions: int) -> tuple[float | None, dict]:

@@ -202,6 +202,23 @@ def _field(rows: list[dict], index: int, name: str, path: Path):
         raise ImportFormatError(f"{path}: record {index} has no field '{name}'") from None
 
 
+def _annotation_index(table_dir: Path) -> tuple[dict[str, list[dict]] | None, dict[str, str]]:
+    """(sample token -> its sample_annotation records, or None when the table is absent or
+    empty (the test split: an unlabeled set); instance token -> category name)."""
+    annotations_rows = _load_table(table_dir, "sample_annotation", required=False)
+    if not annotations_rows:
+        return None, {}
+    annotations: dict[str, list[dict]] = {}
+    for row in annotations_rows:
+        annotations.setdefault(row.get("sample_token"), []).append(row)
+    categories = {r["token"]: r["name"] for r in _load_table(table_dir, "category")}
+    category_of_instance = {
+        r["token"]: categories.get(r.get("category_token"), "unknown")
+        for r in _load_table(table_dir, "instance")
+    }
+    return annotations, category_of_instance
+
+
 @dataclass
 class JsonSource:
     """Key-frame LIDAR_TOP samples of a nuScenes data root and their annotations."""
@@ -283,18 +300,7 @@ class JsonSource:
         if not chosen:
             raise ImportFormatError(f"{path}: no {LIDAR_CHANNEL} key frames selected")
         chosen.sort(key=lambda item: item[0])
-        annotations_rows = _load_table(table_dir, "sample_annotation", required=False)
-        annotations = None
-        category_of_instance: dict[str, str] = {}
-        if annotations_rows:  # absent or empty (the test split): an unlabeled set
-            annotations = {}
-            for row in annotations_rows:
-                annotations.setdefault(row.get("sample_token"), []).append(row)
-            categories = {r["token"]: r["name"] for r in _load_table(table_dir, "category")}
-            category_of_instance = {
-                r["token"]: categories.get(r.get("category_token"), "unknown")
-                for r in _load_table(table_dir, "instance")
-            }
+        annotations, category_of_instance = _annotation_index(table_dir)
         return cls(
             root, table_dir, [s for _, s in chosen], poses, annotations, category_of_instance
         )
