@@ -148,6 +148,27 @@ class SynthShards:
         return {"points": points}
 
 
+def synth_counts(table, frames: int, total_points: int) -> dict:
+    """The manifest's counts of a synthetic set: frames, points, labels (per frame, mean l, w,
+    h in m) and the mean points per car by range band (0-30, 30-50, 50-80 m)."""
+    lwh = table.boxes[:, 3:6] if len(table) else np.zeros((0, 3))
+    distance = np.hypot(table["x"], table["y"]) if len(table) else np.zeros(0)
+    bands = {}
+    for low, high in ((0, 30), (30, 50), (50, 80)):
+        inside = (distance >= low) & (distance < high)
+        bands[f"{low}-{high}m"] = (
+            float(np.mean(table["num_points"][inside])) if inside.any() else 0.0
+        )
+    return {
+        "frames": int(frames),
+        "points": int(total_points),
+        "labels": len(table),
+        "labels_per_frame": round(len(table) / max(frames, 1), 2),
+        "mean_label_lwh_m": [round(float(v), 3) for v in lwh.mean(axis=0)] if len(lwh) else None,
+        "mean_points_per_car_by_range": {k: round(v, 1) for k, v in bands.items()},
+    }
+
+
 def build_synth(
     out_dir,
     sensor: SensorProfile,
@@ -205,22 +226,7 @@ def build_synth(
     table = BoxTable.concat(tables)
     write_boxes(out_dir, table)
     elapsed = time.perf_counter() - started
-    lwh = table.boxes[:, 3:6] if len(table) else np.zeros((0, 3))
-    distance = np.hypot(table["x"], table["y"]) if len(table) else np.zeros(0)
-    bands = {}
-    for low, high in ((0, 30), (30, 50), (50, 80)):
-        inside = (distance >= low) & (distance < high)
-        bands[f"{low}-{high}m"] = (
-            float(np.mean(table["num_points"][inside])) if inside.any() else 0.0
-        )
-    counts = {
-        "frames": int(frames),
-        "points": int(total_points),
-        "labels": len(table),
-        "labels_per_frame": round(len(table) / max(frames, 1), 2),
-        "mean_label_lwh_m": [round(float(v), 3) for v in lwh.mean(axis=0)] if len(lwh) else None,
-        "mean_points_per_car_by_range": {k: round(v, 1) for k, v in bands.items()},
-    }
+    counts = synth_counts(table, frames, total_points)
     timings = {"frames_per_second": round(frames / max(elapsed, 1e-9), 2)}
     notes = [
         "synthetic street scenes: procedural cars (pool seeds disjoint from `dali library build`), "
