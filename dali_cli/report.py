@@ -341,17 +341,18 @@ def controls_section(rows: list, controls: list) -> list[str]:
     return parts
 
 
+def _section(title: str, *lines: str) -> list[str]:
+    """A markdown section: a blank line, the title, a blank line, then `lines`."""
+    return ["", title, "", *lines]
+
+
 def ptsn_section(scales: dict) -> list[str]:
     """The PTSN table: ŝ, E_est and E_pred(ŝ) of each sweep (none without sweeps)."""
     if not scales:
         return []
-    parts = [
-        "",
-        "## PTSN",
-        "",
-        "| sweep | ŝ | E_est l/w/h | E_pred(ŝ) l/w/h | passes |",
-        "|---|---|---|---|---|",
-    ]
+    parts = _section(
+        "## PTSN", "| sweep | ŝ | E_est l/w/h | E_pred(ŝ) l/w/h | passes |", "|---|---|---|---|---|"
+    )
     for name, info in scales.items():
         est = info.get("expected_lwh") or info.get("E_est")
         pred = info.get("pred_lwh_at_scale") or info.get("E_pred")
@@ -368,13 +369,11 @@ def timings_section(timings: dict) -> list[str]:
     """Seconds per stage and iteration (none without timings)."""
     if not timings:
         return []
-    parts = [
-        "",
+    parts = _section(
         "## Time per stage (s)",
-        "",
         "| iteration | " + " | ".join(STAGE_DIRS) + " |",
         "|---|" + "---|" * len(STAGE_DIRS),
-    ]
+    )
     for iteration, stages in timings.items():
         parts.append(
             f"| {iteration} | " + " | ".join(_cell(stages.get(s)) for s in STAGE_DIRS) + " |"

@@ -105,6 +105,10 @@ def run(*arguments):
     return CliRunner().invoke(main, [*map(str, arguments)])
 
 
+def PSEUDO_LABEL(model, target):  # noqa: N802 (reads as the command line it starts)
+    return ("pseudo-label", "--model", model, "--target", target)
+
+
 def test_pseudo_labels_at_the_swept_scale_match_e_est(setup):
     tmp_path, target, model, detector = setup
     ptsn_dir, out = tmp_path / "ptsn", tmp_path / "pseudo"
@@ -116,11 +120,7 @@ def test_pseudo_labels_at_the_swept_scale_match_e_est(setup):
     assert scale == pytest.approx(1.2, abs=2e-3)
     detector.scales.clear()
     result = run(
-        "pseudo-label",
-        "--model",
-        model,
-        "--target",
-        target,
+        *PSEUDO_LABEL(model, target),
         "--scale-from",
         ptsn_dir,
         "--out",
@@ -168,11 +168,7 @@ def test_missing_scale_is_a_usage_error(setup):
     bad.mkdir()
     (bad / "scale.json").write_text(json.dumps({"scale": -1}))
     result = run(
-        "pseudo-label",
-        "--model",
-        model,
-        "--target",
-        target,
+        *PSEUDO_LABEL(model, target),
         "--scale-from",
         bad,
         "--out",

@@ -53,22 +53,7 @@ def _parse_range(_ctx, _param, value: str | None) -> tuple[float, float] | None:
 @click.option("--label", default="Car", show_default=True, help="Point models: box label to use.")
 @out_dir_option("Output library directory.")
 @stage_options
-def build_command(
-    cad_dir,
-    up,
-    forward,
-    length_range,
-    skip_bad,
-    procedural_count,
-    seed,
-    lod,
-    points_dir,
-    min_points,
-    label,
-    out,
-    force,
-    dry_run,
-):
+def build_command(out, **options):
     """Build a model library OUT from any combination of --cad, --procedural and --points.
 
     Meshes are normalized to the unit box centered at the origin (l along +x, up +z) and keep
@@ -82,22 +67,7 @@ def build_command(
     """
     from stages.library_build import library_build
 
-    outcome = library_build(
-        out,
-        cad_dir=cad_dir,
-        up=up,
-        forward=forward,
-        length_range=length_range,
-        skip_bad=skip_bad,
-        procedural_count=procedural_count,
-        seed=seed,
-        lod=lod,
-        points_dir=points_dir,
-        min_points=min_points,
-        label=label,
-        force=force,
-        dry_run=dry_run,
-    )
+    outcome = library_build(out, **options)
     if outcome.status == "ran":
         counts = outcome.manifest["outputs"]["counts"]
         click.echo(
