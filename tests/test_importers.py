@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 
 from dali_cli.artifacts import FrameSet, read_boxes
 from dali_cli.cli import main
+from dali_cli.export import KITTI_COLUMNS
 from dali_cli.geometry import box_corners, count_points_in_boxes
 from dali_cli.importers import kitti, nuscenes
 from dali_cli.manifest import read_manifest
@@ -89,15 +90,7 @@ def test_kitti_import_fixture(tmp_path):
     table = read_boxes(out)
     labels = table["label"].astype(str)
     assert (labels == "Car").sum() == 6 and (labels == "DontCare").sum() == 4
-    for column in (
-        "truncated",
-        "occluded",
-        "alpha",
-        "bbox_left",
-        "bbox_top",
-        "bbox_right",
-        "bbox_bottom",
-    ):
+    for column in KITTI_COLUMNS:  # the label fields dali keeps (and export writes back)
         assert column in table.columns
     cars = table.select(labels == "Car")
     # the stored counts are the frame's points inside the stored boxes ...

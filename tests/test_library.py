@@ -236,29 +236,9 @@ def test_library_round_trip_and_build_command(tmp_path):
 
     runner = CliRunner()
     out = tmp_path / "lib"
-    result = runner.invoke(
-        main,
-        [
-            "library",
-            "build",
-            "--cad",
-            str(tmp_path / "cad"),
-            "--up",
-            "y",
-            "--forward",
-            "-z",
-            "--procedural",
-            "2",
-            "--seed",
-            "4",
-            "--lod",
-            "2000",
-            "--points",
-            str(data),
-            "--out",
-            str(out),
-        ],
-    )
+    build = ["library", "build", "--cad", tmp_path / "cad", "--up", "y", "--forward", "-z",
+             "--procedural", "2", "--seed", "4", "--lod", "2000", "--points", data, "--out", out]  # fmt: skip
+    result = runner.invoke(main, [str(a) for a in build])
     assert result.exit_code == 0, result.output
     library = read_library(out)
     assert library.mesh_ids == ["sub/car", "proc-s4-00000", "proc-s4-00001"]
@@ -269,29 +249,7 @@ def test_library_round_trip_and_build_command(tmp_path):
     np.testing.assert_array_equal(library.meshes[2].faces, again.faces)
     shown = runner.invoke(main, ["library", "show", str(out)])
     assert shown.exit_code == 0 and "3 meshes, 1 point models" in shown.output
-    rerun = runner.invoke(
-        main,
-        [
-            "library",
-            "build",
-            "--cad",
-            str(tmp_path / "cad"),
-            "--up",
-            "y",
-            "--forward",
-            "-z",
-            "--procedural",
-            "2",
-            "--seed",
-            "4",
-            "--lod",
-            "2000",
-            "--points",
-            str(data),
-            "--out",
-            str(out),
-        ],
-    )
+    rerun = runner.invoke(main, [str(a) for a in build])
     assert "up to date" in rerun.output
 
     # write_library / read_library directly

@@ -158,41 +158,17 @@ def test_frames_are_deterministic_per_seed_and_index():
     assert len(other.points) != len(first.points) or not np.array_equal(other.points, first.points)
 
 
+def synth_nuscenes(frames: str, out, *options: str) -> list[str]:
+    """`dali synth` of nuScenes frames with seed 7."""
+    return ["synth", "--sensor", "nuscenes", "--frames", frames, "--seed", "7", *options,
+            "--out", str(out)]  # fmt: skip
+
+
 def test_synth_command_output_independent_of_frame_count_and_workers(tmp_path):
     runner = CliRunner()
-    one = runner.invoke(
-        main,
-        [
-            "synth",
-            "--sensor",
-            "nuscenes",
-            "--frames",
-            "3",
-            "--seed",
-            "7",
-            "--workers",
-            "1",
-            "--out",
-            str(tmp_path / "a"),
-        ],
-    )
+    one = runner.invoke(main, synth_nuscenes("3", tmp_path / "a", "--workers", "1"))
     assert one.exit_code == 0, one.output
-    two = runner.invoke(
-        main,
-        [
-            "synth",
-            "--sensor",
-            "nuscenes",
-            "--frames",
-            "2",
-            "--seed",
-            "7",
-            "--workers",
-            "2",
-            "--out",
-            str(tmp_path / "b"),
-        ],
-    )
+    two = runner.invoke(main, synth_nuscenes("2", tmp_path / "b", "--workers", "2"))
     assert two.exit_code == 0, two.output
     a, b = FrameSet(tmp_path / "a"), FrameSet(tmp_path / "b")
     assert a.frame_ids == ["000000", "000001", "000002"] and b.frame_ids == a.frame_ids[:2]
@@ -209,20 +185,7 @@ def test_synth_command_output_independent_of_frame_count_and_workers(tmp_path):
         np.testing.assert_array_equal(boxes_a[column], values)
         assert boxes_a[column].dtype == values.dtype
     assert a.sensor == "nuscenes" and a.attrs["cars_profile"] == "nuscenes"
-    rerun = runner.invoke(
-        main,
-        [
-            "synth",
-            "--sensor",
-            "nuscenes",
-            "--frames",
-            "3",
-            "--seed",
-            "7",
-            "--out",
-            str(tmp_path / "a"),
-        ],
-    )
+    rerun = runner.invoke(main, synth_nuscenes("3", tmp_path / "a"))
     assert rerun.exit_code == 0 and "up to date" in rerun.output
 
 
