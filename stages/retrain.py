@@ -4,6 +4,7 @@ Raw target frames are never read. Same checkpoint format as pretrain."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from dali_cli.manifest import BuildResult, StageOutcome, content_hash
 from dali_cli.training_stage import attach_database, fit_and_save, run_training_stage
 
 INIT_FROM = ("previous", "scratch")
+SOURCE_SIZES = ("init", "sn")
 
 
 def parse_mix(text: str, ppcg_count: int) -> tuple[int, ...]:
@@ -77,6 +79,9 @@ def run_retrain(
     *,
     init_from: str = "previous",
     mix: str = "1:1",
+    source_size: str = "init",
+    target_profile: str | None = None,
+    target_size: tuple[float, float, float] | None = None,
     epochs: float = 10.0,
     minutes: float | None = None,
     seed: int = 0,
@@ -95,8 +100,11 @@ def run_retrain(
 ) -> StageOutcome:
     """Retrain the detector of `init` on `source` + the PPCG sets `ppcg`; write a checkpoint to `out`.
 
-    The source keeps the size normalization the initial model was trained with (SN delta or ROS
-    range, from its model.json), so source and pseudo labels agree on car sizes.
+    `source_size` "init": the source keeps the size normalization the initial model was trained
+    with (SN delta or ROS range, from its model.json). "sn": the source boxes are shifted to the
+    target's expected mean size `target_size` (or `target_profile`'s car_mean_lwh_m: the same
+    label-free statistics PTSN's E_est uses), in-box points scaled with them, so source and PPCG
+    labels agree on the target's car size (metres).
     """
     init, source, out = Path(init), Path(source), Path(out)
     ppcg = [Path(p) for p in ppcg]
@@ -107,9 +115,24 @@ def run_retrain(
             "init_from", f"must be one of {', '.join(INIT_FROM)}, got '{init_from}'"
         )
     weights = parse_mix(mix, len(ppcg))
+    if source_size not in SOURCE_SIZES:
+        raise ParameterError(
+            "source_size", f"must be one of {', '.join(SOURCE_SIZES)}, got '{source_size}'"
+        )
+    if source_size == "sn":
+        if target_size is None and target_profile is None:
+            raise ParameterError(
+                ("target_profile", "target_size"), "source size sn needs the target's car size"
+            )
+        if target_size is None:
+            from dali_cli.sensors import get_profile
+
+            target_size = tuple(get_profile(target_profile, sensors_path).car_mean_lwh_m)
     params = {
         "init_from": init_from,
         "mix": list(weights),
+        "source_size": source_size,
+        "target_size": list(target_size) if source_size == "sn" else None,
         "epochs": None if minutes else epochs,
         "minutes": minutes,
         "seed": seed,
@@ -141,10 +164,18 @@ def run_retrain(
         load = dict(config=config, labels=labels, sensors_path=sensors_path)
         source_data = load_labeled(source, **load)
         source_augmentation = Augmentation() if augment else Augmentation.none()
-        if card.sn_delta_lwh_m is not None:
-            source_data = size_normalize(source_data, np.asarray(card.sn_delta_lwh_m))
-        if card.ros_range is not None:
-            source_augmentation.object_scale = card.ros_range
+        if source_size == "sn":
+            delta = np.asarray(target_size) - source_data.mean_lwh()
+            source_data = size_normalize(source_data, delta)
+            card = dataclasses.replace(
+                card, size_norm="sn", sn_delta_lwh_m=tuple(float(d) for d in delta),
+                ros_range=None, target_profile=target_profile,
+            )  # fmt: skip
+        else:
+            if card.sn_delta_lwh_m is not None:
+                source_data = size_normalize(source_data, np.asarray(card.sn_delta_lwh_m))
+            if card.ros_range is not None:
+                source_augmentation.object_scale = card.ros_range
         pseudo_sets = [load_labeled(p, **load) for p in ppcg]
         for path, data in zip(ppcg, pseudo_sets, strict=True):
             if len(data) == 0:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from dali_cli.commands.common import sensors_option, stage_options
-from dali_cli.commands.pretrain import training_options
+from dali_cli.commands.pretrain import parse_floats, training_options
 
 
 class GreedyOption(click.Option):
@@ -68,6 +68,26 @@ class GreedyOption(click.Option):
     help="Batches source:PPCG (PPCG sets pooled), or source:set1:set2 for separate weights.",
 )
 @click.option(
+    "--source-size",
+    type=click.Choice(["init", "sn"]),
+    default="init",
+    show_default=True,
+    help="init: the source keeps INIT's size normalization; sn: source boxes are shifted to the "
+    "target's expected mean size (--target-profile / --target-size, label-free statistics), "
+    "points scaled with them, so source and PPCG labels agree on car size.",
+)
+@click.option(
+    "--target-profile",
+    default=None,
+    help="Sensor profile whose car_mean_lwh_m is the target size for --source-size sn.",
+)
+@click.option(
+    "--target-size",
+    default=None,
+    callback=parse_floats(3),
+    help="Target mean size 'l,w,h' in m for --source-size sn (overrides the profile).",
+)
+@click.option(
     "--label",
     "labels",
     multiple=True,
@@ -78,7 +98,7 @@ class GreedyOption(click.Option):
 @training_options
 @sensors_option
 @stage_options
-def command(init, source, ppcg, out, init_from, mix, labels, epochs, minutes, seed, batch_size, lr,
+def command(init, source, ppcg, out, init_from, mix, source_size, target_profile, target_size, labels, epochs, minutes, seed, batch_size, lr,
             compile_net, threads, no_augment, quiet, device, precision, sensors_path, force,
             dry_run):  # fmt: skip
     """Retrain on the labeled source plus PPCG frame sets, alternating source and PPCG batches.
@@ -92,7 +112,8 @@ def command(init, source, ppcg, out, init_from, mix, labels, epochs, minutes, se
     from stages.retrain import run_retrain
 
     outcome = run_retrain(
-        init, source, list(ppcg), out, init_from=init_from, mix=mix, epochs=epochs, minutes=minutes,
+        init, source, list(ppcg), out, init_from=init_from, mix=mix, source_size=source_size,
+        target_profile=target_profile, target_size=target_size, epochs=epochs, minutes=minutes,
         seed=seed, batch_size=batch_size, lr=lr, precision=precision, threads=threads,
         compile_net=compile_net, augment=not no_augment, labels=tuple(labels), sensors_path=sensors_path, force=force,
         dry_run=dry_run, progress=not quiet, device=device,
