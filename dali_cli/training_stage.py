@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli import console
+from dali_cli.errors import ParameterError
 from dali_cli.manifest import BuildResult, StageOutcome, content_hash, run_stage
 
 
@@ -64,6 +65,26 @@ class TrainingOptions:
         from dali_cli.detector import Augmentation
 
         return Augmentation() if self.augment else Augmentation.none()
+
+
+def target_car_size(
+    target_profile: str | None,
+    target_size: tuple[float, float, float] | None,
+    sensors_path,
+    needed_by: str,
+) -> tuple[float, float, float]:
+    """The target's mean car size (l, w, h in m) a training stage shifts source boxes to:
+    `target_size`, else `target_profile`'s car_mean_lwh_m; a ParameterError naming both
+    (`needed_by`: what needs it) without either."""
+    if target_size is not None:
+        return target_size
+    if target_profile is None:
+        raise ParameterError(
+            ("target_profile", "target_size"), f"{needed_by} needs the target's car size"
+        )
+    from dali_cli.sensors import get_profile
+
+    return tuple(get_profile(target_profile, sensors_path).car_mean_lwh_m)
 
 
 def seeded_network(config, seed: int, weights=None):

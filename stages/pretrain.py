@@ -17,6 +17,7 @@ from dali_cli.training_stage import (
     attach_database,
     run_training_stage,
     seeded_network,
+    target_car_size,
 )
 
 SIZE_NORMS = ("none", "sn", "ros")
@@ -43,7 +44,14 @@ def run_pretrain(
     device) and write the checkpoint to `out` (under torchrun with DDP, see
     run_training_stage)."""
     source, out = Path(source), Path(out)
-    target_size = sn_target_size(size_norm, target_profile, target_size, sensors_path)
+    if size_norm not in SIZE_NORMS:
+        raise ParameterError(
+            "size_norm", f"must be one of {', '.join(SIZE_NORMS)}, got '{size_norm}'"
+        )
+    if size_norm == "sn":
+        target_size = target_car_size(
+            target_profile, target_size, sensors_path, "size normalization sn"
+        )
     check_config_overrides(config_overrides)
     params = {
         "size_norm": size_norm,
@@ -128,29 +136,6 @@ def pretrain_meta(
         "database_instances": 0 if data.database is None else len(data.database),
     }
     return {"card": card.to_dict(), "provenance": provenance, "metrics": metrics}
-
-
-def sn_target_size(
-    size_norm: str,
-    target_profile: str | None,
-    target_size: tuple[float, float, float] | None,
-    sensors_path: str | Path | None,
-) -> tuple[float, float, float] | None:
-    """The SN target mean car size (l, w, h in m): `target_size`, else the target profile's
-    car_mean_lwh_m when size_norm is sn; a bad size_norm or sn without a size is an error."""
-    from dali_cli.sensors import get_profile
-
-    if size_norm not in SIZE_NORMS:
-        raise ParameterError(
-            "size_norm", f"must be one of {', '.join(SIZE_NORMS)}, got '{size_norm}'"
-        )
-    if size_norm == "sn" and target_profile is None and target_size is None:
-        raise ParameterError(
-            ("target_profile", "target_size"), "size normalization sn needs the target's car size"
-        )
-    if target_size is None and target_profile is not None and size_norm == "sn":
-        target_size = tuple(get_profile(target_profile, sensors_path).car_mean_lwh_m)
-    return target_size
 
 
 def check_config_overrides(config_overrides: dict | None) -> None:

@@ -4,22 +4,18 @@ Raw target frames are never read. Same checkpoint format as pretrain."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 
-from dali_cli import console
+from dali_cli import console, training_stage
 from dali_cli.errors import ParameterError, StageError
 from dali_cli.manifest import StageOutcome, content_hash
-from dali_cli.training_stage import (
-    PreparedTraining,
-    TrainingOptions,
-    attach_database,
-    run_training_stage,
-    seeded_network,
-)
+from dali_cli.training_stage import PreparedTraining, TrainingOptions
 
 INIT_FROM = ("previous", "scratch")
+SOURCE_SIZES = ("init", "sn")
 
 
 def parse_mix(text: str, ppcg_count: int) -> tuple[int, ...]:
@@ -83,6 +79,9 @@ def run_retrain(
     training: TrainingOptions = TrainingOptions(),
     init_from: str = "previous",
     mix: str = "1:1",
+    source_size: str = "init",
+    target_profile: str | None = None,
+    target_size: tuple[float, float, float] | None = None,
     labels: tuple[str, ...] = ("Car",),
     sensors_path: str | Path | None = None,
     force: bool = False,
@@ -91,8 +90,11 @@ def run_retrain(
     """Retrain the detector of `init` on `source` + the PPCG sets `ppcg` with `training`; write
     a checkpoint to `out`.
 
-    The source keeps the size normalization the initial model was trained with (SN delta or ROS
-    range, from its model.json), so source and pseudo labels agree on car sizes.
+    `source_size` "init": the source keeps the size normalization the initial model was trained
+    with (SN delta or ROS range, from its model.json). "sn": the source boxes are shifted to the
+    target's expected mean size `target_size` (or `target_profile`'s car_mean_lwh_m: the same
+    label-free statistics PTSN's E_est uses), in-box points scaled with them, so source and PPCG
+    labels agree on the target's car size (metres).
     """
     init, source, out = Path(init), Path(source), Path(out)
     ppcg = [Path(p) for p in ppcg]
@@ -103,7 +105,14 @@ def run_retrain(
             "init_from", f"must be one of {', '.join(INIT_FROM)}, got '{init_from}'"
         )
     weights = parse_mix(mix, len(ppcg))
-    params = {"init_from": init_from, "mix": list(weights), "labels": list(labels)}
+    target_size = shift_size(source_size, target_profile, target_size, sensors_path)
+    params = {
+        "init_from": init_from,
+        "mix": list(weights),
+        "source_size": source_size,
+        "target_size": list(target_size) if source_size == "sn" else None,
+        "labels": list(labels),
+    }
     inputs = {"init": init, "source": source, "ppcg": ppcg}
 
     def prepare() -> PreparedTraining:
@@ -111,18 +120,19 @@ def run_retrain(
 
         previous = Detector.load(init)
         load = dict(config=previous.config, labels=labels, sensors_path=sensors_path)
-        source_data, source_augmentation = load_source(source, previous.card, load, training)
+        shift = (target_size, target_profile) if source_size == "sn" else None
+        source_data, source_augmentation, card = load_source(
+            source, previous.card, load, training, shift
+        )
         pseudo_sets, mix, skipped = load_ppcg_sets(ppcg, weights, load)
         pooled = len(weights) == 2 and pseudo_sets
         datasets = [source_data, *([pool(pseudo_sets, "ppcg")] if pooled else pseudo_sets)]
         for data in datasets:
-            attach_database(data, previous.config, training.augment)
+            training_stage.attach_database(data, previous.config, training.augment)
         augmentations = [source_augmentation] + [training.augmentation() for _ in datasets[1:]]
         state = previous.net.state_dict() if init_from == "previous" else None
-        net = seeded_network(previous.config, training.seed, state)
-        meta = retrain_meta(
-            previous.card, datasets, init, init_from, source, ppcg, weights, training.seed
-        )
+        net = training_stage.seeded_network(previous.config, training.seed, state)
+        meta = retrain_meta(card, datasets, init, init_from, source, ppcg, weights, training.seed)
         return PreparedTraining(
             net, datasets, augmentations, training.settings(mix=mix),
             meta=meta,
@@ -137,7 +147,9 @@ def run_retrain(
             ],
         )  # fmt: skip
 
-    return run_training_stage("retrain", out, inputs, params, prepare, force, dry_run, training)
+    return training_stage.run_training_stage(
+        "retrain", out, inputs, params, prepare, force, dry_run, training
+    )
 
 
 def retrain_meta(
@@ -173,19 +185,46 @@ def retrain_meta(
     }
 
 
-def load_source(source: Path, card, load: dict, training: TrainingOptions):
-    """The labeled source with the initial model's size normalization (SN delta applied to
-    the boxes and their points, or ROS as the augmentation's object scaling); returns
-    (data, augmentation)."""
+def shift_size(
+    source_size: str, target_profile: str | None, target_size, sensors_path
+) -> tuple[float, float, float] | None:
+    """The target mean car size (l, w, h in m) the source is shifted to (source_size sn), or
+    None (init: INIT's own normalization); an unknown source_size is a ParameterError."""
+    if source_size not in SOURCE_SIZES:
+        raise ParameterError(
+            "source_size", f"must be one of {', '.join(SOURCE_SIZES)}, got '{source_size}'"
+        )
+    if source_size != "sn":
+        return target_size
+    return training_stage.target_car_size(
+        target_profile, target_size, sensors_path, "source size sn"
+    )
+
+
+def load_source(source: Path, card, load: dict, training: TrainingOptions, shift=None):
+    """The labeled source, sized as the retrained model expects; returns (data, augmentation,
+    the card to carry forward). `shift` None: the initial model's size normalization (SN delta
+    applied to the boxes and their points, or ROS as the augmentation's object scaling).
+    `shift` (target size l, w, h in m, target profile): the boxes shifted to that mean size
+    (points scaled with them), recorded in the card as SN."""
     from dali_cli.detector import load_labeled, size_normalize
 
     data = load_labeled(source, **load)
     augmentation = training.augmentation()
+    if shift is not None:
+        target_size, target_profile = shift
+        delta = np.asarray(target_size) - data.mean_lwh()
+        data = size_normalize(data, delta)
+        card = dataclasses.replace(
+            card, size_norm="sn", sn_delta_lwh_m=tuple(float(d) for d in delta),
+            ros_range=None, target_profile=target_profile,
+        )  # fmt: skip
+        return data, augmentation, card
     if card.sn_delta_lwh_m is not None:
         data = size_normalize(data, np.asarray(card.sn_delta_lwh_m))
     if card.ros_range is not None:
         augmentation.object_scale = card.ros_range
-    return data, augmentation
+    return data, augmentation, card
 
 
 def load_ppcg_sets(ppcg: list[Path], weights: tuple[int, ...], load: dict):

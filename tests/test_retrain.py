@@ -183,3 +183,27 @@ def test_ppcg_sets_without_boxes_are_left_out_not_trained_as_background(world, t
     log = pq.read_table(tmp_path / "c" / "train_log.parquet").to_pydict()
     assert set(log["dataset"]) == {0}  # the source only
     assert any("source frames only" in note for note in read_manifest(tmp_path / "c")["notes"])
+
+
+def test_source_size_sn_shifts_the_source_to_the_given_target_size(world, tmp_path):
+    """--source-size sn replaces INIT's normalization: the source boxes get the given target
+    mean (not INIT's kitti SN), the card records the new delta, and without a size it fails."""
+    runner = CliRunner()
+    base = ["retrain", "--init", str(world / "iter0"), "--source", str(world / "source"),
+            "--ppcg", str(world / "rc"), "--epochs", "1", "--lr", "1e-12", "--quiet"]  # fmt: skip
+    target = (4.5, 1.9, 1.7)
+    out = tmp_path / "sn"
+    result = runner.invoke(
+        main, [*base, "--out", str(out), "--source-size", "sn", "--target-size", "4.5,1.9,1.7"]
+    )
+    assert result.exit_code == 0, result.output
+    meta = json.loads((out / "model.json").read_text())
+    assert np.allclose(meta["metrics"]["mean_lwh_m"][str(world / "source")], target, atol=1e-6)
+    raw_mean = load_labeled(world / "source", DetectorConfig.from_dict(SMALL)).mean_lwh()
+    assert meta["card"]["size_norm"] == "sn"
+    assert np.allclose(meta["card"]["sn_delta_lwh_m"], np.asarray(target) - raw_mean, atol=1e-6)
+    assert read_manifest(out)["params"]["source_size"] == "sn"
+
+    missing = runner.invoke(main, [*base, "--out", str(tmp_path / "bad"), "--source-size", "sn"])
+    assert missing.exit_code != 0 and "target" in missing.output
+    assert not (tmp_path / "bad").exists()

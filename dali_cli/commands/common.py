@@ -28,6 +28,38 @@ def choice_option(*decls: str, choices: list[str], default: str | None, help: st
     )
 
 
+def parse_floats(count: int):
+    """A click callback turning 'a,b,c' into a tuple of `count` floats (None stays None)."""
+
+    def callback(ctx, param, value):
+        if value is None:
+            return None
+        try:
+            numbers = tuple(float(v) for v in value.split(","))
+        except ValueError:
+            raise click.BadParameter(
+                f"expected {count} comma-separated numbers, got '{value}'"
+            ) from None
+        if len(numbers) != count:
+            raise click.BadParameter(f"expected {count} comma-separated numbers, got '{value}'")
+        return numbers
+
+    return callback
+
+
+def target_size_options(profile_help: str, size_help: str):
+    """--target-profile and --target-size 'l,w,h': the target's mean car size (pretrain's SN,
+    retrain's --source-size sn)."""
+
+    def decorate(function):
+        function = click.option(
+            "--target-size", default=None, callback=parse_floats(3), help=size_help
+        )(function)
+        return click.option("--target-profile", default=None, help=profile_help)(function)
+
+    return decorate
+
+
 def apply_options(function, options: list):
     """Decorate `function` with `options` so they list in --help in the given order."""
     for option in reversed(options):

@@ -10,28 +10,11 @@ from dali_cli.commands.common import (
     choice_option,
     input_dir_option,
     out_dir_option,
+    parse_floats,
     run_training_command,
+    target_size_options,
     training_options,
 )
-
-
-def parse_floats(count: int):
-    """A click callback turning 'a,b,c' into a tuple of `count` floats (None stays None)."""
-
-    def callback(ctx, param, value):
-        if value is None:
-            return None
-        try:
-            numbers = tuple(float(v) for v in value.split(","))
-        except ValueError:
-            raise click.BadParameter(
-                f"expected {count} comma-separated numbers, got '{value}'"
-            ) from None
-        if len(numbers) != count:
-            raise click.BadParameter(f"expected {count} comma-separated numbers, got '{value}'")
-        return numbers
-
-    return callback
 
 
 def read_json_option(path: str | None) -> dict | None:
@@ -54,10 +37,8 @@ def read_json_option(path: str | None) -> dict | None:
 @choice_option("--size-norm", choices=["none", "sn", "ros"], default="none",
                help="sn: shift source box sizes to the target mean (points scaled with them); "
                     "ros: random object scaling U(--ros-range) per object, as augmentation.")  # fmt: skip
-@click.option("--target-profile", default=None,
-              help="Sensor profile whose car_mean_lwh_m is the SN target (e.g. kitti).")  # fmt: skip
-@click.option("--target-size", default=None, callback=parse_floats(3),
-              help="SN target mean size 'l,w,h' in m (overrides the profile).")  # fmt: skip
+@target_size_options("Sensor profile whose car_mean_lwh_m is the SN target (e.g. kitti).",
+                     "SN target mean size 'l,w,h' in m (overrides the profile).")  # fmt: skip
 @click.option("--ros-range", default="0.75,1.0", show_default=True, callback=parse_floats(2),
               help="ROS scale range 'lo,hi'.")  # fmt: skip
 @choice_option("--features", choices=["xyz", "xyzi"], default="xyz",

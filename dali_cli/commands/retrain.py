@@ -9,6 +9,7 @@ from dali_cli.commands.common import (
     input_dir_option,
     out_dir_option,
     run_training_command,
+    target_size_options,
     training_options,
 )
 
@@ -50,6 +51,15 @@ class GreedyOption(click.Option):
 @click.option("--mix", default="1:1", show_default=True,
               help="Batches source:PPCG (PPCG sets pooled), or source:set1:set2 for separate "
                    "weights.")  # fmt: skip
+@choice_option("--source-size", choices=["init", "sn"], default="init",
+               help="init: the source keeps INIT's size normalization; sn: source boxes are "
+                    "shifted to the target's expected mean size (--target-profile / "
+                    "--target-size, label-free statistics), points scaled with them, so source "
+                    "and PPCG labels agree on car size.")  # fmt: skip
+@target_size_options(
+    "Sensor profile whose car_mean_lwh_m is the target size for --source-size sn.",
+    "Target mean size 'l,w,h' in m for --source-size sn (overrides the profile).",
+)
 @click.option("--label", "labels", multiple=True, default=("Car",), show_default=True,
               help="Box labels to train on.")  # fmt: skip
 @training_options
