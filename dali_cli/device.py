@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import contextlib
 import re
+from collections.abc import Callable
+from typing import TypedDict
 
 from dali_cli.errors import ParameterError, StageError
 
@@ -74,6 +76,36 @@ def check_precision(precision: str, device) -> None:
             f"--precision bf16: {torch.cuda.get_device_name(device)} does not support bf16; "
             "use --precision fp32"
         )
+
+
+class InferenceOptions(TypedDict, total=False):
+    """How an inference stage (ptsn-sweep, pseudo-label) runs the detector: `device` (auto |
+    cpu | cuda | cuda:N, default auto), `precision` (fp32 | bf16, default fp32), `batch_size`
+    frames per forward pass (default 8), `progress` (a bar, default True) and, for tests,
+    `detector_loader(model_dir)` in place of the stage's own loader."""
+
+    device: str
+    precision: str
+    batch_size: int
+    progress: bool
+    detector_loader: Callable | None
+
+
+def check_options(options: dict, typed: type, where: str) -> None:
+    """A TypeError naming the first keyword of `options` that the TypedDict `typed` does not
+    declare: keyword options collected with **kwargs stay as strict as named parameters."""
+    unknown = sorted(set(options) - set(typed.__annotations__))
+    if unknown:
+        raise TypeError(f"{where}() got an unexpected keyword argument '{unknown[0]}'")
+
+
+def inference_setup(inference: dict, where: str):
+    """(torch.device, precision) of an inference stage's InferenceOptions `inference` (unknown
+    keywords a TypeError naming `where`; a missing GPU or an unsupported precision an error
+    before anything is written)."""
+    check_options(inference, InferenceOptions, where)
+    precision = inference.get("precision", "fp32")
+    return inference_device(inference.get("device", "auto"), precision), precision
 
 
 def inference_device(spec: str, precision: str):

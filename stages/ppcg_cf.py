@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Unpack
 
 from dali_cli.artifacts import FrameSet
+from dali_cli.device import check_options
 from dali_cli.errors import ParameterError
 from dali_cli.manifest import StageOutcome
 from dali_cli.ppcg.cf import CfParams
@@ -30,6 +31,7 @@ def ppcg_cf(
     low, high = (float(v) for v in range_m)
     if not 0 < low <= high:
         raise ParameterError("range_m", f"need 0 < LOW <= HIGH, got {low}:{high}")
+    check_options(options, PpcgOptions, "ppcg_cf")
     _, profile = target_profile(
         FrameSet(target_dir), options.get("sensor"), options.get("sensors_path")
     )

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Unpack
 
 from dali_cli.artifacts import FrameSet
+from dali_cli.device import check_options
 from dali_cli.errors import ParameterError
 from dali_cli.manifest import StageOutcome
 from dali_cli.ppcg.point_models import angular_threshold_rad
@@ -33,6 +34,7 @@ def ppcg_rc(
         raise ParameterError(
             ("min_points", "max_points"), f"need 1 <= MIN < MAX, got {min_points}, {max_points}"
         )
+    check_options(options, PpcgOptions, "ppcg_rc")
     _, profile = target_profile(
         FrameSet(target_dir), options.get("sensor"), options.get("sensors_path")
     )

@@ -12,12 +12,13 @@ import math
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import Unpack
 
 import numpy as np
 
 from dali_cli import console, ptsn, size_correction
 from dali_cli.artifacts import BoxTable, FrameSet, write_boxes
-from dali_cli.device import inference_device, inference_runtime
+from dali_cli.device import InferenceOptions, inference_runtime, inference_setup
 from dali_cli.errors import ParameterError, StageError
 from dali_cli.executors import make_executor, run_on
 from dali_cli.manifest import BuildResult, StageOutcome, run_stage
@@ -82,22 +83,19 @@ def pseudo_label(
     target_profile: str | None = None,
     mount_height_m: float | None = None,
     sensors_path: str | None = None,
-    batch_size: int = 8,
     size_correction_method: str = "per-dim",
     force: bool = False,
     dry_run: bool = False,
-    progress: bool = True,
-    detector_loader=None,
-    device: str = "auto",
-    precision: str = "fp32",
     workers: int | None = None,
     executor: str = "local",
     ray_address: str | None = None,
+    **inference: Unpack[InferenceOptions],
 ) -> StageOutcome:
-    """Run the pseudo-label stage (see the module docstring); `detector_loader` is for tests.
-    `executor`, `workers`, `ray_address`: the engine of the detector runs (dali_cli.executors)."""
+    """Run the pseudo-label stage (see the module docstring). `executor`, `workers`,
+    `ray_address`: the engine of the detector runs (dali_cli.executors); `inference`: device,
+    precision, batch size, progress and (tests) the detector loader (InferenceOptions)."""
     model_dir, target_dir = Path(model_dir), Path(target_dir)
-    torch_device = inference_device(device, precision)  # a missing GPU: error, nothing written
+    torch_device, precision = inference_setup(inference, "pseudo_label")
     used, scale_source = used_scale(model_dir, scale, scale_from)
     scale = used.scale  # ŝ exactly as the sweep found it (or the option's)
     e_est = list(used.e_est) if used.e_est is not None else None
@@ -121,14 +119,17 @@ def pseudo_label(
     engine = make_executor(executor, workers, ray_address)
     labeler = FrameLabeler(
         str(model_dir), str(target_dir), scale, mount_height_m, max_range_m, score_min, nms_iou,
-        batch_size, detector_loader or load_detector, device=torch_device, precision=precision,
+        inference.get("batch_size", 8), inference.get("detector_loader") or load_detector,
+        device=torch_device, precision=precision,
     )  # fmt: skip
 
     def build(directory: Path) -> BuildResult:
         return run_on(engine, "pseudo-label", lambda pool: build_on(pool, directory))
 
     def build_on(pool, directory: Path) -> BuildResult:
-        table, implausible, seconds = label_frames(labeler, pool, directory, target, progress)
+        table, implausible, seconds = label_frames(
+            labeler, pool, directory, target, inference.get("progress", True)
+        )
         correction = None
         if method != "none" and len(table):
             table, correction = correct_table(table, target, e_est, score_min)

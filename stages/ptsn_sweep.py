@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import sys
 from pathlib import Path
+from typing import Unpack
 
 import numpy as np
 import pyarrow as pa
@@ -13,7 +14,7 @@ import pyarrow.parquet as pq
 
 from dali_cli import console, ptsn
 from dali_cli.artifacts import FrameSet
-from dali_cli.device import inference_device, inference_runtime, place
+from dali_cli.device import InferenceOptions, inference_runtime, inference_setup, place
 from dali_cli.errors import ParameterError, StageError
 from dali_cli.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.model_card import ModelCard, read_card
@@ -140,17 +141,14 @@ def ptsn_sweep(
     mount_height_m: float | None = None,
     plot: bool = False,
     sensors_path: str | None = None,
-    batch_size: int = 8,
     force: bool = False,
     dry_run: bool = False,
-    progress: bool = True,
-    detector_loader=None,
-    device: str = "auto",
-    precision: str = "fp32",
+    **inference: Unpack[InferenceOptions],
 ) -> StageOutcome:
-    """Run the PTSN sweep stage (see the module docstring); `detector_loader(model_dir)` for tests."""
+    """Run the PTSN sweep stage (see the module docstring); `inference`: device, precision,
+    batch size, progress and (tests) the detector loader (dali_cli.device.InferenceOptions)."""
     model_dir, target_dir = Path(model_dir), Path(target_dir)
-    torch_device = inference_device(device, precision)  # a missing GPU: error, nothing written
+    torch_device, precision = inference_setup(inference, "ptsn_sweep")
     if frames is not None and frame_fraction is not None:
         raise ParameterError(("frames", "frame_fraction"), "give one of the two, not both")
     if not model_dir.is_dir():
@@ -179,11 +177,12 @@ def ptsn_sweep(
     )
 
     def build(directory: Path) -> BuildResult:
-        loader = detector_loader or load_detector
+        loader = inference.get("detector_loader") or load_detector
         detector = place(loader(model_dir), torch_device, precision)
         return run_sweep(
             directory, detector, target, scale_range, e_est, expected_record, params,
-            no_detections=no_detections, batch_size=batch_size, progress=progress,
+            no_detections=no_detections, batch_size=inference.get("batch_size", 8),
+            progress=inference.get("progress", True),
             torch_device=torch_device,
         )  # fmt: skip
 
