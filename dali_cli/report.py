@@ -152,10 +152,19 @@ def stage_timings(run: Path) -> dict[str, dict[str, float]]:
 
 
 def ptsn_scales(run: Path) -> dict[str, dict]:
-    """ŝ and the size numbers of every PTSN sweep in the run."""
+    """ŝ and the size numbers of every PTSN sweep in the run: each scale.json's record, read
+    through the one scale contract (dali_cli.scale_file.read_scale); an unreadable one is
+    reported and left out."""
+    from dali_cli import console
+    from dali_cli.artifacts import ArtifactError
+    from dali_cli.scale_file import read_scale
+
     scales = {}
     for path in sorted(run.glob("iter*/ptsn/scale.json")):
-        scales[path.parent.parent.name] = json.loads(path.read_text())
+        try:
+            scales[path.parent.parent.name] = read_scale(path).record
+        except ArtifactError as error:
+            console.warn(f"report: {error}: left out")
     return scales
 
 

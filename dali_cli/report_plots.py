@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dali_cli.scale_file import read_scale
+
 
 def _pyplot():
     import matplotlib
@@ -82,9 +84,8 @@ def plot_ptsn_curves(run: Path, out: Path) -> Path | None:
             )
         info_path = path.parent / "scale.json"
         if info_path.is_file():
-            info = json.loads(info_path.read_text())
-            if "scale" in info:
-                axis.axvline(info["scale"], color=line.get_color(), ls=":", lw=1)
+            info = read_scale(info_path).record
+            axis.axvline(info["scale"], color=line.get_color(), ls=":", lw=1)
             estimate = info.get("expected_volume") or info.get("E_est_volume")
             if estimate is None and isinstance(info.get("expected_lwh"), list):
                 estimate = float(np.prod(info["expected_lwh"]))
