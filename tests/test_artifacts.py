@@ -101,23 +101,26 @@ def test_missing_array_is_reported(tmp_path):
         FrameSet(tmp_path)
 
 
-def test_non_monotone_offsets_are_reported(tmp_path):
-    store = _make_frameset(tmp_path)
-    group = zarr.open_group(str(store), mode="r+")
-    offsets = group["offsets"][:]
+def _swap_two_offsets(offsets):
     offsets[2], offsets[3] = offsets[3], offsets[2] - 1
-    group["offsets"][:] = offsets
-    with pytest.raises(ArtifactError, match="not monotone"):
-        FrameSet(tmp_path)
 
 
-def test_offsets_not_matching_points_are_reported(tmp_path):
+def _grow_last_offset(offsets):
+    offsets[-1] += 5
+
+
+@pytest.mark.parametrize(
+    "corrupt, message",
+    [(_swap_two_offsets, "not monotone"), (_grow_last_offset, "last offset")],
+    ids=["non-monotone", "not-matching-points"],
+)
+def test_bad_offsets_are_reported(tmp_path, corrupt, message):
     store = _make_frameset(tmp_path)
     group = zarr.open_group(str(store), mode="r+")
     offsets = group["offsets"][:]
-    offsets[-1] += 5
+    corrupt(offsets)
     group["offsets"][:] = offsets
-    with pytest.raises(ArtifactError, match="last offset"):
+    with pytest.raises(ArtifactError, match=message):
         FrameSet(tmp_path)
 
 

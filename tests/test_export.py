@@ -68,15 +68,16 @@ def test_export_import_round_trip(imported, tmp_path):
     np.testing.assert_array_equal(back["score"], original["score"])
 
 
+def export_kitti(imported, out, *flags):
+    """`dali export kitti` of the imported fixture with the fixture's calib; returns `out`."""
+    result = invoke("export", "kitti", imported, "--calib-root", KITTI, *flags, "--out", out)
+    assert result.exit_code == 0, result.output
+    return out
+
+
 def test_exported_geometry_matches_the_annotation(imported, tmp_path):
     """The annotation's own camera boxes, 2D boxes and alpha, recomputed from the LiDAR boxes."""
-    exported = tmp_path / "exported"
-    assert (
-        invoke(
-            "export", "kitti", imported, "--calib-root", KITTI, "--project-bbox", "--out", exported
-        ).exit_code
-        == 0
-    )
+    exported = export_kitti(imported, tmp_path / "exported", "--project-bbox")
     ours = parse(exported / "data" / "000008.txt")
     truth = parse(KITTI_FRAME / "label_2" / "000008.txt")
     cars = truth.type == "Car"
@@ -91,13 +92,7 @@ def test_exported_geometry_matches_the_annotation(imported, tmp_path):
 
 
 def test_export_reuses_label_columns_and_no_score(imported, tmp_path):
-    exported = tmp_path / "exported"
-    assert (
-        invoke(
-            "export", "kitti", imported, "--calib-root", KITTI, "--no-score", "--out", exported
-        ).exit_code
-        == 0
-    )
+    exported = export_kitti(imported, tmp_path / "exported", "--no-score")
     lines = (exported / "data" / "000008.txt").read_text().splitlines()
     assert len(lines) == 10 and all(len(line.split()) == 15 for line in lines)
     # an imported label set is written back as it was read: every row, every field
