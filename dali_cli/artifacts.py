@@ -41,6 +41,19 @@ class ArtifactError(StageError):
     """A missing or malformed artifact; the message names the path and the problem."""
 
 
+def read_json(path: Path, missing: str, invalid: str):
+    """The JSON document of the file `path`. ArtifactError naming the file: `"{path}: {missing}"`
+    when it is not a file, `"{path}: {invalid} ({error})"` when it is not UTF-8 JSON."""
+    import json
+
+    if not path.is_file():
+        raise ArtifactError(f"{path}: {missing}")
+    try:
+        return json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ArtifactError(f"{path}: {invalid} ({error})") from None
+
+
 class TableValueError(ArtifactError, ValueError):
     """A box-table value that cannot be stored (out of its column's range, NaN/inf, a bad frame id);
     a ValueError for library callers, a clean CLI error for users. Names column, row and frame."""

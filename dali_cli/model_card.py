@@ -12,12 +12,11 @@ checkpoint's ROS range and source mean).
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from dali_cli.artifacts import ArtifactError
+from dali_cli.artifacts import ArtifactError, read_json
 
 META_NAME = "model.json"
 SIZE_NORMS = ("none", "sn", "ros")
@@ -123,12 +122,9 @@ class ModelCard:
 def read_meta(model_dir: str | Path) -> dict:
     """model.json of a model directory as a dict; ArtifactError when missing or not JSON."""
     path = Path(model_dir) / META_NAME
-    if not path.is_file():
-        raise ArtifactError(f"{path}: not found (is {model_dir} a model directory?)")
-    try:
-        document = json.loads(path.read_text())
-    except (UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise ArtifactError(f"{path}: not a dali model description ({error})") from None
+    document = read_json(
+        path, f"not found (is {model_dir} a model directory?)", "not a dali model description"
+    )
     if not isinstance(document, dict):
         raise ArtifactError(f"{path}: not a dali model description (not a JSON object)")
     return document

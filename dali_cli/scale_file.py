@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from dali_cli.artifacts import ArtifactError
+from dali_cli.artifacts import ArtifactError, read_json
 
 SCALE_NAME = "scale.json"
 
@@ -46,12 +46,9 @@ def read_scale(scale_from: str | Path) -> ScaleResult:
     """The ScaleResult of a ptsn-sweep directory or its scale.json. ArtifactError naming the file
     when it is missing, not JSON, or its "scale" is not a finite positive number."""
     path = scale_path(scale_from)
-    if not path.is_file():
-        raise ArtifactError(f"{path}: scale file not found (is {scale_from} a ptsn-sweep output?)")
-    try:
-        document = json.loads(path.read_text())
-    except (UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise ArtifactError(f"{path}: invalid JSON ({error})") from None
+    document = read_json(
+        path, f"scale file not found (is {scale_from} a ptsn-sweep output?)", "invalid JSON"
+    )
     scale = document.get("scale") if isinstance(document, dict) else None
     if (
         isinstance(scale, bool)
