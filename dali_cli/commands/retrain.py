@@ -88,6 +88,13 @@ class GreedyOption(click.Option):
     help="Target mean size 'l,w,h' in m for --source-size sn (overrides the profile).",
 )
 @click.option(
+    "--target-size-from",
+    type=click.Path(exists=True),
+    default=None,
+    help="ptsn-sweep directory (or its scale.json) whose E_est is the target size for "
+    "--source-size sn (what `make iter2` passes).",
+)
+@click.option(
     "--label",
     "labels",
     multiple=True,
@@ -98,7 +105,7 @@ class GreedyOption(click.Option):
 @training_options
 @sensors_option
 @stage_options
-def command(init, source, ppcg, out, init_from, mix, source_size, target_profile, target_size, labels, epochs, minutes, seed, batch_size, lr,
+def command(init, source, ppcg, out, init_from, mix, source_size, target_profile, target_size, target_size_from, labels, epochs, minutes, seed, batch_size, lr,
             compile_net, threads, no_augment, quiet, device, precision, sensors_path, force,
             dry_run):  # fmt: skip
     """Retrain on the labeled source plus PPCG frame sets, alternating source and PPCG batches.
@@ -113,7 +120,8 @@ def command(init, source, ppcg, out, init_from, mix, source_size, target_profile
 
     outcome = run_retrain(
         init, source, list(ppcg), out, init_from=init_from, mix=mix, source_size=source_size,
-        target_profile=target_profile, target_size=target_size, epochs=epochs, minutes=minutes,
+        target_profile=target_profile, target_size=target_size,
+        target_size_from=target_size_from, epochs=epochs, minutes=minutes,
         seed=seed, batch_size=batch_size, lr=lr, precision=precision, threads=threads,
         compile_net=compile_net, augment=not no_augment, labels=tuple(labels), sensors_path=sensors_path, force=force,
         dry_run=dry_run, progress=not quiet, device=device,
