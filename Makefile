@@ -124,6 +124,12 @@ $(RUN)/iter0/eval_ptsn/manifest.json: $(RUN)/iter1/ptsn/manifest.json $(TARGET_V
 	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale-from $(RUN)/iter1/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 iter0: $(RUN)/iter0/eval/manifest.json $(RUN)/iter0/eval_ptsn/manifest.json
 
+# SOURCE_SIZE=sn (default): retraining shifts the source cars to the sweep's label-free E_est,
+# so source and PPCG labels agree on the target's size (docs/RESULTS.md, session 9: +3.8 ± 1.7
+# AP_3D@0.7 for x2 over 3 seeds); SOURCE_SIZE=init keeps the initial model's sizes (before).
+SOURCE_SIZE ?= sn
+SOURCE_SIZE_FLAGS = --source-size $(SOURCE_SIZE)$(if $(filter sn,$(SOURCE_SIZE)), --target-size-from $(RUN)/iter$(1)/ptsn)
+
 # ptsn-sweep N uses model N-1 (ITER_PTSN), iteration N builds model N (ITER)
 define ITER_PTSN
 $(RUN)/iter$(1)/ptsn/manifest.json: $(RUN)/iter$(2)/model/manifest.json $(TARGET)/manifest.json
@@ -137,7 +143,7 @@ $(RUN)/iter$(1)/rc/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY
 $(RUN)/iter$(1)/cf/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
 	$(DALI) ppcg-cf --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/model/manifest.json: $(RUN)/iter$(1)/rc/manifest.json $(RUN)/iter$(1)/cf/manifest.json $(SOURCE)/manifest.json
-	$(TRAIN_DALI) retrain --init $(RUN)/iter$(2)/model --source $(SOURCE) --ppcg $(RUN)/iter$(1)/rc $(RUN)/iter$(1)/cf --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $$(@D)
+	$(TRAIN_DALI) retrain --init $(RUN)/iter$(2)/model --source $(SOURCE) --ppcg $(RUN)/iter$(1)/rc $(RUN)/iter$(1)/cf $(call SOURCE_SIZE_FLAGS,$(1)) --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $$(@D)
 $(RUN)/iter$(1)/eval/manifest.json: $(RUN)/iter$(3)/ptsn/manifest.json $(TARGET_VAL)/manifest.json
 	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter$(1)/model --data $(TARGET_VAL) --scale-from $(RUN)/iter$(3)/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 iter$(1): iter$(2) $(RUN)/iter$(1)/eval/manifest.json
@@ -154,9 +160,9 @@ $(RUN)/baselines/ros/model/manifest.json: $(SOURCE)/manifest.json
 $(RUN)/baselines/oracle/model/manifest.json: $(TARGET)/manifest.json
 	$(TRAIN_DALI) pretrain --source $(TARGET) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/rc_only/model/manifest.json: $(RUN)/iter1/rc/manifest.json $(SOURCE)/manifest.json
-	$(TRAIN_DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/rc --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
+	$(TRAIN_DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/rc $(call SOURCE_SIZE_FLAGS,1) --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/cf_only/model/manifest.json: $(RUN)/iter1/cf/manifest.json $(SOURCE)/manifest.json
-	$(TRAIN_DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/cf --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
+	$(TRAIN_DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/cf $(call SOURCE_SIZE_FLAGS,1) --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/%/eval/manifest.json: $(RUN)/baselines/%/model/manifest.json $(TARGET_VAL)/manifest.json
 	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 $(RUN)/baselines/%/ptsn/manifest.json: $(RUN)/baselines/%/model/manifest.json $(TARGET)/manifest.json

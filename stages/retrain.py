@@ -55,6 +55,16 @@ def drop_boxless_sets(paths: list[Path], sets: list, weights: tuple[int, ...]):
     return kept, (weights[0], *(weights[1 + i] for i in keep)), messages
 
 
+def expected_size_of(ptsn_dir: str | Path) -> tuple[float, float, float]:
+    """E_est (l, w, h in m) recorded by a ptsn-sweep: the label-free expected target size."""
+    from dali_cli.scale_file import read_scale
+
+    e_est = read_scale(ptsn_dir).e_est
+    if e_est is None or not all(isinstance(v, int | float) and v > 0 for v in e_est):
+        raise StageError(f"{ptsn_dir}: scale.json has no valid E_est (l, w, h) to size the source")
+    return tuple(float(v) for v in e_est)
+
+
 def pool(sets: list, name: str):
     """Concatenate labeled sets into one (frame ids prefixed by their set's index)."""
     from dali_cli.detector import LabeledFrames
@@ -82,6 +92,7 @@ def run_retrain(
     source_size: str = "init",
     target_profile: str | None = None,
     target_size: tuple[float, float, float] | None = None,
+    target_size_from: str | Path | None = None,
     labels: tuple[str, ...] = ("Car",),
     sensors_path: str | Path | None = None,
     force: bool = False,
@@ -92,9 +103,9 @@ def run_retrain(
 
     `source_size` "init": the source keeps the size normalization the initial model was trained
     with (SN delta or ROS range, from its model.json). "sn": the source boxes are shifted to the
-    target's expected mean size `target_size` (or `target_profile`'s car_mean_lwh_m: the same
-    label-free statistics PTSN's E_est uses), in-box points scaled with them, so source and PPCG
-    labels agree on the target's car size (metres).
+    target's expected mean size `target_size` (or the E_est of the ptsn-sweep `target_size_from`,
+    or `target_profile`'s car_mean_lwh_m: label-free statistics), in-box points scaled with
+    them, so source and PPCG labels agree on the target's car size (metres).
     """
     init, source, out = Path(init), Path(source), Path(out)
     ppcg = [Path(p) for p in ppcg]
@@ -105,6 +116,8 @@ def run_retrain(
             "init_from", f"must be one of {', '.join(INIT_FROM)}, got '{init_from}'"
         )
     weights = parse_mix(mix, len(ppcg))
+    if source_size == "sn" and target_size is None and target_size_from is not None:
+        target_size = expected_size_of(target_size_from)
     target_size = shift_size(source_size, target_profile, target_size, sensors_path)
     params = {
         "init_from": init_from,

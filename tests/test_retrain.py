@@ -207,3 +207,31 @@ def test_source_size_sn_shifts_the_source_to_the_given_target_size(world, tmp_pa
     missing = runner.invoke(main, [*base, "--out", str(tmp_path / "bad"), "--source-size", "sn"])
     assert missing.exit_code != 0 and "target" in missing.output
     assert not (tmp_path / "bad").exists()
+
+
+def test_source_size_sn_reads_e_est_from_a_ptsn_sweep(world, tmp_path):
+    """--target-size-from PTSN_DIR: the source is sized to that sweep's E_est (the value make
+    iter2 passes); a sweep without E_est is a clear error and writes nothing."""
+    from dali_cli.scale_file import write_scale
+
+    sweep = tmp_path / "ptsn"
+    sweep.mkdir()
+    write_scale(sweep, {"scale": 1.1, "E_est": [4.1, 1.75, 1.6]})
+    runner = CliRunner()
+    base = ["retrain", "--init", str(world / "iter0"), "--source", str(world / "source"),
+            "--ppcg", str(world / "rc"), "--epochs", "1", "--lr", "1e-12", "--quiet",
+            "--source-size", "sn"]  # fmt: skip
+    out = tmp_path / "from-sweep"
+    result = runner.invoke(main, [*base, "--target-size-from", str(sweep), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    meta = json.loads((out / "model.json").read_text())
+    assert np.allclose(meta["metrics"]["mean_lwh_m"][str(world / "source")], [4.1, 1.75, 1.6])
+
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    write_scale(bare, {"scale": 1.1})
+    failed = runner.invoke(
+        main, [*base, "--target-size-from", str(bare), "--out", str(tmp_path / "x")]
+    )
+    assert failed.exit_code != 0 and "E_est" in failed.output
+    assert not (tmp_path / "x").exists()

@@ -60,6 +60,9 @@ class GreedyOption(click.Option):
     "Sensor profile whose car_mean_lwh_m is the target size for --source-size sn.",
     "Target mean size 'l,w,h' in m for --source-size sn (overrides the profile).",
 )
+@click.option("--target-size-from", type=click.Path(exists=True), default=None,
+              help="ptsn-sweep directory (or its scale.json) whose E_est is the target size for "
+                   "--source-size sn (what `make iter2` passes).")  # fmt: skip
 @click.option("--label", "labels", multiple=True, default=("Car",), show_default=True,
               help="Box labels to train on.")  # fmt: skip
 @training_options
