@@ -109,16 +109,10 @@ def run_retrain(
     """
     init, source, out = Path(init), Path(source), Path(out)
     ppcg = [Path(p) for p in ppcg]
-    if not ppcg:
-        raise ParameterError("ppcg", "needs at least one PPCG frame set directory")
-    if init_from not in INIT_FROM:
-        raise ParameterError(
-            "init_from", f"must be one of {', '.join(INIT_FROM)}, got '{init_from}'"
-        )
-    weights = parse_mix(mix, len(ppcg))
-    if source_size == "sn" and target_size is None and target_size_from is not None:
-        target_size = expected_size_of(target_size_from)
-    target_size = shift_size(source_size, target_profile, target_size, sensors_path)
+    weights = checked_mix(ppcg, init_from, mix)
+    target_size = shift_size(
+        source_size, target_profile, target_size, target_size_from, sensors_path
+    )
     params = {
         "init_from": init_from,
         "mix": list(weights),
@@ -198,17 +192,32 @@ def retrain_meta(
     }
 
 
+def checked_mix(ppcg: list[Path], init_from: str, mix: str) -> tuple[int, ...]:
+    """The batch weights of `mix` for the PPCG sets `ppcg`; ParameterError for no PPCG set, an
+    unknown `init_from` or a malformed mix."""
+    if not ppcg:
+        raise ParameterError("ppcg", "needs at least one PPCG frame set directory")
+    if init_from not in INIT_FROM:
+        raise ParameterError(
+            "init_from", f"must be one of {', '.join(INIT_FROM)}, got '{init_from}'"
+        )
+    return parse_mix(mix, len(ppcg))
+
+
 def shift_size(
-    source_size: str, target_profile: str | None, target_size, sensors_path
+    source_size: str, target_profile: str | None, target_size, target_size_from, sensors_path
 ) -> tuple[float, float, float] | None:
-    """The target mean car size (l, w, h in m) the source is shifted to (source_size sn), or
-    None (init: INIT's own normalization); an unknown source_size is a ParameterError."""
+    """The target mean car size (l, w, h in m) the source is shifted to (source_size sn: the
+    given size, else the E_est of the sweep `target_size_from`, else the profile's), or None
+    (init: INIT's own normalization); an unknown source_size is a ParameterError."""
     if source_size not in SOURCE_SIZES:
         raise ParameterError(
             "source_size", f"must be one of {', '.join(SOURCE_SIZES)}, got '{source_size}'"
         )
     if source_size != "sn":
         return target_size
+    if target_size is None and target_size_from is not None:
+        target_size = expected_size_of(target_size_from)
     return training_stage.target_car_size(
         target_profile, target_size, sensors_path, "source size sn"
     )
