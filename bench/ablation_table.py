@@ -20,20 +20,22 @@ HEADER = (
 
 
 def row(name: str, directory: Path) -> str:
-    """The table row of one eval directory (AP in %, sizes in m)."""
-    metrics = json.loads((directory / "metrics.json").read_text())
-    car = metrics["Car"]
-    bands = " / ".join(f"{car['3d'][b]:.1f}" for b in ("0-30", "30-50", "50-80") if b in car["3d"])
-    kitti_path = directory / "metrics_kitti.json"
-    kitti = "—"
-    if kitti_path.is_file():
-        kitti = f"{json.loads(kitti_path.read_text())['Car']['3d']['moderate']:.1f}"
-    sizes = "/".join(f"{v:.2f}" for v in metrics["sizes"]["pred"])
-    scale = metrics.get("scale")
+    """The table row of one eval directory (AP in %, sizes in m), read with `dali report`'s own
+    readers of metrics.json and metrics_kitti.json."""
+    from dali_cli.report import BANDS, read_bands, read_kitti, read_metrics
+
+    path = directory / "metrics.json"
+    document = json.loads(path.read_text())
+    ap, sizes, scale = read_metrics(path, document)
+    bands = read_bands(document)
+    band_text = " / ".join(f"{bands[b]['3d']:.1f}" for b in BANDS if b in bands)
+    moderate = read_kitti(directory / "metrics_kitti.json").get("0.7", {}).get("3d", {})
+    kitti = "—" if moderate.get("moderate") is None else f"{moderate['moderate']:.1f}"
+    size_text = "/".join(f"{v:.2f}" for v in sizes["pred"])
     scale_text = f"{scale:.3f}" if isinstance(scale, int | float) else "—"
     return (
-        f"| {name} | {car['bev']['all']:.1f} | {car['3d']['all']:.1f} | {bands} | {kitti} "
-        f"| {scale_text} | {sizes} |"
+        f"| {name} | {ap['0.7']['bev']:.1f} | {ap['0.7']['3d']:.1f} | {band_text} | {kitti} "
+        f"| {scale_text} | {size_text} |"
     )
 
 
