@@ -47,10 +47,8 @@ def load_frames(model_dir, target_dir, scale_low: float, scale_high: float, limi
     from dali_cli.detector import Detector
 
     detector = Detector.load(model_dir)
-    config = detector.config
-    bev = (config.x_range_m[0], config.y_range_m[0], config.x_range_m[1], config.y_range_m[1])
     frames = [
-        ptsn.crop_for_scales(points, bev, scale_low, scale_high)
+        ptsn.crop_for_scales(points, detector.visible_range, scale_low, scale_high)
         for _, points in FrameSet(target_dir).iter_frames()
     ][:limit]
     return detector, frames
