@@ -26,6 +26,7 @@ import shlex
 import subprocess
 import sys
 import time
+from importlib import import_module
 from pathlib import Path
 
 from pareto.common import load_average, machine
@@ -253,25 +254,18 @@ def main() -> None:
                             "built_with": commands}  # fmt: skip
         data = f" --model {model} --target {target} --target-val {target_val}"
         data += f" --ptsn-frames {args.ptsn_frames}"
-        if "ptsn" in only:
-            from pareto import ptsn_front
-
-            results["ptsn"] = section(
-                "ptsn", 0, 1, f"{base} --only ptsn{data}",
-                lambda: ptsn_front.measure(
-                    model, target, "kitti", quick=args.quick, frames=args.ptsn_frames
-                ),
-            )  # fmt: skip
-            save(results, results_path, only)  # a later front's crash keeps this one
-        if "detector" in only:
-            from pareto import detector_front
-
-            results["detector"] = section(
-                "detector", 0, 1, f"{base} --only detector{data}",
-                lambda: detector_front.measure(
-                    model, target_val, "kitti", quick=args.quick, frames=args.ptsn_frames
-                ),
-            )  # fmt: skip
+        fronts = {
+            "ptsn": lambda: import_module("pareto.ptsn_front").measure(
+                model, target, "kitti", quick=args.quick, frames=args.ptsn_frames
+            ),
+            "detector": lambda: import_module("pareto.detector_front").measure(
+                model, target_val, "kitti", quick=args.quick, frames=args.ptsn_frames
+            ),
+        }
+        for name, measure in fronts.items():
+            if name in only:
+                results[name] = section(name, 0, 1, f"{base} --only {name}{data}", measure)
+                save(results, results_path, only)  # a later front's crash keeps this one
     results = save(results, results_path, only)
     if not args.quick:
         from pareto.tables import markdown
