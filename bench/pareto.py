@@ -8,14 +8,18 @@ says how each is measured):
               CF angular window on/off (identical points, rays saved); skips
     ptsn      grid step, bracket vs grid, frame subsample -> |ŝ - ŝ_ref| vs passes and seconds
     detector  second stage, test-time flip, bf16, threads -> AP_3D@0.7 vs inference s/frame
+    pillar    pillar size (a model trained per value, equal frames and equal time) -> AP_3D@0.7
+              vs training seconds (training frames/s and inference s/frame in the table)
 
 The PTSN and detector fronts need a trained model and KITTI-like target frames: --model,
---target, --target-val, or they are built under --run (dali synth + dali pretrain, minutes).
+--target, --target-val, or they are built under --run (dali synth + dali pretrain, minutes). The
+pillar front trains its own models on --target's labels under --run/pillar (~7 min idle, 2 cores;
+finished points are reused: each stage skips itself when up to date).
 Writes bench/results/pareto.json and docs/pareto/*.png (docs/pareto.md explains them). Timings
 are medians of --repeats runs with the machine, threads and load average recorded; the machine
 is usually shared, so compare points of one run, not runs.
 
-    .venv/bin/python bench/pareto.py [--quick] [--only raycast,ppcg,ptsn,detector]
+    .venv/bin/python bench/pareto.py [--quick] [--only raycast,ppcg,ptsn,detector,pillar]
 """
 
 from __future__ import annotations
@@ -34,7 +38,7 @@ from pareto.common import load_average, machine
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "bench" / "results" / "pareto.json"
 PLOTS = ROOT / "docs" / "pareto"
-FRONTS = ("raycast", "ppcg", "ptsn", "detector")
+FRONTS = ("raycast", "ppcg", "ptsn", "detector", "pillar")
 
 
 def dali(*arguments) -> None:
@@ -182,6 +186,18 @@ def plot(results: dict) -> None:
             "100 - AP_3D@0.7 (all boxes)",
             note,
         )
+    if "pillar" in results:
+        front_plot(
+            PLOTS / "pillar.png",
+            "Detector pillar size (a model per value, target labels)",
+            results["pillar"]["points"],
+            "train_seconds",
+            "ap_loss",
+            lambda p: f"{p['pillar_m']:.2f} m, {p['frames_seen']} fr, seed {p['seed']}",
+            "training seconds (frames/s and inference s/frame: docs/pareto/tables.md)",
+            "100 - AP_3D@0.7 (all boxes)",
+            note,
+        )
 
 
 def main() -> None:
@@ -196,6 +212,12 @@ def main() -> None:
     )
     parser.add_argument(
         "--ptsn-frames", type=int, default=16, help="target frames for PTSN and the detector"
+    )
+    parser.add_argument(
+        "--pillar-seeds", default="0", help="training seeds of the pillar front (comma-separated)"
+    )
+    parser.add_argument(
+        "--pillar-epochs", type=int, default=None, help="pillar front epochs (default 10; 1 quick)"
     )
     parser.add_argument("--model", default=None)
     parser.add_argument("--target", default=None)
@@ -248,7 +270,7 @@ def main() -> None:
             }
 
         results["ppcg"] = section("ppcg", 1, repeats, f"{base} --only ppcg", ppcg)
-    if "ptsn" in only or "detector" in only:
+    if {"ptsn", "detector", "pillar"} & set(only):
         model, target, target_val, commands = ensure_model(args)
         results["model"] = {"model": str(model), "target": str(target), "target_val": str(target_val),
                             "built_with": commands}  # fmt: skip
@@ -262,9 +284,18 @@ def main() -> None:
                 model, target_val, "kitti", quick=args.quick, frames=args.ptsn_frames
             ),
         }
+        seeds = [int(seed) for seed in args.pillar_seeds.split(",") if seed]
+        epochs = args.pillar_epochs or (1 if args.quick else 10)
+        fronts["pillar"] = lambda: import_module("pareto.pillar_front").measure(
+            target, target_val, Path(args.run) / "pillar", epochs, seeds, quick=args.quick
+        )
         for name, measure in fronts.items():
             if name in only:
-                results[name] = section(name, 0, 1, f"{base} --only {name}{data}", measure)
+                command = f"{base} --only {name}{data}"
+                if name == "pillar":
+                    command += f" --pillar-seeds {args.pillar_seeds} --pillar-epochs {epochs}"
+                threads = 2 if name == "pillar" else 0
+                results[name] = section(name, threads, 1, command, measure)
                 save(results, results_path, only)  # a later front's crash keeps this one
     results = save(results, results_path, only)
     if not args.quick:

@@ -7,6 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from dali_cli.geometry import inside_boxes
 from dali_cli.ppcg.fitting import (
     box_affine,
     box_rng,
@@ -358,3 +359,49 @@ def test_points_per_box_equals_bruteforce(seed):
         claimed |= inside
         np.testing.assert_array_equal(got, np.flatnonzero(inside))
     assert claimed.sum() > 0
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_points_per_box_agrees_with_inside_boxes_on_the_faces(seed):
+    """Points within float32 rounding of the faces (of overlapping boxes too): the grouped test
+    decides every point exactly as geometry.inside_boxes does in float32, first box winning."""
+    rng = np.random.default_rng(seed)
+    k = 12
+    boxes = np.concatenate(
+        [
+            rng.uniform(-60, 60, (k, 2)),
+            rng.uniform(-1.5, 0, (k, 1)),
+            rng.uniform(0.3, 8, (k, 3)),
+            rng.uniform(-np.pi, np.pi, (k, 1)),
+        ],
+        1,
+    )
+    boxes = np.concatenate([boxes, boxes[:3] + [0.4, -0.2, 0, 0, 0, 0, 0.5]])  # overlaps
+    # points on each box's faces (unit-cube surface in box coordinates), nudged by ~float32 ulps
+    per_box = 3000
+    local = rng.uniform(-0.5, 0.5, (len(boxes), per_box, 3))
+    axis = rng.integers(0, 3, (len(boxes), per_box))
+    np.put_along_axis(local, axis[..., None], rng.choice([-0.5, 0.5], (len(boxes), per_box, 1)), 2)
+    scaled = local * boxes[:, None, 3:6]
+    cos, sin = np.cos(boxes[:, 6])[:, None], np.sin(boxes[:, 6])[:, None]
+    xyz = np.stack(
+        [
+            boxes[:, 0:1] + cos * scaled[..., 0] - sin * scaled[..., 1],
+            boxes[:, 1:2] + sin * scaled[..., 0] + cos * scaled[..., 1],
+            boxes[:, 2:3] + scaled[..., 2],
+        ],
+        -1,
+    ).reshape(-1, 3)
+    xyz += rng.normal(0, 2e-6, xyz.shape) * np.abs(xyz).max(axis=1, keepdims=True)
+    points = np.concatenate([xyz, rng.uniform(0, 1, (len(xyz), 1))], 1).astype(np.float32)
+    margin = [0.0, 0.1][seed % 2]
+    result = points_per_box(points, boxes, margin)
+    claimed = np.zeros(len(points), bool)
+    decided_both_ways = 0
+    for box, got in zip(boxes, result, strict=True):
+        inside = inside_boxes(points, box, margin)
+        decided_both_ways += int(inside.sum() > 0 and (~inside).sum() > 0)
+        expected = inside & ~claimed
+        claimed |= expected
+        np.testing.assert_array_equal(got, np.flatnonzero(expected))
+    assert decided_both_ways == len(boxes)  # the faces split points on both sides for every box

@@ -2,9 +2,8 @@
 test-time flip on/off, bf16 autocast vs fp32, torch threads -> AP_3D@0.7 (all boxes of the range
 protocol, and KITTI moderate) vs inference seconds per frame.
 
-Knobs that need a model trained for each value (pillar size; training frames/s) are not swept
-here: training several detectors does not fit this benchmark's budget. The one checkpoint's own
-training throughput is reported with it.
+Knobs that need a model trained for each value (pillar size; training frames/s) are the pillar
+front's (pillar_front.py).
 """
 
 from __future__ import annotations

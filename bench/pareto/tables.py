@@ -166,4 +166,26 @@ def markdown(results: dict) -> str:
                 f"`{p['error']}`"
             )
         out.append("")
+    if "pillar" in results:
+        r = results["pillar"]
+        out += ["## Detector pillar size (a model trained per value)", "", _machine(r),
+                f"Target labels, {r['epochs']} epochs for equal frames; seeds {r['seeds']}. "
+                "The front is over (training seconds, 100 - AP_3D@0.7 all boxes).", ""]  # fmt: skip
+        out += _table(
+            r["points"],
+            [
+                ("pillar (m)", lambda p: f"{p['pillar_m']:.2f}"),
+                ("seed", lambda p: str(p["seed"])),
+                ("budget", lambda p: p["budget"]),
+                ("frames seen", lambda p: str(p["frames_seen"])),
+                ("training s", lambda p: f"{p['train_seconds']:.1f}"),
+                ("training frames/s", lambda p: f"{p['training_frames_per_second']:.2f}"),
+                ("inference s/frame", lambda p: f"{p['inference_seconds_per_frame']:.3f}"),
+                ("AP_3D@0.7 all", lambda p: f"{p['ap3d_07_all']:.2f}"),
+                ("AP_3D@0.7 KITTI moderate", lambda p: f"{p['ap3d_07_kitti_moderate']:.2f}"),
+            ],
+            "train_seconds",
+            "ap_loss",
+        )
+        out.append("")
     return "\n".join(out) + "\n"
