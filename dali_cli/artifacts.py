@@ -208,7 +208,9 @@ class FrameSet:
 
     def _read_raw(self, start: int, stop: int) -> np.ndarray:
         """points[start:stop] of an uncompressed array, straight from its chunk files (see
-        dali_cli.raw_chunks); a range that is one whole chunk comes back without a copy."""
+        dali_cli.raw_chunks); a range within one chunk that covers at least half of it comes back
+        as a view of the chunk's buffer, without a copy (a small range is copied so that the
+        chunk's memory is not held for it)."""
         first, last = start // self._chunk, (stop - 1) // self._chunk
         out = None
         for chunk in range(first, last + 1):
@@ -223,7 +225,7 @@ class FrameSet:
             lo = chunk * self._chunk
             a, b = max(start, lo) - lo, min(stop, lo + self._chunk) - lo
             if first == last:
-                return data if (a, b) == (0, self._chunk) else data[a:b].copy()
+                return data[a:b] if 2 * (b - a) >= self._chunk else data[a:b].copy()
             if out is None:
                 out = np.empty((stop - start, 4), np.float32)
             out[lo + a - start : lo + b - start] = data[a:b]
@@ -276,11 +278,14 @@ class FrameSet:
                 read_start = buffer_end if keep_tail else (start // chunk) * chunk
                 read_stop = max(-(-stop // chunk) * chunk, read_start + block_points)
                 fresh = self._read_points(read_start, min(read_stop, self.num_points))
-                if keep_tail:
-                    buffer = np.concatenate([buffer[start - buffer_start :], fresh])
-                    buffer_start = start
-                else:
+                if keep_tail:  # only the frame that straddles the two blocks is copied
+                    points = np.concatenate(
+                        [buffer[start - buffer_start :], fresh[: stop - read_start]]
+                    )
                     buffer, buffer_start = fresh, read_start
+                    yield self.frame_ids[index], self._checked(points, index)
+                    continue
+                buffer, buffer_start = fresh, read_start
             points = buffer[start - buffer_start : stop - buffer_start]
             yield self.frame_ids[index], self._checked(points, index)
 

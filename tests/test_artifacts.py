@@ -442,3 +442,26 @@ def test_all_zero_offsets_are_stored_and_their_loss_is_detected(tmp_path):
     group = zarr.open_group(str(store), mode="r+")
     del group.attrs["complete_chunks"]
     assert FrameSet(tmp_path).num_points == 0
+
+
+@pytest.mark.parametrize("compress", [True, False])
+@pytest.mark.parametrize("block_points", [16, 24, 40])
+def test_streaming_reads_frames_that_straddle_blocks(tmp_path, monkeypatch, compress, block_points):
+    """iter_frames reads block by block; frames across a block's end (or spanning several
+    blocks, or empty at a boundary) come back exactly, in any order of indices."""
+    import dali_cli.artifacts as artifacts
+
+    rng = np.random.default_rng(block_points)
+    sizes = [5, 11, 0, 30, 3, 17, 0, 9, 44, 1, 8, 13]
+    frames = [(f"f{i}", rng.normal(size=(n, 4)).astype(np.float32)) for i, n in enumerate(sizes)]
+    with artifacts.FrameSetWriter(tmp_path, "kitti", compress=compress, chunk_points=8) as writer:
+        for frame_id, points in frames:
+            writer.append(frame_id, points)
+    monkeypatch.setattr(artifacts, "DEFAULT_CHUNK_POINTS", block_points)
+    frameset = FrameSet(tmp_path)
+    for indices in (None, [3, 8, 9, 0, 11, 5], list(range(len(frames)))[::-1]):
+        expected = range(len(frames)) if indices is None else indices
+        streamed = list(frameset.iter_frames(indices))
+        assert [frame_id for frame_id, _ in streamed] == [frames[i][0] for i in expected]
+        for (_, got), i in zip(streamed, expected, strict=True):
+            np.testing.assert_array_equal(got, frames[i][1])
