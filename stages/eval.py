@@ -13,6 +13,7 @@ Returns the metrics for the command to print."""
 from __future__ import annotations
 
 import json
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -181,7 +182,8 @@ def run_eval(
     dry_run: bool = False,
 ) -> EvalResult:
     """Evaluate (see the module docstring). `out`: None (print only), a metrics file (.json) or
-    an artifact directory; `force` and `dry_run` apply to the directory."""
+    an artifact directory; `force` applies to the directory, `dry_run` to both (a metrics file
+    is always recomputed, so a dry run only says so and writes nothing)."""
     check_ious(tuple(ious))
     options = dict(
         ious=tuple(ious), size_score_min=size_score_min, recall_positions=int(recall_positions),
@@ -204,6 +206,10 @@ def run_eval(
         from dali_cli.output_paths import check_metrics_output
 
         check_metrics_output(out, inputs)
+    if dry_run:  # a metrics file (or the terminal) is not a stage artifact: it is always rerun
+        where = out if out is not None else "the terminal"
+        print(f"eval: would run -> {where} (a metrics file is always recomputed)", file=sys.stderr)
+        return EvalResult({}, [], "dry-run")
     metrics, pred = compute_metrics(routes, options)
     written = []
     if out is not None:

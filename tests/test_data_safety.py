@@ -367,3 +367,20 @@ def test_eval_out_may_not_be_an_input_nor_a_foreign_file(tmp_path):
         result = CliRunner().invoke(main, [*base, "--out", str(metrics)])
         assert result.exit_code == 0, result.output
     assert "sizes" in json.loads(metrics.read_text())
+
+
+def test_eval_dry_run_to_a_metrics_file_writes_nothing(tmp_path):
+    target = make_target(tmp_path / "T")
+    base = ["eval", "--pred", str(target), "--gt", str(target)]
+    metrics = tmp_path / "eval" / "metrics_kitti.json"
+    dry = CliRunner().invoke(main, [*base, "--out", str(metrics), "--dry-run"])
+    assert dry.exit_code == 0, dry.output
+    assert "would run" in dry.output and not metrics.exists()
+    assert not (tmp_path / "eval").exists() or not any((tmp_path / "eval").iterdir())
+    written = CliRunner().invoke(main, [*base, "--out", str(metrics)])
+    assert written.exit_code == 0 and metrics.is_file()
+    before = metrics.read_bytes()
+    again = CliRunner().invoke(main, [*base, "--out", str(metrics), "--dry-run"])
+    assert again.exit_code == 0 and metrics.read_bytes() == before
+    terminal = CliRunner().invoke(main, [*base, "--dry-run"])
+    assert terminal.exit_code == 0 and "AP_3D" not in terminal.output
