@@ -281,7 +281,12 @@ def main() -> None:
                 model, target, "kitti", quick=args.quick, frames=args.ptsn_frames
             ),
             "detector": lambda: import_module("pareto.detector_front").measure(
-                model, target_val, "kitti", quick=args.quick, frames=args.ptsn_frames
+                model,
+                target_val,
+                "kitti",
+                quick=args.quick,
+                frames=args.ptsn_frames,
+                repeats=repeats,
             ),
         }
         seeds = [int(seed) for seed in args.pillar_seeds.split(",") if seed]
@@ -295,7 +300,10 @@ def main() -> None:
                 if name == "pillar":
                     command += f" --pillar-seeds {args.pillar_seeds} --pillar-epochs {epochs}"
                 threads = 2 if name == "pillar" else 0
-                results[name] = section(name, threads, 1, command, measure)
+                timed = repeats if name == "detector" else 1
+                if name == "detector":
+                    command += f" --repeats {repeats}"
+                results[name] = section(name, threads, timed, command, measure)
                 save(results, results_path, only)  # a later front's crash keeps this one
     results = save(results, results_path, only)
     if not args.quick:
