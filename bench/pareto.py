@@ -105,7 +105,9 @@ def section(name: str, threads: int, repeats: int, command: str, measure) -> dic
 def plot(results: dict) -> None:
     from pareto.plots import front_plot
 
-    note = "shared 2-core machine; medians of repeats; load average in bench/results/pareto.json"
+    note = (
+        "2-core machine; medians of repeats; machine and load average in bench/results/pareto.json"
+    )
     if "raycast" in results:
         points = results["raycast"]["points"]
         for p in points:
@@ -187,13 +189,15 @@ def plot(results: dict) -> None:
             note,
         )
     if "pillar" in results:
+        from pareto.pillar_front import seed_means
+
         front_plot(
             PLOTS / "pillar.png",
-            "Detector pillar size (a model per value, target labels)",
-            results["pillar"]["points"],
+            "Detector pillar size (a model per value, target labels; mean over seeds)",
+            seed_means(results["pillar"]["points"]),
             "train_seconds",
             "ap_loss",
-            lambda p: f"{p['pillar_m']:.2f} m, {p['frames_seen']} fr, seed {p['seed']}",
+            lambda p: f"{p['pillar_m']:.2f} m, {p['frames_seen']} fr ({p['seeds']} seeds)",
             "training seconds (frames/s and inference s/frame: docs/pareto/tables.md)",
             "100 - AP_3D@0.7 (all boxes)",
             note,

@@ -123,3 +123,22 @@ def measure(
         "default_pillar_m": default,
         "points": points,
     }
+
+
+def seed_means(points: list[dict]) -> list[dict]:
+    """One point per (pillar size, budget): training seconds and AP loss averaged over seeds."""
+    groups: dict[tuple, list[dict]] = {}
+    for point in points:
+        groups.setdefault((point["pillar_m"], point["budget"]), []).append(point)
+    return [
+        {
+            "pillar_m": pillar_m,
+            "budget": budget,
+            "frames_seen": group[0]["frames_seen"],
+            "seeds": len(group),
+            "default": any(p["default"] for p in group),
+            "train_seconds": sum(p["train_seconds"] for p in group) / len(group),
+            "ap_loss": sum(p["ap_loss"] for p in group) / len(group),
+        }
+        for (pillar_m, budget), group in groups.items()
+    ]

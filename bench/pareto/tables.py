@@ -140,6 +140,17 @@ def markdown(results: dict) -> str:
             "scale_error",
         )
         out.append("")
+        if r.get("subsample_robustness"):
+            out += ["Bracket subsample size (step 0.01, all frames confirmed; 10 random subsamples "
+                    "each, their frame passes counted as the variants' above):", "",
+                    "| subsample frames | share ending at ŝ_ref | max abs(ŝ - ŝ_ref) | mean frame passes |",
+                    "|---|---|---|---|"]  # fmt: skip
+            out += [
+                f"| {row['subsample_frames']} | {row['exact_share']:.0%} | "
+                f"{row['max_scale_error']:.4f} | {row['mean_frame_passes']:.0f} |"
+                for row in r["subsample_robustness"]
+            ]
+            out.append("")
     if "detector" in results:
         r = results["detector"]
         out += ["## Detector (inference knobs, one checkpoint)", "", _machine(r),
