@@ -339,7 +339,7 @@ class FrameSetWriter:
         # straight to its file (dali_cli.raw_chunks: the same bytes Zarr writes, a third of
         # the time); compressed chunks go through Zarr
         self._raw = not compress
-        self._buffer = np.empty((chunk_points, 4), np.float32) if self._raw else None
+        self._parts: list[np.ndarray] = []  # raw: the next chunk's rows, as views of the frames
         self._buffered = 0
         self._pending: list[np.ndarray] = []
         self._pending_count = 0
@@ -351,7 +351,10 @@ class FrameSetWriter:
         self._closed = False
 
     def append(self, frame_id: str, points: np.ndarray) -> None:
-        """Add one frame; `points` is `(n, 4)` (x, y, z, intensity), cast to float32."""
+        """Add one frame; `points` is `(n, 4)` (x, y, z, intensity), cast to float32.
+
+        The writer keeps `points` (not a copy) until the chunk it falls in is written: do not
+        change the array after appending it."""
         frame_id = check_name(
             str(frame_id), f"{self.path}, frame {len(self._frame_ids)}"
         )  # FrameIdError (a ValueError) for an id that cannot name a file
@@ -377,26 +380,27 @@ class FrameSetWriter:
             self._flush(final=False)
 
     def _buffer_points(self, points: np.ndarray) -> None:
-        """Copy `points` into the chunk buffer, writing every chunk that fills up."""
+        """Queue `points` (views, no copy: like the Zarr path, the writer keeps the appended
+        arrays until their chunk is written) and write every chunk that fills up."""
         done = 0
         while done < len(points):
             take = min(len(points) - done, self._chunk - self._buffered)
-            self._buffer[self._buffered : self._buffered + take] = points[done : done + take]
+            self._parts.append(points[done : done + take])
             self._buffered += take
             done += take
             if self._buffered == self._chunk:
                 self._write_buffer()
 
     def _write_buffer(self) -> None:
-        """Write the buffered points as the next chunk (a partial last chunk is padded with the
+        """Write the queued points as the next chunk (a partial last chunk is padded with the
         fill value 0, as Zarr stores it)."""
         if not self._buffered:
             return
-        self._buffer[self._buffered :] = 0.0
         chunk = self._written // self._chunk
-        raw_chunks.write_chunk(raw_chunks.chunk_path(self.path / "points", chunk), self._buffer)
+        path = raw_chunks.chunk_path(self.path / "points", chunk)
+        raw_chunks.write_chunk_parts(path, self._parts, self._chunk)
         self._written += self._buffered
-        self._buffered = 0
+        self._parts, self._buffered = [], 0
 
     def _flush(self, final: bool) -> None:
         if self._raw:

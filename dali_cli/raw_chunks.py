@@ -83,12 +83,29 @@ def read_chunk(path: str | Path, chunk_points: int) -> np.ndarray:
 
 def write_chunk(path: str | Path, points: np.ndarray) -> None:
     """Write one full chunk `(C, 4)` float32 (C-contiguous) and its CRC-32C to `path`."""
+    write_chunk_parts(path, [points], len(points))
+
+
+def write_chunk_parts(path: str | Path, parts: list[np.ndarray], chunk_points: int) -> None:
+    """Write the rows of `parts` (each `(n_i, 4)` float32, sum n_i <= chunk_points) one after the
+    other as one chunk of `chunk_points` rows, padded with the fill value 0, and its CRC-32C:
+    the file `write_chunk` writes for their concatenation, without building it."""
     import google_crc32c
 
-    points = np.ascontiguousarray(points, dtype="<f4")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    payload = points.reshape(-1).view(np.uint8)  # google_crc32c takes arrays, not memoryviews
+    crc, rows = 0, 0
     with open(path, "wb") as handle:
-        handle.write(payload)
-        handle.write(int(google_crc32c.value(payload)).to_bytes(_CHECKSUM_BYTES, "little"))
+        for part in parts:
+            part = np.ascontiguousarray(part, dtype="<f4")
+            payload = part.reshape(-1).view(np.uint8)  # google_crc32c takes arrays
+            handle.write(payload)
+            crc = google_crc32c.extend(crc, payload)
+            rows += len(part)
+        if rows > chunk_points:
+            raise ValueError(f"{path}: {rows} rows for a chunk of {chunk_points}")
+        if rows < chunk_points:
+            padding = np.zeros((chunk_points - rows) * 16, np.uint8)
+            handle.write(padding)
+            crc = google_crc32c.extend(crc, padding)
+        handle.write(int(crc).to_bytes(_CHECKSUM_BYTES, "little"))

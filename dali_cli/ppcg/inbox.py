@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from dali_cli.geometry import inside_boxes
-
 _CELL_M = 1.0  # grid cell (m) unless the boxes spread over more than _MAX_CELLS cells
 _MAX_CELLS = 2**20
 _NONE, _SHARED = -1, -2  # cell owners that are not a box index
