@@ -195,6 +195,12 @@ $(RUN)/%/metrics_kitti.json: $(RUN)/%/manifest.json
 # cross-domain check: every model on the source validation set at s = 1
 $(RUN)/%/eval_source/manifest.json: $(RUN)/%/model/manifest.json $(RUN)/data/source_val/manifest.json
 	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/$*/model --data $(RUN)/data/source_val --scale 1.0 $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
+# a model retrained with the source at the target's size (SOURCE_SIZE=sn) outputs target-sized
+# cars, so its forgetting check also runs on the source validation set shifted the same way
+$(RUN)/%/source_val_sized/manifest.json: $(RUN)/%/model/manifest.json $(RUN)/data/source_val/manifest.json
+	$(DALI) size-norm --data $(RUN)/data/source_val --like-model $(RUN)/$*/model --out $(@D)
+$(RUN)/%/eval_source_sized/manifest.json: $(RUN)/%/source_val_sized/manifest.json
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/$*/model --data $(RUN)/$*/source_val_sized --scale 1.0 $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 
 # phony goals (evaluated inside the sub-make, so they follow its RUN)
 baseline-sn: $(RUN)/baselines/sn/eval/manifest.json
@@ -203,7 +209,8 @@ baseline-oracle: $(RUN)/baselines/oracle/eval/manifest.json
 ablation-rc: $(RUN)/baselines/rc_only/eval_ptsn/manifest.json
 ablation-cf: $(RUN)/baselines/cf_only/eval_ptsn/manifest.json
 baselines: baseline-sn baseline-ros baseline-oracle ablation-rc ablation-cf
-cross-domain: $(RUN)/iter0/eval_source/manifest.json $(RUN)/iter2/eval_source/manifest.json
+cross-domain: $(RUN)/iter0/eval_source/manifest.json $(RUN)/iter2/eval_source/manifest.json \
+    $(if $(filter sn,$(SOURCE_SIZE)),$(RUN)/iter2/eval_source_sized/manifest.json)
 # equal-budget controls (standard rows of `make experiment`; "gap closed" is measured against
 # them): source only with x1's and with x2's training frames + test-time PTSN, oracle with x2's
 # frames (at demo scale x1 beats its control, x2 is level with its own: docs/RESULTS.md, session 9)

@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "import": ("importers", "Import KITTI, nuScenes or OpenPCDet data."),
     "export": ("export", "Export boxes to other formats (KITTI label_2)."),
     "view": ("view", "Draw a frame with boxes as a PNG."),
+    "size-norm": ("size_norm", "A labeled frame set with cars resized to a model's SN size."),
     "pretrain": ("pretrain", "Stage 1: train the detector on the labeled source."),
     "ptsn-sweep": ("ptsn_sweep", "Stage 2: find the PTSN scale for the target."),
     "pseudo-label": ("pseudo_label", "Stage 3: pseudo-label the target at the PTSN scale."),

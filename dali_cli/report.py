@@ -38,6 +38,7 @@ DIFFICULTIES = ("easy", "moderate", "hard")
 SOURCE_ROWS: tuple[tuple[str, str], ...] = (
     ("Source only", "iter0/eval_source/metrics.json"),
     ("DALI x2", "iter2/eval_source/metrics.json"),
+    ("DALI x2, source sized as it was trained (size-norm)", "iter2/eval_source_sized/metrics.json"),
 )
 STAGE_DIRS = ("model", "ptsn", "pseudo", "rc", "cf")
 IOUS = (0.7, 0.5)

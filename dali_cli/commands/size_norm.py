@@ -1,0 +1,40 @@
+"""`dali size-norm`: a labeled frame set with its cars shifted to a model's size convention."""
+
+from __future__ import annotations
+
+import click
+
+from dali_cli.commands.common import input_dir_option, out_dir_option, parse_floats, stage_options
+
+
+@click.command(name="size-norm")
+@input_dir_option("--data", "data", help="Labeled frame set (frames.zarr + boxes.parquet).")
+@click.option("--like-model", type=click.Path(exists=True, file_okay=False), default=None,
+              help="Shift by the SN delta this model's training applied to its source (a model "
+                   "of `retrain --source-size sn` or `pretrain --size-norm sn`).")  # fmt: skip
+@click.option("--delta", "delta_lwh", default=None, callback=parse_floats(3), metavar="DL,DW,DH",
+              help="Shift every box's l, w, h by these metres instead (e.g. -0.76,-0.47,-0.22).")  # fmt: skip
+@click.option("--label", "labels", multiple=True, default=("Car",), show_default=True,
+              help="Box labels to shift (repeatable); other rows and their points stay.")  # fmt: skip
+@out_dir_option()
+@stage_options
+def command(data, like_model, delta_lwh, labels, out, force, dry_run):
+    """Write DATA with every box of --label resized by a fixed l, w, h delta (bottom centre and
+    yaw kept) and the points inside it moved with it: the view of the source that a model
+    trained with a size shift (SN) learned from.
+
+    Use it for the forgetting check of such a model: `dali retrain --source-size sn` teaches
+    target-sized cars, so on the raw source validation set its boxes miss IoU 0.7 by design;
+    `dali size-norm --data SOURCE_VAL --like-model MODEL --out DIR` then `dali eval --model MODEL
+    --data DIR --scale 1` measures what it still knows of the source. Writes OUT/frames.zarr,
+    OUT/boxes.parquet (all input rows; shifted boxes' z, l, w, h replaced) and OUT/manifest.json.
+    A box the shift would leave without a positive size is an error naming its frame and row.
+    """
+    from stages.size_norm import size_norm
+
+    if (like_model is None) == (delta_lwh is None):
+        raise click.UsageError("give exactly one of --like-model and --delta")
+    size_norm(
+        data, out, delta_lwh=delta_lwh, like_model=like_model, labels=tuple(labels),
+        force=force, dry_run=dry_run,
+    )  # fmt: skip
