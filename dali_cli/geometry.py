@@ -106,15 +106,28 @@ def inside_boxes(points: np.ndarray, boxes: np.ndarray, margin_m: float = 0.0) -
     Computed in the points' float dtype (float32 frames are tested in float32, the box's
     parameters rounded to it), so callers that cast nothing pay no float64 copy of a frame.
     """
-    dtype = points.dtype if points.dtype in (np.float32, np.float64) else np.dtype(np.float64)
+    return inside_box_frames(points[..., :3], *box_frames(boxes, margin_m, points.dtype))
+
+
+def box_frames(boxes: np.ndarray, margin_m: float, dtype) -> tuple[np.ndarray, ...]:
+    """The per-box parameters of the in-box test in `dtype` (float32 or float64; anything else
+    float64): cos and sin of the heading `(...)`, the centre `(..., 3)` and the half sizes grown
+    by `margin_m` `(..., 3)`, for boxes `(..., 7)`. Computed once, they can be repeated or
+    broadcast against many points (inside_box_frames)."""
+    dtype = dtype if dtype in (np.float32, np.float64) else np.dtype(np.float64)
     boxes = np.asarray(boxes, np.float64)
     cos, sin = np.cos(boxes[..., 6]).astype(dtype), np.sin(boxes[..., 6]).astype(dtype)
-    dx = points[:, 0] - boxes[..., 0].astype(dtype)
-    dy = points[:, 1] - boxes[..., 1].astype(dtype)
-    inside = np.abs(cos * dx + sin * dy) <= (0.5 * boxes[..., 3] + margin_m).astype(dtype)
-    inside &= np.abs(cos * dy - sin * dx) <= (0.5 * boxes[..., 4] + margin_m).astype(dtype)
-    dz = points[:, 2] - boxes[..., 2].astype(dtype)
-    inside &= np.abs(dz) <= (0.5 * boxes[..., 5] + margin_m).astype(dtype)
+    return cos, sin, boxes[..., :3].astype(dtype), (0.5 * boxes[..., 3:6] + margin_m).astype(dtype)
+
+
+def inside_box_frames(xyz, cos, sin, centre, half) -> np.ndarray:
+    """Is each point `xyz (..., 3)` inside its box (parameters of box_frames, broadcast against
+    the points' leading shape)? Boundaries included; in the points' dtype."""
+    dx = xyz[..., 0] - centre[..., 0]
+    dy = xyz[..., 1] - centre[..., 1]
+    inside = np.abs(cos * dx + sin * dy) <= half[..., 0]
+    inside &= np.abs(cos * dy - sin * dx) <= half[..., 1]
+    inside &= np.abs(xyz[..., 2] - centre[..., 2]) <= half[..., 2]
     return inside
 
 

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from dali_cli.geometry import box_frames, inside_box_frames
+
 _CELL_M = 1.0  # grid cell (m) unless the boxes spread over more than _MAX_CELLS cells
 _MAX_CELLS = 2**20
 _NONE, _SHARED = -1, -2  # cell owners that are not a box index
@@ -62,59 +64,23 @@ def points_per_box(
     candidates = candidates[order]
     bounds = np.searchsorted(cell_owner[candidates], np.arange(_SHARED, len(boxes) + 1))
     near = np.take(points, candidates, axis=0)  # (c, >=3) float32, grouped by owner
-    box_frames = _BoxFrames(boxes, margin_m, near.dtype)
+    frames = box_frames(boxes, margin_m, near.dtype)  # per box, once
     # bounds: [shared start, shared end (no NONE owner is left), box 0 start, ..., box k-1 end]
     start = bounds[2]  # cells of one box: test against that box only
-    inside = box_frames.contains_grouped(near[start:], np.diff(bounds[2:]))
+    counts = np.diff(bounds[2:])  # (k,) candidates per box, in box order
+    inside = inside_box_frames(
+        near[start:, :3], *(np.repeat(p, counts, axis=0) for p in frames)
+    )  # (c - s,)
     members = [
         candidates[a:b][inside[a - start : b - start]]
         for a, b in zip(bounds[2:-1], bounds[3:], strict=True)
     ]
     shared = candidates[bounds[0] : bounds[1]]  # cells several boxes cover: first box wins
     if len(shared):
-        hits = box_frames.contains_all(near[bounds[0] : bounds[1]])  # (s, k)
+        hits = inside_box_frames(near[bounds[0] : bounds[1], None, :3], *frames)  # (s, k)
         first = np.where(hits.any(axis=1), hits.argmax(axis=1), -1)
         for box_index in np.unique(first[first >= 0]):
             members[box_index] = np.sort(
                 np.concatenate([members[box_index], shared[first == box_index]])
             )
     return members
-
-
-class _BoxFrames:
-    """Each box's centre, heading and half sizes (+ margin) in the points' float dtype.
-
-    The arithmetic is geometry.inside_boxes' exactly (same casts, same operation order), so a
-    point is inside here if and only if it is inside there, bit for bit; only the per-box set-up
-    is done once for all boxes instead of once per call.
-    """
-
-    def __init__(self, boxes: np.ndarray, margin_m: float, dtype: np.dtype):
-        dtype = dtype if dtype in (np.float32, np.float64) else np.dtype(np.float64)
-        self.cos = np.cos(boxes[:, 6]).astype(dtype)  # (k,)
-        self.sin = np.sin(boxes[:, 6]).astype(dtype)
-        self.centre = boxes[:, :3].astype(dtype)  # (k, 3)
-        self.half = (0.5 * boxes[:, 3:6] + margin_m).astype(dtype)  # (k, 3) l, w, h
-        self.dtype = dtype
-
-    def contains_grouped(self, points: np.ndarray, counts: np.ndarray) -> np.ndarray:
-        """Points `(c, >=3)` in runs, counts[b] `(k,)` of them for box b in box order: is each
-        inside its run's box? -> `(c,)` bool."""
-        parameters = (
-            np.repeat(p, counts, axis=0) for p in (self.cos, self.sin, self.centre, self.half)
-        )
-        return self._inside(points[:, :3].astype(self.dtype, copy=False), *parameters)
-
-    def contains_all(self, points: np.ndarray) -> np.ndarray:
-        """Is points[j] `(s, >=3)` inside box b, for every box? -> `(s, k)` bool."""
-        xyz = points[:, :3].astype(self.dtype, copy=False)[:, None, :]  # (s, 1, 3)
-        return self._inside(xyz, self.cos, self.sin, self.centre, self.half)
-
-    @staticmethod
-    def _inside(xyz, cos, sin, centre, half) -> np.ndarray:
-        dx = xyz[..., 0] - centre[..., 0]
-        dy = xyz[..., 1] - centre[..., 1]
-        inside = np.abs(cos * dx + sin * dy) <= half[..., 0]
-        inside &= np.abs(cos * dy - sin * dx) <= half[..., 1]
-        inside &= np.abs(xyz[..., 2] - centre[..., 2]) <= half[..., 2]
-        return inside
