@@ -126,11 +126,12 @@ def load_labeled(
 
 def size_normalize(frames: LabeledFrames, delta_lwh: np.ndarray) -> LabeledFrames:
     """SN (Wang et al. 2020): every box's l, w, h += delta_lwh, its points scaled with it."""
+    from dali_cli.size_norm import shift_frame
+
     delta_lwh = np.asarray(delta_lwh, np.float64).reshape(3)
     points, boxes = [], []
     for frame_points, frame_boxes in zip(frames.points, frames.boxes, strict=True):
-        factors = (frame_boxes[:, 3:6] + delta_lwh) / frame_boxes[:, 3:6]  # (m, 3)
-        new_points, new_boxes = augment.scale_objects(frame_points, frame_boxes, factors)
+        new_points, new_boxes = shift_frame(frame_points, frame_boxes, delta_lwh)
         points.append(new_points)
         boxes.append(new_boxes)
     return LabeledFrames(
