@@ -271,6 +271,7 @@ class FrameSet:
         for index in indices:
             start, stop = int(self.offsets[index]), int(self.offsets[index + 1])
             buffer_end = buffer_start + len(buffer)
+            points = None
             if start < buffer_start or stop > buffer_end:
                 # read whole chunks, each once: a frame that runs past the buffer keeps the
                 # buffer's tail and reads only the chunks after it
@@ -282,11 +283,9 @@ class FrameSet:
                     points = np.concatenate(
                         [buffer[start - buffer_start :], fresh[: stop - read_start]]
                     )
-                    buffer, buffer_start = fresh, read_start
-                    yield self.frame_ids[index], self._checked(points, index)
-                    continue
                 buffer, buffer_start = fresh, read_start
-            points = buffer[start - buffer_start : stop - buffer_start]
+            if points is None:
+                points = buffer[start - buffer_start : stop - buffer_start]
             yield self.frame_ids[index], self._checked(points, index)
 
     def load_all(self) -> tuple[np.ndarray, np.ndarray]:

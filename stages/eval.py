@@ -13,12 +13,12 @@ Returns the metrics for the command to print."""
 from __future__ import annotations
 
 import json
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from dali_cli import console
 from dali_cli.artifacts import BOXES_NAME, BoxTable, FrameSet, read_boxes
 from dali_cli.atomic_file import write_atomically, write_text_atomically
 from dali_cli.errors import ParameterError, StageError
@@ -208,7 +208,7 @@ def run_eval(
         check_metrics_output(out, inputs)
     if dry_run:  # a metrics file (or the terminal) is not a stage artifact: it is always rerun
         where = out if out is not None else "the terminal"
-        print(f"eval: would run -> {where} (a metrics file is always recomputed)", file=sys.stderr)
+        console.echo(f"eval: would run -> {where} (a metrics file is always recomputed)")
         return EvalResult({}, [], "dry-run")
     metrics, pred = compute_metrics(routes, options)
     written = []

@@ -32,8 +32,6 @@ def command(data, like_model, delta_lwh, labels, out, force, dry_run):
     """
     from stages.size_norm import size_norm
 
-    if (like_model is None) == (delta_lwh is None):
-        raise click.UsageError("give exactly one of --like-model and --delta")
     size_norm(
         data, out, delta_lwh=delta_lwh, like_model=like_model, labels=tuple(labels),
         force=force, dry_run=dry_run,
