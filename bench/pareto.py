@@ -280,33 +280,34 @@ def main() -> None:
                             "built_with": commands}  # fmt: skip
         data = f" --model {model} --target {target} --target-val {target_val}"
         data += f" --ptsn-frames {args.ptsn_frames}"
-        fronts = {
-            "ptsn": lambda: import_module("pareto.ptsn_front").measure(
-                model, target, "kitti", quick=args.quick, frames=args.ptsn_frames
-            ),
-            "detector": lambda: import_module("pareto.detector_front").measure(
-                model,
-                target_val,
-                "kitti",
-                quick=args.quick,
-                frames=args.ptsn_frames,
-                repeats=repeats,
-            ),
-        }
         seeds = [int(seed) for seed in args.pillar_seeds.split(",") if seed]
         epochs = args.pillar_epochs or (1 if args.quick else 10)
-        fronts["pillar"] = lambda: import_module("pareto.pillar_front").measure(
-            target, target_val, Path(args.run) / "pillar", epochs, seeds, quick=args.quick
-        )
-        for name, measure in fronts.items():
+        # name -> (measure, threads timed, repeats, the command's extra arguments)
+        fronts = {
+            "ptsn": (
+                lambda: import_module("pareto.ptsn_front").measure(
+                    model, target, "kitti", quick=args.quick, frames=args.ptsn_frames
+                ),
+                0, 1, "",
+            ),
+            "detector": (
+                lambda: import_module("pareto.detector_front").measure(
+                    model, target_val, "kitti", quick=args.quick, frames=args.ptsn_frames,
+                    repeats=repeats,
+                ),
+                0, repeats, f" --repeats {repeats}",
+            ),
+            "pillar": (
+                lambda: import_module("pareto.pillar_front").measure(
+                    target, target_val, Path(args.run) / "pillar", epochs, seeds,
+                    quick=args.quick,
+                ),
+                2, 1, f" --pillar-seeds {args.pillar_seeds} --pillar-epochs {epochs}",
+            ),
+        }  # fmt: skip
+        for name, (measure, threads, timed, extra) in fronts.items():
             if name in only:
-                command = f"{base} --only {name}{data}"
-                if name == "pillar":
-                    command += f" --pillar-seeds {args.pillar_seeds} --pillar-epochs {epochs}"
-                threads = 2 if name == "pillar" else 0
-                timed = repeats if name == "detector" else 1
-                if name == "detector":
-                    command += f" --repeats {repeats}"
+                command = f"{base} --only {name}{data}{extra}"
                 results[name] = section(name, threads, timed, command, measure)
                 save(results, results_path, only)  # a later front's crash keeps this one
     results = save(results, results_path, only)

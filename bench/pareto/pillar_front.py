@@ -18,7 +18,6 @@ stages' manifests (train_seconds; eval wall seconds / frames, model loading incl
 from __future__ import annotations
 
 import json
-import math
 import shlex
 import subprocess
 import sys
@@ -26,8 +25,7 @@ from pathlib import Path
 
 from dali_cli.report import read_kitti, read_metrics
 
-DEFAULT_PILLAR_M = 0.32  # dali_cli.detector.config's default (checked in measure)
-PILLARS_M = (0.24, 0.32, 0.40)
+PILLARS_M = (0.24, 0.40)  # swept around the detector's default, which is always a point
 
 
 def _dali(arguments: list) -> str:
@@ -90,9 +88,10 @@ def measure(
     from dali_cli.detector.config import DetectorConfig
 
     default = DetectorConfig().pillar_m
-    if not math.isclose(default, DEFAULT_PILLAR_M):
-        raise RuntimeError(f"the detector's default pillar is {default} m, this front assumes 0.32")
-    pillars = pillars[:2] if quick else pillars
+    pillars = sorted({*pillars, default})
+    pillars = (
+        list(dict.fromkeys([pillars[0], default])) if quick else pillars
+    )  # quick: finest, default
     points = []
     for seed in seeds:
         for pillar_m in pillars:
