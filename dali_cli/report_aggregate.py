@@ -108,8 +108,12 @@ def markdown(rows: list[dict], columns=TABLE_COLUMNS) -> str:
 
 
 def aggregate_runs(runs: list[Path]) -> tuple[str, dict]:
-    """Markdown and a JSON-ready dict: mean ± std over `runs` of every row and gap figure."""
+    """Markdown and a JSON-ready dict: mean ± std over `runs` of every row and gap figure, and
+    the paired differences of the DALI rows against their equal-budget controls."""
+    from dali_cli import report_paired
+
     documents = [build_report(run)[1] for run in runs]
+    paired = report_paired.paired_differences(documents, [str(r) for r in runs])
     target = aggregate_documents(documents, "target") + aggregate_documents(documents, "controls")
     source = aggregate_documents(documents, "source")
     scalars = {
@@ -134,11 +138,19 @@ def aggregate_runs(runs: list[Path]) -> tuple[str, dict]:
     parts += ["", "## Gap closed (share, mean ± std over runs)", ""]
     for key, stats in scalars.items():
         parts.append(f"- {key}: {_cell(stats, 3)} (n = {stats['n']})")
+    if paired:
+        parts += [
+            "",
+            "## DALI against its equal-budget control, paired by run (AP points)",
+            "",
+            report_paired.markdown(paired),
+        ]
     document = {
         "runs": [str(r) for r in runs],
         "target": target,
         "source": source,
         "scalars": scalars,
+        "paired": paired,
         "std": "sample standard deviation (ddof = 1) over runs",
     }
     return "\n".join(parts) + "\n", document

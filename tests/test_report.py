@@ -154,3 +154,42 @@ def test_report_aggregates_seeds_into_mean_and_std(tmp_path):
     again = CliRunner().invoke(main, ["report", *named, "--out", str(tmp_path / "named")])
     assert again.exit_code == 0, again.output
     assert json.loads((tmp_path / "named/report.json").read_text())["target"] == document["target"]
+
+
+def test_report_pairs_each_dali_row_with_its_control_per_seed(tmp_path):
+    """x2 - equal-budget control per seed, its mean ± sample std and issue 18's verdict; a seed
+    without the control enters neither the differences nor n."""
+    import statistics
+
+    x2 = {"s0": 70.0, "s1": 66.0, "s2": 75.0, "s3": 60.0}
+    control = {"s0": 65.0, "s1": 62.5, "s2": 70.0}  # s3 has no control
+    for seed, value in x2.items():
+        run = tmp_path / f"experiment-{seed}"
+        write_metrics(run / "iter2/eval/metrics.json", 80.0, value)
+        if seed in control:
+            path = run / "baselines/source_x2_budget/eval_ptsn/metrics.json"
+            write_metrics(path, 79.0, control[seed])
+    result = CliRunner().invoke(main, ["report", str(tmp_path), "--out", str(tmp_path / "r")])
+    assert result.exit_code == 0, result.output
+    paired = json.loads((tmp_path / "r/report.json").read_text())["paired"]
+    [pair] = [p for p in paired if p["row"] == "x2"]
+    ap3d = pair["metrics"]["AP_3D@0.7"]
+    differences = [x2[s] - control[s] for s in control]
+    assert [p["difference"] for p in ap3d["per_run"]] == differences
+    assert ap3d["n"] == 3 and abs(ap3d["mean"] - statistics.mean(differences)) < 1e-9
+    assert abs(ap3d["std"] - statistics.stdev(differences)) < 1e-9
+    # mean 4.5 >= 3 and > 2 x 0.87: met; BEV +1.0 every seed: below the margin
+    assert ap3d["verdict"] == "met"
+    assert pair["metrics"]["AP_BEV@0.7"]["verdict"] == "not met"
+    assert "| x2 - Source only, x2's budget + PTSN | AP_3D@0.7 | 3 | +5.00 / +3.50 / +5.00" in (
+        result.output
+    )
+
+
+def test_paired_verdict_needs_two_seeds_and_a_clear_margin():
+    from dali_cli.report_paired import verdict
+
+    assert verdict({"n": 1, "mean": 9.0, "std": None}) == "undecided"
+    assert verdict({"n": 3, "mean": 3.5, "std": 2.0}) == "not met"  # inside 2 std
+    assert verdict({"n": 3, "mean": 2.5, "std": 0.1}) == "not met"  # below the margin
+    assert verdict({"n": 3, "mean": 3.0, "std": 1.4}) == "met"

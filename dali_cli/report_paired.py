@@ -1,0 +1,86 @@
+"""Paired differences of DALI rows against their equal-budget controls, over runs (seeds).
+
+Issue 18's question, "does the retraining beat training the source detector on as many frames
+and rescaling at test time?", is a paired one: each seed's DALI row and control share the data,
+the seed and the training frames, so their per-seed difference removes the seed's own level
+(data draw, initialization). `dali report RUN1 RUN2 ...` gives for each pair the per-seed
+differences (AP in percentage points), their mean and sample standard deviation, and whether
+issue 18's target holds: mean >= `MARGIN` and mean > 2 x std (std needs >= 2 seeds).
+"""
+
+from __future__ import annotations
+
+from dali_cli.report import SOURCE_X2_BUDGET
+from dali_cli.report_aggregate import dig, statistics
+
+# (DALI row, its equal-budget control): the control trained on as many frames as the row's
+# model saw in all, then evaluated with test-time PTSN
+PAIRS: tuple[tuple[str, str], ...] = (
+    ("PTSN + RC&CF (x1)", "Source only, x1's budget + PTSN"),
+    ("x2", SOURCE_X2_BUDGET),
+)
+# (column title, key path in a row of report.json)
+METRICS: tuple[tuple[str, tuple], ...] = (
+    ("AP_3D@0.7", ("ap", "0.7", "3d")),
+    ("KITTI moderate AP_3D@0.7", ("kitti", "0.7", "3d", "moderate")),
+    ("AP_BEV@0.7", ("ap", "0.7", "bev")),
+)
+MARGIN = 3.0  # percentage points (issue 18, target 5)
+
+
+def row_values(document: dict, name: str) -> dict | None:
+    """The row `name` of one run's report.json (target rows and controls), or None."""
+    for section in ("target", "controls"):
+        for row in document.get(section, []):
+            if row["name"] == name:
+                return row
+    return None
+
+
+def verdict(stats: dict) -> str:
+    """'met', 'not met' or 'undecided' (fewer than 2 differences) for issue 18's target."""
+    if stats["n"] < 2 or stats["std"] is None:
+        return "undecided"
+    return "met" if stats["mean"] >= MARGIN and stats["mean"] > 2 * stats["std"] else "not met"
+
+
+def paired_differences(documents: list[dict], runs: list[str]) -> list[dict]:
+    """For each pair of PAIRS present in at least one run: per metric the per-run differences
+    (row - control, with the run they come from), their statistics and the verdict."""
+    results = []
+    for name, control in PAIRS:
+        metrics = {}
+        for title, keys in METRICS:
+            per_run = []
+            for run, document in zip(runs, documents, strict=True):
+                row, base = row_values(document, name), row_values(document, control)
+                a = dig(row, keys) if row else None
+                b = dig(base, keys) if base else None
+                if a is not None and b is not None:
+                    per_run.append({"run": run, "row": a, "control": b, "difference": a - b})
+            stats = statistics([p["difference"] for p in per_run])
+            metrics[title] = {**stats, "per_run": per_run, "verdict": verdict(stats)}
+        if any(m["n"] for m in metrics.values()):
+            results.append({"row": name, "control": control, "metrics": metrics})
+    return results
+
+
+def markdown(results: list[dict]) -> str:
+    """A table: pair, metric, n, per-run differences, mean ± std, the target's verdict."""
+    lines = [
+        f"Target: mean >= {MARGIN:g} and mean > 2 std (issue 18).",
+        "",
+        "| row - control | metric | n | per run | mean ± std | target |",
+        "|---|---|---|---|---|---|",
+    ]
+    for result in results:
+        for title, m in result["metrics"].items():
+            if not m["n"]:
+                continue
+            values = " / ".join(f"{p['difference']:+.2f}" for p in m["per_run"])
+            spread = "—" if m["std"] is None else f"{m['std']:.2f}"
+            lines.append(
+                f"| {result['row']} - {result['control']} | {title} | {m['n']} | {values} "
+                f"| {m['mean']:+.2f} ± {spread} | {m['verdict']} |"
+            )
+    return "\n".join(lines)
