@@ -219,6 +219,8 @@ controls: $(RUN)/baselines/source_x1_budget/eval_ptsn/manifest.json \
     $(RUN)/baselines/source_x2_budget/eval_ptsn/manifest.json \
     $(RUN)/baselines/oracle_x2_budget/eval/manifest.json
 controls-x1: $(RUN)/baselines/source_x1_budget/eval_ptsn/manifest.json
+controls-x2: $(RUN)/baselines/source_x2_budget/eval_ptsn/manifest.json \
+    $(RUN)/baselines/oracle_x2_budget/eval/manifest.json
 iter2-st: iter2 $(RUN)/iter2_st/eval/manifest.json
 # every target evaluation of the run also under KITTI's easy / moderate / hard
 KITTI_ROWS = iter0/eval iter0/eval_ptsn iter1/eval iter2/eval iter2_st/eval baselines/sn/eval \
@@ -229,7 +231,7 @@ kitti-protocol:
 	    if [ -f $(RUN)/$$row/metrics.json ]; then $(MAKE) --no-print-directory $(RUN)/$$row/metrics_kitti.json || exit 1; fi; \
 	done
 .PHONY: baseline-sn baseline-ros baseline-oracle ablation-rc ablation-cf baselines cross-domain controls \
-    controls-x1 iter2-st kitti-protocol
+    controls-x1 controls-x2 iter2-st kitti-protocol
 
 report: | install
 	$(DALI) report $(RUN)
