@@ -193,3 +193,25 @@ def test_paired_verdict_needs_two_seeds_and_a_clear_margin():
     assert verdict({"n": 3, "mean": 3.5, "std": 2.0}) == "not met"  # inside 2 std
     assert verdict({"n": 3, "mean": 2.5, "std": 0.1}) == "not met"  # below the margin
     assert verdict({"n": 3, "mean": 3.0, "std": 1.4}) == "met"
+
+
+def test_bench_paired_rows_differences_by_seed(tmp_path):
+    """bench/paired_rows.py: a row's per-seed AP minus the base row's of the same seed; a seed
+    missing the row is left out of the differences."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "bench" / "paired_rows.py"
+    spec = importlib.util.spec_from_file_location("paired_rows", path)
+    paired_rows = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(paired_rows)
+    base, row = {0: 50.0, 1: 60.0, 2: 55.0}, {0: 54.0, 1: 61.0}
+    for seed, value in base.items():
+        write_metrics(tmp_path / f"b{seed}/metrics.json", 70.0, value)
+    for seed, value in row.items():
+        write_metrics(tmp_path / f"r{seed}/metrics.json", 71.0, value)
+    text = paired_rows.paired_table(
+        ("base", str(tmp_path / "b{seed}")), [("new", str(tmp_path / "r{seed}"))], [0, 1, 2]
+    )
+    line = next(x for x in text.splitlines() if x.startswith("| new | AP_3D@0.7"))
+    assert "| 54.0 / 61.0 |" in line and "| +4.0 / +1.0 | +2.5 ± 2.1 (n = 2) |" in line
