@@ -43,9 +43,13 @@ def paired_table(base: tuple[str, str], rows: list[tuple[str, str]], seeds: list
         f"| minus {base[0]}, per seed | mean ± std |",
         "|---|---|---|---|---|---|",
     ]
-    base_values = {s: read_row(Path(base[1].format(seed=s))) for s in seeds}
+    read = {  # every row's eval directories read once, the base's included
+        pattern: {s: read_row(Path(pattern.format(seed=s))) for s in seeds}
+        for _, pattern in [base, *rows]
+    }
+    base_values = read[base[1]]
     for name, pattern in [base, *rows]:
-        values = {s: read_row(Path(pattern.format(seed=s))) for s in seeds}
+        values = read[pattern]
         for title in (*(t for t, _ in METRICS), KITTI):
             own = [values[s][title] for s in seeds if values[s] and title in values[s]]
             if not own:

@@ -26,10 +26,11 @@ ROWS: tuple[tuple[str, str], ...] = (
     ("Oracle", "baselines/oracle/eval/metrics.json"),
 )
 # the same training frames as DALI's models saw: does the gain come from more training?
+SOURCE_X1_BUDGET = "Source only, x1's budget + PTSN"
 SOURCE_X2_BUDGET = "Source only, x2's budget + PTSN"
 ORACLE_X2_BUDGET = "Oracle, x2's budget"
 CONTROL_ROWS: tuple[tuple[str, str], ...] = (
-    ("Source only, x1's budget + PTSN", "baselines/source_x1_budget/eval_ptsn/metrics.json"),
+    (SOURCE_X1_BUDGET, "baselines/source_x1_budget/eval_ptsn/metrics.json"),
     (SOURCE_X2_BUDGET, "baselines/source_x2_budget/eval_ptsn/metrics.json"),
     (ORACLE_X2_BUDGET, "baselines/oracle_x2_budget/eval/metrics.json"),
 )

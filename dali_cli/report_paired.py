@@ -10,20 +10,21 @@ issue 18's target holds: mean >= `MARGIN` and mean > 2 x std (std needs >= 2 see
 
 from __future__ import annotations
 
-from dali_cli.report import SOURCE_X2_BUDGET
-from dali_cli.report_aggregate import dig, statistics
+from dali_cli.report import SOURCE_X1_BUDGET, SOURCE_X2_BUDGET
+from dali_cli.report_aggregate import COLUMNS, dig, statistics
 
 # (DALI row, its equal-budget control): the control trained on as many frames as the row's
 # model saw in all, then evaluated with test-time PTSN
 PAIRS: tuple[tuple[str, str], ...] = (
-    ("PTSN + RC&CF (x1)", "Source only, x1's budget + PTSN"),
+    ("PTSN + RC&CF (x1)", SOURCE_X1_BUDGET),
     ("x2", SOURCE_X2_BUDGET),
 )
-# (column title, key path in a row of report.json)
+# (title here, key path in a row of report.json: the aggregate table's column of that name)
+_KEYS = dict(COLUMNS)
 METRICS: tuple[tuple[str, tuple], ...] = (
-    ("AP_3D@0.7", ("ap", "0.7", "3d")),
-    ("KITTI moderate AP_3D@0.7", ("kitti", "0.7", "3d", "moderate")),
-    ("AP_BEV@0.7", ("ap", "0.7", "bev")),
+    ("AP_3D@0.7", _KEYS["3D@0.7"]),
+    ("KITTI moderate AP_3D@0.7", _KEYS["KITTI 3D@0.7 moderate"]),
+    ("AP_BEV@0.7", _KEYS["BEV@0.7"]),
 )
 MARGIN = 3.0  # percentage points (issue 18, target 5)
 
@@ -49,13 +50,15 @@ def paired_differences(documents: list[dict], runs: list[str]) -> list[dict]:
     (row - control, with the run they come from), their statistics and the verdict."""
     results = []
     for name, control in PAIRS:
+        pairs = [  # each run's row and control, looked up once
+            (run, row_values(document, name), row_values(document, control))
+            for run, document in zip(runs, documents, strict=True)
+        ]
         metrics = {}
         for title, keys in METRICS:
             per_run = []
-            for run, document in zip(runs, documents, strict=True):
-                row, base = row_values(document, name), row_values(document, control)
-                a = dig(row, keys) if row else None
-                b = dig(base, keys) if base else None
+            for run, row, base in pairs:
+                a, b = dig(row, keys), dig(base, keys)  # None when the row or the figure is missing
                 if a is not None and b is not None:
                     per_run.append({"run": run, "row": a, "control": b, "difference": a - b})
             stats = statistics([p["difference"] for p in per_run])
