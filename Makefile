@@ -99,6 +99,9 @@ EXEC_FLAGS      = --executor $(EXECUTOR)$(if $(WORKERS), --workers $(WORKERS))$(
 SYNTH_FLAGS     = --executor $(EXECUTOR) --workers $(or $(WORKERS),$(SYNTH_WORKERS))$(if $(RAY_ADDRESS), --ray-address $(RAY_ADDRESS))
 VAL_FRAMES     ?= $(FRAMES)
 SCORE_MIN      ?= 0.3
+# pseudo-label options, e.g. PSEUDO_FLAGS=--no-tta (labels from one detector pass at ŝ instead of
+# ten fused views: the session-12 ablation in docs/RESULTS.md)
+PSEUDO_FLAGS   ?=
 # evaluation: all boxes and range bands of the front region (90 deg FOV, detection range, as ST3D
 # evaluates KITTI), AP at IoU 0.7 and 0.5
 EVAL_FLAGS     ?= --protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
@@ -138,7 +141,7 @@ $(RUN)/iter$(1)/ptsn/manifest.json: $(RUN)/iter$(2)/model/manifest.json $(TARGET
 endef
 define ITER
 $(RUN)/iter$(1)/pseudo/manifest.json: $(RUN)/iter$(1)/ptsn/manifest.json
-	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(RUN)/iter$(2)/model --target $(TARGET) --scale-from $(RUN)/iter$(1)/ptsn --score-min $(SCORE_MIN) $(EXEC_FLAGS) --out $$(@D)
+	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(RUN)/iter$(2)/model --target $(TARGET) --scale-from $(RUN)/iter$(1)/ptsn --score-min $(SCORE_MIN) $(PSEUDO_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/rc/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
 	$(DALI) ppcg-rc --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/cf/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json

@@ -1,4 +1,5 @@
-"""Stage pseudo_label: run the detector on the target at the PTSN scale ŝ, de-scale, drop
+"""Stage pseudo_label: run the detector on the target at the PTSN scale ŝ (by default in ten
+views, ŝ x 0.9..1.1 each also mirrored, fused box by box: dali_cli.tta), de-scale, drop
 implausible boxes (dali_cli.plausibility, counted), keep score >= score_min, BEV NMS, remove the
 remaining per-dimension size bias against E_est (`dali_cli.size_correction`, on by default),
 count the original points in each box; write boxes.parquet, scale.json (the ScaleResult the
@@ -16,7 +17,7 @@ from typing import Unpack
 
 import numpy as np
 
-from dali_cli import console, ptsn, size_correction
+from dali_cli import console, ptsn, size_correction, tta
 from dali_cli.artifacts import BoxTable, FrameSet, write_boxes
 from dali_cli.device import InferenceOptions, inference_runtime, inference_setup
 from dali_cli.errors import ParameterError, StageError
@@ -84,6 +85,7 @@ def pseudo_label(
     mount_height_m: float | None = None,
     sensors_path: str | None = None,
     size_correction_method: str = "per-dim",
+    views: tta.Views | None = tta.Views(),
     force: bool = False,
     dry_run: bool = False,
     workers: int | None = None,
@@ -91,7 +93,8 @@ def pseudo_label(
     ray_address: str | None = None,
     **inference: Unpack[InferenceOptions],
 ) -> StageOutcome:
-    """Run the pseudo-label stage (see the module docstring). `executor`, `workers`,
+    """Run the pseudo-label stage (see the module docstring). `views`: the test-time
+    augmentation (None or a single view: the detector once at ŝ). `executor`, `workers`,
     `ray_address`: the engine of the detector runs (dali_cli.executors); `inference`: device,
     precision, batch size, progress and (tests) the detector loader (InferenceOptions)."""
     model_dir, target_dir = Path(model_dir), Path(target_dir)
@@ -112,6 +115,8 @@ def pseudo_label(
         "size_correction": method,
         # recorded only when not the default: earlier runs stay up to date
         **({"precision": precision} if precision != "fp32" else {}),
+        # recorded only when on: labels made before test-time augmentation stay up to date
+        **({"tta": views.record()} if views is not None and not views.single else {}),
     }  # fmt: skip
     inputs = {"model": model_dir, "target": target_dir}
     inputs.update({"scale_from": scale_from} if scale_from is not None else {})
@@ -120,7 +125,7 @@ def pseudo_label(
     labeler = FrameLabeler(
         str(model_dir), str(target_dir), scale, mount_height_m, max_range_m, score_min, nms_iou,
         inference.get("batch_size", 8), inference.get("detector_loader") or load_detector,
-        device=torch_device, precision=precision,
+        device=torch_device, precision=precision, views=views,
     )  # fmt: skip
 
     def build(directory: Path) -> BuildResult:

@@ -19,6 +19,7 @@ from dali_cli.geometry import (
     scale_points_about_ground,
 )
 from dali_cli.scale_file import read_scale
+from dali_cli.tta import DEFAULT_SCALE_FACTORS, mirror_boxes
 
 KITTI_LWH = np.array([3.89, 1.62, 1.53])
 MOUNT = 1.73  # the kitti profile's mount height
@@ -61,7 +62,9 @@ def frame_points(frame: int) -> np.ndarray:
 class SizeLawDetector:
     """In the s-scaled cloud it finds each car at its scaled centre but with size `scaled_lwh`
     (its training bias), standing on the ground; boxes come back de-scaled, so their size is
-    scaled_lwh / s. Per frame it adds a near-duplicate (score 0.5) and a faint box (score 0.1)."""
+    scaled_lwh / s. Per frame it adds a near-duplicate (score 0.5) and a faint box (score 0.1).
+    A cloud mirrored left-right (test-time augmentation) gets the mirrored boxes: the first point
+    lies in the first car, which stands at y = +3 m."""
 
     def __init__(self, scaled_lwh=KITTI_LWH):
         self.scaled_lwh = np.asarray(scaled_lwh, np.float64)
@@ -72,7 +75,10 @@ class SizeLawDetector:
         results = []
         for points in points_list:
             frame = int(round(float(points[0, 3]) * 100))
-            scaled = scale_boxes_about_ground(car_boxes(frame), scale, mount_height_m)
+            cars = car_boxes(frame)
+            if points[0, 1] < 0:  # mirrored
+                cars = mirror_boxes(cars)
+            scaled = scale_boxes_about_ground(cars, scale, mount_height_m)
             scaled[:, 3:6] = self.scaled_lwh
             scaled[:, 2] = -mount_height_m + self.scaled_lwh[2] / 2
             duplicate, faint = scaled[:1].copy(), scaled[:1].copy()
@@ -128,7 +134,10 @@ def test_pseudo_labels_at_the_swept_scale_match_e_est(setup):
         "--no-progress",
     )
     assert result.exit_code == 0, result.output
-    assert set(detector.scales) == {scale}
+    # test-time augmentation (default): ŝ times each factor, each once as is and once mirrored
+    assert sorted(detector.scales) == pytest.approx(
+        sorted(2 * [scale * f for f in DEFAULT_SCALE_FACTORS])
+    )
     table = read_boxes(out)
     expected_boxes = sum(len(car_boxes(i)) for i in range(6))
     assert len(table) == expected_boxes  # the duplicate (NMS) and the faint box (score) are gone
@@ -150,9 +159,10 @@ def test_explicit_scale_overrides_and_options(setup):
     out = tmp_path / "p1"
     result = run(
         "pseudo-label", "--model", model, "--target", target, "--scale", "1.0", "--out", out,
-        "--no-progress", "--nms-iou", "0.95", "--score-min", "0.05",
+        "--no-progress", "--nms-iou", "0.95", "--score-min", "0.05", "--no-tta",
     )  # fmt: skip
     assert result.exit_code == 0, result.output
+    assert detector.scales == [1.0]  # one detector pass (one batch)
     table = read_boxes(out)
     assert len(table) == sum(len(car_boxes(i)) + 2 for i in range(6))  # nothing suppressed
     assert np.allclose(table.boxes[table["score"] > 0.8][:, 3:6], KITTI_LWH * 1.2)
@@ -237,7 +247,9 @@ class AbsurdBoxDetector(SizeLawDetector):
         return results
 
 
-def test_implausible_detections_are_dropped_before_nms_and_counted(setup, monkeypatch):
+@pytest.mark.parametrize("tta", [[], ["--no-tta"]])
+def test_implausible_detections_are_dropped_before_nms_and_counted(setup, monkeypatch, tta):
+    """Dropped before NMS and before the views are fused, counted once per view."""
     tmp_path, target, model, _ = setup
     import stages.pseudo_label
 
@@ -245,17 +257,20 @@ def test_implausible_detections_are_dropped_before_nms_and_counted(setup, monkey
     out = tmp_path / "pseudo"
     result = run(
         "pseudo-label", "--model", model, "--target", target, "--scale", "1.0", "--out", out,
-        "--no-progress",
+        "--no-progress", *tta,
     )  # fmt: skip
     assert result.exit_code == 0, result.output
-    assert "WARNING" in result.output and "12 implausible" in result.output
+    views = 1 if tta else 2 * len(DEFAULT_SCALE_FACTORS)
+    implausible = 12 * views  # two per frame and view
+    assert "WARNING" in result.output and f"{implausible} implausible" in result.output
     table = read_boxes(out)
     # every car survives: the 1,000 km box (score 0.99) did not suppress the first one in NMS
     assert len(table) == sum(len(car_boxes(i)) for i in range(6))
     assert table.boxes[:, 3].max() < 10 and np.abs(table.boxes[:, 0]).max() < 100
     manifest = json.loads((out / "manifest.json").read_text())
-    assert manifest["outputs"]["counts"]["boxes_implausible"] == 12  # the faint one is not counted
-    assert json.loads((out / "summary.json").read_text())["boxes_implausible"] == 12
+    counted = manifest["outputs"]["counts"]["boxes_implausible"]
+    assert counted == implausible  # the faint one is not counted
+    assert json.loads((out / "summary.json").read_text())["boxes_implausible"] == implausible
 
 
 WAYMO_OVER_KITTI = np.array([1.20, 1.29, 1.14])  # per-dimension source/target size ratios
