@@ -74,6 +74,10 @@ pareto-quick: install
 #   iterN: ptsn-sweep (model N-1) -> pseudo-label -> ppcg-rc -> ppcg-cf -> retrain -> eval (PTSN)
 MINUTES        ?=
 RETRAIN_EPOCHS ?= $(EPOCHS)
+# per-iteration retraining budgets (default RETRAIN_EPOCHS each), e.g. RETRAIN_EPOCHS_1=3
+# RETRAIN_EPOCHS_2=9: the same frames as 6 + 6, most of them on iteration 2's better labels
+RETRAIN_EPOCHS_1 ?= $(RETRAIN_EPOCHS)
+RETRAIN_EPOCHS_2 ?= $(RETRAIN_EPOCHS)
 # extra pretrain/retrain flags, e.g. TRAIN_FLAGS="--threads 1" for `make -j2` on a 2-core machine
 TRAIN_FLAGS    ?=
 # NPROC=N: pretrain, retrain and self-train run as N data-parallel processes under torchrun
@@ -85,7 +89,7 @@ TRAIN_DALI      = $(if $(NPROC),$(BIN)/torchrun --standalone --nproc-per-node $(
 DEVICE_FLAG     = $(if $(DEVICE),--device $(DEVICE))
 # --minutes makes results depend on the machine and its load; epochs (the default) do not
 TRAIN_BUDGET    = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(EPOCHS))
-RETRAIN_BUDGET  = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(RETRAIN_EPOCHS))
+RETRAIN_BUDGET  = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(or $(RETRAIN_EPOCHS_$(1)),$(RETRAIN_EPOCHS)))
 EXPECTED       ?= sn
 LIBRARY_MODELS ?= 24
 SYNTH_WORKERS  ?= 2
@@ -147,7 +151,7 @@ $(RUN)/iter$(1)/rc/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY
 $(RUN)/iter$(1)/cf/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
 	$(DALI) ppcg-cf --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/model/manifest.json: $(RUN)/iter$(1)/rc/manifest.json $(RUN)/iter$(1)/cf/manifest.json $(SOURCE)/manifest.json
-	$(TRAIN_DALI) retrain --init $(RUN)/iter$(2)/model --source $(SOURCE) --ppcg $(RUN)/iter$(1)/rc $(RUN)/iter$(1)/cf $(call SOURCE_SIZE_FLAGS,$(1)) --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $$(@D)
+	$(TRAIN_DALI) retrain --init $(RUN)/iter$(2)/model --source $(SOURCE) --ppcg $(RUN)/iter$(1)/rc $(RUN)/iter$(1)/cf $(call SOURCE_SIZE_FLAGS,$(1)) --seed $(SEED) $(call RETRAIN_BUDGET,$(1)) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $$(@D)
 $(RUN)/iter$(1)/eval/manifest.json: $(RUN)/iter$(3)/ptsn/manifest.json $(TARGET_VAL)/manifest.json
 	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter$(1)/model --data $(TARGET_VAL) --scale-from $(RUN)/iter$(3)/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 iter$(1): iter$(2) $(RUN)/iter$(1)/eval/manifest.json
@@ -164,19 +168,20 @@ $(RUN)/baselines/ros/model/manifest.json: $(SOURCE)/manifest.json
 $(RUN)/baselines/oracle/model/manifest.json: $(TARGET)/manifest.json
 	$(TRAIN_DALI) pretrain --source $(TARGET) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/rc_only/model/manifest.json: $(RUN)/iter1/rc/manifest.json $(SOURCE)/manifest.json
-	$(TRAIN_DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/rc $(call SOURCE_SIZE_FLAGS,1) --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
+	$(TRAIN_DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/rc $(call SOURCE_SIZE_FLAGS,1) --seed $(SEED) $(call RETRAIN_BUDGET,1) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/cf_only/model/manifest.json: $(RUN)/iter1/cf/manifest.json $(SOURCE)/manifest.json
-	$(TRAIN_DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/cf $(call SOURCE_SIZE_FLAGS,1) --seed $(SEED) $(RETRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
+	$(TRAIN_DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/cf $(call SOURCE_SIZE_FLAGS,1) --seed $(SEED) $(call RETRAIN_BUDGET,1) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/%/eval/manifest.json: $(RUN)/baselines/%/model/manifest.json $(TARGET_VAL)/manifest.json
 	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 $(RUN)/baselines/%/ptsn/manifest.json: $(RUN)/baselines/%/model/manifest.json $(TARGET)/manifest.json
 	$(DALI) ptsn-sweep $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --target $(TARGET) --expected-size $(EXPECTED) --score-min $(SCORE_MIN) --seed $(SEED) --out $(@D)
 $(RUN)/baselines/%/eval_ptsn/manifest.json: $(RUN)/baselines/%/ptsn/manifest.json $(TARGET_VAL)/manifest.json
 	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale-from $(RUN)/baselines/$*/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
-# controls: as many training frames as DALI's models saw (pretrain E epochs, each retrain 2 x RE
-# epochs of source + PPCG): source only with x1's budget (+ test-time PTSN), oracle with x2's
-X1_BUDGET = $(if $(MINUTES),--minutes $$(( 2 * $(MINUTES) )),--epochs $$(( $(EPOCHS) + 2 * $(RETRAIN_EPOCHS) )))
-X2_BUDGET = $(if $(MINUTES),--minutes $$(( 3 * $(MINUTES) )),--epochs $$(( $(EPOCHS) + 4 * $(RETRAIN_EPOCHS) )))
+# controls: as many training frames as DALI's models saw (pretrain E epochs, retrain N 2 x
+# RETRAIN_EPOCHS_N epochs of source + PPCG): source only with x1's budget (+ test-time PTSN),
+# oracle with x2's
+X1_BUDGET = $(if $(MINUTES),--minutes $$(( 2 * $(MINUTES) )),--epochs $$(( $(EPOCHS) + 2 * $(RETRAIN_EPOCHS_1) )))
+X2_BUDGET = $(if $(MINUTES),--minutes $$(( 3 * $(MINUTES) )),--epochs $$(( $(EPOCHS) + 2 * ($(RETRAIN_EPOCHS_1) + $(RETRAIN_EPOCHS_2)) )))
 $(RUN)/baselines/source_x1_budget/model/manifest.json: $(SOURCE)/manifest.json
 	$(TRAIN_DALI) pretrain --source $(SOURCE) --seed $(SEED) $(X1_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/source_x2_budget/model/manifest.json: $(SOURCE)/manifest.json

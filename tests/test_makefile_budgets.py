@@ -1,0 +1,69 @@
+"""The Makefile's training budgets (`make -n`, nothing runs): per-iteration retraining epochs
+(RETRAIN_EPOCHS_1/2) reach the retrain commands, and the equal-budget controls count exactly the
+frames DALI's x1 and x2 saw, whatever the split."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+pytestmark = pytest.mark.skipif(shutil.which("make") is None, reason="make is not installed")
+
+
+def plan(tmp_path: Path, goal: str, *variables: str) -> str:
+    """The commands `make -n GOAL` would run for a fresh RUN."""
+    result = subprocess.run(
+        ["make", "--no-print-directory", "-n", "-C", str(REPO), goal, f"RUN={tmp_path / 'run'}",
+         "EPOCHS=6", *variables],
+        capture_output=True, text=True, timeout=60, check=True,
+    )  # fmt: skip
+    return result.stdout
+
+
+def epochs(line: str) -> int:
+    """The --epochs of a command line; shell arithmetic $(( ... )) evaluated."""
+    value = re.search(r"--epochs (\$\(\(.*?\)\)|\d+)", line).group(1)
+    if value.startswith("$(("):
+        expression = value[3:-2]
+        assert re.fullmatch(r"[\d\s+*()]+", expression), expression
+        return int(eval(expression))  # digits, +, *, parentheses only
+    return int(value)
+
+
+def retrain_epochs(text: str) -> dict[str, int]:
+    """--epochs of each retrain command, by the model it writes."""
+    found = {}
+    for line in text.splitlines():
+        if " retrain " in line:
+            found[re.search(r"--out \S*/(iter\d)/model", line).group(1)] = epochs(line)
+    return found
+
+
+def control_epochs(tmp_path: Path, name: str, *variables: str) -> int:
+    goal = f"{tmp_path / 'run'}/baselines/{name}/model/manifest.json"
+    lines = [line for line in plan(tmp_path, goal, *variables).splitlines() if " pretrain " in line]
+    return epochs(lines[-1])
+
+
+@pytest.mark.parametrize(
+    ("variables", "expected"),
+    [
+        (("RETRAIN_EPOCHS=6",), {"iter1": 6, "iter2": 6}),
+        (("RETRAIN_EPOCHS_1=3", "RETRAIN_EPOCHS_2=9"), {"iter1": 3, "iter2": 9}),
+        (("RETRAIN_EPOCHS=4", "RETRAIN_EPOCHS_2=8"), {"iter1": 4, "iter2": 8}),
+    ],
+)
+def test_per_iteration_budgets_and_equal_budget_controls(tmp_path, variables, expected):
+    assert retrain_epochs(plan(tmp_path, "iter2", *variables)) == expected
+    # each retraining epoch is source + PPCG frames (1:1): twice a pretraining epoch
+    x1 = 6 + 2 * expected["iter1"]
+    x2 = x1 + 2 * expected["iter2"]
+    assert control_epochs(tmp_path, "source_x1_budget", *variables) == x1
+    assert control_epochs(tmp_path, "source_x2_budget", *variables) == x2
+    assert control_epochs(tmp_path, "oracle_x2_budget", *variables) == x2
