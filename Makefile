@@ -103,8 +103,8 @@ EXEC_FLAGS      = --executor $(EXECUTOR)$(if $(WORKERS), --workers $(WORKERS))$(
 SYNTH_FLAGS     = --executor $(EXECUTOR) --workers $(or $(WORKERS),$(SYNTH_WORKERS))$(if $(RAY_ADDRESS), --ray-address $(RAY_ADDRESS))
 VAL_FRAMES     ?= $(FRAMES)
 SCORE_MIN      ?= 0.3
-# pseudo-label options, e.g. PSEUDO_FLAGS=--no-tta (labels from one detector pass at ŝ instead of
-# ten fused views: the session-12 ablation in docs/RESULTS.md)
+# pseudo-label options, e.g. PSEUDO_FLAGS=--tta (labels fused from ten views instead of one
+# detector pass at ŝ: the session-12 ablation in docs/RESULTS.md)
 PSEUDO_FLAGS   ?=
 # evaluation: all boxes and range bands of the front region (90 deg FOV, detection range, as ST3D
 # evaluates KITTI), AP at IoU 0.7 and 0.5

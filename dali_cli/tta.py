@@ -5,8 +5,9 @@ to the original frame and fuse the boxes that several views agree on into one.
 A box that one view places a little off is pulled towards where the other views put it; a box
 that only one view sees keeps a fraction of its score and mostly falls under the score cut.
 Measured on the demo's iteration-1 labels (docs/RESULTS.md, session 12): BEV AP@0.7 of the
-pseudo boxes 51.8 -> 66.0 (seed 0) and 60.8 -> 74.9 (seed 1), precision at the 0.3 score cut
-0.51 -> 0.69 and 0.59 -> 0.75.
+pseudo boxes 51.8 -> 66.0 (seed 0) and 60.8 -> 74.9 (seed 1), precision / recall at BEV IoU 0.7
+and the 0.3 score cut 0.51 / 0.60 -> 0.69 / 0.70 and 0.59 / 0.70 -> 0.75 / 0.78. The models
+retrained on them were no better (same page), so `dali pseudo-label` uses it only with --tta.
 
 The mirror is y -> -y (the sensor's left-right), which maps a scene onto an equally plausible
 one; a box (x, y, z, l, w, h, yaw) maps to (x, -y, z, l, w, h, -yaw).

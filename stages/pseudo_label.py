@@ -1,5 +1,6 @@
-"""Stage pseudo_label: run the detector on the target at the PTSN scale ŝ (by default in ten
-views, ŝ x 0.9..1.1 each also mirrored, fused box by box: dali_cli.tta), de-scale, drop
+"""Stage pseudo_label: run the detector on the target at the PTSN scale ŝ (with test-time
+augmentation: in ten views, ŝ x 0.9..1.1 each also mirrored, fused box by box, dali_cli.tta),
+de-scale, drop
 implausible boxes (dali_cli.plausibility, counted), keep score >= score_min, BEV NMS, remove the
 remaining per-dimension size bias against E_est (`dali_cli.size_correction`, on by default),
 count the original points in each box; write boxes.parquet, scale.json (the ScaleResult the
@@ -85,7 +86,7 @@ def pseudo_label(
     mount_height_m: float | None = None,
     sensors_path: str | None = None,
     size_correction_method: str = "per-dim",
-    views: tta.Views | None = tta.Views(),
+    views: tta.Views | None = None,
     force: bool = False,
     dry_run: bool = False,
     workers: int | None = None,

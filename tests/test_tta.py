@@ -213,12 +213,12 @@ def errors_and_count(out) -> tuple[float, int]:
 def test_fused_labels_sit_on_the_cars_and_drop_a_one_view_false_box(stage):
     tmp_path, target, model, detector = stage
     single, fused = tmp_path / "single", tmp_path / "fused"
-    result = label(model, target, single, "--no-tta")
+    result = label(model, target, single)  # the default: one pass
     assert result.exit_code == 0, result.output
     error_single, count_single = errors_and_count(single)
     assert count_single == 4 * 4 and error_single > 20  # the false car is kept
     detector.calls.clear()
-    result = label(model, target, fused, "--tta-scales", "0.9,1,1.1")
+    result = label(model, target, fused, "--tta", "--tta-scales", "0.9,1,1.1")
     assert result.exit_code == 0, result.output
     assert sorted(set(detector.calls)) == [
         (0.9, False), (0.9, True), (1.0, False), (1.0, True), (1.1, False), (1.1, True)
@@ -236,12 +236,15 @@ def test_fused_labels_sit_on_the_cars_and_drop_a_one_view_false_box(stage):
 def test_tta_options_change_the_labels_identity_and_bad_factors_are_refused(stage):
     tmp_path, target, model, _ = stage
     out = tmp_path / "p"
-    assert label(model, target, out, "--tta-scales", "1", "--no-tta-mirror").exit_code == 0
-    again = label(model, target, out, "--no-tta")  # the same single view: up to date
+    single = label(model, target, out, "--tta", "--tta-scales", "1", "--no-tta-mirror")
+    assert single.exit_code == 0, single.output
+    again = label(model, target, out)  # the default, the same single view: up to date
     assert again.exit_code == 0 and "up to date" in again.output
-    rerun = label(model, target, out)  # ten views: a different artifact, rebuilt
+    rerun = label(model, target, out, "--tta")  # ten views: a different artifact, rebuilt
     assert rerun.exit_code == 0 and "up to date" not in rerun.output
+    without = label(model, target, tmp_path / "bad", "--tta-scales", "0.9,1.1")
+    assert without.exit_code == 2 and "--tta-scales needs --tta" in without.output
     for bad in ["0.9,x", "0,1", "1,1"]:
-        result = label(model, target, tmp_path / "bad", "--tta-scales", bad)
+        result = label(model, target, tmp_path / "bad", "--tta", "--tta-scales", bad)
         assert result.exit_code == 2 and "--tta-scales" in result.output
         assert not (tmp_path / "bad").exists()

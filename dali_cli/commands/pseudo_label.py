@@ -28,10 +28,19 @@ def parse_scale_factors(ctx, param, value: str) -> tuple[float, ...]:
 
 
 def views_of(on: bool, factors: tuple[float, ...], mirror: bool):
-    """The stage's test-time views (None: off)."""
+    """The stage's test-time views (None: off). --tta-scales or --tta-mirror without --tta is a
+    usage error rather than silently ignored."""
+    from click.core import ParameterSource
+
     from dali_cli import tta as augmentation
 
-    return augmentation.Views(factors, mirror) if on else None
+    if not on:
+        context = click.get_current_context()
+        for name, flag in (("tta_scales", "--tta-scales"), ("tta_mirror", "--tta-mirror")):
+            if context.get_parameter_source(name) is not ParameterSource.DEFAULT:
+                raise click.UsageError(f"{flag} needs --tta")
+        return None
+    return augmentation.Views(factors, mirror)
 
 
 @click.command(name="pseudo-label")
@@ -49,11 +58,13 @@ def views_of(on: bool, factors: tuple[float, ...], mirror: bool):
                help="per-dim: multiply l, w, h by E_est / mean pseudo-box size per dimension "
                     "(bottom face kept), removing the bias one isotropic ŝ leaves; E_est from "
                     "--scale-from's scale.json.")  # fmt: skip
-@click.option("--tta/--no-tta", default=True, show_default=True,
+@click.option("--tta/--no-tta", default=False, show_default=True,
               help="Test-time augmentation: label each frame in several views (ŝ times each "
                    "--tta-scales factor, each also mirrored left-right) and fuse the boxes the "
                    "views agree on (score-weighted mean; score = sum over views / views): "
-                   "fewer false and better placed boxes, at one detector pass per view.")  # fmt: skip
+                   "fewer false and better placed boxes, at one detector pass per view. Off by "
+                   "default: the better labels did not make a better retrained model "
+                   "(docs/RESULTS.md, session 12).")  # fmt: skip
 @click.option("--tta-scales", default=",".join(f"{f:g}" for f in tta.DEFAULT_SCALE_FACTORS),
               show_default=True, callback=parse_scale_factors,
               help="Comma-separated factors of ŝ, one view each (with --tta).")  # fmt: skip
@@ -65,7 +76,7 @@ def views_of(on: bool, factors: tuple[float, ...], mirror: bool):
 def command(model_dir, target_dir, out, sensors_path, no_progress, tta, tta_scales, tta_mirror,
             **options):  # fmt: skip
     """Pseudo-label the target: run the model on the target points scaled by ŝ about the ground
-    (by default in ten views fused box by box, see --tta), de-scale the boxes, keep score >=
+    (with --tta in ten views fused box by box), de-scale the boxes, keep score >=
     --score-min, BEV NMS at --nms-iou, then (by default)
     correct each dimension's remaining size bias against E_est (target statistics only).
 
