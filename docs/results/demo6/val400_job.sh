@@ -20,6 +20,9 @@ declare -A ROWS=(  # row -> "model_dir ptsn_dir"
   [front24]="runs/d5front24-s$s/iter1/model runs/d5front24-s$s/iter2/ptsn"
   [tta]="runs/d5tta-s$s/iter2/model runs/d5tta-s$s/iter3/ptsn"
   [ttalate]="runs/d5ttalate-s$s/iter2/model runs/d5ttalate-s$s/iter3/ptsn"
+  [pseudo-matched]="runs/d5pseudo-matched-s$s/model runs/d5pseudo-matched-s$s/ptsn"
+  [truth-matched]="runs/d5truth-matched-s$s/model runs/d5truth-matched-s$s/ptsn"
+  [refined]="runs/d5refined-s$s/model runs/d5refined-s$s/ptsn"
 )
 for row in ${*:-control x2 late tta ttalate x1long truebox rawtrue front front24 x1}; do
   set -- ${ROWS[$row]}; E=runs/val400-s$s/$row
