@@ -10,8 +10,9 @@ import pytest
 from click.testing import CliRunner
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from stub_stage import write_stub_inputs
 
-from dali_cli.artifacts import read_boxes, write_frameset
+from dali_cli.artifacts import read_boxes
 from dali_cli.cli import main
 from dali_cli.geometry import (
     descale_boxes_about_ground,
@@ -92,12 +93,7 @@ class SizeLawDetector:
 
 @pytest.fixture
 def setup(tmp_path, monkeypatch):
-    target = tmp_path / "target"
-    target.mkdir()
-    write_frameset(target, [(f"{i:03d}", frame_points(i)) for i in range(6)], sensor="kitti")
-    model = tmp_path / "model"
-    model.mkdir()
-    (model / "model.json").write_text(json.dumps({"config": {"sensor": "waymo"}}))
+    target, model = write_stub_inputs(tmp_path, [frame_points(i) for i in range(6)])
     detector = SizeLawDetector(KITTI_LWH * 1.2)
     import stages.pseudo_label
     import stages.ptsn_sweep

@@ -11,8 +11,9 @@ import pytest
 from click.testing import CliRunner
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from stub_stage import write_stub_inputs
 
-from dali_cli.artifacts import read_boxes, write_frameset
+from dali_cli.artifacts import read_boxes
 from dali_cli.cli import main
 from dali_cli.geometry import (
     count_points_in_boxes,
@@ -179,12 +180,7 @@ class ViewNoiseDetector:
 
 @pytest.fixture
 def stage(tmp_path, monkeypatch):
-    target = tmp_path / "target"
-    target.mkdir()
-    write_frameset(target, [(f"{i:03d}", frame_points(i)) for i in range(4)], sensor="kitti")
-    model = tmp_path / "model"
-    model.mkdir()
-    (model / "model.json").write_text(json.dumps({"config": {"sensor": "waymo"}}))
+    target, model = write_stub_inputs(tmp_path, [frame_points(i) for i in range(4)])
     detector = ViewNoiseDetector(1.2)
     import stages.pseudo_label
 

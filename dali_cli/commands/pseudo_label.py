@@ -17,13 +17,12 @@ from dali_cli.commands.common import (
 
 
 def parse_scale_factors(ctx, param, value: str) -> tuple[float, ...]:
-    """'0.9,1,1.1' -> (0.9, 1.0, 1.1): positive, distinct factors."""
+    """'0.9,1,1.1' -> (0.9, 1.0, 1.1), checked by tta.Views (positive, distinct)."""
     try:
         factors = tuple(float(v) for v in value.split(","))
-    except ValueError:
-        raise click.BadParameter(f"expected comma-separated numbers, got '{value}'") from None
-    if any(not f > 0 for f in factors) or len(set(factors)) != len(factors):
-        raise click.BadParameter(f"factors must be positive and distinct, got '{value}'")
+        tta.Views(factors)
+    except ValueError as error:
+        raise click.BadParameter(f"'{value}': {error}") from None
     return factors
 
 
