@@ -269,20 +269,22 @@ def test_lost_ray_workers_are_restarted_and_their_shards_retried(
     """Both actors are killed while shards are queued and running: Ray restarts them (each
     loads the library again, once) and reruns their shards; the artifact is still the serial
     one."""
-    import dali_cli.executors as executors
+    from dali_cli.executors.ray import RayExecutor
 
-    original = executors.shard_results
+    original = RayExecutor._completions
     killed = []
 
     def killing(executor, factory, shards, directory):
-        for shard, shard_dir, summary in original(executor, factory, shards, directory):
+        # at the first completion, not at the first merge in shard order (that can come after
+        # every shard is done): with 2 actors and 6 one-frame shards, 4 are still queued
+        for shard, result in original(executor, factory, shards, directory):
             if not killed:
                 for actor in executor._actors:
                     ray_session.kill(actor, no_restart=False)
                 killed.append(shard.index)
-            yield shard, shard_dir, summary
+            yield shard, result
 
-    monkeypatch.setattr(executors, "shard_results", killing)
+    monkeypatch.setattr(RayExecutor, "_completions", killing)
     args = ["ppcg-cf", "--target", data / "target", "--boxes", data / "target",
             "--library", data / "library", "--no-progress"]  # fmt: skip
     dali(*args, "--out", tmp_path / "serial")
