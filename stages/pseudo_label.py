@@ -3,7 +3,8 @@ augmentation: in ten views, ŝ x 0.9..1.1 each also mirrored, fused box by box, 
 de-scale, drop
 implausible boxes (dali_cli.plausibility, counted), keep score >= score_min, BEV NMS, remove the
 remaining per-dimension size bias against E_est (`dali_cli.size_correction`, on by default),
-count the original points in each box; write boxes.parquet, scale.json (the ScaleResult the
+with --fit-points move each box onto its points (`dali_cli.box_fit`, off by default), count the
+original points in each box; write boxes.parquet, scale.json (the ScaleResult the
 labels were made at: ŝ stored once, exactly as found) and summary.json (boxes per frame, mean
 size vs E_est, score histogram)."""
 
@@ -18,8 +19,8 @@ from typing import Unpack
 
 import numpy as np
 
-from dali_cli import console, ptsn, size_correction, tta
-from dali_cli.artifacts import BoxTable, FrameSet, write_boxes
+from dali_cli import box_fit, console, ptsn, size_correction, tta
+from dali_cli.artifacts import BOX_FIELDS, BoxTable, FrameSet, write_boxes
 from dali_cli.device import InferenceOptions, inference_runtime, inference_setup
 from dali_cli.errors import ParameterError, StageError
 from dali_cli.executors import make_executor, run_on
@@ -87,6 +88,7 @@ def pseudo_label(
     sensors_path: str | None = None,
     size_correction_method: str = "per-dim",
     views: tta.Views | None = None,
+    point_fit: box_fit.PointFit | None = None,
     force: bool = False,
     dry_run: bool = False,
     workers: int | None = None,
@@ -95,7 +97,8 @@ def pseudo_label(
     **inference: Unpack[InferenceOptions],
 ) -> StageOutcome:
     """Run the pseudo-label stage (see the module docstring). `views`: the test-time
-    augmentation (None or a single view: the detector once at ŝ). `executor`, `workers`,
+    augmentation (None or a single view: the detector once at ŝ). `point_fit`: move each box
+    onto its points after the size correction (None: off). `executor`, `workers`,
     `ray_address`: the engine of the detector runs (dali_cli.executors); `inference`: device,
     precision, batch size, progress and (tests) the detector loader (InferenceOptions)."""
     model_dir, target_dir = Path(model_dir), Path(target_dir)
@@ -118,6 +121,7 @@ def pseudo_label(
         **({"precision": precision} if precision != "fp32" else {}),
         # recorded only when on: labels made before test-time augmentation stay up to date
         **({"tta": views.record()} if views is not None and not views.single else {}),
+        **({"fit_points": point_fit.record()} if point_fit is not None else {}),
     }  # fmt: skip
     inputs = {"model": model_dir, "target": target_dir}
     inputs.update({"scale_from": scale_from} if scale_from is not None else {})
@@ -139,10 +143,14 @@ def pseudo_label(
         correction = None
         if method != "none" and len(table):
             table, correction = correct_table(table, target, e_est, score_min)
+        fitted = None
+        if point_fit is not None:
+            table, fitted = fit_table(table, target, point_fit)
         write_outputs(
             directory, table, scale_record(used, scale_source, mount_height_m),
             summarize(table, len(target), e_est),
-            {"boxes_implausible": implausible, "size_correction": correction},
+            {"boxes_implausible": implausible, "size_correction": correction,
+             **({"point_fit": fitted} if fitted is not None else {})},
         )  # fmt: skip
         skipped_correction = method != size_correction_method
         return BuildResult(
@@ -153,6 +161,7 @@ def pseudo_label(
                 "pseudo_label": {"scale_source": scale_source},
                 "runtime": inference_runtime(torch_device),
                 "size_correction": correction or {"method": method},
+                **({"point_fit": fitted} if fitted is not None else {}),
                 "executor": pool.report(),
             },
         )
@@ -308,6 +317,35 @@ def correct_table(
     return corrected, record.to_dict()
 
 
+def fit_table(table: BoxTable, target: FrameSet, fit: box_fit.PointFit) -> tuple[BoxTable, dict]:
+    """`table` with every box moved onto its frame's points (dali_cli.box_fit; sizes, z, scores
+    and the other columns kept) and num_points recounted; the fit's record: boxes fitted (enough
+    points), mean shift (m) and turn (deg) over them."""
+    from dali_cli.geometry import count_points_in_boxes, wrap_angle
+
+    boxes, counts = table.boxes.copy(), np.asarray(table["num_points"]).copy()
+    used = np.zeros(len(table), np.int64)
+    rows = table.rows_by_frame()
+    for frame_id, points in target.iter_frames():
+        if frame_id in rows:
+            r = rows[frame_id]
+            boxes[r], used[r] = box_fit.fit_boxes(table.boxes[r], points, fit)
+            counts[r] = count_points_in_boxes(points, boxes[r])
+    columns = dict(table.columns)
+    columns.update({name: boxes[:, i] for i, name in enumerate(BOX_FIELDS)})
+    columns["num_points"] = counts.astype(np.int32)
+    fitted = used >= fit.min_points
+    shift = np.hypot(*(boxes[:, :2] - table.boxes[:, :2]).T)
+    turn = np.degrees(np.abs(wrap_angle(boxes[:, 6] - table.boxes[:, 6])))
+    record = {
+        "boxes_fitted": int(fitted.sum()),
+        "boxes_too_few_points": int((~fitted).sum()),
+        "mean_shift_m": round(float(shift[fitted].mean()), 4) if fitted.any() else 0.0,
+        "mean_turn_deg": round(float(turn[fitted].mean()), 3) if fitted.any() else 0.0,
+    }
+    return BoxTable(columns), record
+
+
 def print_summary(summary: dict, scale: float) -> None:
     def triple(values) -> str:
         return (
@@ -325,4 +363,11 @@ def print_summary(summary: dict, scale: float) -> None:
             f"size correction (per dimension, target statistics only): factors "
             f"{triple(correction['factors_lwh'])}; mean l/w/h before "
             f"({triple(correction['mean_lwh_before'])}) m"
+        )
+    fitted = summary.get("point_fit")
+    if fitted:
+        console.echo(
+            f"point fit: {fitted['boxes_fitted']} boxes moved onto their points (mean shift "
+            f"{fitted['mean_shift_m']:.2f} m, turn {fitted['mean_turn_deg']:.1f} deg); "
+            f"{fitted['boxes_too_few_points']} with too few points kept"
         )

@@ -69,15 +69,20 @@ def views_of(on: bool, factors: tuple[float, ...], mirror: bool):
               help="Comma-separated factors of ŝ, one view each (with --tta).")  # fmt: skip
 @click.option("--tta-mirror/--no-tta-mirror", default=True, show_default=True,
               help="Also label each view mirrored left-right (with --tta).")  # fmt: skip
+@click.option("--fit-points/--no-fit-points", default=False, show_default=True,
+              help="Move and turn each pseudo box (its size kept) so its sides hug the target "
+                   "points it holds: shifts up to 1 m along the car and 0.2 m across, turns "
+                   "up to 8 degrees (dali_cli.box_fit). Target points only, no label.")  # fmt: skip
 @workers_option("1")
 @executor_options
 @target_scaling_options
 def command(model_dir, target_dir, out, sensors_path, no_progress, tta, tta_scales, tta_mirror,
-            **options):  # fmt: skip
+            fit_points, **options):  # fmt: skip
     """Pseudo-label the target: run the model on the target points scaled by ŝ about the ground
     (with --tta in ten views fused box by box), de-scale the boxes, keep score >=
     --score-min, BEV NMS at --nms-iou, then (by default)
-    correct each dimension's remaining size bias against E_est (target statistics only).
+    correct each dimension's remaining size bias against E_est (target statistics only),
+    and with --fit-points move each box onto its points.
 
     Reads MODEL, the TARGET frame set (never its labels) and --scale-from's scale.json.
     Writes OUT/boxes.parquet (one row per pseudo box: frame_id, x, y, z, l, w, h, yaw, score,
@@ -86,6 +91,7 @@ def command(model_dir, target_dir, out, sensors_path, no_progress, tta, tta_scal
     scale_source and the pivot mount_height_m; the one record of ŝ in the output),
     OUT/summary.json (boxes per frame, mean size vs E_est, score histogram) and manifest.json.
     """
+    from dali_cli.box_fit import PointFit
     from stages.pseudo_label import pseudo_label
 
     pseudo_label(
@@ -95,5 +101,6 @@ def command(model_dir, target_dir, out, sensors_path, no_progress, tta, tta_scal
         sensors_path=sensors_path,
         progress=not no_progress,
         views=views_of(tta, tta_scales, tta_mirror),
+        point_fit=PointFit() if fit_points else None,
         **options,
     )
