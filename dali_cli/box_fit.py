@@ -10,7 +10,8 @@ outside and its front side empty.
 
 For each box, the candidate points are those in the box grown by `margin_m` (laterally and
 vertically), above its bottom + `ground_clearance_m` (no ground) and below its top + 0.3 m, and in
-no other box of the frame. Candidate poses are the box shifted by up to ±`along_m` along its
+no other box of the frame grown by 0.15 m (a LiDAR point on a car's face lies on its box's
+boundary, or just outside an imprecise box). Candidate poses are the box shifted by up to ±`along_m` along its
 heading and ±`across_m` across it and turned by up to ±`turn_deg` (a grid); each is scored by
 
     cost = Σ_points min(distance to the nearest side, side_cap_m)² + outside_weight · Σ_points
@@ -32,6 +33,7 @@ import numpy as np
 from dali_cli.geometry import point_box_pairs, wrap_angle
 
 TOP_MARGIN_M = 0.3  # candidate points may reach this far above the box (its height is a guess)
+CLAIM_MARGIN_M = 0.15  # a point this close to another box belongs to that car
 
 
 @dataclass(frozen=True)
@@ -80,27 +82,22 @@ class PointFit:
         return asdict(self)
 
 
-def candidate_points(
-    boxes: np.ndarray, points: np.ndarray, fit: PointFit
-) -> list[np.ndarray]:
+def candidate_points(boxes: np.ndarray, points: np.ndarray, fit: PointFit) -> list[np.ndarray]:
     """Each box's candidate points (see the module docstring) as BEV offsets from its centre in
     its own frame: a list of `(n_k, 2)` float64 arrays (u along the heading, v to its left), at
     most `fit.max_points` each. boxes `(K, 7)`, points `(n, >=3)` in the boxes' frame."""
     boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
     xyz = np.asarray(points[:, :3], np.float64)
     near_point, near_box = point_box_pairs(xyz, boxes, fit.margin_m)
-    in_point, in_box = point_box_pairs(xyz, boxes)
-    inside_count = np.bincount(in_point, minlength=len(xyz))  # boxes holding each point
-    inside_own = np.zeros(len(near_point), bool)  # is the pair's point inside its own box?
-    if len(in_point):
-        own = np.searchsorted(
-            in_point.astype(np.int64) * len(boxes) + in_box,
-            near_point.astype(np.int64) * len(boxes) + near_box,
-        )
-        own = np.minimum(own, len(in_point) - 1)
-        inside_own = (in_point[own] == near_point) & (in_box[own] == near_box)
-    # a point inside another box belongs to that car
-    foreign = inside_count[near_point] - inside_own > 0
+    claim_point, claim_box = point_box_pairs(xyz, boxes, CLAIM_MARGIN_M)
+    claims = np.bincount(claim_point, minlength=len(xyz))  # boxes claiming each point
+    claimed_by_own = np.zeros(len(near_point), bool)  # does the pair's own box claim the point?
+    if len(claim_point):  # pairs are sorted by point, then box: one searchsorted finds each
+        keys = claim_point.astype(np.int64) * len(boxes) + claim_box
+        wanted = near_point.astype(np.int64) * len(boxes) + near_box
+        found = np.minimum(np.searchsorted(keys, wanted), len(keys) - 1)
+        claimed_by_own = keys[found] == wanted
+    foreign = claims[near_point] - claimed_by_own > 0  # claimed by another box: another car
     bottom = boxes[near_box, 2] - boxes[near_box, 5] / 2
     z = xyz[near_point, 2]
     keep = ~foreign & (z > bottom + fit.ground_clearance_m)

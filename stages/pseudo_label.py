@@ -367,7 +367,7 @@ def print_summary(summary: dict, scale: float) -> None:
     fitted = summary.get("point_fit")
     if fitted:
         console.echo(
-            f"point fit: {fitted['boxes_fitted']} boxes moved onto their points (mean shift "
+            f"point fit: {fitted['boxes_fitted']} boxes fitted to their points (mean shift "
             f"{fitted['mean_shift_m']:.2f} m, turn {fitted['mean_turn_deg']:.1f} deg); "
             f"{fitted['boxes_too_few_points']} with too few points kept"
         )
