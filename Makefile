@@ -104,8 +104,10 @@ SYNTH_FLAGS     = --executor $(EXECUTOR) --workers $(or $(WORKERS),$(SYNTH_WORKE
 VAL_FRAMES     ?= $(FRAMES)
 SCORE_MIN      ?= 0.3
 # pseudo-label options, e.g. PSEUDO_FLAGS=--tta (labels fused from ten views instead of one
-# detector pass at ŝ: the session-12 ablation in docs/RESULTS.md)
+# detector pass at ŝ: the session-12 ablation in docs/RESULTS.md) or --fit-points
 PSEUDO_FLAGS   ?=
+# options of both ppcg-rc and ppcg-cf, e.g. PPCG_FLAGS=--orient-models
+PPCG_FLAGS     ?=
 # evaluation: all boxes and range bands of the front region (90 deg FOV, detection range, as ST3D
 # evaluates KITTI), AP at IoU 0.7 and 0.5
 EVAL_FLAGS     ?= --protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
@@ -147,9 +149,9 @@ define ITER
 $(RUN)/iter$(1)/pseudo/manifest.json: $(RUN)/iter$(1)/ptsn/manifest.json
 	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(RUN)/iter$(2)/model --target $(TARGET) --scale-from $(RUN)/iter$(1)/ptsn --score-min $(SCORE_MIN) $(PSEUDO_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/rc/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
-	$(DALI) ppcg-rc --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) $(EXEC_FLAGS) --out $$(@D)
+	$(DALI) ppcg-rc --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) $(PPCG_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/cf/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
-	$(DALI) ppcg-cf --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) $(EXEC_FLAGS) --out $$(@D)
+	$(DALI) ppcg-cf --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) $(PPCG_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/model/manifest.json: $(RUN)/iter$(1)/rc/manifest.json $(RUN)/iter$(1)/cf/manifest.json $(SOURCE)/manifest.json
 	$(TRAIN_DALI) retrain --init $(RUN)/iter$(2)/model --source $(SOURCE) --ppcg $(RUN)/iter$(1)/rc $(RUN)/iter$(1)/cf $(call SOURCE_SIZE_FLAGS,$(1)) --seed $(SEED) $(call RETRAIN_BUDGET,$(1)) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $$(@D)
 $(RUN)/iter$(1)/eval/manifest.json: $(RUN)/iter$(3)/ptsn/manifest.json $(TARGET_VAL)/manifest.json

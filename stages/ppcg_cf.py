@@ -25,9 +25,11 @@ def ppcg_cf(
     top_k: int = 1,
     seed: int = 0,
     ground_margin_m: float = 0.1,
+    orient_models: bool = False,
     **options: Unpack[PpcgOptions],
 ) -> StageOutcome:
-    """CF pseudo point clouds (see dali_cli.ppcg.cf); `options` as ppcg_rc's."""
+    """CF pseudo point clouds (see dali_cli.ppcg.cf); `orient_models` and `options` as
+    ppcg_rc's."""
     low, high = (float(v) for v in range_m)
     if not 0 < low <= high:
         raise ParameterError("range_m", f"need 0 < LOW <= HIGH, got {low}:{high}")
@@ -36,10 +38,14 @@ def ppcg_cf(
         FrameSet(target_dir), options.get("sensor"), options.get("sensors_path")
     )
     shared = {"top_k": top_k, "seed": seed, "ground_margin_m": ground_margin_m}
+    orient = {"orient": True} if orient_models else {}  # recorded only when on
     params = CfParams(
-        theta_rad=angular_threshold_rad(profile.points_per_beam), range_m=(low, high), **shared
+        theta_rad=angular_threshold_rad(profile.points_per_beam),
+        range_m=(low, high),
+        **shared,
+        **orient,
     )
-    stage_params = {"range_m": [low, high], **shared}
+    stage_params = {"range_m": [low, high], **shared, **orient}
     return run_ppcg(
         "cf", target_dir, boxes_dir, library_dir, out,
         params=params, stage_params=stage_params, **options,

@@ -26,9 +26,11 @@ def ppcg_rc(
     top_k: int = 1,
     seed: int = 0,
     ground_margin_m: float = 0.1,
+    orient_models: bool = False,
     **options: Unpack[PpcgOptions],
 ) -> StageOutcome:
-    """RC pseudo point clouds (see dali_cli.ppcg.rc); `options`: sensor, models, label, engine
+    """RC pseudo point clouds (see dali_cli.ppcg.rc); `orient_models`: turn a box round when its
+    model fits its points better that way (dali_cli.ppcg.orient); `options`: sensor, models, label, engine
     and stage switches (dali_cli.ppcg.run.PpcgOptions; `bank` replaces the library in tests)."""
     if min_points < 1 or max_points <= min_points:
         raise ParameterError(
@@ -39,14 +41,16 @@ def ppcg_rc(
         FrameSet(target_dir), options.get("sensor"), options.get("sensors_path")
     )
     shared = {"top_k": top_k, "seed": seed, "ground_margin_m": ground_margin_m}
+    orient = {"orient": True} if orient_models else {}  # recorded only when on
     params = RcParams(
         mount_height_m=profile.mount_height_m,
         theta_rad=angular_threshold_rad(profile.points_per_beam),
         max_points=max_points,
         min_points=min_points,
         **shared,
+        **orient,
     )
-    stage_params = {"max_points": max_points, "min_points": min_points, **shared}
+    stage_params = {"max_points": max_points, "min_points": min_points, **shared, **orient}
     return run_ppcg(
         "rc", target_dir, boxes_dir, library_dir, out,
         params=params, stage_params=stage_params, **options,

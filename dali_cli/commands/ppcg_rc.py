@@ -36,6 +36,10 @@ def ppcg_options(function):
                      show_default=True,
                      help="Points of a box below max(box bottom, -mount height) + this are "
                           "ground: kept."),
+        click.option("--orient-models/--no-orient-models", default=False, show_default=True,
+                     help="Turn a box round when its car model fits the box's points better "
+                          "facing the other way (the detector's headings are right only up to "
+                          "a half turn; dali_cli.ppcg.orient). Mesh models only."),
         click.option("--label", default="Car", show_default=True,
                      help="Process boxes of this label; other rows pass through as 'raw'."),
         workers_option("1"),

@@ -6,6 +6,8 @@ box's angular window are cast against the fitted model; the first hits inside th
 limits are moved back by the same translation and replace the box's car points (frame.py). A box
 with no hits keeps its raw points (`no_hits`). CF points get the median intensity of the box's raw
 car points (the profile's car intensity when it has none). Occlusion between objects is ignored.
+With `orient`, a box whose model fits its points better turned round is turned round first
+(dali_cli.ppcg.orient).
 """
 
 from __future__ import annotations
@@ -17,19 +19,22 @@ import numpy as np
 from dali_cli.ppcg.fitting import box_rng, box_uniform
 from dali_cli.ppcg.frame import CF, BoxRecords, assemble, car_points, ground_heights
 from dali_cli.ppcg.models import ModelBank
+from dali_cli.ppcg.orient import flips, turned
 from dali_cli.ppcg.window import box_windows, windows_directions
 from dali_cli.sensors import SensorProfile
 
 
 @dataclass(frozen=True)
 class CfParams:
-    """CF settings. range_m: (low, high) centre range in metres; theta_rad as in RcParams."""
+    """CF settings. range_m: (low, high) centre range in metres; theta_rad and orient as in
+    RcParams."""
 
     theta_rad: float
     range_m: tuple[float, float] = (20.0, 50.0)
     top_k: int = 1
     seed: int = 0
     ground_margin_m: float = 0.1
+    orient: bool = False
 
 
 def move_radially(boxes: np.ndarray, ranges_m: np.ndarray) -> np.ndarray:
@@ -78,14 +83,17 @@ def cf_frame(
     ranges = low + (high - low) * np.array(
         [box_uniform(params.seed, frame_id, i, "cf-range") for i in range(len(boxes))]
     )
-    shift = move_radially(boxes, ranges)  # (k, 3)
-    moved = boxes.copy()
-    moved[:, :3] += shift
-    windows = box_windows(moved)
     rngs = None
     if params.top_k > 1:
         rngs = [box_rng(params.seed, frame_id, i) for i in range(len(boxes))]
     models = bank.select(boxes, params.top_k, rngs)
+    if params.orient:  # mesh selection is by size: the same model either way round
+        records.flipped[:] = flips(bank, models, boxes, points, members)
+        boxes = turned(boxes, records.flipped)
+    shift = move_radially(boxes, ranges)  # (k, 3)
+    moved = boxes.copy()
+    moved[:, :3] += shift
+    windows = box_windows(moved)
     directions, bounds = windows_directions(profile, windows)  # only each window's rays
     hit, xyz = bank.cast_many(models, moved, directions, bounds, params.theta_rad)
     box_of_ray = np.repeat(np.arange(len(boxes)), np.diff(bounds))  # (N,)

@@ -42,7 +42,8 @@ def car_points(
 class BoxRecords:
     """Per-box outcome of one frame, all `(k,)`: ppcg (rc|cf|raw), reason (REASONS),
     points_before / points_after (car points in the box before/after), ground_points (points
-    in the box below its ground height, kept), model_id ("" if none)."""
+    in the box below its ground height, kept), model_id ("" if none), flipped (the model was
+    fitted turned round: the box's heading was turned by pi, dali_cli.ppcg.orient)."""
 
     ppcg: np.ndarray
     reason: np.ndarray
@@ -50,6 +51,7 @@ class BoxRecords:
     points_after: np.ndarray
     ground_points: np.ndarray
     model_id: np.ndarray
+    flipped: np.ndarray
 
     @classmethod
     def raw(cls, points_before: np.ndarray, ground_points: np.ndarray | None = None) -> BoxRecords:
@@ -63,6 +65,7 @@ class BoxRecords:
             points_after=before.copy(),
             ground_points=np.asarray(ground, dtype=np.int32),
             model_id=np.full(count, "", dtype=object),
+            flipped=np.zeros(count, dtype=bool),
         )
 
 

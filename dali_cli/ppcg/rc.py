@@ -6,6 +6,8 @@ its ray's first hit (CAD: first triangle; point model: nearest model point withi
 point_models). The point keeps its intensity and its ray. Misses and hits below the box's ground
 height are dropped (METHOD: misses are dropped); a box left with fewer than `min_points` hits keeps
 its raw points and is recorded as `no_hits`. Dense boxes are skipped. RC never adds points.
+With `orient`, a box whose model fits its points better turned round is turned round first
+(dali_cli.ppcg.orient).
 """
 
 from __future__ import annotations
@@ -17,11 +19,13 @@ import numpy as np
 from dali_cli.ppcg.fitting import box_rng
 from dali_cli.ppcg.frame import RC, BoxRecords, assemble, car_points, ground_heights
 from dali_cli.ppcg.models import ModelBank
+from dali_cli.ppcg.orient import flips, turned
 
 
 @dataclass(frozen=True)
 class RcParams:
-    """RC settings. theta_rad: point-model angular threshold (point_models.angular_threshold_rad)."""
+    """RC settings. theta_rad: point-model angular threshold (point_models.angular_threshold_rad);
+    orient: turn boxes whose model fits better the other way round (mesh models only)."""
 
     mount_height_m: float
     theta_rad: float
@@ -30,6 +34,7 @@ class RcParams:
     top_k: int = 1
     seed: int = 0
     ground_margin_m: float = 0.1
+    orient: bool = False
 
 
 def rc_frame(
@@ -49,6 +54,10 @@ def rc_frame(
         return points, records
     rngs = [box_rng(params.seed, frame_id, int(i)) for i in eligible] if params.top_k > 1 else None
     models = bank.select(boxes[eligible], params.top_k, rngs)
+    if params.orient:  # mesh selection is by size: the same model either way round
+        flip = flips(bank, models, boxes[eligible], points, [members[i] for i in eligible])
+        records.flipped[eligible] = flip
+        boxes = turned(boxes, records.flipped)
     index = [members[i] for i in eligible]
     bounds = np.r_[0, np.cumsum([len(m) for m in index])]  # (B + 1,) rays of each box
     index = np.concatenate(index)  # (N,) the car points of all eligible boxes

@@ -28,6 +28,7 @@ from dali_cli.manifest import BuildResult, StageOutcome, check_made_from, run_st
 from dali_cli.ppcg.cf import CfParams
 from dali_cli.ppcg.driver import Job, run_frames
 from dali_cli.ppcg.models import ModelBank
+from dali_cli.ppcg.orient import turned
 from dali_cli.ppcg.point_models import angular_threshold_rad
 from dali_cli.ppcg.rc import RcParams
 from dali_cli.sensors import get_profile
@@ -158,6 +159,10 @@ def run_ppcg(
     check_made_from(boxes_dir, "target", target_dir)  # pseudo boxes of this very frame set
     sensor, profile = target_profile(frames, sensor, sensors_path)
     models = model_kind(bank, options.get("models"), library_dir)
+    if params.orient and models != "cad":
+        raise ParameterError(
+            "orient_models", "orienting boxes by their model needs mesh models (--models cad)"
+        )
     params_record = {
         **stage_params,
         "sensor": sensor,
@@ -189,7 +194,7 @@ def run_ppcg(
             lambda: run_frames(job, frame_boxes, pool, local_bank, directory),
             outcomes, mode, options.get("progress", True),
         )  # fmt: skip
-        write_boxes(directory, outcomes.table(table))
+        write_boxes(directory, outcomes.table(table, params.orient))
         counts = ppcg_counts(mode, frames, rows, outcomes, implausible, tally)
         timings = ppcg_timings(frames, rows, tally)
         echo_summary(mode, counts, tally.wall)
@@ -268,6 +273,7 @@ class BoxOutcomes:
     after: np.ndarray
     model_id: np.ndarray
     num_points: np.ndarray
+    flipped: np.ndarray
 
     @classmethod
     def start(cls, table: BoxTable) -> BoxOutcomes:
@@ -280,6 +286,7 @@ class BoxOutcomes:
             after=np.zeros(count, np.int32),
             model_id=np.full(count, "", dtype=object),
             num_points=np.asarray(table["num_points"], np.int32).copy(),
+            flipped=np.zeros(count, bool),
         )
 
     def record(self, frame_rows: np.ndarray, records) -> None:
@@ -290,9 +297,15 @@ class BoxOutcomes:
         self.after[frame_rows] = records.points_after
         self.model_id[frame_rows] = records.model_id
         self.num_points[frame_rows] = records.ground_points + records.points_after
+        self.flipped[frame_rows] = records.flipped
 
-    def table(self, table: BoxTable) -> BoxTable:
-        """`table` with the outcome columns (boxes.parquet of the output)."""
+    def table(self, table: BoxTable, orient: bool = False) -> BoxTable:
+        """`table` with the outcome columns (boxes.parquet of the output); with `orient`, the
+        turned boxes' yaw and a heading_flipped column."""
+        if orient:
+            table = table.with_columns(
+                yaw=turned(table.boxes, self.flipped)[:, 6], heading_flipped=self.flipped
+            )
         return table.with_columns(
             ppcg=self.ppcg,
             ppcg_reason=self.reason,
