@@ -24,6 +24,7 @@ declare -A ROWS=(  # row -> "model_dir ptsn_dir"
   [truth-matched]="runs/d5truth-matched-s$s/model runs/d5truth-matched-s$s/ptsn"
   [refined]="runs/d5refined-s$s/model runs/d5refined-s$s/ptsn"
   [fit]="runs/d5fit-s$s/iter2/model runs/d5fit-s$s/iter3/ptsn"
+  [fito]="runs/d5fito-s$s/iter2/model runs/d5fito-s$s/iter3/ptsn"
 )
 for row in ${*:-control x2 late tta ttalate x1long truebox rawtrue front front24 x1}; do
   set -- ${ROWS[$row]}; E=runs/val400-s$s/$row
