@@ -67,3 +67,13 @@ def test_per_iteration_budgets_and_equal_budget_controls(tmp_path, variables, ex
     assert control_epochs(tmp_path, "source_x1_budget", *variables) == x1
     assert control_epochs(tmp_path, "source_x2_budget", *variables) == x2
     assert control_epochs(tmp_path, "oracle_x2_budget", *variables) == x2
+
+
+def test_stage_flags_reach_every_pseudo_label_and_ppcg_command(tmp_path):
+    text = plan(tmp_path, "iter2", "PSEUDO_FLAGS=--fit-points", "PPCG_FLAGS=--orient-models")
+    lines = text.splitlines()
+    pseudo = [line for line in lines if " pseudo-label " in line]
+    ppcg = [line for line in lines if " ppcg-rc " in line or " ppcg-cf " in line]
+    assert len(pseudo) == 2 and all("--fit-points" in line for line in pseudo)
+    assert len(ppcg) == 4 and all("--orient-models" in line for line in ppcg)
+    assert not any("--orient-models" in line for line in pseudo)
