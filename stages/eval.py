@@ -72,10 +72,13 @@ def resolve_scale(scale: float | None, scale_from: str | Path | None) -> float:
     return float(value)
 
 
-def predict(model, data, scale: float, device, precision: str, engine=None, near=None) -> BoxTable:
+def predict(
+    model, data, scale: float, device, precision: str, engine=None, near=None, progress=True
+) -> BoxTable:
     """Every prediction (all scores) of the model of `model` on the frame set `data`, on the
     torch `device` at `precision`, on `engine` (dali_cli.executors; None: this process); a
-    parallel engine's shards go to a temporary folder in `near` (workers must see it)."""
+    parallel engine's shards go to a temporary folder in `near` (workers must see it);
+    `progress`: a progress bar on stderr."""
     import shutil
     import tempfile
 
@@ -85,7 +88,9 @@ def predict(model, data, scale: float, device, precision: str, engine=None, near
         raise StageError(f"the detector is not available ({error})") from None
     from dali_cli.executors import run_on
 
-    options = dict(scale=scale, score_min=0.0, progress=True, device=device, precision=precision)
+    options = dict(
+        scale=scale, score_min=0.0, progress=progress, device=device, precision=precision
+    )
     if engine is None or engine.serial:  # the reference path: in this process
         if engine is None:
             return predict_frameset(model, data, **options)
@@ -124,7 +129,7 @@ def check_ious(ious: tuple[float, ...]) -> None:
 
 def predictions_and_truth(
     pred_path, gt_path, model, data, scale, scale_from, device="auto", precision="fp32",
-    engine=None, near=None,
+    engine=None, near=None, progress=True,
 ):  # fmt: skip
     """(pred, gt, frame ids evaluated or None, source record, gt path, runtime or None) from
     either the model route (`model` on `data`) or the table route (`pred_path` vs `gt_path`)."""
@@ -140,7 +145,7 @@ def predictions_and_truth(
         chosen_scale = resolve_scale(scale, scale_from)
         frame_ids = FrameSet(data).frame_ids
         gt_path = Path(data) if gt_path is None else gt_path
-        pred = predict(model, data, chosen_scale, torch_device, precision, engine, near)
+        pred = predict(model, data, chosen_scale, torch_device, precision, engine, near, progress)
         source = {"model": str(model), "data": str(data), "scale": chosen_scale}
         runtime = {**inference_runtime(torch_device), "precision": precision}
     else:
@@ -180,10 +185,12 @@ def run_eval(
     ray_address: str | None = None,
     force: bool = False,
     dry_run: bool = False,
+    progress: bool = True,
 ) -> EvalResult:
     """Evaluate (see the module docstring). `out`: None (print only), a metrics file (.json) or
     an artifact directory; `force` applies to the directory, `dry_run` to both (a metrics file
-    is always recomputed, so a dry run only says so and writes nothing)."""
+    is always recomputed, so a dry run only says so and writes nothing); `progress`: the
+    detector's progress bar (with --model)."""
     check_ious(tuple(ious))
     options = dict(
         ious=tuple(ious), size_score_min=size_score_min, recall_positions=int(recall_positions),
@@ -196,7 +203,7 @@ def run_eval(
         pred_path=pred_path, gt_path=gt_path, model=model, data=data, scale=scale,
         scale_from=scale_from, device=device, precision=precision,
         engine=make_executor(executor, workers, ray_address),
-        near=Path(out).parent if out is not None else None,
+        near=Path(out).parent if out is not None else None, progress=progress,
     )  # fmt: skip
     inputs = {"model": model, "data": data, "pred": pred_path, "gt": gt_path, "scale": scale_from}
     if out is not None and Path(out).suffix != ".json":

@@ -661,7 +661,7 @@ def test_cli_model_inference_uses_the_ptsn_scale(tmp_path, monkeypatch):
     seen = {}
 
     def predict_frameset(model_dir, data_dir, scale=1.0, score_min=0.0, progress=True, **engine):
-        seen.update(model=str(model_dir), scale=scale)
+        seen.update(model=str(model_dir), scale=scale, progress=progress)
         return BoxTable.concat(
             [table(box, frame=f"{k:03d}", score=[0.8]) for k, box in enumerate(cars)]
         )
@@ -677,7 +677,9 @@ def test_cli_model_inference_uses_the_ptsn_scale(tmp_path, monkeypatch):
         main, [*args, "--scale-from", str(tmp_path / "ptsn"), "--out", str(tmp_path / "m.json")]
     )
     assert result.exit_code == 0, result.output
-    assert seen["scale"] == 0.85
+    assert seen["scale"] == 0.85 and seen["progress"] is True
+    quiet = runner.invoke(main, [*args, "--scale", "0.85", "--no-progress"])
+    assert quiet.exit_code == 0 and seen["progress"] is False
     metrics = json.loads((tmp_path / "m.json").read_text())["Car"]
     assert metrics["bev"]["all"] == pytest.approx(100.0) and metrics["source"]["scale"] == 0.85
     assert (

@@ -10,6 +10,7 @@ from dali_cli.commands.common import (
     choice_option,
     device_options,
     executor_options,
+    no_progress_option,
     stage_options,
     workers_option,
 )
@@ -81,6 +82,7 @@ the class (predictions: score >= --size-score-min) and, with --model, "scale").
 @device_options
 @workers_option("1")
 @executor_options
+@no_progress_option
 @stage_options
 def command(
     pred_path,
@@ -105,6 +107,7 @@ def command(
     ray_address,
     force,
     dry_run,
+    no_progress,
 ):
     """Average precision (KITTI protocol, BEV and 3D, float64 rotated IoU) of predictions.
     With --model, the detector runs on --executor with --workers."""
@@ -118,6 +121,7 @@ def command(
         class_name=class_name, min_gt_points=min_gt_points, out=out,
         save_predictions=save_predictions, device=device, precision=precision, executor=executor,
         workers=workers, ray_address=ray_address, force=force, dry_run=dry_run,
+        progress=not no_progress,
     )  # fmt: skip
     if result.status == "dry-run":
         return
