@@ -26,10 +26,11 @@ def ppcg_cf(
     seed: int = 0,
     ground_margin_m: float = 0.1,
     orient_models: bool = False,
+    point_margin_m: float = 0.0,
     **options: Unpack[PpcgOptions],
 ) -> StageOutcome:
-    """CF pseudo point clouds (see dali_cli.ppcg.cf); `orient_models` and `options` as
-    ppcg_rc's."""
+    """CF pseudo point clouds (see dali_cli.ppcg.cf); `orient_models`, `point_margin_m` and
+    `options` as ppcg_rc's."""
     low, high = (float(v) for v in range_m)
     if not 0 < low <= high:
         raise ParameterError("range_m", f"need 0 < LOW <= HIGH, got {low}:{high}")
@@ -38,7 +39,11 @@ def ppcg_cf(
         FrameSet(target_dir), options.get("sensor"), options.get("sensors_path")
     )
     shared = {"top_k": top_k, "seed": seed, "ground_margin_m": ground_margin_m}
-    orient = {"orient": True} if orient_models else {}  # recorded only when on
+    if not point_margin_m >= 0:
+        raise ParameterError("point_margin_m", f"must be >= 0 m, got {point_margin_m}")
+    # recorded only when used: outputs made before the options stay up to date
+    orient = {"orient": True} if orient_models else {}
+    orient.update({"point_margin_m": float(point_margin_m)} if point_margin_m else {})
     params = CfParams(
         theta_rad=angular_threshold_rad(profile.points_per_beam),
         range_m=(low, high),

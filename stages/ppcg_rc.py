@@ -27,10 +27,12 @@ def ppcg_rc(
     seed: int = 0,
     ground_margin_m: float = 0.1,
     orient_models: bool = False,
+    point_margin_m: float = 0.0,
     **options: Unpack[PpcgOptions],
 ) -> StageOutcome:
     """RC pseudo point clouds (see dali_cli.ppcg.rc); `orient_models`: turn a box round when its
-    model fits its points better that way (dali_cli.ppcg.orient); `options`: sensor, models, label, engine
+    model fits its points better that way (dali_cli.ppcg.orient); `point_margin_m`: a box's
+    points are those in the box grown by this (m); `options`: sensor, models, label, engine
     and stage switches (dali_cli.ppcg.run.PpcgOptions; `bank` replaces the library in tests)."""
     if min_points < 1 or max_points <= min_points:
         raise ParameterError(
@@ -41,7 +43,11 @@ def ppcg_rc(
         FrameSet(target_dir), options.get("sensor"), options.get("sensors_path")
     )
     shared = {"top_k": top_k, "seed": seed, "ground_margin_m": ground_margin_m}
-    orient = {"orient": True} if orient_models else {}  # recorded only when on
+    if not point_margin_m >= 0:
+        raise ParameterError("point_margin_m", f"must be >= 0 m, got {point_margin_m}")
+    # recorded only when used: outputs made before the options stay up to date
+    orient = {"orient": True} if orient_models else {}
+    orient.update({"point_margin_m": float(point_margin_m)} if point_margin_m else {})
     params = RcParams(
         mount_height_m=profile.mount_height_m,
         theta_rad=angular_threshold_rad(profile.points_per_beam),

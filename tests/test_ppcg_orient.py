@@ -10,7 +10,7 @@ from click.testing import CliRunner
 from test_ppcg import PROFILE, bank_of, car, dataset, on_ground, rc_params, scan  # noqa: F401
 
 from dali_cli.artifacts import FrameSet, read_boxes, write_boxes
-from dali_cli.geometry import wrap_angle
+from dali_cli.geometry import point_box_indices, wrap_angle
 from dali_cli.manifest import read_manifest
 from dali_cli.ppcg.cf import CfParams, cf_frame
 from dali_cli.ppcg.frame import car_points, ground_heights
@@ -127,3 +127,67 @@ def test_orienting_needs_meshes():
     )  # fmt: skip
     with pytest.raises(ValueError, match="mesh"):
         flips(points_bank, np.zeros(2, np.int64), truth, points, members_of(points, truth))
+
+
+# ------------------------------------------------------------------------------ point margin
+
+
+def raw_points_beside(out: np.ndarray, boxes: np.ndarray, margin_m: float) -> int:
+    """Points of `out` above the ground in a box grown by `margin_m` but not in the box itself
+    (1 cm of slack: model hits lie on the box's faces): real car points the model did not
+    replace."""
+    grown = boxes.copy()
+    grown[:, 3:6] += 2 * margin_m
+    above = out[:, 2] > -PROFILE.mount_height_m + 0.15
+    inside = np.zeros(len(out), bool)
+    for box in boxes:
+        inside |= point_box_indices(out[:, :3], box[None], margin_m=0.01) == 0
+    beside = np.zeros(len(out), bool)
+    for box in grown:
+        beside |= point_box_indices(out[:, :3], box[None]) == 0
+    return int(np.count_nonzero(beside & ~inside & above))
+
+
+@pytest.mark.parametrize("mode", ["rc", "cf"])
+def test_a_point_margin_leaves_no_raw_car_points_beside_a_small_box(mode):
+    """A pseudo box 0.3 m short and 0.2 m narrow (the car's faces outside it): by default the
+    points outside stay as raw points beside the model; with --point-margin-m 0.3 every one is
+    re-cast (RC: moved onto the model or dropped) or replaced (CF)."""
+    truth = np.array(SCENES[0])
+    points = scan(truth, (1, 2))
+    small = truth.copy()
+    small[:, 3] -= 0.3
+    small[:, 4] -= 0.2
+    bank = bank_of(3)
+    if mode == "rc":
+
+        def run(margin):
+            return rc_frame("f", points, small, bank, rc_params(max_points=10**6,
+                            point_margin_m=margin))[0]  # fmt: skip
+    else:
+
+        def run(margin):
+            params = CfParams(theta_rad=0.01, point_margin_m=margin)
+            return cf_frame("f", points, small, bank, PROFILE, params)[0]
+
+    assert raw_points_beside(points, small, 0.3) > 100  # the scan: faces outside the box
+    assert raw_points_beside(run(0.0), small, 0.3) > 100
+    assert raw_points_beside(run(0.3), small, 0.3) == 0
+    far = np.hypot(points[:, 0] - 14.0, points[:, 1] - 4.0) > 6  # away from both cars
+    far &= np.hypot(points[:, 0] - 25.0, points[:, 1] + 6.0) > 6
+    assert len(run(0.3)) >= np.count_nonzero(far)  # the rest of the frame is kept
+
+
+def test_the_point_margin_is_recorded_only_when_used(dataset, tmp_path):  # noqa: F811
+    from stages.ppcg_rc import ppcg_rc
+
+    target, library = dataset / "target", dataset / "library"
+    ppcg_rc(target, target, library, tmp_path / "a", progress=False)
+    ppcg_rc(target, target, library, tmp_path / "b", point_margin_m=0.3, progress=False)
+    assert "point_margin_m" not in read_manifest(tmp_path / "a")["params"]
+    assert read_manifest(tmp_path / "b")["params"]["point_margin_m"] == 0.3
+    from dali_cli.errors import ParameterError
+
+    with pytest.raises(ParameterError, match="point_margin_m"):
+        ppcg_rc(target, target, library, tmp_path / "c", point_margin_m=-1.0, progress=False)
+    assert not (tmp_path / "c").exists()

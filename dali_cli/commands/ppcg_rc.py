@@ -40,6 +40,12 @@ def ppcg_options(function):
                      help="Turn a box round when its car model fits the box's points better "
                           "facing the other way (the detector's headings are right only up to "
                           "a half turn; dali_cli.ppcg.orient). Mesh models only."),
+        click.option("--point-margin-m", type=click.FloatRange(min=0), default=0.0,
+                     show_default=True,
+                     help="A box's points are those in the box grown by this on every side: "
+                          "LiDAR points lie on a car's surface, so a pseudo box a little off "
+                          "leaves part of the car outside it as raw points beside the model "
+                          "(0: the points in the box, as the paper)."),
         click.option("--label", default="Car", show_default=True,
                      help="Process boxes of this label; other rows pass through as 'raw'."),
         workers_option("1"),

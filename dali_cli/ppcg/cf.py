@@ -26,8 +26,8 @@ from dali_cli.sensors import SensorProfile
 
 @dataclass(frozen=True)
 class CfParams:
-    """CF settings. range_m: (low, high) centre range in metres; theta_rad and orient as in
-    RcParams."""
+    """CF settings. range_m: (low, high) centre range in metres; theta_rad, orient and
+    point_margin_m as in RcParams."""
 
     theta_rad: float
     range_m: tuple[float, float] = (20.0, 50.0)
@@ -35,6 +35,7 @@ class CfParams:
     seed: int = 0
     ground_margin_m: float = 0.1
     orient: bool = False
+    point_margin_m: float = 0.0
 
 
 def move_radially(boxes: np.ndarray, ranges_m: np.ndarray) -> np.ndarray:
@@ -76,7 +77,7 @@ def cf_frame(
     if len(boxes) == 0:
         return points, BoxRecords.raw(np.zeros(0, np.int32))
     ground_z = ground_heights(boxes, profile.mount_height_m, params.ground_margin_m)
-    members, ground = car_points(points, boxes, ground_z)
+    members, ground = car_points(points, boxes, ground_z, params.point_margin_m)
     before = np.array([len(m) for m in members], dtype=np.int32)
     records = BoxRecords.raw(before, ground)
     low, high = params.range_m

@@ -27,11 +27,13 @@ def ground_heights(boxes: np.ndarray, mount_height_m: float, ground_margin_m: fl
 
 
 def car_points(
-    points: np.ndarray, boxes: np.ndarray, ground_z: np.ndarray
+    points: np.ndarray, boxes: np.ndarray, ground_z: np.ndarray, margin_m: float = 0.0
 ) -> tuple[list[np.ndarray], np.ndarray]:
     """Indices `(m_i,)` int64 of each box's points above its ground height (first box wins),
-    and the number of the box's points below it `(k,)` int32."""
-    members = points_per_box(points, boxes)
+    and the number of the box's points below it `(k,)` int32. `margin_m`: the box grown by this
+    on every side (a LiDAR point lies on the car's surface, i.e. on its true box's boundary: an
+    imprecise pseudo box leaves part of the car outside it, as raw points beside the model)."""
+    members = points_per_box(points, boxes, margin_m)
     height = points[:, 2]  # a strided view: gathering from it beats points[idx, 2]
     cars = [idx[height[idx] >= z] for idx, z in zip(members, ground_z, strict=True)]
     ground = np.array([len(m) - len(c) for m, c in zip(members, cars, strict=True)], np.int32)

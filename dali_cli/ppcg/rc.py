@@ -25,7 +25,8 @@ from dali_cli.ppcg.orient import flips, turned
 @dataclass(frozen=True)
 class RcParams:
     """RC settings. theta_rad: point-model angular threshold (point_models.angular_threshold_rad);
-    orient: turn boxes whose model fits better the other way round (mesh models only)."""
+    orient: turn boxes whose model fits better the other way round (mesh models only);
+    point_margin_m: a box's points are those in the box grown by this (frame.car_points)."""
 
     mount_height_m: float
     theta_rad: float
@@ -35,6 +36,7 @@ class RcParams:
     seed: int = 0
     ground_margin_m: float = 0.1
     orient: bool = False
+    point_margin_m: float = 0.0
 
 
 def rc_frame(
@@ -44,7 +46,7 @@ def rc_frame(
     float32 (n' <= n) and the per-box records. Deterministic in (params.seed, frame_id, box order)."""
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
     ground_z = ground_heights(boxes, params.mount_height_m, params.ground_margin_m)
-    members, ground = car_points(points, boxes, ground_z)
+    members, ground = car_points(points, boxes, ground_z, params.point_margin_m)
     before = np.array([len(m) for m in members], dtype=np.int32)
     records = BoxRecords.raw(before, ground)
     records.reason[before < params.min_points] = "too_few_points"

@@ -3,13 +3,15 @@
 # iterations, the default chain otherwise (pretraining 288 frames, each retraining 576); reuses
 # runs/d5-s$SEED's data, library, iteration-0 model and first sweep (docs/results/demo5/seed_job.sh),
 # then evaluates on the 400-frame validation set (docs/results/demo6/val400_job.sh SEED ROW).
-# ROW fit: --fit-points; fito: also ppcg-rc/ppcg-cf --orient-models (dali_cli.ppcg.orient).
-# Usage: fit_job.sh SEED [fit|fito]
+# ROW fit: --fit-points; fito: also ppcg-rc/ppcg-cf --orient-models (dali_cli.ppcg.orient);
+# fitom: also --point-margin-m 0.3.
+# Usage: fit_job.sh SEED [fit|fito|fitom]
 set -e
 cd "$(dirname "$0")/../../.."
 
 s=$1; row=${2:-fit}; R=runs/d5-s$s; Q=runs/d5$row-s$s
-ppcg=$([ $row = fito ] && echo --orient-models || true)
+declare -A PPCG=([fit]="" [fito]="--orient-models" [fitom]="--orient-models --point-margin-m 0.3")
+ppcg=${PPCG[$row]}
 COMMON="SEED=$s FRAMES=48 VAL_FRAMES=48 TRAIN_FLAGS=--threads=1 SYNTH_WORKERS=1 WORKERS=1"
 mkdir -p $Q/iter1
 for d in data library iter0; do [ -e $Q/$d ] || ln -s $(realpath $R/$d) $Q/$d; done

@@ -2,7 +2,7 @@
 # x1 with x2's frames in one long retraining (12 epochs; as docs/results/demo6/refine_job.sh) on
 # the iteration-1 PPCG frames of fit_job.sh's row ROW (fit: --fit-points; fito: also
 # --orient-models), then PTSN and the 400-frame validation (val400_job.sh SEED ROWlong).
-# Usage: long_job.sh SEED fit|fito   (needs runs/d5ROW-s$SEED/iter1/{rc,cf})
+# Usage: long_job.sh SEED fit|fito|fitom   (needs runs/d5ROW-s$SEED/iter1/{rc,cf})
 set -e
 cd "$(dirname "$0")/../../.."
 
