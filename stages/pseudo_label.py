@@ -331,9 +331,6 @@ def fit_table(table: BoxTable, target: FrameSet, fit: box_fit.PointFit) -> tuple
             r = rows[frame_id]
             boxes[r], used[r] = box_fit.fit_boxes(table.boxes[r], points, fit)
             counts[r] = count_points_in_boxes(points, boxes[r])
-    columns = dict(table.columns)
-    columns.update({name: boxes[:, i] for i, name in enumerate(BOX_FIELDS)})
-    columns["num_points"] = counts.astype(np.int32)
     fitted = used >= fit.min_points
     shift = np.hypot(*(boxes[:, :2] - table.boxes[:, :2]).T)
     turn = np.degrees(np.abs(wrap_angle(boxes[:, 6] - table.boxes[:, 6])))
@@ -343,7 +340,10 @@ def fit_table(table: BoxTable, target: FrameSet, fit: box_fit.PointFit) -> tuple
         "mean_shift_m": round(float(shift[fitted].mean()), 4) if fitted.any() else 0.0,
         "mean_turn_deg": round(float(turn[fitted].mean()), 3) if fitted.any() else 0.0,
     }
-    return BoxTable(columns), record
+    moved = table.with_columns(
+        **{name: boxes[:, i] for i, name in enumerate(BOX_FIELDS)}, num_points=counts
+    )
+    return moved, record
 
 
 def print_summary(summary: dict, scale: float) -> None:

@@ -7,7 +7,7 @@ point_models). The point keeps its intensity and its ray. Misses and hits below 
 height are dropped (METHOD: misses are dropped); a box left with fewer than `min_points` hits keeps
 its raw points and is recorded as `no_hits`. Dense boxes are skipped. RC never adds points.
 With `orient`, a box whose model fits its points better turned round is turned round first
-(dali_cli.ppcg.orient).
+(dali_cli.ppcg.orient; the boxes RC processes only: dense and sparse ones keep their heading).
 """
 
 from __future__ import annotations
