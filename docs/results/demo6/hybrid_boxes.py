@@ -4,6 +4,8 @@ stage). Pairs each frame's pseudo boxes with its true cars one to one (greedy by
 
   pseudo-matched: the matched pseudo boxes (the false ones dropped; the pseudo placement kept)
   truth-matched:  the true boxes of the same cars (placement and size exact; the same cars missed)
+  truth-pose:     the same cars at their true pose (centre, heading, bottom) with the pseudo
+                  box's size (session 13, docs/results/demo7/truthpose_job.sh)
 
     python docs/results/demo6/hybrid_boxes.py --truth RUN/data/target --pseudo RUN/iter1/pseudo \
         --mode truth-matched --out DIR
@@ -31,7 +33,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--truth", type=Path, required=True)
     parser.add_argument("--pseudo", type=Path, required=True)
-    parser.add_argument("--mode", choices=["pseudo-matched", "truth-matched"], required=True)
+    parser.add_argument(
+        "--mode", choices=["pseudo-matched", "truth-matched", "truth-pose"], required=True
+    )
     parser.add_argument("--iou", type=float, default=0.3)
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
@@ -49,7 +53,12 @@ def main() -> None:
         else:
             chosen, table = t_rows[matched[hit]], truth
         ids += [frame_id] * len(chosen)
-        boxes.append(table.boxes[chosen])
+        box = table.boxes[chosen]
+        if args.mode == "truth-pose":
+            found = pseudo.boxes[rows[hit]]
+            box[:, 2] += (found[:, 5] - box[:, 5]) / 2  # on the true bottom
+            box[:, 3:6] = found[:, 3:6]  # the pseudo size
+        boxes.append(box)
         scores.append(pseudo["score"][rows[hit]])
         counts.append(table["num_points"][chosen])
     out = BoxTable.from_arrays(
