@@ -140,12 +140,11 @@ def pseudo_label(
         table, implausible, seconds = label_frames(
             labeler, pool, directory, target, inference.get("progress", True)
         )
-        correction = None
+        correction = fitted = None
         if method != "none" and len(table):
-            table, correction = correct_table(table, target, e_est, score_min)
-        fitted = None
-        if point_fit is not None:
-            table, fitted = fit_table(table, target, point_fit)
+            table, correction = correct_table(table, e_est, score_min)
+        if correction is not None or point_fit is not None:  # boxes changed: one more pass
+            table, fitted = place_on_points(table, target, point_fit)
         write_outputs(
             directory, table, scale_record(used, scale_source, mount_height_m),
             summarize(table, len(target), e_est),
@@ -290,26 +289,17 @@ def pseudo_label_notes(
     return notes
 
 
-def correct_table(
-    table: BoxTable, target: FrameSet, e_est: list, score_min: float
-) -> tuple[BoxTable, dict]:
-    """`table` with l, w, h corrected per dimension towards E_est (bottom faces kept) and its
-    num_points recounted on the original target points; the correction's record."""
-    from dali_cli.geometry import count_points_in_boxes
-
+def correct_table(table: BoxTable, e_est: list, score_min: float) -> tuple[BoxTable, dict]:
+    """`table` with l, w, h corrected per dimension towards E_est (bottom faces kept; num_points
+    as before: place_on_points recounts them); the correction's record."""
     boxes, record = size_correction.correct_sizes(
         table.boxes, table["score"], table.frame_id, e_est, score_min=score_min
     )
-    counts = np.zeros(len(table), np.int32)
-    rows = table.rows_by_frame()
-    for frame_id, points in target.iter_frames():
-        if frame_id in rows:
-            counts[rows[frame_id]] = count_points_in_boxes(points, boxes[rows[frame_id]])
     corrected = BoxTable.from_arrays(
         table.frame_id,
         boxes,
         score=table["score"],
-        num_points=counts,
+        num_points=table["num_points"],
         size_factor_l=np.full(len(table), record.factors[0]),
         size_factor_w=np.full(len(table), record.factors[1]),
         size_factor_h=np.full(len(table), record.factors[2]),
@@ -317,10 +307,13 @@ def correct_table(
     return corrected, record.to_dict()
 
 
-def fit_table(table: BoxTable, target: FrameSet, fit: box_fit.PointFit) -> tuple[BoxTable, dict]:
-    """`table` with every box moved onto its frame's points (dali_cli.box_fit; sizes, z, scores
-    and the other columns kept) and num_points recounted; the fit's record: boxes fitted (enough
-    points), mean shift (m) and turn (deg) over them."""
+def place_on_points(
+    table: BoxTable, target: FrameSet, fit: box_fit.PointFit | None
+) -> tuple[BoxTable, dict | None]:
+    """One pass over the target frames: every box moved onto its frame's points when `fit` is
+    given (dali_cli.box_fit; sizes, z, scores and the other columns kept), and num_points
+    recounted on the original points; the fit's record (None without a fit): boxes fitted
+    (enough points), mean shift (m) and turn (deg) over them."""
     from dali_cli.geometry import count_points_in_boxes, wrap_angle
 
     boxes, counts = table.boxes.copy(), np.asarray(table["num_points"]).copy()
@@ -329,8 +322,14 @@ def fit_table(table: BoxTable, target: FrameSet, fit: box_fit.PointFit) -> tuple
     for frame_id, points in target.iter_frames():
         if frame_id in rows:
             r = rows[frame_id]
-            boxes[r], used[r] = box_fit.fit_boxes(table.boxes[r], points, fit)
+            if fit is not None:
+                boxes[r], used[r] = box_fit.fit_boxes(table.boxes[r], points, fit)
             counts[r] = count_points_in_boxes(points, boxes[r])
+    moved = table.with_columns(
+        **{name: boxes[:, i] for i, name in enumerate(BOX_FIELDS)}, num_points=counts
+    )
+    if fit is None:
+        return moved, None
     fitted = used >= fit.min_points
     shift = np.hypot(*(boxes[:, :2] - table.boxes[:, :2]).T)
     turn = np.degrees(np.abs(wrap_angle(boxes[:, 6] - table.boxes[:, 6])))
@@ -340,9 +339,6 @@ def fit_table(table: BoxTable, target: FrameSet, fit: box_fit.PointFit) -> tuple
         "mean_shift_m": round(float(shift[fitted].mean()), 4) if fitted.any() else 0.0,
         "mean_turn_deg": round(float(turn[fitted].mean()), 3) if fitted.any() else 0.0,
     }
-    moved = table.with_columns(
-        **{name: boxes[:, i] for i, name in enumerate(BOX_FIELDS)}, num_points=counts
-    )
     return moved, record
 
 
