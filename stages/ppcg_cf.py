@@ -11,6 +11,7 @@ from dali_cli.device import check_options
 from dali_cli.errors import ParameterError
 from dali_cli.manifest import StageOutcome
 from dali_cli.ppcg.cf import CfParams
+from dali_cli.ppcg.frame import DEFAULT_POINT_MARGIN_M
 from dali_cli.ppcg.point_models import angular_threshold_rad
 from dali_cli.ppcg.run import PpcgOptions, run_ppcg, target_profile
 
@@ -25,8 +26,8 @@ def ppcg_cf(
     top_k: int = 1,
     seed: int = 0,
     ground_margin_m: float = 0.1,
-    orient_models: bool = False,
-    point_margin_m: float = 0.0,
+    orient_models: bool | None = None,
+    point_margin_m: float = DEFAULT_POINT_MARGIN_M,
     **options: Unpack[PpcgOptions],
 ) -> StageOutcome:
     """CF pseudo point clouds (see dali_cli.ppcg.cf); `orient_models`, `point_margin_m` and
@@ -41,16 +42,17 @@ def ppcg_cf(
     shared = {"top_k": top_k, "seed": seed, "ground_margin_m": ground_margin_m}
     if not point_margin_m >= 0:
         raise ParameterError("point_margin_m", f"must be >= 0 m, got {point_margin_m}")
-    # recorded only when used: outputs made before the options stay up to date
-    orient = {"orient": True} if orient_models else {}
-    orient.update({"point_margin_m": float(point_margin_m)} if point_margin_m else {})
+    # the margin is recorded only when used (outputs made without it stay up to date); the
+    # orientation is resolved (and recorded when on) by run_ppcg, which knows the model kind
+    margin = {"point_margin_m": float(point_margin_m)} if point_margin_m else {}
     params = CfParams(
         theta_rad=angular_threshold_rad(profile.points_per_beam),
         range_m=(low, high),
+        orient=orient_models,
         **shared,
-        **orient,
+        **margin,
     )
-    stage_params = {"range_m": [low, high], **shared, **orient}
+    stage_params = {"range_m": [low, high], **shared, **margin}
     return run_ppcg(
         "cf", target_dir, boxes_dir, library_dir, out,
         params=params, stage_params=stage_params, **options,

@@ -10,6 +10,7 @@ from dali_cli.artifacts import FrameSet
 from dali_cli.device import check_options
 from dali_cli.errors import ParameterError
 from dali_cli.manifest import StageOutcome
+from dali_cli.ppcg.frame import DEFAULT_POINT_MARGIN_M
 from dali_cli.ppcg.point_models import angular_threshold_rad
 from dali_cli.ppcg.rc import RcParams
 from dali_cli.ppcg.run import PpcgOptions, run_ppcg, target_profile
@@ -26,8 +27,8 @@ def ppcg_rc(
     top_k: int = 1,
     seed: int = 0,
     ground_margin_m: float = 0.1,
-    orient_models: bool = False,
-    point_margin_m: float = 0.0,
+    orient_models: bool | None = None,
+    point_margin_m: float = DEFAULT_POINT_MARGIN_M,
     **options: Unpack[PpcgOptions],
 ) -> StageOutcome:
     """RC pseudo point clouds (see dali_cli.ppcg.rc); `orient_models`: turn a box round when its
@@ -45,18 +46,19 @@ def ppcg_rc(
     shared = {"top_k": top_k, "seed": seed, "ground_margin_m": ground_margin_m}
     if not point_margin_m >= 0:
         raise ParameterError("point_margin_m", f"must be >= 0 m, got {point_margin_m}")
-    # recorded only when used: outputs made before the options stay up to date
-    orient = {"orient": True} if orient_models else {}
-    orient.update({"point_margin_m": float(point_margin_m)} if point_margin_m else {})
+    # the margin is recorded only when used (outputs made without it stay up to date); the
+    # orientation is resolved (and recorded when on) by run_ppcg, which knows the model kind
+    margin = {"point_margin_m": float(point_margin_m)} if point_margin_m else {}
     params = RcParams(
         mount_height_m=profile.mount_height_m,
         theta_rad=angular_threshold_rad(profile.points_per_beam),
         max_points=max_points,
         min_points=min_points,
+        orient=orient_models,
         **shared,
-        **orient,
+        **margin,
     )
-    stage_params = {"max_points": max_points, "min_points": min_points, **shared, **orient}
+    stage_params = {"max_points": max_points, "min_points": min_points, **shared, **margin}
     return run_ppcg(
         "rc", target_dir, boxes_dir, library_dir, out,
         params=params, stage_params=stage_params, **options,

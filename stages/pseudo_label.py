@@ -3,7 +3,7 @@ augmentation: in ten views, ŝ x 0.9..1.1 each also mirrored, fused box by box, 
 de-scale, drop
 implausible boxes (dali_cli.plausibility, counted), keep score >= score_min, BEV NMS, remove the
 remaining per-dimension size bias against E_est (`dali_cli.size_correction`, on by default),
-with --fit-points move each box onto its points (`dali_cli.box_fit`, off by default), count the
+move each box onto its points (`dali_cli.box_fit`, on by default), count the
 original points in each box; write boxes.parquet, scale.json (the ScaleResult the
 labels were made at: ŝ stored once, exactly as found) and summary.json (boxes per frame, mean
 size vs E_est, score histogram)."""
@@ -88,7 +88,7 @@ def pseudo_label(
     sensors_path: str | None = None,
     size_correction_method: str = "per-dim",
     views: tta.Views | None = None,
-    point_fit: box_fit.PointFit | None = None,
+    point_fit: box_fit.PointFit | None = box_fit.PointFit(),
     force: bool = False,
     dry_run: bool = False,
     workers: int | None = None,
@@ -98,7 +98,7 @@ def pseudo_label(
 ) -> StageOutcome:
     """Run the pseudo-label stage (see the module docstring). `views`: the test-time
     augmentation (None or a single view: the detector once at ŝ). `point_fit`: move each box
-    onto its points after the size correction (None: off). `executor`, `workers`,
+    onto its points after the size correction (default: the standard fit; None: off). `executor`, `workers`,
     `ray_address`: the engine of the detector runs (dali_cli.executors); `inference`: device,
     precision, batch size, progress and (tests) the detector loader (InferenceOptions)."""
     model_dir, target_dir = Path(model_dir), Path(target_dir)

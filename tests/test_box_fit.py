@@ -13,7 +13,7 @@ from click.testing import CliRunner
 from stub_stage import write_stub_inputs
 
 from dali_cli.artifacts import read_boxes
-from dali_cli.box_fit import PointFit, fit_boxes
+from dali_cli.box_fit import PointFit, fit_boxes, pose_costs
 from dali_cli.cli import main
 from dali_cli.geometry import count_points_in_boxes, wrap_angle
 
@@ -138,7 +138,44 @@ def test_a_box_with_too_few_points_is_kept():
     assert fitted.shape == (0, 7) and used.shape == (0,)
 
 
+def plain_costs(uv: np.ndarray, half_lw: np.ndarray, grid: np.ndarray, fit: PointFit):
+    """The module docstring's cost, pose by pose, in float64: each point moved into the shifted,
+    turned box's frame and scored (the reference of the vectorized pose_costs)."""
+    costs = []
+    for du, dv, turn in grid:
+        u, v = uv[:, 0] - du, uv[:, 1] - dv
+        a = np.cos(turn) * u + np.sin(turn) * v
+        b = -np.sin(turn) * u + np.cos(turn) * v
+        outside = np.maximum(np.abs(a) - half_lw[0], 0) + np.maximum(np.abs(b) - half_lw[1], 0)
+        side = np.clip(np.minimum(half_lw[0] - np.abs(a), half_lw[1] - np.abs(b)), 0,
+                       fit.side_cap_m)  # fmt: skip
+        costs.append((side**2).sum() + fit.outside_weight * (outside**2).sum())
+    return np.array(costs)
+
+
+@pytest.mark.parametrize("chunk", [1, 7, 64, 10**4])
+def test_pose_costs_equal_the_plain_cost_of_every_pose(chunk):
+    fit = PointFit(along_m=0.3, across_m=0.1, turn_deg=4.0)  # a smaller grid, the same cost
+    truth = car(18.0, 3.0, 0.4)
+    points = np.concatenate([near_faces(truth, per_face=60), near_faces(moved(truth, 1, 0, 0))])
+    c, s = np.cos(truth[6]), np.sin(truth[6])
+    rel = points[:, :2].astype(np.float64) - truth[:2]
+    uv = np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]], 1)
+    grid = fit.grid()
+    expected = plain_costs(uv, LWH[:2] / 2, grid, fit)
+    got = pose_costs(uv, LWH[:2] / 2, fit, chunk=chunk)
+    assert got.shape == (len(grid),) and got.dtype == np.float64
+    np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-4)  # float32 elementwise
+    assert np.argmin(got) == np.argmin(expected)
+
+
 def test_grid_holds_the_unmoved_pose_and_bad_parameters_are_refused():
+    fit = PointFit(along_m=0.1, along_step_m=0.05, across_m=0.05, across_step_m=0.05,
+                   turn_deg=2, turn_step_deg=1)  # fmt: skip
+    along, across, turn = (np.array([-0.1, -0.05, 0, 0.05, 0.1]), np.array([-0.05, 0, 0.05]),
+                           np.radians([-2, -1, 0, 1, 2]))  # fmt: skip
+    order = np.stack(np.meshgrid(along, across, turn, indexing="ij"), -1).reshape(-1, 3)
+    np.testing.assert_allclose(fit.grid(), order, atol=1e-12)  # turn fastest, then across
     grid = PointFit().grid()
     assert (np.abs(grid).sum(1) == 0).sum() == 1
     assert np.isclose(grid[:, 0].max(), PointFit().along_m)
@@ -174,7 +211,7 @@ def stage_points(frame: int) -> np.ndarray:
     return np.r_[points, ground(frame)]
 
 
-def test_the_stage_fits_the_boxes_recounts_and_records_the_fit(tmp_path, monkeypatch):
+def test_the_stage_fits_the_boxes_by_default_recounts_and_records_the_fit(tmp_path, monkeypatch):
     target, model = write_stub_inputs(tmp_path, [stage_points(i) for i in range(3)])
     import stages.pseudo_label
 
@@ -187,7 +224,7 @@ def test_the_stage_fits_the_boxes_recounts_and_records_the_fit(tmp_path, monkeyp
              "--out", str(out), "--no-progress", *options],
         )  # fmt: skip
 
-    for out, options in ((tmp_path / "plain", []), (tmp_path / "fit", ["--fit-points"])):
+    for out, options in ((tmp_path / "plain", ["--no-fit-points"]), (tmp_path / "fit", [])):
         result = label(out, *options)
         assert result.exit_code == 0, result.output
     errors = {}
@@ -211,6 +248,8 @@ def test_the_stage_fits_the_boxes_recounts_and_records_the_fit(tmp_path, monkeyp
     summary = json.loads((tmp_path / "fit" / "summary.json").read_text())
     assert summary["point_fit"]["boxes_fitted"] == 6
     assert summary["point_fit"]["mean_shift_m"] == pytest.approx(0.45, abs=0.08)
-    again = label(tmp_path / "fit")  # without the option: a different artifact, rebuilt
+    same = label(tmp_path / "fit", "--fit-points")  # the default, named: the same artifact
+    assert same.exit_code == 0 and "up to date" in same.output
+    again = label(tmp_path / "fit", "--no-fit-points")  # a different artifact: rebuilt
     assert again.exit_code == 0 and "up to date" not in again.output
     assert "point_fit" not in json.loads((tmp_path / "fit" / "summary.json").read_text())

@@ -86,13 +86,16 @@ def test_the_stages_turn_the_boxes_and_record_it(dataset, tmp_path):  # noqa: F8
     (tmp_path / "boxes").mkdir()
     write_boxes(tmp_path / "boxes", reversed_table)
     boxes = tmp_path / "boxes"
-    ppcg_rc(target, boxes, library, tmp_path / "rc", max_points=10**5, progress=False)
-    ppcg_rc(target, boxes, library, tmp_path / "rco", max_points=10**5, orient_models=True,
+    ppcg_rc(target, boxes, library, tmp_path / "rc", max_points=10**5, orient_models=False,
             progress=False)  # fmt: skip
+    ppcg_rc(target, boxes, library, tmp_path / "rco", max_points=10**5, progress=False)
     plain, oriented = read_boxes(tmp_path / "rc"), read_boxes(tmp_path / "rco")
     assert "heading_flipped" not in plain.columns
     assert "orient" not in read_manifest(tmp_path / "rc")["params"]
-    assert read_manifest(tmp_path / "rco")["params"]["orient"] is True
+    assert read_manifest(tmp_path / "rco")["params"]["orient"] is True  # mesh models: on
+    named = ppcg_rc(target, boxes, library, tmp_path / "rco", max_points=10**5,
+                    orient_models=True, progress=False)  # fmt: skip
+    assert named.status == "skipped"  # the default, named: the same artifact
     cars = np.asarray(oriented["ppcg"]) == "rc"  # the Van passes through untouched
     assert list(oriented["heading_flipped"]) == list(cars)
     turn = wrap_angle(oriented.boxes[:, 6] - given.boxes[:, 6])
@@ -116,6 +119,13 @@ def test_the_stages_turn_the_boxes_and_record_it(dataset, tmp_path):  # noqa: F8
     )  # fmt: skip
     assert result.exit_code == 2 and "orient" in result.output and "cad" in result.output
     assert not (tmp_path / "p").exists()
+    result = CliRunner().invoke(
+        main,
+        ["ppcg-rc", "--target", str(target), "--boxes", str(boxes), "--library", str(library),
+         "--models", "points", "--no-progress", "--out", str(tmp_path / "p")],
+    )  # fmt: skip (by default point models are not oriented: no error)
+    assert result.exit_code == 0, result.output
+    assert "orient" not in read_manifest(tmp_path / "p")["params"]
 
 
 def test_orienting_needs_meshes():
@@ -182,8 +192,8 @@ def test_the_point_margin_is_recorded_only_when_used(dataset, tmp_path):  # noqa
     from stages.ppcg_rc import ppcg_rc
 
     target, library = dataset / "target", dataset / "library"
-    ppcg_rc(target, target, library, tmp_path / "a", progress=False)
-    ppcg_rc(target, target, library, tmp_path / "b", point_margin_m=0.3, progress=False)
+    ppcg_rc(target, target, library, tmp_path / "a", point_margin_m=0.0, progress=False)
+    ppcg_rc(target, target, library, tmp_path / "b", progress=False)  # the default: 0.3 m
     assert "point_margin_m" not in read_manifest(tmp_path / "a")["params"]
     assert read_manifest(tmp_path / "b")["params"]["point_margin_m"] == 0.3
     from dali_cli.errors import ParameterError

@@ -14,6 +14,7 @@ from dali_cli.commands.common import (
     stage_options,
     workers_option,
 )
+from dali_cli.ppcg.frame import DEFAULT_POINT_MARGIN_M
 
 
 def ppcg_options(function):
@@ -36,12 +37,13 @@ def ppcg_options(function):
                      show_default=True,
                      help="Points of a box below max(box bottom, -mount height) + this are "
                           "ground: kept."),
-        click.option("--orient-models/--no-orient-models", default=False, show_default=True,
+        click.option("--orient-models/--no-orient-models", default=None,
                      help="Turn a box round when its car model fits the box's points better "
                           "facing the other way (the detector's headings are right only up to "
-                          "a half turn; dali_cli.ppcg.orient). Mesh models only."),
-        click.option("--point-margin-m", type=click.FloatRange(min=0), default=0.0,
-                     show_default=True,
+                          "a half turn; dali_cli.ppcg.orient). Mesh models only  [default: on "
+                          "with mesh models, off with point models]"),
+        click.option("--point-margin-m", type=click.FloatRange(min=0),
+                     default=DEFAULT_POINT_MARGIN_M, show_default=True,
                      help="A box's points are those in the box grown by this on every side: "
                           "LiDAR points lie on a car's surface, so a pseudo box a little off "
                           "leaves part of the car outside it as raw points beside the model "

@@ -69,10 +69,11 @@ def views_of(on: bool, factors: tuple[float, ...], mirror: bool):
               help="Comma-separated factors of ŝ, one view each (with --tta).")  # fmt: skip
 @click.option("--tta-mirror/--no-tta-mirror", default=True, show_default=True,
               help="Also label each view mirrored left-right (with --tta).")  # fmt: skip
-@click.option("--fit-points/--no-fit-points", default=False, show_default=True,
+@click.option("--fit-points/--no-fit-points", default=True, show_default=True,
               help="Move and turn each pseudo box (its size kept) so its sides hug the target "
                    "points it holds: shifts up to 1 m along the car and 0.2 m across, turns "
-                   "up to 8 degrees (dali_cli.box_fit). Target points only, no label.")  # fmt: skip
+                   "up to 8 degrees (dali_cli.box_fit). Target points only, no label. Matched "
+                   "boxes at 3D IoU >= 0.7: 0.48-0.57 -> 0.67-0.71 (docs/RESULTS.md, session 13).")  # fmt: skip
 @workers_option("1")
 @executor_options
 @target_scaling_options
@@ -82,7 +83,7 @@ def command(model_dir, target_dir, out, sensors_path, no_progress, tta, tta_scal
     (with --tta in ten views fused box by box), de-scale the boxes, keep score >=
     --score-min, BEV NMS at --nms-iou, then (by default)
     correct each dimension's remaining size bias against E_est (target statistics only),
-    and with --fit-points move each box onto its points.
+    and (by default, --fit-points) move each box onto its points.
 
     Reads MODEL, the TARGET frame set (never its labels) and --scale-from's scale.json.
     Writes OUT/boxes.parquet (one row per pseudo box: frame_id, x, y, z, l, w, h, yaw, score,

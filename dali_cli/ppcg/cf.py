@@ -34,7 +34,7 @@ class CfParams:
     top_k: int = 1
     seed: int = 0
     ground_margin_m: float = 0.1
-    orient: bool = False
+    orient: bool | None = False
     point_margin_m: float = 0.0
 
 

@@ -25,7 +25,8 @@ from dali_cli.ppcg.orient import flips, turned
 @dataclass(frozen=True)
 class RcParams:
     """RC settings. theta_rad: point-model angular threshold (point_models.angular_threshold_rad);
-    orient: turn boxes whose model fits better the other way round (mesh models only);
+    orient: turn boxes whose model fits better the other way round (mesh models only; None:
+    with mesh models, decided by the stage, run.resolve_orient);
     point_margin_m: a box's points are those in the box grown by this (frame.car_points)."""
 
     mount_height_m: float
@@ -35,7 +36,7 @@ class RcParams:
     top_k: int = 1
     seed: int = 0
     ground_margin_m: float = 0.1
-    orient: bool = False
+    orient: bool | None = False
     point_margin_m: float = 0.0
 
 

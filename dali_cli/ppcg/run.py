@@ -33,6 +33,20 @@ from dali_cli.ppcg.point_models import angular_threshold_rad
 from dali_cli.ppcg.rc import RcParams
 from dali_cli.sensors import get_profile
 
+
+def resolve_orient(params: RcParams | CfParams, models: str) -> RcParams | CfParams:
+    """`params` with `orient` decided: None (the stages' default) turns boxes round by their model
+    with mesh models and not with point models (orient.flips needs meshes); True with point
+    models is an error (ParameterError on orient_models)."""
+    if params.orient is None:
+        return dataclasses.replace(params, orient=models == "cad")
+    if params.orient and models != "cad":
+        raise ParameterError(
+            "orient_models", "orienting boxes by their model needs mesh models (--models cad)"
+        )
+    return params
+
+
 NOTES = (
     "occlusion between objects is not modelled: each box is processed alone",
     "ground rule: a box's points below max(box bottom, -mount height) + ground_margin_m stay "
@@ -159,12 +173,10 @@ def run_ppcg(
     check_made_from(boxes_dir, "target", target_dir)  # pseudo boxes of this very frame set
     sensor, profile = target_profile(frames, sensor, sensors_path)
     models = model_kind(bank, options.get("models"), library_dir)
-    if params.orient and models != "cad":
-        raise ParameterError(
-            "orient_models", "orienting boxes by their model needs mesh models (--models cad)"
-        )
+    params = resolve_orient(params, models)
     params_record = {
         **stage_params,
+        **({"orient": True} if params.orient else {}),  # recorded when on: older outputs stay valid
         "sensor": sensor,
         "models": models,
         "label": label,
