@@ -30,6 +30,8 @@ declare -A ROWS=(  # row -> "model_dir ptsn_dir"
   [fitom]="runs/d5fitom-s$s/iter2/model runs/d5fitom-s$s/iter3/ptsn"
   [fitomlong]="runs/d5fitomlong-s$s/model runs/d5fitomlong-s$s/ptsn"
   [fitomlate]="runs/d5fitomlate-s$s/iter2/model runs/d5fitomlate-s$s/iter3/ptsn"
+  [fitomearly]="runs/d5fitomearly-s$s/iter2/model runs/d5fitomearly-s$s/iter3/ptsn"
+  [fitomearlyft]="runs/d5fitomearlyft-s$s/iter2/model runs/d5fitomearlyft-s$s/iter3/ptsn"
   [truthpose]="runs/d5truthpose-s$s/model runs/d5truthpose-s$s/ptsn"
 )
 for row in ${*:-control x2 late tta ttalate x1long truebox rawtrue front front24 x1}; do
