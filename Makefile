@@ -74,10 +74,14 @@ pareto-quick: install
 #   iterN: ptsn-sweep (model N-1) -> pseudo-label -> ppcg-rc -> ppcg-cf -> retrain -> eval (PTSN)
 MINUTES        ?=
 RETRAIN_EPOCHS ?= $(EPOCHS)
-# per-iteration retraining budgets (default RETRAIN_EPOCHS each), e.g. RETRAIN_EPOCHS_1=3
-# RETRAIN_EPOCHS_2=9: the same frames as 6 + 6, most of them on iteration 2's better labels
-RETRAIN_EPOCHS_1 ?= $(RETRAIN_EPOCHS)
-RETRAIN_EPOCHS_2 ?= $(RETRAIN_EPOCHS)
+# per-iteration retraining budgets: 2 x RETRAIN_EPOCHS in all, a quarter in iteration 1 (half of
+# RETRAIN_EPOCHS, at least 1) and the rest in iteration 2, on iteration 2's better labels
+# (docs/RESULTS.md, session 14); e.g. RETRAIN_EPOCHS_1=6 RETRAIN_EPOCHS_2=6 for the paper's even split
+ifneq ($(shell echo '$(RETRAIN_EPOCHS)' | grep -Exc '[1-9][0-9]*'),1)
+$(error RETRAIN_EPOCHS must be a whole number of epochs >= 1, got '$(RETRAIN_EPOCHS)')
+endif
+RETRAIN_EPOCHS_1 ?= $(shell echo $$(( $(RETRAIN_EPOCHS) / 2 > 0 ? $(RETRAIN_EPOCHS) / 2 : 1 )))
+RETRAIN_EPOCHS_2 ?= $(shell echo $$(( 2 * $(RETRAIN_EPOCHS) - $(RETRAIN_EPOCHS_1) )))
 # extra pretrain/retrain flags, e.g. TRAIN_FLAGS="--threads 1" for `make -j2` on a 2-core machine
 TRAIN_FLAGS    ?=
 # NPROC=N: pretrain, retrain and self-train run as N data-parallel processes under torchrun
@@ -104,9 +108,11 @@ SYNTH_FLAGS     = --executor $(EXECUTOR) --workers $(or $(WORKERS),$(SYNTH_WORKE
 VAL_FRAMES     ?= $(FRAMES)
 SCORE_MIN      ?= 0.3
 # pseudo-label options, e.g. PSEUDO_FLAGS=--tta (labels fused from ten views instead of one
-# detector pass at ŝ: the session-12 ablation in docs/RESULTS.md) or --fit-points
+# detector pass at ŝ: the session-12 ablation in docs/RESULTS.md) or --no-fit-points (the
+# paper's boxes, not moved onto their points)
 PSEUDO_FLAGS   ?=
-# options of both ppcg-rc and ppcg-cf, e.g. PPCG_FLAGS=--orient-models
+# options of both ppcg-rc and ppcg-cf, e.g. PPCG_FLAGS="--no-orient-models --point-margin-m 0"
+# (the paper's PPCG: car models as the detector's heading has them, the points in the box only)
 PPCG_FLAGS     ?=
 # evaluation: all boxes and range bands of the front region (90 deg FOV, detection range, as ST3D
 # evaluates KITTI), AP at IoU 0.7 and 0.5

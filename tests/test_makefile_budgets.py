@@ -1,5 +1,6 @@
 """The Makefile's training budgets (`make -n`, nothing runs): per-iteration retraining epochs
-(RETRAIN_EPOCHS_1/2) reach the retrain commands, and the equal-budget controls count exactly the
+(RETRAIN_EPOCHS_1/2; by default a quarter of 2 x RETRAIN_EPOCHS, then the rest) reach the
+retrain commands, and the equal-budget controls count exactly the
 frames DALI's x1 and x2 saw, whatever the split."""
 
 from __future__ import annotations
@@ -54,9 +55,12 @@ def control_epochs(tmp_path: Path, name: str, *variables: str) -> int:
 @pytest.mark.parametrize(
     ("variables", "expected"),
     [
-        (("RETRAIN_EPOCHS=6",), {"iter1": 6, "iter2": 6}),
-        (("RETRAIN_EPOCHS_1=3", "RETRAIN_EPOCHS_2=9"), {"iter1": 3, "iter2": 9}),
-        (("RETRAIN_EPOCHS=4", "RETRAIN_EPOCHS_2=8"), {"iter1": 4, "iter2": 8}),
+        ((), {"iter1": 3, "iter2": 9}),  # RETRAIN_EPOCHS = EPOCHS = 6: a quarter, then the rest
+        (("RETRAIN_EPOCHS=1",), {"iter1": 1, "iter2": 1}),  # at least one epoch each
+        (("RETRAIN_EPOCHS=5",), {"iter1": 2, "iter2": 8}),
+        (("RETRAIN_EPOCHS_1=6", "RETRAIN_EPOCHS_2=6"), {"iter1": 6, "iter2": 6}),  # the paper's
+        (("RETRAIN_EPOCHS_1=2",), {"iter1": 2, "iter2": 10}),  # iteration 2 takes the rest
+        (("RETRAIN_EPOCHS=4", "RETRAIN_EPOCHS_2=8"), {"iter1": 2, "iter2": 8}),
     ],
 )
 def test_per_iteration_budgets_and_equal_budget_controls(tmp_path, variables, expected):
@@ -70,10 +74,22 @@ def test_per_iteration_budgets_and_equal_budget_controls(tmp_path, variables, ex
 
 
 def test_stage_flags_reach_every_pseudo_label_and_ppcg_command(tmp_path):
-    text = plan(tmp_path, "iter2", "PSEUDO_FLAGS=--fit-points", "PPCG_FLAGS=--orient-models")
+    text = plan(tmp_path, "iter2", "PSEUDO_FLAGS=--no-fit-points", "PPCG_FLAGS=--no-orient-models")
     lines = text.splitlines()
     pseudo = [line for line in lines if " pseudo-label " in line]
     ppcg = [line for line in lines if " ppcg-rc " in line or " ppcg-cf " in line]
-    assert len(pseudo) == 2 and all("--fit-points" in line for line in pseudo)
-    assert len(ppcg) == 4 and all("--orient-models" in line for line in ppcg)
-    assert not any("--orient-models" in line for line in pseudo)
+    assert len(pseudo) == 2 and all("--no-fit-points" in line for line in pseudo)
+    assert len(ppcg) == 4 and all("--no-orient-models" in line for line in ppcg)
+    assert not any("--no-orient-models" in line for line in pseudo)
+
+
+@pytest.mark.parametrize("value", ["0", "abc", "2.5"])
+def test_a_retraining_budget_that_is_not_a_whole_number_of_epochs_stops_make(tmp_path, value):
+    result = subprocess.run(
+        ["make", "--no-print-directory", "-n", "-C", str(REPO), "iter2", f"RUN={tmp_path / 'run'}",
+         f"RETRAIN_EPOCHS={value}"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert result.returncode != 0
+    assert f"RETRAIN_EPOCHS must be a whole number of epochs >= 1, got '{value}'" in result.stderr
+    assert not (tmp_path / "run").exists()

@@ -16,7 +16,7 @@ COMMON="SEED=$s FRAMES=48 VAL_FRAMES=48 SYNTH_WORKERS=1 WORKERS=1 EPOCHS=6 RETRA
 mkdir -p $A/iter1 $B/iter2
 for d in data library iter0; do [ -e $A/$d ] || ln -s $(realpath $R/$d) $A/$d; done
 for d in ptsn pseudo rc cf; do [ -e $A/iter1/$d ] || ln -s $(realpath $P/iter1/$d) $A/iter1/$d; done
-make --no-print-directory $A/iter2/cf/manifest.json RUN=$A $COMMON TRAIN_FLAGS=--threads=1
+make --no-print-directory $A/iter2/rc/manifest.json $A/iter2/cf/manifest.json RUN=$A $COMMON TRAIN_FLAGS=--threads=1
 for d in data library iter0 iter1; do [ -e $B/$d ] || ln -s $(realpath $A/$d) $B/$d; done
 for d in ptsn pseudo rc cf; do [ -e $B/iter2/$d ] || ln -s $(realpath $A/iter2/$d) $B/iter2/$d; done
 make --no-print-directory $A/iter3/ptsn/manifest.json RUN=$A $COMMON TRAIN_FLAGS=--threads=1 &
