@@ -10,7 +10,7 @@ issue 18's target holds: mean >= `MARGIN` and mean > 2 x std (std needs >= 2 see
 
 from __future__ import annotations
 
-from dali_cli.report import SOURCE_X1_BUDGET, SOURCE_X2_BUDGET
+from dali_cli.report import SOURCE_X1_BUDGET, SOURCE_X2_BUDGET, X1_LONG
 from dali_cli.report_aggregate import COLUMNS, dig, statistics
 
 # (DALI row, its equal-budget control): the control trained on as many frames as the row's
@@ -18,6 +18,7 @@ from dali_cli.report_aggregate import COLUMNS, dig, statistics
 PAIRS: tuple[tuple[str, str], ...] = (
     ("PTSN + RC&CF (x1)", SOURCE_X1_BUDGET),
     ("x2", SOURCE_X2_BUDGET),
+    (X1_LONG, SOURCE_X2_BUDGET),
 )
 # (title here, key path in a row of report.json: the aggregate table's column of that name)
 _KEYS = dict(COLUMNS)

@@ -71,6 +71,11 @@ def test_per_iteration_budgets_and_equal_budget_controls(tmp_path, variables, ex
     assert control_epochs(tmp_path, "source_x1_budget", *variables) == x1
     assert control_epochs(tmp_path, "source_x2_budget", *variables) == x2
     assert control_epochs(tmp_path, "oracle_x2_budget", *variables) == x2
+    # x1 long: one retraining of iteration 1 and 2's epochs, from the source-only model
+    long_plan = plan(tmp_path, f"{tmp_path / 'run'}/x1_long/model/manifest.json", *variables)
+    [long_line] = [line for line in long_plan.splitlines() if "/x1_long/model" in line]
+    assert " retrain " in long_line and "iter0/model" in long_line and "iter1/rc" in long_line
+    assert 6 + 2 * epochs(long_line) == x2
 
 
 def test_stage_flags_reach_every_pseudo_label_and_ppcg_command(tmp_path):
