@@ -201,3 +201,20 @@ def test_the_point_margin_is_recorded_only_when_used(dataset, tmp_path):  # noqa
     with pytest.raises(ParameterError, match="point_margin_m"):
         ppcg_rc(target, target, library, tmp_path / "c", point_margin_m=-1.0, progress=False)
     assert not (tmp_path / "c").exists()
+
+
+def test_the_report_figure_takes_rc_and_cf_boxes_turned_round_as_one_table():
+    """RC turns only the boxes it re-casts, CF every car: their output tables differ by half
+    turns, and `dali report`'s PPCG figure must still see one box table (the make demo failure
+    of session 14), but not boxes moved, resized or turned by anything else."""
+    from dali_cli.ppcg.figure import same_boxes
+
+    rc = np.array(SCENES[0])
+    cf = rc.copy()
+    cf[0, 6] = wrap_angle(cf[0, 6] + np.pi)
+    assert same_boxes(rc, cf) and same_boxes(rc, rc)
+    for column, change in ((6, 0.1), (0, 0.01), (3, 0.01)):
+        other = cf.copy()
+        other[1, column] += change
+        assert not same_boxes(rc, other)
+    assert not same_boxes(rc, cf[:1])

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.artifacts import ArtifactError, FrameSet, read_boxes
+from dali_cli.geometry import wrap_angle
 from dali_cli.manifest import read_manifest
 from dali_cli.ppcg.fitting import sensor_to_model
 
@@ -24,6 +25,15 @@ def _target_of(stage_dir: Path) -> Path:
     if not records:
         raise ArtifactError(f"{stage_dir}/manifest.json: no 'target' input recorded")
     return Path(records[0]["path"])
+
+
+def same_boxes(rc_boxes: np.ndarray, cf_boxes: np.ndarray) -> bool:
+    """Whether RC's and CF's output boxes `(N, 7)` are one box table: the same rows, centres and
+    sizes, headings equal up to a half turn (--orient-models turns a box round in one stage and
+    not the other: RC only turns the boxes it re-casts)."""
+    if rc_boxes.shape != cf_boxes.shape or not np.array_equal(rc_boxes[:, :6], cf_boxes[:, :6]):
+        return False
+    return bool(np.allclose(wrap_angle(2 * (rc_boxes[:, 6] - cf_boxes[:, 6])), 0.0, atol=1e-9))
 
 
 def pick_examples(rc_table, cf_table, count: int) -> np.ndarray:
@@ -57,7 +67,7 @@ def plot_ppcg_examples(
 
     rc_dir, cf_dir = Path(rc_dir), Path(cf_dir)
     rc_table, cf_table = read_boxes(rc_dir), read_boxes(cf_dir)
-    if len(rc_table) != len(cf_table) or not np.array_equal(rc_table.boxes, cf_table.boxes):
+    if not same_boxes(rc_table.boxes, cf_table.boxes):
         raise ArtifactError(f"{rc_dir} and {cf_dir}: not made from the same box table")
     rows = pick_examples(rc_table, cf_table, count)
     if len(rows) == 0:
