@@ -119,11 +119,12 @@ def test_the_stages_turn_the_boxes_and_record_it(dataset, tmp_path):  # noqa: F8
     )  # fmt: skip
     assert result.exit_code == 2 and "orient" in result.output and "cad" in result.output
     assert not (tmp_path / "p").exists()
+    # by default point models are not oriented: no error
     result = CliRunner().invoke(
         main,
         ["ppcg-rc", "--target", str(target), "--boxes", str(boxes), "--library", str(library),
          "--models", "points", "--no-progress", "--out", str(tmp_path / "p")],
-    )  # fmt: skip (by default point models are not oriented: no error)
+    )  # fmt: skip
     assert result.exit_code == 0, result.output
     assert "orient" not in read_manifest(tmp_path / "p")["params"]
 

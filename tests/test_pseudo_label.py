@@ -287,8 +287,9 @@ def test_size_correction_removes_an_anisotropic_bias(setup, monkeypatch):
                  "--no-progress")  # fmt: skip
     assert result.exit_code == 0, result.output
     e_est = np.asarray(json.loads((ptsn_dir / "scale.json").read_text())["E_est"])
+    # positions are checked exactly below: no point fit
     base = ["pseudo-label", "--model", model, "--target", target, "--scale-from", ptsn_dir,
-            "--no-progress", "--no-fit-points"]  # fmt: skip (positions checked exactly)
+            "--no-progress", "--no-fit-points"]  # fmt: skip
 
     assert run(*base, "--out", tmp_path / "raw", "--size-correction", "none").exit_code == 0
     raw = read_boxes(tmp_path / "raw")

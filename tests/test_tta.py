@@ -189,11 +189,12 @@ def stage(tmp_path, monkeypatch):
 
 
 def label(model, target, out, *options):
+    # the fusion checked alone: the point fit (on by default) would move the stub boxes
     return CliRunner().invoke(
         main,
         ["pseudo-label", "--model", str(model), "--target", str(target), "--scale", "1.2",
          "--out", str(out), "--no-progress", "--no-fit-points", *options],
-    )  # fmt: skip (the fusion checked alone: the point fit would move the stub boxes)
+    )  # fmt: skip
 
 
 def errors_and_count(out) -> tuple[float, int]:
