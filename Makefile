@@ -278,11 +278,11 @@ demo: install
 	@echo "This was the small demo (runs/demo). The full synthetic benchmark: make experiment"
 
 # the full synthetic benchmark (docs/RESULTS.md): 600 frames per training set, 200 validation frames,
-# 4 epochs of pretraining (2,400 frames seen) and 2 of retraining (2,400 frames: source + PPCG 1:1),
-# once per seed of SEEDS, each its own resumable RUN (runs/experiment-s<seed>: data seeds and
+# 4 epochs of pretraining (2,400 frames seen) and 2 x 2 of retraining (source + PPCG 1:1, 1,200
+# frames an epoch: 1 epoch in iteration 1, 3 in iteration 2; x1 long the 4 in one), once per seed of SEEDS, each its own resumable RUN (runs/experiment-s<seed>: data seeds and
 # training seeds follow SEED), the equal-budget controls included; then `dali report` of every
-# seed and the mean ± std over the seeds (runs/experiment-report), with x1 and x2 paired against
-# their equal-budget controls. EXPERIMENT_GOALS (every seed) adds e.g. iter2-st; the baselines and
+# seed and the mean ± std over the seeds (runs/experiment-report), with x1, x2 and x1 long paired
+# against their equal-budget controls. EXPERIMENT_GOALS (every seed) adds e.g. iter2-st; the baselines and
 # ablations (SN, ROS, oracle on the pretraining budget, RC only, CF only) run on the first seed of
 # SEEDS only (EXPERIMENT_FIRST_SEED_GOALS), as issue 18 allows: that keeps a further seed at ~2 h.
 # SOURCE_SENSOR=nuscenes gives the paper's second task (runs/experiment-nuscenes-s<seed>).
