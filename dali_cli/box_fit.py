@@ -130,8 +130,8 @@ def pose_costs(uv: np.ndarray, half_lw: np.ndarray, fit: PointFit, chunk: int = 
     A point's coordinates in the box shifted by (du, dv) and turned by t are its coordinates
     turned by t minus the shift turned by t, so the points are turned once per turn `(T, n)`
     and each shift only subtracts; float32 elementwise (the sums in float64), `chunk` shifts at
-    a time (the work stays in cache): eight times the plain float64 grid's speed, the same
-    poses on the demo's labels (docs/RESULTS.md, session 14)."""
+    a time (the work stays in cache): 7-9 times the plain float64 grid's speed, the same poses
+    on the demo-scale labels of three seeds (docs/RESULTS.md, session 14)."""
     shifts, turns = fit.axes()
     cos, sin = np.cos(turns).astype(np.float32), np.sin(turns).astype(np.float32)  # (T,)
     u, v = (np.asarray(uv, np.float32)[:, i] for i in (0, 1))

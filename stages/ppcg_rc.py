@@ -32,8 +32,8 @@ def ppcg_rc(
     **options: Unpack[PpcgOptions],
 ) -> StageOutcome:
     """RC pseudo point clouds (see dali_cli.ppcg.rc); `orient_models`: turn a box round when its
-    model fits its points better that way (dali_cli.ppcg.orient); `point_margin_m`: a box's
-    points are those in the box grown by this (m); `options`: sensor, models, label, engine
+    model fits its points better that way (dali_cli.ppcg.orient; None, the default: with mesh
+    models only); `point_margin_m`: a box's points are those in the box grown by this (m); `options`: sensor, models, label, engine
     and stage switches (dali_cli.ppcg.run.PpcgOptions; `bank` replaces the library in tests)."""
     if min_points < 1 or max_points <= min_points:
         raise ParameterError(
