@@ -40,19 +40,16 @@ def ppcg_cf(
         FrameSet(target_dir), options.get("sensor"), options.get("sensors_path")
     )
     shared = {"top_k": top_k, "seed": seed, "ground_margin_m": ground_margin_m}
-    if not point_margin_m >= 0:
-        raise ParameterError("point_margin_m", f"must be >= 0 m, got {point_margin_m}")
-    # the margin is recorded only when used (outputs made without it stay up to date); the
-    # orientation is resolved (and recorded when on) by run_ppcg, which knows the model kind
-    margin = {"point_margin_m": float(point_margin_m)} if point_margin_m else {}
+    # run_ppcg checks the margin, resolves the orientation (it knows the model kind) and
+    # records each only when used
     params = CfParams(
         theta_rad=angular_threshold_rad(profile.points_per_beam),
         range_m=(low, high),
         orient=orient_models,
+        point_margin_m=float(point_margin_m),
         **shared,
-        **margin,
     )
-    stage_params = {"range_m": [low, high], **shared, **margin}
+    stage_params = {"range_m": [low, high], **shared}
     return run_ppcg(
         "cf", target_dir, boxes_dir, library_dir, out,
         params=params, stage_params=stage_params, **options,

@@ -173,10 +173,14 @@ def run_ppcg(
     check_made_from(boxes_dir, "target", target_dir)  # pseudo boxes of this very frame set
     sensor, profile = target_profile(frames, sensor, sensors_path)
     models = model_kind(bank, options.get("models"), library_dir)
+    if not params.point_margin_m >= 0:
+        raise ParameterError("point_margin_m", f"must be >= 0 m, got {params.point_margin_m}")
     params = resolve_orient(params, models)
     params_record = {
         **stage_params,
-        **({"orient": True} if params.orient else {}),  # recorded when on: older outputs stay valid
+        # recorded only when used: outputs made without them stay up to date
+        **({"orient": True} if params.orient else {}),
+        **({"point_margin_m": params.point_margin_m} if params.point_margin_m else {}),
         "sensor": sensor,
         "models": models,
         "label": label,
