@@ -37,7 +37,9 @@ from dali_cli.sensors import get_profile
 from dali_cli.training_stage import attach_database
 
 TORCHRUN = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"]
-DALI = str(Path(sys.executable).with_name("dali"))
+# the CLI as a module, not the venv's console script: runs wherever dali_cli imports (a GPU
+# machine's system python with the package on PYTHONPATH has no `dali` beside its python)
+DALI = ["-m", "dali_cli.cli"]
 
 
 @pytest.fixture(scope="module")
@@ -217,7 +219,7 @@ def small_config(tmp_path: Path) -> Path:
 def test_torchrun_pretrain_writes_one_model_that_eval_reads(toy_dir, tmp_path):
     out = tmp_path / "model"
     run = subprocess.run(
-        [*TORCHRUN, DALI, "pretrain", "--source", str(toy_dir), "--out", str(out), "--epochs",
+        [*TORCHRUN, *DALI, "pretrain", "--source", str(toy_dir), "--out", str(out), "--epochs",
          "1", "--batch-size", "1", "--device", "cpu", "--no-augment", "--quiet",
          "--detector-config", str(small_config(tmp_path))],
         capture_output=True, text=True, env=torchrun_env(), timeout=600,

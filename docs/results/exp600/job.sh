@@ -4,14 +4,22 @@
 # order (main rows first), two 1-thread training jobs at a time on a 2-core VM.
 #   bash docs/results/exp600/job.sh        # from the repository root; resumable (make skips
 #                                          # every stage whose manifest is up to date)
+#   SEED=1 bash docs/results/exp600/job.sh # another seed: its own data and RUN, main rows only
 set -euo pipefail
-V="RUN=runs/experiment-s0 SEED=0 SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAMES=200 EPOCHS=4 RETRAIN_EPOCHS=2"
+SEED=${SEED:-0}
+V="RUN=runs/experiment-s$SEED SEED=$SEED SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAMES=200 EPOCHS=4 RETRAIN_EPOCHS=2"
 T='TRAIN_FLAGS=--threads 1'
 # the main rows: x2's chain alone first (`make -j2` does not keep goal order: given `iter2
 # controls-x2` it started both 7,200-frame controls and left the chain waiting), then x1 long and
 # x2's equal-budget controls side by side
 make iter2 $V "$T"
 make -j2 x1-long controls-x2 $V "$T"
+if [ "$SEED" != 0 ]; then  # the other seeds: main rows, forgetting and KITTI protocol only
+    make cross-domain runs/experiment-s$SEED/x1_long/eval_source_sized/manifest.json $V "$T"
+    make experiment SEEDS="$SEED" EXPERIMENT_GOALS="iter2 x1-long controls-x2 cross-domain" \
+        EXPERIMENT_FIRST_SEED_GOALS= TRAIN_FLAGS="--threads 1"
+    exit 0
+fi
 # seed 0 only (issue 18 allows it): x1's control, SN, ROS, oracle at the pretraining budget, RC
 # only, CF only, the forgetting check; `make experiment` then adds KITTI easy/moderate/hard of
 # every row and writes the reports (every finished stage is skipped)

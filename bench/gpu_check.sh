@@ -1,0 +1,56 @@
+#!/bin/bash
+# The CUDA check (docs/scale-out.md, "On a GPU"): run on a machine with an NVIDIA GPU and a
+# python3 that has a CUDA torch, from the repository root, with the wheels of dali's other
+# dependencies in .whl/ (no network needed) or already installed:
+#   bash bench/gpu_check.sh OUT_DIR
+# 1. the demo's two DALI iterations (`make iter2`, 48/48 frames, seed 0) with DEVICE=cuda: every
+#    model stage (pretrain, ptsn-sweep, pseudo-label, retrain, eval) on the GPU, per-frame stages
+#    on 8 local workers; 2. one pretraining under torchrun (NPROC=1: DDP with nccl);
+#    3. the test suite, where `--device auto` now means the GPU. Writes OUT_DIR/gpu_check.tar.gz
+#    (the manifests, metrics and logs) and OUT_DIR/summary.txt.
+set -uo pipefail
+OUT=${1:?usage: bash bench/gpu_check.sh OUT_DIR}
+mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1
+exec > >(tee "$OUT/log.txt") 2>&1
+date -u; nvidia-smi -L; nproc; lscpu | grep 'Model name'
+if ls .whl/*.whl > /dev/null 2>&1; then
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+        --target /tmp/site .whl/*.whl || exit 1
+    export PYTHONPATH=/tmp/site:$PWD
+else
+    export PYTHONPATH=$PWD
+fi
+python3 -c 'import torch; print("torch", torch.__version__, "cuda", torch.version.cuda, torch.cuda.get_device_name(0))'
+# a venv-shaped folder for the Makefile: its dali, python and torchrun are this python3's
+V=/tmp/gpuvenv
+mkdir -p $V/bin
+printf '#!%s\nfrom dali_cli.cli import main\nif __name__ == "__main__":\n    main()\n' "$(command -v python3)" > $V/bin/dali
+ln -sf "$(command -v python3)" $V/bin/python
+printf '#!/bin/sh\nexec python3 -m torch.distributed.run "$@"\n' > $V/bin/torchrun
+chmod +x $V/bin/dali $V/bin/torchrun
+touch $V/.installed
+RUN=/tmp/gpu-demo
+status=0
+start=$(date +%s)
+make --no-print-directory iter2 VENV=$V RUN=$RUN FRAMES=48 EPOCHS=6 SEED=0 DEVICE=cuda \
+    WORKERS=8 SYNTH_WORKERS=8 > "$OUT/iter2.log" 2>&1 || { status=1; echo "make iter2 FAILED"; tail -n 30 "$OUT/iter2.log"; }
+echo "make iter2 on cuda: $(( $(date +%s) - start )) s"
+python3 -m dali_cli.cli report $RUN > "$OUT/report.md" 2>&1 || status=1
+start=$(date +%s)
+make --no-print-directory $RUN/ddp/model/manifest.json -f Makefile -f - VENV=$V RUN=$RUN FRAMES=48 SEED=0 \
+    > "$OUT/ddp.log" 2>&1 <<'EOF' || { status=1; echo "torchrun pretraining FAILED"; tail -n 30 "$OUT/ddp.log"; }
+$(RUN)/ddp/model/manifest.json: $(RUN)/data/source/manifest.json
+	$(BIN)/torchrun --standalone --nproc-per-node 1 $(DALI) pretrain --source $(RUN)/data/source --epochs 2 --device cuda --seed 0 --out $(@D)
+EOF
+echo "torchrun (nccl) pretraining of 96 frames: $(( $(date +%s) - start )) s"
+start=$(date +%s)
+timeout 240 python3 -m pytest -q -x -p no:cacheprovider -n 8 -k 'not ray' tests > "$OUT/pytest.log" 2>&1
+rc=$?
+echo "pytest rc $rc in $(( $(date +%s) - start )) s: $(tail -n 1 "$OUT/pytest.log")"
+find $RUN -name manifest.json -o -name 'metrics*.json' | tar czf "$OUT/gpu_check.tar.gz" -T - "$OUT"/*.log 2> /dev/null
+for m in $RUN/iter0/model $RUN/iter2/model $RUN/ddp/model; do  # where each training ran, how fast
+    python3 -c 'import json, sys; m = json.load(open(sys.argv[1] + "/manifest.json"))
+print(sys.argv[1], m["runtime"], m["timings"], m["outputs"]["counts"])' $m
+done
+exit $status
