@@ -4,7 +4,11 @@ Reads pseudo-label directories (`dali pseudo-label` outputs) and the target's *h
 (a bench may read them; no DALI stage does) and measures, per range band of the detection grid:
 precision and recall of the pseudo boxes (greedy matching by score, BEV IoU > --iou), the mean
 l, w, h of the pseudo boxes vs the true mean of the target's cars, and the size error of matched
-pairs (pseudo - truth), so the per-dimension size correction can be judged on real labels.
+pairs (pseudo - truth), so the per-dimension size correction can be judged on real labels; and
+what the false positives are: "hallucinated" (centre >= 2 m from every labeled car of the frame,
+in the grid or not: clutter taken for a car) or "near a car" (a duplicate or a loose box), their
+median score and points against the true positives', and the true / false positives kept at
+higher score cuts (what `pseudo-label --score-min` would keep).
 
     .venv/bin/python bench/pseudo_labels.py --target RUN/data/target \
         --pseudo RUN/iter1/pseudo_raw RUN/iter1/pseudo [--iou 0.5] [--out bench/results/pseudo_labels.json]
@@ -59,14 +63,19 @@ def evaluate(pseudo_dir: Path, truth_table, iou: float, min_points: int) -> dict
     pseudo = read_boxes(pseudo_dir)
     truth_rows, pseudo_rows = truth_table.rows_by_frame(), pseudo.rows_by_frame()
     pred_range, truth_range, pred_hit, truth_hit, size_error = [], [], [], [], []
+    car_distance, scores, points = [], [], []
     for frame_id in sorted(set(truth_rows) | set(pseudo_rows)):
-        t = truth_table.boxes[truth_rows.get(frame_id, np.zeros(0, np.int64))]
+        every_car = truth_table.boxes[truth_rows.get(frame_id, np.zeros(0, np.int64))]
         t_points = truth_table["num_points"][truth_rows.get(frame_id, np.zeros(0, np.int64))]
-        t = t[in_grid(t) & (t_points >= min_points)]
+        t = every_car[in_grid(every_car) & (t_points >= min_points)]
         rows = pseudo_rows.get(frame_id, np.zeros(0, np.int64))
-        p, s = pseudo.boxes[rows], pseudo["score"][rows]
+        p, s, n = pseudo.boxes[rows], pseudo["score"][rows], pseudo["num_points"][rows]
         keep = in_grid(p)
-        p, s = p[keep], s[keep]
+        p, s, n = p[keep], s[keep], n[keep]
+        gaps = np.linalg.norm(p[:, None, :2] - every_car[None, :, :2], axis=2)  # (P, every car)
+        car_distance.append(gaps.min(axis=1) if every_car.size else np.full(len(p), np.inf))
+        scores.append(s)
+        points.append(n)
         matched = match(p, s, t, iou)
         hit = np.zeros(len(t), bool)
         hit[matched[matched >= 0]] = True
@@ -78,6 +87,8 @@ def evaluate(pseudo_dir: Path, truth_table, iou: float, min_points: int) -> dict
     pred_range, truth_range = np.concatenate(pred_range), np.concatenate(truth_range)
     pred_hit, truth_hit = np.concatenate(pred_hit), np.concatenate(truth_hit)
     size_error = np.concatenate(size_error)
+    car_distance, scores = np.concatenate(car_distance), np.concatenate(scores)
+    points = np.concatenate(points)
     bands = {}
     for lo, hi in (*BANDS, (0.0, np.inf)):
         name = "all" if hi == np.inf else f"{lo:.0f}-{hi:.0f}"
@@ -102,6 +113,39 @@ def evaluate(pseudo_dir: Path, truth_table, iou: float, min_points: int) -> dict
         "matched_size_error_lwh": [round(float(v), 4) for v in size_error.mean(axis=0)],
         "matched_pairs": len(size_error),
         "bands": bands,
+        "false_positives": false_positive_kinds(pred_hit, car_distance, scores, points),
+        "score_cuts": {
+            f"{cut:.1f}": {
+                "true_positives": int((pred_hit & (scores >= cut)).sum()),
+                "false_positives": int((~pred_hit & (scores >= cut)).sum()),
+                "hallucinated": int(
+                    (~pred_hit & (car_distance >= HALLUCINATED_M) & (scores >= cut)).sum()
+                ),
+            }
+            for cut in SCORE_CUTS
+        },
+    }
+
+
+HALLUCINATED_M = 2.0  # a false positive this far from every labeled car is clutter, not a loose box
+SCORE_CUTS = (0.3, 0.4, 0.5, 0.6)
+
+
+def false_positive_kinds(hit, car_distance, scores, points) -> dict:
+    """Counts and median score / points of the true positives and of the two kinds of false
+    positive. hit, car_distance (m), scores, points: (P,) per pseudo box in the grid."""
+    kinds = {
+        "true_positives": hit,
+        "near_a_car": ~hit & (car_distance < HALLUCINATED_M),
+        "hallucinated": ~hit & (car_distance >= HALLUCINATED_M),
+    }
+    return {
+        name: {
+            "boxes": int(chosen.sum()),
+            "median_score": round(float(np.median(scores[chosen])), 3) if chosen.any() else None,
+            "median_points": float(np.median(points[chosen])) if chosen.any() else None,
+        }
+        for name, chosen in kinds.items()
     }
 
 
