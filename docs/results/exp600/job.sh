@@ -12,14 +12,21 @@ T='TRAIN_FLAGS=--threads 1'
 # the main rows: x2's chain alone first (`make -j2` does not keep goal order: given `iter2
 # controls-x2` it started both 7,200-frame controls and left the chain waiting), then x1 long and
 # x2's equal-budget controls side by side
-make iter2 $V "$T"
-make -j2 x1-long controls-x2 $V "$T"
 if [ "$SEED" != 0 ]; then  # the other seeds: main rows, forgetting and KITTI protocol only
+    # x2's chain and the x2-budget control (which needs none of it) side by side, then x1 long
+    # and the x2-budget oracle side by side (session 16 ran seed 1 this way, by hand)
+    make data $V "$T"  # first: both would synthesize it, and a FrameSet has one writer
+    make iter2 $V "$T" & chain=$!
+    make runs/experiment-s$SEED/baselines/source_x2_budget/eval_ptsn/manifest.json $V "$T"
+    wait $chain
+    make -j2 x1-long controls-x2 $V "$T"
     make cross-domain runs/experiment-s$SEED/x1_long/eval_source_sized/manifest.json $V "$T"
     make experiment SEEDS="$SEED" EXPERIMENT_GOALS="iter2 x1-long controls-x2 cross-domain" \
         EXPERIMENT_FIRST_SEED_GOALS= TRAIN_FLAGS="--threads 1"
     exit 0
 fi
+make iter2 $V "$T"
+make -j2 x1-long controls-x2 $V "$T"
 # seed 0 only (issue 18 allows it): x1's control, SN, ROS, oracle at the pretraining budget, RC
 # only, CF only, the forgetting check; `make experiment` then adds KITTI easy/moderate/hard of
 # every row and writes the reports (every finished stage is skipped)
