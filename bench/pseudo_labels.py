@@ -7,8 +7,8 @@ l, w, h of the pseudo boxes vs the true mean of the target's cars, and the size 
 pairs (pseudo - truth), so the per-dimension size correction can be judged on real labels; and
 what the false positives are: "hallucinated" (centre >= 2 m from every labeled car of the frame,
 in the grid or not: clutter taken for a car) or "near a car" (a duplicate or a loose box), their
-median score and points against the true positives', and the true / false positives kept at
-higher score cuts (what `pseudo-label --score-min` would keep).
+median score and points against the true positives', how many are dense (>= 300 points, which
+RC leaves as they are), and the true / false positives kept at higher score cuts (what `pseudo-label --score-min` would keep).
 
     .venv/bin/python bench/pseudo_labels.py --target RUN/data/target \
         --pseudo RUN/iter1/pseudo_raw RUN/iter1/pseudo [--iou 0.5] [--out bench/results/pseudo_labels.json]
@@ -37,6 +37,9 @@ from dali_cli.geometry import bev_iou  # noqa: E402
 
 BANDS = ((0.0, 30.0), (30.0, 50.0), (50.0, 80.0))
 GRID_X, GRID_Y = (0.0, 70.4), 40.0
+HALLUCINATED_M = 2.0  # a false positive this far from every labeled car is clutter, not a loose box
+SCORE_CUTS = (0.3, 0.4, 0.5, 0.6)
+DENSE_POINTS = 300  # ppcg-rc leaves boxes with this many points or more as they are (RcParams)
 
 
 def in_grid(boxes: np.ndarray) -> np.ndarray:
@@ -127,10 +130,6 @@ def evaluate(pseudo_dir: Path, truth_table, iou: float, min_points: int) -> dict
     }
 
 
-HALLUCINATED_M = 2.0  # a false positive this far from every labeled car is clutter, not a loose box
-SCORE_CUTS = (0.3, 0.4, 0.5, 0.6)
-
-
 def false_positive_kinds(hit, car_distance, scores, points) -> dict:
     """Counts and median score / points of the true positives and of the two kinds of false
     positive. hit, car_distance (m), scores, points: (P,) per pseudo box in the grid."""
@@ -144,6 +143,7 @@ def false_positive_kinds(hit, car_distance, scores, points) -> dict:
             "boxes": int(chosen.sum()),
             "median_score": round(float(np.median(scores[chosen])), 3) if chosen.any() else None,
             "median_points": float(np.median(points[chosen])) if chosen.any() else None,
+            "dense": int((chosen & (points >= DENSE_POINTS)).sum()),
         }
         for name, chosen in kinds.items()
     }

@@ -38,10 +38,10 @@ def test_false_positives_are_split_into_clutter_and_loose_boxes(tmp_path):
             car(41.8, 5.0),  # 1.8 m off the second car: BEV IoU 0.37, a loose box near a car
             car(25.0, 20.0),  # nowhere near a car: clutter
             car(20.0, -3.0),  # true positive
-            car(60.0, 30.0),  # clutter, scored high
+            car(60.0, 30.0),  # clutter, scored high, dense
         ]),
         score=np.array([0.9, 0.45, 0.35, 0.8, 0.65]),
-        num_points=np.array([70, 12, 40, 45, 33]),
+        num_points=np.array([70, 12, 40, 45, 330]),
     )  # fmt: skip
     (tmp_path / "target").mkdir()
     (tmp_path / "pseudo").mkdir()
@@ -53,8 +53,10 @@ def test_false_positives_are_split_into_clutter_and_loose_boxes(tmp_path):
     assert result["bands"]["all"]["false_positives"] == 3
     kinds = result["false_positives"]
     assert kinds["true_positives"]["boxes"] == 2
-    assert kinds["near_a_car"] == {"boxes": 1, "median_score": 0.45, "median_points": 12.0}
-    assert kinds["hallucinated"]["boxes"] == 2
+    assert kinds["near_a_car"] == {
+        "boxes": 1, "median_score": 0.45, "median_points": 12.0, "dense": 0
+    }  # fmt: skip
+    assert kinds["hallucinated"]["boxes"] == 2 and kinds["hallucinated"]["dense"] == 1
     assert kinds["hallucinated"]["median_score"] == 0.5  # of 0.35 and 0.65
     cuts = result["score_cuts"]
     assert cuts["0.3"] == {"true_positives": 2, "false_positives": 3, "hallucinated": 2}
