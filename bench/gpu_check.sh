@@ -6,8 +6,9 @@
 # 1. the demo's two DALI iterations (`make iter2`, 48/48 frames, seed 0) with DEVICE=cuda: every
 #    model stage (pretrain, ptsn-sweep, pseudo-label, retrain, eval) on the GPU, per-frame stages
 #    on 8 local workers; 2. one pretraining under torchrun (NPROC=1: DDP with nccl);
-#    3. the test suite, where `--device auto` now means the GPU. Writes OUT_DIR/gpu_check.tar.gz
-#    (the manifests, metrics and logs) and OUT_DIR/summary.txt.
+#    3. the test suite, where `--device auto` now means the GPU. Writes OUT_DIR/log.txt (what it
+#    printed), iter2.log, ddp.log, pytest.log, report.md (`dali report` of the demo run) and
+#    gpu_check.tar.gz (the run's manifests and metrics, and the logs).
 set -uo pipefail
 OUT=${1:?usage: bash bench/gpu_check.sh OUT_DIR}
 mkdir -p "$OUT"
