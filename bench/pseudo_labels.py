@@ -116,29 +116,20 @@ def evaluate(pseudo_dir: Path, truth_table, iou: float, min_points: int) -> dict
         "matched_size_error_lwh": [round(float(v), 4) for v in size_error.mean(axis=0)],
         "matched_pairs": len(size_error),
         "bands": bands,
-        "false_positives": false_positive_kinds(pred_hit, car_distance, scores, points),
-        "score_cuts": {
-            f"{cut:.1f}": {
-                "true_positives": int((pred_hit & (scores >= cut)).sum()),
-                "false_positives": int((~pred_hit & (scores >= cut)).sum()),
-                "hallucinated": int(
-                    (~pred_hit & (car_distance >= HALLUCINATED_M) & (scores >= cut)).sum()
-                ),
-            }
-            for cut in SCORE_CUTS
-        },
+        **false_positive_kinds(pred_hit, car_distance, scores, points),
     }
 
 
 def false_positive_kinds(hit, car_distance, scores, points) -> dict:
-    """Counts and median score / points of the true positives and of the two kinds of false
-    positive. hit, car_distance (m), scores, points: (P,) per pseudo box in the grid."""
+    """The true positives and the two kinds of false positive (count, median score and points,
+    dense boxes), and how many of each kind higher score cuts keep. hit, car_distance (m),
+    scores, points: (P,) per pseudo box in the grid."""
     kinds = {
         "true_positives": hit,
         "near_a_car": ~hit & (car_distance < HALLUCINATED_M),
         "hallucinated": ~hit & (car_distance >= HALLUCINATED_M),
     }
-    return {
+    summary = {
         name: {
             "boxes": int(chosen.sum()),
             "median_score": round(float(np.median(scores[chosen])), 3) if chosen.any() else None,
@@ -147,6 +138,15 @@ def false_positive_kinds(hit, car_distance, scores, points) -> dict:
         }
         for name, chosen in kinds.items()
     }
+    cuts = {}
+    for cut in SCORE_CUTS:
+        kept = scores >= cut
+        cuts[f"{cut:.1f}"] = {
+            "true_positives": int((kinds["true_positives"] & kept).sum()),
+            "false_positives": int((~hit & kept).sum()),
+            "hallucinated": int((kinds["hallucinated"] & kept).sum()),
+        }
+    return {"false_positives": summary, "score_cuts": cuts}
 
 
 def main() -> None:
