@@ -170,8 +170,14 @@ def point_box_pairs(
     point_index = np.repeat(np.arange(len(points), dtype=np.int64), counts)
     first = np.repeat(start - np.cumsum(counts) + counts, counts)  # start of each run, repeated
     box_index = box_ids[first + np.arange(len(point_index))]
-    inside = inside_boxes(
-        np.asarray(points[point_index, :3], dtype=np.float64), boxes[box_index], margin_m
+    # the in-box parameters once per box (N), gathered per candidate pair (K >> N)
+    cos, sin, centre, half = box_frames(boxes, margin_m, np.float64)
+    inside = inside_box_frames(
+        np.asarray(points[point_index, :3], dtype=np.float64),
+        cos[box_index],
+        sin[box_index],
+        centre[box_index],
+        half[box_index],
     )
     return point_index[inside], box_index[inside]
 

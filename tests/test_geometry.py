@@ -278,3 +278,20 @@ def test_ground_frame_shift_and_scaling_round_trip():
         == 0
     ).all()
     assert math.isclose(g.scale_boxes_about_ground(box, 2.0, mount)[0, 2] - 0.75 * 2, -mount)
+
+
+@pytest.mark.parametrize("margin_m", [0.0, 0.3])
+def test_point_box_pairs_equal_every_pair_tested(margin_m: float) -> None:
+    """The grid-candidate search finds exactly the (point, box) containments of the all-pairs test,
+    overlapping boxes included, with point indices ascending and box indices ascending per point."""
+    rng = np.random.default_rng(7)
+    boxes = random_boxes(rng, 40, spread=12.0)
+    points = rng.uniform(-16.0, 16.0, (5000, 4)).astype(np.float32)
+    point_index, box_index = g.point_box_pairs(points, boxes, margin_m)
+    every = g.inside_boxes(  # (M, N) by broadcasting each point against each box
+        points[:, None, :3].astype(np.float64), boxes[None, :, :], margin_m
+    )
+    want_point, want_box = np.nonzero(every)  # row-major: points ascending, boxes within a point
+    assert len(want_point) > 100  # overlaps and misses both occur at this density
+    assert np.array_equal(point_index, want_point)
+    assert np.array_equal(box_index, want_box)

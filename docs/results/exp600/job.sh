@@ -5,24 +5,30 @@
 #   bash docs/results/exp600/job.sh        # from the repository root; resumable (make skips
 #                                          # every stage whose manifest is up to date)
 #   SEED=1 bash docs/results/exp600/job.sh # another seed: its own data and RUN, main rows only
+#   SOURCE_SENSOR=nuscenes bash docs/results/exp600/job.sh  # the nuScenes-like -> KITTI-like
+#                                          # task (runs/experiment-nuscenes-s0): main rows only
 set -euo pipefail
 SEED=${SEED:-0}
-V="RUN=runs/experiment-s$SEED SEED=$SEED SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAMES=200 EPOCHS=4 RETRAIN_EPOCHS=2"
+SOURCE_SENSOR=${SOURCE_SENSOR:-waymo}
+RUN=runs/experiment$([ "$SOURCE_SENSOR" = waymo ] || echo "-$SOURCE_SENSOR")-s$SEED  # as make experiment
+V="RUN=$RUN SEED=$SEED SOURCE_SENSOR=$SOURCE_SENSOR FRAMES=600 VAL_FRAMES=200 EPOCHS=4 RETRAIN_EPOCHS=2"
 T='TRAIN_FLAGS=--threads 1'
 # the main rows: x2's chain alone first (`make -j2` does not keep goal order: given `iter2
 # controls-x2` it started both 7,200-frame controls and left the chain waiting), then x1 long and
 # x2's equal-budget controls side by side
-if [ "$SEED" != 0 ]; then  # the other seeds: main rows, forgetting and KITTI protocol only
+if [ "$SEED" != 0 ] || [ "$SOURCE_SENSOR" != waymo ]; then
+    # the other seeds and the other task: main rows, forgetting and KITTI protocol only
     # x2's chain and the x2-budget control (which needs none of it) side by side, then x1 long
     # and the x2-budget oracle side by side (session 16 ran seed 1 this way, by hand)
     make data $V "$T"  # first: both would synthesize it, and a FrameSet has one writer
     make iter2 $V "$T" & chain=$!
-    make runs/experiment-s$SEED/baselines/source_x2_budget/eval_ptsn/manifest.json $V "$T"
+    make $RUN/baselines/source_x2_budget/eval_ptsn/manifest.json $V "$T"
     wait $chain
     make -j2 x1-long controls-x2 $V "$T"
-    make cross-domain runs/experiment-s$SEED/x1_long/eval_source_sized/manifest.json $V "$T"
-    make experiment SEEDS="$SEED" EXPERIMENT_GOALS="iter2 x1-long controls-x2 cross-domain" \
-        EXPERIMENT_FIRST_SEED_GOALS= TRAIN_FLAGS="--threads 1"
+    make cross-domain $RUN/x1_long/eval_source_sized/manifest.json $V "$T"
+    make experiment SEEDS="$SEED" SOURCE_SENSOR="$SOURCE_SENSOR" \
+        EXPERIMENT_GOALS="iter2 x1-long controls-x2 cross-domain" EXPERIMENT_FIRST_SEED_GOALS= \
+        TRAIN_FLAGS="--threads 1"
     exit 0
 fi
 make iter2 $V "$T"
