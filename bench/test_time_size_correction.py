@@ -10,13 +10,17 @@ protocol flags (`dali eval --pred`). Target labels are used only by the evaluati
     .venv/bin/python bench/test_time_size_correction.py RUN/iter2/eval RUN/iter3/ptsn \
         --gt RUN/data/target_val
 
-Prints AP_BEV / AP_3D @0.7 before and after, and the factors; writes nothing outside a temp dir.
+Prints AP_BEV / AP_3D @0.7 before and after, and the factors; writes nothing outside a temp dir,
+unless `--out DIR` keeps the corrected predictions as an eval directory of their own
+(DIR/predictions.parquet, metrics.json, metrics_kitti.json with the Makefile's KITTI flags,
+size_correction.json), which `dali report`-style tools (bench/paired_rows.py) read as a row.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -29,6 +33,7 @@ import pyarrow.parquet as pq
 from dali_cli.size_correction import resize_keeping_bottom
 
 EVAL_FLAGS = ["--protocol", "range", "--front-only", "--iou", "0.7", "--iou", "0.5"]
+KITTI_FLAGS = ["--protocol", "kitti", "--iou", "0.7", "--iou", "0.5", "--size-score-min", "0.3"]
 
 
 def corrected_predictions(predictions: Path, scale_json: Path, out: Path) -> np.ndarray:
@@ -43,9 +48,13 @@ def corrected_predictions(predictions: Path, scale_json: Path, out: Path) -> np.
     return factors
 
 
-def evaluate(dali: str, pred: Path, gt: Path, out: Path) -> dict:
-    command = [dali, "eval", "--pred", str(pred), "--gt", str(gt), *EVAL_FLAGS, "--out", str(out)]
+def run_eval(dali: str, pred: Path, gt: Path, out: Path, flags: list[str]) -> None:
+    command = [dali, "eval", "--pred", str(pred), "--gt", str(gt), *flags, "--out", str(out)]
     subprocess.run(command, check=True, capture_output=True)
+
+
+def evaluate(dali: str, pred: Path, gt: Path, out: Path) -> dict:
+    run_eval(dali, pred, gt, out, EVAL_FLAGS)
     metrics = json.loads(out.read_text())["Car"]
     return {"bev": metrics["bev"]["all"], "3d": metrics["3d"]["all"]}
 
@@ -56,6 +65,7 @@ def main() -> int:
     parser.add_argument("ptsn_dir", type=Path)
     parser.add_argument("--gt", type=Path, required=True)
     parser.add_argument("--dali", default=str(Path(sys.executable).with_name("dali")))
+    parser.add_argument("--out", type=Path, help="keep the corrected predictions and metrics here")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -64,8 +74,20 @@ def main() -> int:
             args.eval_dir / "predictions.parquet", args.ptsn_dir / "scale.json", tmp / "p.parquet"
         )
         after = evaluate(args.dali, tmp / "p.parquet", args.gt, tmp / "b.json")
-    print(json.dumps({"eval": str(args.eval_dir), "factors_lwh": factors.round(4).tolist(),
-                      "before": before, "after": after}))  # fmt: skip
+        record = {"eval": str(args.eval_dir), "factors_lwh": factors.round(4).tolist(),
+                  "before": before, "after": after}  # fmt: skip
+        if args.out is not None:  # built beside, then renamed: never a half-written row
+            work = tmp / "out"
+            work.mkdir()
+            (tmp / "p.parquet").rename(work / "predictions.parquet")
+            (tmp / "b.json").rename(work / "metrics.json")
+            run_eval(args.dali, work / "predictions.parquet", args.gt, work / "metrics_kitti.json",
+                     KITTI_FLAGS)  # fmt: skip
+            (work / "size_correction.json").write_text(json.dumps(record, indent=2) + "\n")
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            shutil.rmtree(args.out, ignore_errors=True)
+            shutil.move(str(work), str(args.out))
+    print(json.dumps(record))
     return 0
 
 
