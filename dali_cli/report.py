@@ -32,9 +32,16 @@ ROWS: tuple[tuple[str, str], ...] = (
 SOURCE_X1_BUDGET = "Source only, x1's budget + PTSN"
 SOURCE_X2_BUDGET = "Source only, x2's budget + PTSN"
 ORACLE_X2_BUDGET = "Oracle, x2's budget"
+# the same controls with their predictions resized per dimension at test time, label-free
+# (`dali eval --size-correction per-dim`): the cheap alternative at its strongest
+SIZED = " + size correction"
+SOURCE_X1_BUDGET_SIZED = SOURCE_X1_BUDGET + SIZED
+SOURCE_X2_BUDGET_SIZED = SOURCE_X2_BUDGET + SIZED
 CONTROL_ROWS: tuple[tuple[str, str], ...] = (
     (SOURCE_X1_BUDGET, "baselines/source_x1_budget/eval_ptsn/metrics.json"),
+    (SOURCE_X1_BUDGET_SIZED, "baselines/source_x1_budget/eval_ptsn_sized/metrics.json"),
     (SOURCE_X2_BUDGET, "baselines/source_x2_budget/eval_ptsn/metrics.json"),
+    (SOURCE_X2_BUDGET_SIZED, "baselines/source_x2_budget/eval_ptsn_sized/metrics.json"),
     (ORACLE_X2_BUDGET, "baselines/oracle_x2_budget/eval/metrics.json"),
 )
 KITTI_NAME = "metrics_kitti.json"  # beside each metrics.json: the same predictions, KITTI protocol
@@ -236,12 +243,14 @@ def gap_closed(
 
 
 def gap_closed_equal_budget(
-    rows: list[Row], metric: str = "3d", iou: str = "0.7", final: str = "x2"
-) -> float | None:
+    rows: list[Row], metric: str = "3d", iou: str = "0.7", final: str = "x2",
+    control_row: str = SOURCE_X2_BUDGET,
+) -> float | None:  # fmt: skip
     """Share of the gap from the equal-budget control (source only with x2's training frames +
-    test-time PTSN) to the equal-budget oracle that `final` closes (issue 18's measure)."""
+    test-time PTSN; `control_row`, e.g. the size-corrected one) to the equal-budget oracle that
+    `final` closes (issue 18's measure)."""
     by_name = {row.name: row.ap.get(iou, {}).get(metric) for row in rows}
-    control, oracle = by_name.get(SOURCE_X2_BUDGET), by_name.get(ORACLE_X2_BUDGET)
+    control, oracle = by_name.get(control_row), by_name.get(ORACLE_X2_BUDGET)
     value = by_name.get(final)
     if control is None or oracle is None or value is None or np.isclose(oracle, control):
         return None
@@ -306,6 +315,12 @@ def build_report(run: Path) -> tuple[str, dict]:
         "gap_closed_equal_budget_x1_long_3d_0.7": gap_closed_equal_budget(
             rows + controls, final=X1_LONG
         ),
+        "gap_closed_sized_control_3d_0.7": gap_closed_equal_budget(
+            rows + controls, control_row=SOURCE_X2_BUDGET_SIZED
+        ),
+        "gap_closed_sized_control_x1_long_3d_0.7": gap_closed_equal_budget(
+            rows + controls, final=X1_LONG, control_row=SOURCE_X2_BUDGET_SIZED
+        ),
         "ptsn": scales,
         "timings": timings,
     }
@@ -351,12 +366,14 @@ def controls_section(rows: list, controls: list) -> list[str]:
                 f"(AP_{metric.upper()}@{iou}): {100 * closed_long:.0f}%"
             )
         for final in ("x2", X1_LONG):
-            equal = gap_closed_equal_budget(rows + controls, metric, iou, final)
-            if equal is not None:
-                parts.append(
-                    f"\nGap from source + PTSN to the oracle, both with x2's budget, closed by "
-                    f"{final} (AP_{metric.upper()}@{iou}): {100 * equal:.0f}%"
-                )
+            for control, what in ((SOURCE_X2_BUDGET, "source + PTSN"),
+                                  (SOURCE_X2_BUDGET_SIZED, "source + PTSN + size correction")):  # fmt: skip
+                equal = gap_closed_equal_budget(rows + controls, metric, iou, final, control)
+                if equal is not None:
+                    parts.append(
+                        f"\nGap from {what} to the oracle, both with x2's budget, closed by "
+                        f"{final} (AP_{metric.upper()}@{iou}): {100 * equal:.0f}%"
+                    )
     return parts
 
 

@@ -34,6 +34,8 @@ SCALARS = (
     "gap_closed_equal_budget_3d_0.7",
     "gap_closed_equal_budget_bev_0.7",
     "gap_closed_equal_budget_x1_long_3d_0.7",
+    "gap_closed_sized_control_3d_0.7",
+    "gap_closed_sized_control_x1_long_3d_0.7",
 )
 TABLE_COLUMNS = ("BEV@0.7", "3D@0.7", "KITTI 3D@0.7 moderate", "pred l", "pred w", "pred h")
 

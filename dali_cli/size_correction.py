@@ -113,3 +113,31 @@ def correct_sizes(
         method, factors, before, after, e_est, int(used.sum()), float(score_min), mean
     )
     return corrected, record
+
+
+def factors_from_sweep(e_est, e_pred, where: str) -> np.ndarray:
+    """Test-time factors (3,) l, w, h = E_est / E_pred(ŝ) of one ptsn-sweep (its scale.json's
+    "E_est" and "E_pred_at_scale": the sweep's own label-free numbers on the unlabeled target
+    training frames, so the correction reads no target label). ValueError naming `where` when
+    either is missing or not three positive sizes."""
+    values = {}
+    for name, value in (("E_est", e_est), ("E_pred_at_scale", e_pred)):
+        triple = np.asarray([np.nan if v is None else v for v in (value or ())], np.float64)
+        if triple.shape != (3,) or not (np.isfinite(triple).all() and (triple > 0).all()):
+            raise ValueError(
+                f"{where}: field '{name}' must be three positive sizes in metres for a size "
+                f"correction, got {value!r}"
+            )
+        values[name] = triple
+    return values["E_est"] / values["E_pred_at_scale"]
+
+
+def correct_class_sizes(
+    boxes: np.ndarray, labels: np.ndarray, class_name: str, factors
+) -> np.ndarray:
+    """boxes (N, 7) with the rows labelled `class_name` resized by `factors` (3,)
+    (`resize_keeping_bottom`), the others unchanged. Returns a new (N, 7) float64 array."""
+    boxes = np.array(boxes, np.float64, copy=True).reshape(-1, 7)
+    rows = np.asarray(labels) == class_name
+    boxes[rows] = resize_keeping_bottom(boxes[rows], factors)
+    return boxes

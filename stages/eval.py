@@ -8,6 +8,11 @@ loop (`dali_cli.detector.predict_frameset`). Output, either:
   atomically as a whole, skipped when inputs and parameters are unchanged); a KITTI-protocol
   OUT/metrics_kitti.json added later is not part of its content hash; or
 - a metrics file (`out` ending in .json): FILE and predictions.parquet beside it, each atomic.
+With `size_correction="per-dim"` the Car predictions are resized per dimension before they are
+evaluated (and saved) by the factors E_est / E_pred(ŝ) of the `scale_from` sweep
+(`dali_cli.size_correction.factors_from_sweep`: label-free, from the unlabeled target training
+frames), bottom face kept; metrics.json records them under "size_correction". It works on both
+routes: a model run at ŝ, or a prediction table (then `scale_from` gives only the factors).
 Returns the metrics for the command to print."""
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli import console
-from dali_cli.artifacts import BOXES_NAME, BoxTable, FrameSet, read_boxes
+from dali_cli.artifacts import BOX_FIELDS, BOXES_NAME, BoxTable, FrameSet, read_boxes
 from dali_cli.atomic_file import write_atomically, write_text_atomically
 from dali_cli.errors import ParameterError, StageError
 
@@ -127,12 +132,58 @@ def check_ious(ious: tuple[float, ...]) -> None:
         raise ParameterError("ious", f"repeated threshold in {list(ious)}")
 
 
+def check_size_correction(method: str, scale: float | None, scale_from) -> None:
+    """ParameterError for an unknown method, or a correction without a sweep to read it from."""
+    from dali_cli.size_correction import METHODS
+
+    if method not in METHODS:
+        raise ParameterError(
+            "size_correction", f"must be one of {', '.join(METHODS)}, got '{method}'"
+        )
+    if method != "none" and scale_from is None:
+        given = "--scale gives no sizes; " if scale is not None else ""
+        raise ParameterError(
+            ("size_correction", "scale_from"),
+            f"{given}a size correction needs --scale-from PTSN_DIR (its scale.json's E_est and "
+            "E_pred_at_scale)",
+        )
+
+
+def corrected_predictions(pred: BoxTable, scale_from, class_name: str) -> tuple[BoxTable, dict]:
+    """`pred` with its `class_name` boxes resized by the per-dimension factors of the sweep
+    `scale_from`, and the record written to metrics.json. ArtifactError naming scale.json when
+    it lacks E_est or E_pred_at_scale."""
+    from dali_cli.artifacts import ArtifactError
+    from dali_cli.scale_file import read_scale, scale_path
+    from dali_cli.size_correction import correct_class_sizes, factors_from_sweep
+
+    sweep = read_scale(scale_from)
+    try:
+        factors = factors_from_sweep(sweep.e_est, sweep.e_pred, str(scale_path(scale_from)))
+    except ValueError as error:
+        raise ArtifactError(str(error)) from None
+    boxes = correct_class_sizes(pred.boxes, pred["label"], class_name, factors)
+    corrected = pred.with_columns(**{name: boxes[:, i] for i, name in enumerate(BOX_FIELDS)})
+    record = {
+        "method": "per-dim",
+        "factors_lwh": [round(float(f), 6) for f in factors],
+        "E_est": list(sweep.e_est),
+        "E_pred_at_scale": list(sweep.e_pred),
+        "from": str(scale_path(scale_from)),
+        "anchor": "bottom face (z moves by half the change of h)",
+    }
+    return corrected, record
+
+
 def predictions_and_truth(
     pred_path, gt_path, model, data, scale, scale_from, device="auto", precision="fp32",
-    engine=None, near=None, progress=True,
+    engine=None, near=None, progress=True, size_correction="none", class_name="Car",
 ):  # fmt: skip
     """(pred, gt, frame ids evaluated or None, source record, gt path, runtime or None) from
-    either the model route (`model` on `data`) or the table route (`pred_path` vs `gt_path`)."""
+    either the model route (`model` on `data`) or the table route (`pred_path` vs `gt_path`),
+    the predictions size-corrected when `size_correction` says so (record: source's
+    "size_correction")."""
+    check_size_correction(size_correction, scale, scale_from)
     frame_ids = runtime = None
     if model is not None or data is not None:
         if model is None or data is None:
@@ -149,12 +200,18 @@ def predictions_and_truth(
         source = {"model": str(model), "data": str(data), "scale": chosen_scale}
         runtime = {**inference_runtime(torch_device), "precision": precision}
     else:
-        if scale is not None or scale_from is not None:
-            raise ParameterError(("scale", "scale_from"), "a scale only applies with a model")
+        if scale is not None or (scale_from is not None and size_correction == "none"):
+            raise ParameterError(
+                ("scale", "scale_from"),
+                "a scale only applies with a model (--scale-from without one: only with "
+                "--size-correction per-dim, for its factors)",
+            )
         if pred_path is None or gt_path is None:
             raise ParameterError(("pred_path", "gt_path"), "give predictions and ground truth")
         pred, _ = read_table(pred_path, "pred")
         source = {"pred": str(pred_path)}
+    if size_correction != "none":
+        pred, source["size_correction"] = corrected_predictions(pred, scale_from, class_name)
     gt, label_frames = read_table(gt_path, "gt")
     source["gt"] = str(gt_path)
     frames = frame_ids if frame_ids is not None else label_frames
@@ -186,12 +243,14 @@ def run_eval(
     force: bool = False,
     dry_run: bool = False,
     progress: bool = True,
+    size_correction: str = "none",
 ) -> EvalResult:
     """Evaluate (see the module docstring). `out`: None (print only), a metrics file (.json) or
     an artifact directory; `force` applies to the directory, `dry_run` to both (a metrics file
     is always recomputed, so a dry run only says so and writes nothing); `progress`: the
     detector's progress bar (with --model)."""
     check_ious(tuple(ious))
+    check_size_correction(size_correction, scale, scale_from)  # before any work or output
     options = dict(
         ious=tuple(ious), size_score_min=size_score_min, recall_positions=int(recall_positions),
         protocol=protocol, front_only=front_only, class_name=class_name,
@@ -204,6 +263,7 @@ def run_eval(
         scale_from=scale_from, device=device, precision=precision,
         engine=make_executor(executor, workers, ray_address),
         near=Path(out).parent if out is not None else None, progress=progress,
+        size_correction=size_correction, class_name=class_name,
     )  # fmt: skip
     inputs = {"model": model, "data": data, "pred": pred_path, "gt": gt_path, "scale": scale_from}
     if out is not None and Path(out).suffix != ".json":
@@ -220,7 +280,8 @@ def run_eval(
     metrics, pred = compute_metrics(routes, options)
     written = []
     if out is not None:
-        written = write_outputs(out, metrics, pred if save_predictions and model else None)
+        keep = save_predictions and (model is not None or size_correction != "none")
+        written = write_outputs(out, metrics, pred if keep else None)
     return EvalResult(metrics, written)
 
 
@@ -229,6 +290,7 @@ def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
     from dali_cli.evaluate import EvaluationError, evaluate
 
     pred, gt, frame_ids, source, gt_path, runtime = predictions_and_truth(**routes)
+    correction = source.pop("size_correction", None)
     class_name = options["class_name"]
     metrics: dict = {}
     for index, iou in enumerate(options["ious"]):
@@ -252,6 +314,8 @@ def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
     }
     if "scale" in source:
         metrics["scale"] = source["scale"]
+    if correction is not None:
+        metrics["size_correction"] = correction
     if runtime is not None:
         metrics["runtime"] = runtime
     return metrics, pred
@@ -280,7 +344,8 @@ def eval_artifact(out, inputs, routes, options, save_predictions, force, dry_run
 
     def build(directory: Path) -> BuildResult:
         metrics, pred = compute_metrics(routes, options)
-        keep = pred if save_predictions and routes["model"] is not None else None
+        corrected = routes["size_correction"] != "none"
+        keep = pred if save_predictions and (routes["model"] is not None or corrected) else None
         write_outputs(directory / METRICS_NAME, metrics, keep)
         computed["metrics"] = metrics
         counts = {"predictions": len(pred), "frames": metrics[options["class_name"]]["frames"]}
@@ -292,6 +357,8 @@ def eval_artifact(out, inputs, routes, options, save_predictions, force, dry_run
         "save_predictions": save_predictions,
         "precision": routes["precision"],
     }
+    if routes["size_correction"] != "none":  # absent when off: older artifacts stay up to date
+        params["size_correction"] = routes["size_correction"]
     outcome = run_stage(
         "eval", out, inputs, params, build, force=force, dry_run=dry_run,
         derived=(KITTI_METRICS_NAME,),

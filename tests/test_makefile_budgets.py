@@ -98,3 +98,20 @@ def test_a_retraining_budget_that_is_not_a_whole_number_of_epochs_stops_make(tmp
     assert result.returncode != 0
     assert f"RETRAIN_EPOCHS must be a whole number of epochs >= 1, got '{value}'" in result.stderr
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("budget", ["source_x1_budget", "source_x2_budget"])
+def test_each_control_gets_its_size_corrected_row(tmp_path, budget):
+    """controls-x1 / controls-x2 also evaluate the control's own test-time PTSN predictions
+    resized by its own sweep's factors (no second detector run), and the KITTI protocol covers
+    that row."""
+    goal = "controls-x1" if budget == "source_x1_budget" else "controls-x2"
+    base = f"{tmp_path / 'run'}/baselines/{budget}"
+    [line] = [x for x in plan(tmp_path, goal).splitlines() if "--size-correction" in x]
+    assert f"--pred {base}/eval_ptsn/predictions.parquet" in line
+    assert f"--scale-from {base}/ptsn --size-correction per-dim" in line
+    assert line.rstrip().endswith(f"--out {base}/eval_ptsn_sized")
+    rows = subprocess.run(["make", "--no-print-directory", "-C", str(REPO), "-p", "-n", "-q",
+                           "kitti-protocol"], capture_output=True, text=True, timeout=60).stdout  # fmt: skip
+    kitti_rows = next(x for x in rows.splitlines() if x.startswith("KITTI_ROWS"))
+    assert f"baselines/{budget}/eval_ptsn_sized" in kitti_rows

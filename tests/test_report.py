@@ -119,27 +119,37 @@ def test_equal_budget_gap_and_kitti_rows(tmp_path):
     assert "| x2 | 66.00 | 61.00 | 56.00 | 71.00 |" in text  # KITTI easy / moderate / hard
 
 
-def test_x1_long_row_gap_and_pairing_with_the_x2_budget_control(tmp_path):
+def test_x1_long_row_gap_and_pairing_with_the_x2_budget_controls(tmp_path):
     """`make x1-long`'s row (x2's frames in one retraining) is read, its equal-budget gap closed
-    is computed against the x2-budget control and oracle, and it is paired with that control."""
-    from dali_cli.report import X1_LONG
+    is computed against the x2-budget control and oracle, and it is paired with that control;
+    the control size-corrected at test time (eval_ptsn_sized) is a control row of its own, paired
+    apart from the plain one and the base of its own gap closed."""
+    from dali_cli.report import SOURCE_X2_BUDGET_SIZED, X1_LONG
 
-    for seed, (x2, long, control) in {"s0": (50.0, 56.0, 40.0), "s1": (52.0, 55.0, 47.0)}.items():
+    values = {"s0": (50.0, 56.0, 40.0, 55.0), "s1": (52.0, 55.0, 47.0, 54.5)}
+    for seed, (x2, long, control, sized) in values.items():
         run = tmp_path / f"experiment-{seed}"
         write_metrics(run / "iter2/eval/metrics.json", 80.0, x2)
         write_metrics(run / "x1_long/eval/metrics.json", 81.0, long)
         write_metrics(run / "baselines/source_x2_budget/eval_ptsn/metrics.json", 79.0, control)
+        write_metrics(run / "baselines/source_x2_budget/eval_ptsn_sized/metrics.json", 79.5, sized)
         write_metrics(run / "baselines/oracle_x2_budget/eval/metrics.json", 90.0, 80.0)
     text, document = build_report(tmp_path / "experiment-s0")
     assert abs(document["gap_closed_equal_budget_3d_0.7"] - (50 - 40) / (80 - 40)) < 1e-12
     assert abs(document["gap_closed_equal_budget_x1_long_3d_0.7"] - (56 - 40) / (80 - 40)) < 1e-12
+    assert abs(document["gap_closed_sized_control_3d_0.7"] - (50 - 55) / (80 - 55)) < 1e-12
     assert f"closed by {X1_LONG} (AP_3D@0.7): 40%" in text
+    assert f"| {SOURCE_X2_BUDGET_SIZED} |" in text
     result = CliRunner().invoke(main, ["report", str(tmp_path), "--out", str(tmp_path / "r")])
     assert result.exit_code == 0, result.output
     paired = json.loads((tmp_path / "r/report.json").read_text())["paired"]
-    [pair] = [p for p in paired if p["row"] == X1_LONG]
-    per_run = pair["metrics"]["AP_3D@0.7"]["per_run"]
-    assert [p["difference"] for p in per_run] == [16.0, 8.0]
+    by_control = {p["control"]: p["metrics"]["AP_3D@0.7"] for p in paired if p["row"] == X1_LONG}
+    assert [p["difference"] for p in by_control.pop(SOURCE_X2_BUDGET_SIZED)["per_run"]] == [
+        1.0,
+        0.5,
+    ]
+    [plain] = by_control.values()
+    assert [p["difference"] for p in plain["per_run"]] == [16.0, 8.0]
 
 
 def test_report_aggregates_seeds_into_mean_and_std(tmp_path):
