@@ -291,7 +291,7 @@ def build_report(run: Path) -> tuple[str, dict]:
         *gap_lines(rows),
         *controls_section(rows, controls),
     ]
-    by_band = bands_table(rows)
+    by_band = bands_table(rows + controls)
     if by_band is not None:
         parts += ["", "### By distance (AP_BEV / AP_3D @0.7)", "", by_band]
     by_difficulty = kitti_table(rows + controls)

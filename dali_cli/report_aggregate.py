@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.report import DIFFICULTIES, build_report
+from dali_cli.report import BANDS, DIFFICULTIES, build_report
 
 # (column title, how to read it from a row of report.json)
 COLUMNS: tuple[tuple[str, tuple], ...] = (
@@ -27,6 +27,7 @@ COLUMNS: tuple[tuple[str, tuple], ...] = (
     ("pred w", ("sizes", "pred", 1)),
     ("pred h", ("sizes", "pred", 2)),
     ("scale", ("scale",)),
+    *((f"3D@0.7 {band} m", ("bands", band, "3d")) for band in BANDS),
 )
 SCALARS = (
     "gap_closed_3d_0.7",
@@ -136,6 +137,9 @@ def aggregate_runs(runs: list[Path]) -> tuple[str, dict]:
         "",
         markdown(target, tuple(f"KITTI 3D@0.7 {d}" for d in DIFFICULTIES)),
     ]
+    by_band = tuple(f"3D@0.7 {band} m" for band in BANDS)
+    if any(row["columns"][column]["n"] for row in target for column in by_band):
+        parts += ["", "### By distance (AP_3D@0.7, front region)", "", markdown(target, by_band)]
     if any(row["columns"]["3D@0.7"]["n"] for row in source):
         parts += ["", "## Source validation", "", markdown(source, ("BEV@0.7", "3D@0.7"))]
     parts += ["", "## Gap closed (share, mean ± std over runs)", ""]

@@ -248,3 +248,34 @@ def test_bench_paired_rows_differences_by_seed(tmp_path):
     )
     line = next(x for x in text.splitlines() if x.startswith("| new | AP_3D@0.7"))
     assert "| 54.0 / 61.0 |" in line and "| +4.0 / +1.0 | +2.5 ± 2.1 (n = 2) |" in line
+
+
+def test_far_band_is_aggregated_and_paired(tmp_path):
+    """The 50-80 m band (where PPCG should help most) gets its mean ± std over runs and its
+    paired difference against the control; a row without bands (KITTI protocol) stays out."""
+    from dali_cli.report_aggregate import aggregate_runs
+
+    def write_banded(path, all_3d, far_3d):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        block = {"iou": 0.7, "bev": {"all": 90.0, "50-80": 80.0},
+                 "3d": {"all": all_3d, "50-80": far_3d}, "counts": {"50-80": {"gt": 40}}}  # fmt: skip
+        path.write_text(json.dumps({"Car": block}))
+
+    far = {"x2": (60.0, 66.0), "control": (55.0, 57.0)}
+    runs = []
+    for seed in range(2):
+        run = tmp_path / f"experiment-s{seed}"
+        write_banded(run / "iter2/eval/metrics.json", 80.0, far["x2"][seed])
+        write_banded(
+            run / "baselines/source_x2_budget/eval_ptsn/metrics.json", 79.0, far["control"][seed]
+        )
+        write_metrics(run / "iter0/eval/metrics.json", 50.0, 30.0)  # no bands
+        runs.append(run)
+    text, document = aggregate_runs(runs)
+    [x2] = [row for row in document["target"] if row["name"] == "x2"]
+    assert x2["columns"]["3D@0.7 50-80 m"]["mean"] == 63.0
+    [source] = [row for row in document["target"] if row["name"] == "Source only"]
+    assert source["columns"]["3D@0.7 50-80 m"]["n"] == 0
+    assert "### By distance (AP_3D@0.7, front region)" in text
+    [pair] = [p for p in document["paired"] if p["row"] == "x2"]
+    assert [p["difference"] for p in pair["metrics"]["AP_3D@0.7 50-80 m"]["per_run"]] == [5.0, 9.0]

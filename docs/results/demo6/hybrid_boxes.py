@@ -6,6 +6,9 @@ stage). Pairs each frame's pseudo boxes with its true cars one to one (greedy by
   truth-matched:  the true boxes of the same cars (placement and size exact; the same cars missed)
   truth-pose:     the same cars at their true pose (centre, heading, bottom) with the pseudo
                   box's size (session 13, docs/results/demo7/truthpose_job.sh)
+  truth-all:      every true car with at least --min-points points in the detector's grid (x 0 to
+                  70.4, |y| <= 40 m: DetectorConfig), found or missed, score 1 (the labels a
+                  perfect detector would give: the ceiling of PPCG's retraining)
 
     python docs/results/demo6/hybrid_boxes.py --truth RUN/data/target --pseudo RUN/iter1/pseudo \
         --mode truth-matched --out DIR
@@ -34,14 +37,26 @@ def main() -> None:
     parser.add_argument("--truth", type=Path, required=True)
     parser.add_argument("--pseudo", type=Path, required=True)
     parser.add_argument(
-        "--mode", choices=["pseudo-matched", "truth-matched", "truth-pose"], required=True
-    )
+        "--mode", choices=["pseudo-matched", "truth-matched", "truth-pose", "truth-all"],
+        required=True,
+    )  # fmt: skip
     parser.add_argument("--iou", type=float, default=0.3)
+    parser.add_argument("--min-points", type=int, default=1, help="truth-all: points per car")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     truth = read_boxes(args.truth)
     truth = truth.select(np.flatnonzero(np.asarray(truth["label"]).astype(str) == "Car"))
     pseudo = read_boxes(args.pseudo)
+    if args.mode == "truth-all":
+        from dali_cli.detector.config import DetectorConfig
+
+        grid = DetectorConfig()
+        x, y = truth.boxes[:, 0], truth.boxes[:, 1]
+        keep = (truth["num_points"] >= args.min_points) & (x >= grid.x_range_m[0])
+        keep &= (x <= grid.x_range_m[1]) & (y >= grid.y_range_m[0]) & (y <= grid.y_range_m[1])
+        out = truth.select(np.flatnonzero(keep))
+        out = BoxTable.from_arrays(out.frame_id, out.boxes, num_points=out["num_points"])
+        return write(args, out, pseudo)
     truth_rows, pseudo_rows = truth.rows_by_frame(), pseudo.rows_by_frame()
     ids, boxes, scores, counts = [], [], [], []
     for frame_id, rows in pseudo_rows.items():
@@ -65,6 +80,11 @@ def main() -> None:
         np.asarray(ids), np.concatenate(boxes), score=np.concatenate(scores),
         num_points=np.concatenate(counts),
     )  # fmt: skip
+    write(args, out, pseudo)
+
+
+def write(args, out: BoxTable, pseudo: BoxTable) -> None:
+    """OUT/boxes.parquet and OUT/hybrid.json (the command, how many boxes)."""
     args.out.mkdir(parents=True, exist_ok=True)
     write_boxes(args.out, out)
     record = {"command": " ".join(sys.argv), "boxes": len(out), "pseudo_boxes": len(pseudo)}
