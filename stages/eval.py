@@ -175,6 +175,25 @@ def corrected_predictions(pred: BoxTable, scale_from, class_name: str) -> tuple[
     return corrected, record
 
 
+def warn_if_made_at_another_scale(pred_path: Path, scale_from) -> None:
+    """A warning when saved predictions (an eval directory's predictions.parquet, its
+    metrics.json beside it) were made at another scale than the sweep whose factors correct
+    them: the factors E_est / E_pred hold at that sweep's ŝ only."""
+    from dali_cli.scale_file import read_scale
+
+    metrics = pred_path.parent / METRICS_NAME if pred_path.is_file() else pred_path / METRICS_NAME
+    try:
+        made_at = json.loads(metrics.read_text()).get("scale")
+    except (OSError, ValueError, AttributeError):
+        return  # no eval directory beside them: nothing to compare
+    chosen = read_scale(scale_from).scale
+    if isinstance(made_at, int | float) and not np.isclose(made_at, chosen, rtol=1e-9):
+        console.warn(
+            f"eval: {pred_path} was made at scale {made_at:g} ({metrics}), the size-correction "
+            f"factors of {scale_from} hold at its scale {chosen:g}"
+        )
+
+
 def predictions_and_truth(
     pred_path, gt_path, model, data, scale, scale_from, device="auto", precision="fp32",
     engine=None, near=None, progress=True, size_correction="none", class_name="Car",
@@ -211,6 +230,8 @@ def predictions_and_truth(
         pred, _ = read_table(pred_path, "pred")
         source = {"pred": str(pred_path)}
     if size_correction != "none":
+        if pred_path is not None:
+            warn_if_made_at_another_scale(Path(pred_path), scale_from)
         pred, source["size_correction"] = corrected_predictions(pred, scale_from, class_name)
     gt, label_frames = read_table(gt_path, "gt")
     source["gt"] = str(gt_path)

@@ -174,3 +174,19 @@ def test_only_the_class_is_resized_bottom_face_kept():
 def test_factors_need_three_positive_sizes(e_pred):
     with pytest.raises(ValueError, match="scale.json: field 'E_pred_at_scale'"):
         factors_from_sweep([3.9, 1.6, 1.5], e_pred, "scale.json")
+
+
+def test_predictions_made_at_another_scale_are_flagged(scene, tmp_path):
+    """Saved predictions whose metrics.json says they were made at another scale than the
+    sweep's ŝ get a warning naming both (the factors hold at ŝ only); the same scale none."""
+    gt, _, pred, ptsn = scene
+    made = tmp_path / "eval_ptsn"
+    made.mkdir()
+    (made / "predictions.parquet").write_bytes((pred / "boxes.parquet").read_bytes())
+    args = ["eval", "--pred", str(made / "predictions.parquet"), "--gt", str(gt), *FLAGS,
+            "--scale-from", str(ptsn), "--size-correction", "per-dim"]  # fmt: skip
+    for scale, flagged in ((1.0, True), (1.1, False)):
+        (made / "metrics.json").write_text(json.dumps({"scale": scale}))
+        result = CliRunner().invoke(main, args)
+        assert result.exit_code == 0, result.output
+        assert ("made at scale 1" in result.output) is flagged, result.output
