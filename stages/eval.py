@@ -149,30 +149,38 @@ def check_size_correction(method: str, scale: float | None, scale_from) -> None:
         )
 
 
-def corrected_predictions(pred: BoxTable, scale_from, class_name: str) -> tuple[BoxTable, dict]:
-    """`pred` with its `class_name` boxes resized by the per-dimension factors of the sweep
-    `scale_from`, and the record written to metrics.json. ArtifactError naming scale.json when
-    it lacks E_est or E_pred_at_scale."""
+def sweep_size_correction(method: str, scale_from) -> tuple[np.ndarray, dict] | None:
+    """None for method "none"; else the per-dimension factors (3,) of the sweep `scale_from`
+    and the record written to metrics.json, read before any prediction is made. ArtifactError
+    naming scale.json when it lacks E_est or E_pred_at_scale."""
+    if method == "none":
+        return None
     from dali_cli.artifacts import ArtifactError
     from dali_cli.scale_file import read_scale, scale_path
-    from dali_cli.size_correction import correct_class_sizes, factors_from_sweep
+    from dali_cli.size_correction import factors_from_sweep
 
     sweep = read_scale(scale_from)
     try:
         factors = factors_from_sweep(sweep.e_est, sweep.e_pred, str(scale_path(scale_from)))
     except ValueError as error:
         raise ArtifactError(str(error)) from None
-    boxes = correct_class_sizes(pred.boxes, pred["label"], class_name, factors)
-    corrected = pred.with_columns(**{name: boxes[:, i] for i, name in enumerate(BOX_FIELDS)})
     record = {
-        "method": "per-dim",
+        "method": method,
         "factors_lwh": [round(float(f), 6) for f in factors],
         "E_est": list(sweep.e_est),
         "E_pred_at_scale": list(sweep.e_pred),
         "from": str(scale_path(scale_from)),
         "anchor": "bottom face (z moves by half the change of h)",
     }
-    return corrected, record
+    return factors, record
+
+
+def resized(pred: BoxTable, factors: np.ndarray, class_name: str) -> BoxTable:
+    """`pred` with its `class_name` boxes resized by `factors` (3,), bottom face kept."""
+    from dali_cli.size_correction import correct_class_sizes
+
+    boxes = correct_class_sizes(pred.boxes, pred["label"], class_name, factors)
+    return pred.with_columns(**{name: boxes[:, i] for i, name in enumerate(BOX_FIELDS)})
 
 
 def warn_if_made_at_another_scale(pred_path: Path, scale_from) -> None:
@@ -203,6 +211,7 @@ def predictions_and_truth(
     the predictions size-corrected when `size_correction` says so (record: source's
     "size_correction")."""
     check_size_correction(size_correction, scale, scale_from)
+    correction = sweep_size_correction(size_correction, scale_from)  # before the detector runs
     frame_ids = runtime = None
     if model is not None or data is not None:
         if model is None or data is None:
@@ -229,10 +238,10 @@ def predictions_and_truth(
             raise ParameterError(("pred_path", "gt_path"), "give predictions and ground truth")
         pred, _ = read_table(pred_path, "pred")
         source = {"pred": str(pred_path)}
-    if size_correction != "none":
+    if correction is not None:
         if pred_path is not None:
             warn_if_made_at_another_scale(Path(pred_path), scale_from)
-        pred, source["size_correction"] = corrected_predictions(pred, scale_from, class_name)
+        pred, source["size_correction"] = resized(pred, correction[0], class_name), correction[1]
     gt, label_frames = read_table(gt_path, "gt")
     source["gt"] = str(gt_path)
     frames = frame_ids if frame_ids is not None else label_frames

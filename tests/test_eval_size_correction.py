@@ -158,6 +158,16 @@ def test_model_route_corrects_the_detector_output(scene, tmp_path, monkeypatch):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["scale"] == 1.1 and metrics["Car"]["3d"]["all"] > 10.0
     assert np.allclose(read_boxes(out / "predictions.parquet").boxes, cars.boxes, atol=1e-6)
+    old = tmp_path / "old_ptsn"  # a sweep without E_pred: refused before the detector runs
+    old.mkdir()
+    (old / "scale.json").write_text(json.dumps({"scale": 1.2, "E_est": [3.9, 1.6, 1.5]}))
+    seen.clear()
+    refused = CliRunner().invoke(main, [
+        "eval", "--model", str(tmp_path / "model"), "--data", str(gt), "--scale-from", str(old),
+        "--size-correction", "per-dim", *FLAGS, "--out", str(tmp_path / "refused"),
+    ])  # fmt: skip
+    assert refused.exit_code == 1 and "E_pred_at_scale" in refused.output
+    assert seen == {} and not (tmp_path / "refused").exists()
 
 
 def test_only_the_class_is_resized_bottom_face_kept():
