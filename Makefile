@@ -254,7 +254,8 @@ cross-domain: $(RUN)/iter0/eval_source/manifest.json $(RUN)/iter2/eval_source/ma
     $(if $(filter sn,$(SOURCE_SIZE)),$(RUN)/iter2/eval_source_sized/manifest.json)
 # equal-budget controls (standard rows of `make experiment`; "gap closed" is measured against
 # them): source only with x1's and with x2's training frames + test-time PTSN, each also with the
-# test-time size correction (eval_ptsn_sized), oracle with x2's frames (at demo scale x1 beats its control, x2 is level with its own: docs/RESULTS.md, session 9)
+# test-time size correction (eval_ptsn_sized), oracle with x2's frames (at demo scale x1 beats
+# its control, x2 is level with its own: docs/RESULTS.md, session 9)
 controls: controls-x1 controls-x2
 controls-x1: $(RUN)/baselines/source_x1_budget/eval_ptsn/manifest.json \
     $(RUN)/baselines/source_x1_budget/eval_ptsn_sized/manifest.json

@@ -149,10 +149,10 @@ def check_size_correction(method: str, scale: float | None, scale_from) -> None:
         )
 
 
-def sweep_size_correction(method: str, scale_from) -> tuple[np.ndarray, dict] | None:
-    """None for method "none"; else the per-dimension factors (3,) of the sweep `scale_from`
-    and the record written to metrics.json, read before any prediction is made. ArtifactError
-    naming scale.json when it lacks E_est or E_pred_at_scale."""
+def sweep_size_correction(method: str, scale_from) -> tuple[np.ndarray, dict, float] | None:
+    """None for method "none"; else the per-dimension factors (3,) of the sweep `scale_from`,
+    the record written to metrics.json and the sweep's ŝ, read once, before any prediction is
+    made. ArtifactError naming scale.json when it lacks E_est or E_pred_at_scale."""
     if method == "none":
         return None
     from dali_cli.artifacts import ArtifactError
@@ -172,7 +172,7 @@ def sweep_size_correction(method: str, scale_from) -> tuple[np.ndarray, dict] | 
         "from": str(scale_path(scale_from)),
         "anchor": "bottom face (z moves by half the change of h)",
     }
-    return factors, record
+    return factors, record, sweep.scale
 
 
 def resized(pred: BoxTable, factors: np.ndarray, class_name: str) -> BoxTable:
@@ -183,18 +183,15 @@ def resized(pred: BoxTable, factors: np.ndarray, class_name: str) -> BoxTable:
     return pred.with_columns(**{name: boxes[:, i] for i, name in enumerate(BOX_FIELDS)})
 
 
-def warn_if_made_at_another_scale(pred_path: Path, scale_from) -> None:
+def warn_if_made_at_another_scale(pred_path: Path, scale_from, chosen: float) -> None:
     """A warning when saved predictions (an eval directory's predictions.parquet, its
-    metrics.json beside it) were made at another scale than the sweep whose factors correct
-    them: the factors E_est / E_pred hold at that sweep's ŝ only."""
-    from dali_cli.scale_file import read_scale
-
+    metrics.json beside it) were made at another scale than `chosen`, ŝ of the sweep
+    `scale_from` whose factors correct them: the factors E_est / E_pred hold at that ŝ only."""
     metrics = pred_path.parent / METRICS_NAME if pred_path.is_file() else pred_path / METRICS_NAME
     try:
         made_at = json.loads(metrics.read_text()).get("scale")
     except (OSError, ValueError, AttributeError):
         return  # no eval directory beside them: nothing to compare
-    chosen = read_scale(scale_from).scale
     if isinstance(made_at, int | float) and not np.isclose(made_at, chosen, rtol=1e-9):
         console.warn(
             f"eval: {pred_path} was made at scale {made_at:g} ({metrics}), the size-correction "
@@ -209,8 +206,7 @@ def predictions_and_truth(
     """(pred, gt, frame ids evaluated or None, source record, gt path, runtime or None) from
     either the model route (`model` on `data`) or the table route (`pred_path` vs `gt_path`),
     the predictions size-corrected when `size_correction` says so (record: source's
-    "size_correction")."""
-    check_size_correction(size_correction, scale, scale_from)
+    "size_correction"; `run_eval` has checked the method)."""
     correction = sweep_size_correction(size_correction, scale_from)  # before the detector runs
     frame_ids = runtime = None
     if model is not None or data is not None:
@@ -239,9 +235,10 @@ def predictions_and_truth(
         pred, _ = read_table(pred_path, "pred")
         source = {"pred": str(pred_path)}
     if correction is not None:
+        factors, source["size_correction"], sweep_scale = correction
         if pred_path is not None:
-            warn_if_made_at_another_scale(Path(pred_path), scale_from)
-        pred, source["size_correction"] = resized(pred, correction[0], class_name), correction[1]
+            warn_if_made_at_another_scale(Path(pred_path), scale_from, sweep_scale)
+        pred = resized(pred, factors, class_name)
     gt, label_frames = read_table(gt_path, "gt")
     source["gt"] = str(gt_path)
     frames = frame_ids if frame_ids is not None else label_frames
@@ -310,9 +307,15 @@ def run_eval(
     metrics, pred = compute_metrics(routes, options)
     written = []
     if out is not None:
-        keep = save_predictions and (model is not None or size_correction != "none")
+        keep = keeps_predictions(save_predictions, model, size_correction)
         written = write_outputs(out, metrics, pred if keep else None)
     return EvalResult(metrics, written)
+
+
+def keeps_predictions(save_predictions: bool, model, size_correction: str) -> bool:
+    """Whether predictions.parquet is written: the detector's output (with a model) or the
+    corrected boxes (with a size correction), never a copy of a given table."""
+    return save_predictions and (model is not None or size_correction != "none")
 
 
 def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
@@ -374,9 +377,8 @@ def eval_artifact(out, inputs, routes, options, save_predictions, force, dry_run
 
     def build(directory: Path) -> BuildResult:
         metrics, pred = compute_metrics(routes, options)
-        corrected = routes["size_correction"] != "none"
-        keep = pred if save_predictions and (routes["model"] is not None or corrected) else None
-        write_outputs(directory / METRICS_NAME, metrics, keep)
+        keep = keeps_predictions(save_predictions, routes["model"], routes["size_correction"])
+        write_outputs(directory / METRICS_NAME, metrics, pred if keep else None)
         computed["metrics"] = metrics
         counts = {"predictions": len(pred), "frames": metrics[options["class_name"]]["frames"]}
         return BuildResult(counts=counts)
