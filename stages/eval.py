@@ -183,16 +183,26 @@ def resized(pred: BoxTable, factors: np.ndarray, class_name: str) -> BoxTable:
     return pred.with_columns(**{name: boxes[:, i] for i, name in enumerate(BOX_FIELDS)})
 
 
-def warn_if_made_at_another_scale(pred_path: Path, scale_from, chosen: float) -> None:
-    """A warning when saved predictions (an eval directory's predictions.parquet, its
-    metrics.json beside it) were made at another scale than `chosen`, ŝ of the sweep
-    `scale_from` whose factors correct them: the factors E_est / E_pred hold at that ŝ only."""
+def saved_predictions_scale(pred_path: Path) -> tuple[float | None, Path]:
+    """(the scale saved predictions were made at, or None, and the metrics.json that says so):
+    an eval directory's predictions.parquet has its metrics.json beside it; predictions from
+    elsewhere (`dali export`, another tool) have none, and their scale is unknown."""
     metrics = pred_path.parent / METRICS_NAME if pred_path.is_file() else pred_path / METRICS_NAME
     try:
         made_at = json.loads(metrics.read_text()).get("scale")
     except (OSError, ValueError, AttributeError):
-        return  # no eval directory beside them: nothing to compare
-    if isinstance(made_at, int | float) and not np.isclose(made_at, chosen, rtol=1e-9):
+        return None, metrics
+    if isinstance(made_at, bool) or not isinstance(made_at, int | float):
+        return None, metrics
+    return float(made_at), metrics
+
+
+def warn_if_made_at_another_scale(pred_path: Path, scale_from, chosen: float) -> None:
+    """A warning when saved predictions were made at another scale than `chosen`, ŝ of the
+    sweep `scale_from` whose factors correct them: the factors E_est / E_pred hold at that ŝ
+    only."""
+    made_at, metrics = saved_predictions_scale(pred_path)
+    if made_at is not None and not np.isclose(made_at, chosen, rtol=1e-9):
         console.warn(
             f"eval: {pred_path} was made at scale {made_at:g} ({metrics}), the size-correction "
             f"factors of {scale_from} hold at its scale {chosen:g}"
@@ -234,6 +244,9 @@ def predictions_and_truth(
             raise ParameterError(("pred_path", "gt_path"), "give predictions and ground truth")
         pred, _ = read_table(pred_path, "pred")
         source = {"pred": str(pred_path)}
+        made_at, _ = saved_predictions_scale(Path(pred_path))
+        if made_at is not None:  # the scale of the eval that saved them (its metrics.json)
+            source["scale"] = made_at
     if correction is not None:
         factors, source["size_correction"], sweep_scale = correction
         if pred_path is not None:

@@ -200,3 +200,21 @@ def test_predictions_made_at_another_scale_are_flagged(scene, tmp_path):
         result = CliRunner().invoke(main, args)
         assert result.exit_code == 0, result.output
         assert ("made at scale 1" in result.output) is flagged, result.output
+
+
+def test_table_route_records_the_scale_its_predictions_were_made_at(scene, tmp_path):
+    """The sized row of a report shows a scale: predictions saved by an eval carry that eval's
+    scale into the new metrics.json; predictions from elsewhere (no metrics.json beside them)
+    record none rather than a guess."""
+    gt, _, pred, ptsn = scene
+    made = tmp_path / "eval_ptsn"
+    made.mkdir()
+    (made / "predictions.parquet").write_bytes((pred / "boxes.parquet").read_bytes())
+    (made / "metrics.json").write_text(json.dumps({"scale": 1.1}))
+    for source, scale in ((made / "predictions.parquet", 1.1), (pred, None)):
+        out = tmp_path / f"sized-{scale}"
+        result = CliRunner().invoke(main, [
+            "eval", "--pred", str(source), "--gt", str(gt), *FLAGS, "--scale-from", str(ptsn),
+            "--size-correction", "per-dim", "--out", str(out)])  # fmt: skip
+        assert result.exit_code == 0, result.output
+        assert json.loads((out / "metrics.json").read_text()).get("scale") == scale
