@@ -6,7 +6,8 @@
 #                                          # every stage whose manifest is up to date)
 #   SEED=1 bash docs/results/exp600/job.sh # another seed: its own data and RUN, main rows only
 #   SOURCE_SENSOR=nuscenes bash docs/results/exp600/job.sh  # the nuScenes-like -> KITTI-like
-#                                          # task (runs/experiment-nuscenes-s0): main rows only
+#                                          # task (runs/experiment-nuscenes-s0): main rows, x1's
+#                                          # control and x2 + ST (the paper's double dagger)
 set -euo pipefail
 SEED=${SEED:-0}
 SOURCE_SENSOR=${SOURCE_SENSOR:-waymo}
@@ -25,10 +26,14 @@ if [ "$SEED" != 0 ] || [ "$SOURCE_SENSOR" != waymo ]; then
     make $RUN/baselines/source_x2_budget/eval_ptsn/manifest.json $V "$T"
     wait $chain
     make -j2 x1-long controls-x2 $V "$T"
+    goals="iter2 x1-long controls-x2 cross-domain"
+    if [ "$SOURCE_SENSOR" = nuscenes ]; then  # x1 paired with its control; ST is this task's step
+        make -j2 controls-x1 iter2-st $V "$T"
+        goals="$goals controls-x1 iter2-st"
+    fi
     make cross-domain $RUN/x1_long/eval_source_sized/manifest.json $V "$T"
     make experiment SEEDS="$SEED" SOURCE_SENSOR="$SOURCE_SENSOR" \
-        EXPERIMENT_GOALS="iter2 x1-long controls-x2 cross-domain" EXPERIMENT_FIRST_SEED_GOALS= \
-        TRAIN_FLAGS="--threads 1"
+        EXPERIMENT_GOALS="$goals" EXPERIMENT_FIRST_SEED_GOALS= TRAIN_FLAGS="--threads 1"
     exit 0
 fi
 make iter2 $V "$T"
