@@ -197,11 +197,12 @@ def saved_predictions_scale(pred_path: Path) -> tuple[float | None, Path]:
     return float(made_at), metrics
 
 
-def warn_if_made_at_another_scale(pred_path: Path, scale_from, chosen: float) -> None:
-    """A warning when saved predictions were made at another scale than `chosen`, ŝ of the
-    sweep `scale_from` whose factors correct them: the factors E_est / E_pred hold at that ŝ
-    only."""
-    made_at, metrics = saved_predictions_scale(pred_path)
+def warn_if_made_at_another_scale(
+    pred_path: Path, made_at: float | None, metrics: Path, scale_from, chosen: float
+) -> None:
+    """A warning when saved predictions were made at another scale (`made_at`, as `metrics`
+    says) than `chosen`, ŝ of the sweep `scale_from` whose factors correct them: the factors
+    E_est / E_pred hold at that ŝ only."""
     if made_at is not None and not np.isclose(made_at, chosen, rtol=1e-9):
         console.warn(
             f"eval: {pred_path} was made at scale {made_at:g} ({metrics}), the size-correction "
@@ -219,6 +220,7 @@ def predictions_and_truth(
     "size_correction"; `run_eval` has checked the method)."""
     correction = sweep_size_correction(size_correction, scale_from)  # before the detector runs
     frame_ids = runtime = None
+    made_at = made_at_file = None  # the table route's scale, from the saving eval's metrics.json
     if model is not None or data is not None:
         if model is None or data is None:
             raise ParameterError(("model", "data"), "the model and its frame set go together")
@@ -244,13 +246,15 @@ def predictions_and_truth(
             raise ParameterError(("pred_path", "gt_path"), "give predictions and ground truth")
         pred, _ = read_table(pred_path, "pred")
         source = {"pred": str(pred_path)}
-        made_at, _ = saved_predictions_scale(Path(pred_path))
-        if made_at is not None:  # the scale of the eval that saved them (its metrics.json)
+        made_at, made_at_file = saved_predictions_scale(Path(pred_path))
+        if made_at is not None:
             source["scale"] = made_at
     if correction is not None:
         factors, source["size_correction"], sweep_scale = correction
         if pred_path is not None:
-            warn_if_made_at_another_scale(Path(pred_path), scale_from, sweep_scale)
+            warn_if_made_at_another_scale(
+                Path(pred_path), made_at, made_at_file, scale_from, sweep_scale
+            )
         pred = resized(pred, factors, class_name)
     gt, label_frames = read_table(gt_path, "gt")
     source["gt"] = str(gt_path)
