@@ -183,30 +183,34 @@ def resized(pred: BoxTable, factors: np.ndarray, class_name: str) -> BoxTable:
     return pred.with_columns(**{name: boxes[:, i] for i, name in enumerate(BOX_FIELDS)})
 
 
-def saved_predictions_scale(pred_path: Path) -> tuple[float | None, Path]:
-    """(the scale saved predictions were made at, or None, and the metrics.json that says so):
-    an eval directory's predictions.parquet has its metrics.json beside it; predictions from
-    elsewhere (`dali export`, another tool) have none, and their scale is unknown."""
-    metrics = pred_path.parent / METRICS_NAME if pred_path.is_file() else pred_path / METRICS_NAME
+def saved_metrics_file(pred_path: Path) -> Path:
+    """The metrics.json an eval wrote beside the predictions.parquet `pred_path` (or inside the
+    directory `pred_path`); it need not exist."""
+    return pred_path.parent / METRICS_NAME if pred_path.is_file() else pred_path / METRICS_NAME
+
+
+def saved_predictions_scale(pred_path: Path) -> float | None:
+    """The scale saved predictions were made at, as the eval that saved them recorded it; None
+    for predictions from elsewhere (`dali export`, another tool): their scale is unknown."""
     try:
-        made_at = json.loads(metrics.read_text()).get("scale")
+        made_at = json.loads(saved_metrics_file(pred_path).read_text()).get("scale")
     except (OSError, ValueError, AttributeError):
-        return None, metrics
+        return None
     if isinstance(made_at, bool) or not isinstance(made_at, int | float):
-        return None, metrics
-    return float(made_at), metrics
+        return None
+    return float(made_at)
 
 
 def warn_if_made_at_another_scale(
-    pred_path: Path, made_at: float | None, metrics: Path, scale_from, chosen: float
+    pred_path: Path, made_at: float | None, scale_from, chosen: float
 ) -> None:
-    """A warning when saved predictions were made at another scale (`made_at`, as `metrics`
-    says) than `chosen`, ŝ of the sweep `scale_from` whose factors correct them: the factors
-    E_est / E_pred hold at that ŝ only."""
+    """A warning when saved predictions were made at another scale (`made_at`) than `chosen`,
+    ŝ of the sweep `scale_from` whose factors correct them: the factors E_est / E_pred hold at
+    that ŝ only."""
     if made_at is not None and not np.isclose(made_at, chosen, rtol=1e-9):
         console.warn(
-            f"eval: {pred_path} was made at scale {made_at:g} ({metrics}), the size-correction "
-            f"factors of {scale_from} hold at its scale {chosen:g}"
+            f"eval: {pred_path} was made at scale {made_at:g} ({saved_metrics_file(pred_path)}), "
+            f"the size-correction factors of {scale_from} hold at its scale {chosen:g}"
         )
 
 
@@ -220,7 +224,7 @@ def predictions_and_truth(
     "size_correction"; `run_eval` has checked the method)."""
     correction = sweep_size_correction(size_correction, scale_from)  # before the detector runs
     frame_ids = runtime = None
-    made_at = made_at_file = None  # the table route's scale, from the saving eval's metrics.json
+    made_at = None  # the table route's scale, from the saving eval's metrics.json
     if model is not None or data is not None:
         if model is None or data is None:
             raise ParameterError(("model", "data"), "the model and its frame set go together")
@@ -246,15 +250,13 @@ def predictions_and_truth(
             raise ParameterError(("pred_path", "gt_path"), "give predictions and ground truth")
         pred, _ = read_table(pred_path, "pred")
         source = {"pred": str(pred_path)}
-        made_at, made_at_file = saved_predictions_scale(Path(pred_path))
+        made_at = saved_predictions_scale(Path(pred_path))
         if made_at is not None:
             source["scale"] = made_at
     if correction is not None:
         factors, source["size_correction"], sweep_scale = correction
         if pred_path is not None:
-            warn_if_made_at_another_scale(
-                Path(pred_path), made_at, made_at_file, scale_from, sweep_scale
-            )
+            warn_if_made_at_another_scale(Path(pred_path), made_at, scale_from, sweep_scale)
         pred = resized(pred, factors, class_name)
     gt, label_frames = read_table(gt_path, "gt")
     source["gt"] = str(gt_path)

@@ -121,11 +121,8 @@ def test_each_control_gets_its_size_corrected_row(tmp_path, budget):
 def test_the_nuscenes_experiment_self_trains_on_every_seed(tmp_path, sensor, self_trains):
     """`make experiment SOURCE_SENSOR=nuscenes` adds x2 + ST (the paper's ‡ belongs to that
     task) on every seed, not only the first; the Waymo-like task leaves it to EXPERIMENT_GOALS."""
-    text = subprocess.run(
-        ["make", "--no-print-directory", "-n", "-C", str(REPO), "experiment", "SEEDS=0 1",
-         f"SOURCE_SENSOR={sensor}", f"EXPERIMENT_PREFIX={tmp_path / 'exp'}"],
-        capture_output=True, text=True, timeout=120, check=True,
-    ).stdout  # fmt: skip
+    experiment = ("SEEDS=0 1", f"SOURCE_SENSOR={sensor}", f"EXPERIMENT_PREFIX={tmp_path / 'exp'}")
+    text = plan(tmp_path, "experiment", *experiment)
     trained = {
         line.split("--out ")[1].split()[0] for line in text.splitlines() if " self-train " in line
     }
