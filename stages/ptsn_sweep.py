@@ -1,5 +1,7 @@
 """Stage ptsn_sweep: read a model and a target frame set (never its labels), find ŝ, write
-sweep.parquet (every evaluated scale), scale.json (ŝ and how it was found), optional sweep.png."""
+sweep.parquet (every evaluated scale), scale.json (ŝ and how it was found), detections.parquet
+(every box at the scales evaluated on all frames: `dali_cli.ptsn.detections`, for E_pred over a
+stricter score cut at eval time), optional sweep.png."""
 
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ from dali_cli.device import InferenceOptions, inference_runtime, inference_setup
 from dali_cli.errors import ParameterError, StageError
 from dali_cli.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.model_card import ModelCard, read_card
+from dali_cli.ptsn import detections
 from dali_cli.scale_file import write_scale
 from dali_cli.sensors import get_profile
 
@@ -240,6 +243,9 @@ def run_sweep(
         bar.close()
     rows = [evaluation.row() for evaluation in result.evaluations]
     pq.write_table(pa.Table.from_pylist(rows), directory / SWEEP_NAME)
+    scales = detections.all_frame_scales(result.evaluations)  # cached: no detector pass
+    kept = detections.detection_columns(cache, scales, usable)
+    pq.write_table(pa.table(kept), directory / detections.DETECTIONS_NAME)
     document = scale_document(
         result, e_est, expected_record, cache,
         frames_selected=len(selected), frames_used=len(usable), frames_skipped=skipped,

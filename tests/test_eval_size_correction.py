@@ -218,3 +218,85 @@ def test_table_route_records_the_scale_its_predictions_were_made_at(scene, tmp_p
             "--size-correction", "per-dim", "--out", str(out)])  # fmt: skip
         assert result.exit_code == 0, result.output
         assert json.loads((out / "metrics.json").read_text()).get("scale") == scale
+
+
+def sweep_with_false_boxes(directory, cars, e_est):
+    """A ptsn dir whose sweep found the cars (score 0.9, sizes e_est x BIAS) and as many false
+    boxes (score 0.4) of another size: its E_pred_at_scale, the mean of both, is not the cars'
+    mean; detections.parquet keeps both at two evaluated scales around ŝ = 1.1."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from dali_cli.ptsn.detections import DETECTIONS_NAME, e_pred_at
+
+    true_sizes = np.tile(e_est * BIAS, (len(cars), 1))
+    false_sizes = np.tile(e_est * np.array([0.7, 1.0, 1.3]), (len(cars), 1))
+    sizes = np.concatenate([true_sizes, false_sizes] * 2)
+    count = 2 * len(cars)
+    columns = {
+        "scale": np.repeat([1.09, 1.11], count),
+        "frame": np.tile(np.arange(count) % 2, 2),
+        "l": sizes[:, 0], "w": sizes[:, 1], "h": sizes[:, 2],
+        "score": np.tile(np.r_[np.full(len(cars), 0.9), np.full(len(cars), 0.4)], 2),
+    }  # fmt: skip
+    directory.mkdir()
+    pq.write_table(pa.table(columns), directory / DETECTIONS_NAME)
+    e_pred_all, _ = e_pred_at(columns, 1.1, 0.3)
+    (directory / "scale.json").write_text(json.dumps(
+        {"scale": 1.1, "E_est": e_est.tolist(), "E_pred_at_scale": e_pred_all.tolist(),
+         "score_min": 0.3, "mean": "per-frame"}
+    ))  # fmt: skip
+    return directory
+
+
+def test_factors_from_the_sweeps_confident_boxes_only(scene, tmp_path):
+    """--size-factor-score-min: E_pred from the sweep's boxes above the cut. The false boxes
+    bias the all-box mean (the cars stay off at 3D IoU 0.7); the confident boxes' mean is the
+    cars' own, so their factors undo the model's bias exactly."""
+    gt, cars, pred, _ = scene
+    e_est = cars.boxes[:, 3:6].mean(axis=0)
+    ptsn = sweep_with_false_boxes(tmp_path / "ptsn", cars, e_est)
+    runner = CliRunner()
+    args = ["eval", "--pred", str(pred), "--gt", str(gt), *FLAGS, "--scale-from", str(ptsn),
+            "--size-correction", "per-dim"]  # fmt: skip
+    all_boxes = runner.invoke(main, [*args, "--out", str(tmp_path / "all")])
+    confident = runner.invoke(main, [*args, "--size-factor-score-min", "0.7",
+                                     "--out", str(tmp_path / "confident")])  # fmt: skip
+    assert all_boxes.exit_code == 0 and confident.exit_code == 0, confident.output
+    biased_metrics = json.loads((tmp_path / "all/metrics.json").read_text())
+    metrics = json.loads((tmp_path / "confident/metrics.json").read_text())
+    assert biased_metrics["Car"]["3d"]["all"] == 0.0
+    assert metrics["Car"]["3d"]["all"] == metrics["Car"]["bev"]["all"] > 10.0
+    record = metrics["size_correction"]
+    assert np.allclose(record["factors_lwh"], 1 / BIAS, atol=1e-6)
+    assert record["factor_score_min"] == 0.7 and record["factor_boxes"] == len(cars)
+    assert np.allclose(record["E_pred_at_scale"], e_est * BIAS)
+    manifest = json.loads((tmp_path / "confident/manifest.json").read_text())
+    assert manifest["params"]["size_factor_score_min"] == 0.7
+    assert (
+        "size_factor_score_min"
+        not in json.loads((tmp_path / "all/manifest.json").read_text())["params"]
+    )  # absent when not given: earlier sized evaluations stay up to date
+
+
+def test_a_factor_cut_needs_a_correction_kept_boxes_and_a_cut_the_sweep_kept(scene, tmp_path):
+    gt, cars, pred, old_sweep = scene  # the scene's sweep has no detections.parquet
+    ptsn = sweep_with_false_boxes(tmp_path / "ptsn", cars, cars.boxes[:, 3:6].mean(axis=0))
+    runner = CliRunner()
+    args = ["eval", "--pred", str(pred), "--gt", str(gt), *FLAGS]
+    out = tmp_path / "out"
+    no_correction = runner.invoke(main, [*args, "--scale-from", str(ptsn),
+                                         "--size-factor-score-min", "0.7", "--out", str(out)])  # fmt: skip
+    assert no_correction.exit_code == 2 and "--size-correction per-dim" in no_correction.output
+    sized = [*args, "--size-correction", "per-dim", "--out", str(out)]
+    below = runner.invoke(
+        main, [*sized, "--scale-from", str(ptsn), "--size-factor-score-min", "0.2"]
+    )
+    assert below.exit_code == 2 and "below the score cut 0.3" in below.output
+    missing = runner.invoke(main, [*sized, "--scale-from", str(old_sweep),
+                                   "--size-factor-score-min", "0.7"])  # fmt: skip
+    assert missing.exit_code == 1 and str(old_sweep / "detections.parquet") in missing.output
+    none_above = runner.invoke(main, [*sized, "--scale-from", str(ptsn),
+                                      "--size-factor-score-min", "0.95"])  # fmt: skip
+    assert none_above.exit_code == 1 and "no box with score >= 0.95" in none_above.output
+    assert not out.exists()

@@ -481,3 +481,75 @@ def test_crop_follows_the_detectors_visible_range_above_scale_one():
     kept = ptsn.crop_for_scales(points, lambda s: visible_range(config, s), 1.1, 1.4)
     assert len(kept) == 1 and kept[0, 0] == points[0, 0]  # seen at s = 1.1; the other at no s
     assert len(ptsn.crop_for_scales(points, lambda s: visible_range(config, s), 0.8, 1.4)) == 2
+
+
+class FalseBoxDetector(LawDetector):
+    """LawDetector plus one false box per non-empty frame: score 0.4, a fixed size (no law)."""
+
+    FALSE_LWH = np.array([2.5, 1.2, 1.0])
+
+    def predict(self, points_list, scale=1.0, mount_height_m=None):
+        results = []
+        for points, (boxes, scores) in zip(
+            points_list, super().predict(points_list, scale, mount_height_m), strict=True
+        ):
+            if len(points):
+                false = np.zeros((1, 7))
+                false[0, 3:6] = self.FALSE_LWH
+                boxes, scores = np.r_[boxes, false], np.r_[scores, np.float32(0.4)]
+            results.append((boxes, scores))
+        return results
+
+
+@pytest.mark.parametrize("search", ["bracket", "grid"])
+def test_sweep_keeps_its_boxes_and_reproduces_its_e_pred_from_them(search, sweep_setup,
+                                                                    monkeypatch):  # fmt: skip
+    """detections.parquet: at the sweep's own cut its E_pred(ŝ) is scale.json's exactly (same
+    frames, same mean, same interpolation), at a stricter cut it drops the false boxes (the law's
+    size at ŝ), and keeping it costs no detector pass."""
+    from dali_cli.ptsn.detections import COLUMNS, e_pred_at
+
+    tmp_path, target, model = sweep_setup
+    detector = FalseBoxDetector(inverse_law(SOURCE_LWH))
+    import stages.ptsn_sweep
+
+    monkeypatch.setattr(stages.ptsn_sweep, "load_detector", lambda model_dir: detector)
+    out = tmp_path / f"ptsn-{search}"
+    result = invoke("--model", model, "--target", target, "--out", out, "--search", search,
+                    "--no-progress")  # fmt: skip
+    assert result.exit_code == 0, result.output
+    document = json.loads((out / "scale.json").read_text())
+    table = pq.read_table(out / "detections.parquet")
+    columns = {name: table[name].to_numpy() for name in COLUMNS}
+    assert set(np.unique(columns["frame"])) <= set(range(12)) and 3 not in columns["frame"]
+    own, _ = e_pred_at(columns, document["scale"], document["score_min"], document["mean"])
+    assert np.allclose(own, document["E_pred_at_scale"], rtol=0, atol=1e-6)
+    confident, boxes = e_pred_at(columns, document["scale"], 0.7, document["mean"])
+    assert np.allclose(confident, SOURCE_LWH / document["scale"], rtol=2e-3)
+    assert not np.allclose(own, confident, rtol=1e-2)  # the false boxes moved the all-box mean
+    assert 0 < boxes < np.count_nonzero(columns["score"] >= 0.3)
+    sweep = pq.read_table(out / "sweep.parquet").to_pylist()
+    assert sum(row["frame_passes"] for row in sweep) == document["detector_frames"]
+    assert sum(calls for _, calls in detector.calls) == document["detector_frames"]
+
+
+def test_e_pred_from_kept_boxes_groups_by_frame_and_interpolates_between_scales():
+    from dali_cli.ptsn.detections import e_pred_at
+
+    sizes = np.array([[4.0, 2.0, 1.0], [2.0, 1.0, 1.0], [6.0, 3.0, 2.0], [5.0, 2.0, 1.0]])
+    columns = {
+        "scale": np.array([1.0, 1.0, 1.0, 1.2]),
+        "frame": np.array([0, 0, 1, 0]),
+        "l": sizes[:, 0], "w": sizes[:, 1], "h": sizes[:, 2],
+        "score": np.array([0.9, 0.5, 0.9, 0.9], np.float32),
+    }  # fmt: skip
+    at_one, count = e_pred_at(columns, 1.0, 0.3)  # frames' means (3, 1.5, 1) and (6, 3, 2)
+    assert np.allclose(at_one, [4.5, 2.25, 1.5]) and count == 3
+    pooled, _ = e_pred_at(columns, 1.0, 0.3, "pooled")
+    assert np.allclose(pooled, [4.0, 2.0, 4.0 / 3])
+    strict, count = e_pred_at(columns, 1.0, 0.7)
+    assert np.allclose(strict, [5.0, 2.5, 1.5]) and count == 2
+    between, _ = e_pred_at(columns, 1.1, 0.7)  # halfway to scale 1.2's (5, 2, 1)
+    assert np.allclose(between, [5.0, 2.25, 1.25])
+    nothing, count = e_pred_at(columns, 1.0, 0.95)
+    assert np.isnan(nothing).all() and count == 0

@@ -44,7 +44,8 @@ instead of --model, --scale-from gives only these factors (correcting saved pred
 E_pred is the mean of every prediction above the sweep's --score-min, false ones included: where
 that mean is already close to E_est the factors can move true boxes off (600 frames: +2.0
 AP_3D@0.7 on the Waymo-like task, three seeds; -1.7 on the nuScenes-like task, one seed;
-docs/RESULTS.md).
+docs/RESULTS.md). --size-factor-score-min 0.7 takes E_pred from the sweep's confident boxes
+only (its detections.parquet; sweeps before session 20 must be re-run).
 
 \b
 Output: the AP table on stdout; --out FILE writes metrics.json
@@ -89,6 +90,10 @@ correction "size_correction" (factors, E_est, E_pred and the scale.json they cam
                help="per-dim: resize the predicted cars per dimension (bottom face kept) by "
                     "E_est / E_pred(ŝ) of --scale-from's sweep before evaluating: the test-time "
                     "half of PTSN's size bias, label-free (see below).")  # fmt: skip
+@click.option("--size-factor-score-min", type=click.FloatRange(0.0, 1.0), default=None,
+              help="With --size-correction: E_pred of the factors is the mean of the sweep's "
+                   "boxes with at least this score (its detections.parquet) instead of all its "
+                   "boxes (default: the sweep's E_pred_at_scale, its own --score-min).")  # fmt: skip
 @click.option("--out", type=click.Path(path_type=Path),
               help="A metrics file (FILE.json), or an artifact directory (any other path): "
                    "DIR/metrics.json, DIR/predictions.parquet and DIR/manifest.json, skipped "
@@ -117,6 +122,7 @@ def command(
     class_name,
     min_gt_points,
     size_correction,
+    size_factor_score_min,
     out,
     save_predictions,
     device,
@@ -141,6 +147,7 @@ def command(
         save_predictions=save_predictions, device=device, precision=precision, executor=executor,
         workers=workers, ray_address=ray_address, force=force, dry_run=dry_run,
         progress=not no_progress, size_correction=size_correction,
+        size_factor_score_min=size_factor_score_min,
     )  # fmt: skip
     if result.status == "dry-run":
         return

@@ -77,7 +77,9 @@ def command(model_dir, target_dir, out, scale_range, sensors_path, no_progress, 
     Reads MODEL (model.json, model.pt) and the TARGET frame set only: never target labels.
     Writes OUT/scale.json ("scale": ŝ, E_est, E_pred at ŝ, per-dimension bias, passes, detector
     frames, strategy, clipping), OUT/sweep.parquet (one row per evaluated scale and frame set:
-    frames, boxes, mean l/w/h, mean volume, seconds), OUT/sweep.png with --plot, and manifest.json.
+    frames, boxes, mean l/w/h, mean volume, seconds), OUT/detections.parquet (every box at the
+    scales evaluated on all frames: scale, frame, l, w, h, score; read by `dali eval
+    --size-factor-score-min`), OUT/sweep.png with --plot, and manifest.json.
     When E_est lies outside --scales, ŝ is clipped to the bound and a warning says so. When the
     model finds no box with score >= --score-min at any tried scale (an undertrained model),
     ŝ = 1 with fallback "no-detections" and a warning (or exit 1 with --no-detections error).
