@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("synth", "Synthesize a labeled LiDAR frame set (a domain)."),
     "library": ("library", "Build a 3D model library (CAD, procedural, point models)."),
     "eval": ("evaluate", "KITTI-protocol AP of predictions against labels."),
+    "compare": ("compare", "AP of several prediction tables with a paired frame bootstrap."),
     "import": ("importers", "Import KITTI, nuScenes or OpenPCDet data."),
     "export": ("export", "Export boxes to other formats (KITTI label_2)."),
     "view": ("view", "Draw a frame with boxes as a PNG."),

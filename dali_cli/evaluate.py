@@ -621,3 +621,26 @@ def format_table(metrics: dict) -> str:
                 row += f"{totals['tp']:>10}/{totals['fp']}/{totals['fn']}".rjust(22)
             lines.append(row)
     return "\n".join(lines)
+
+
+def check_ious(ious: tuple[float, ...]) -> None:
+    """ParameterError for an IoU threshold outside [0, 1) or one given twice."""
+    from dali_cli.errors import ParameterError
+
+    for iou in ious:
+        if not 0.0 <= iou < 1.0:
+            raise ParameterError("ious", f"must be in [0, 1), got {iou}")
+    if len(set(ious)) != len(ious):
+        raise ParameterError("ious", f"repeated threshold in {list(ious)}")
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """How `evaluate` scores one table (its keyword arguments, `dali compare`'s settings)."""
+
+    iou: float = 0.7
+    recall_positions: int = 40
+    protocol: str = "auto"
+    class_name: str = "Car"
+    min_gt_points: int = 0
+    front_only: bool = False

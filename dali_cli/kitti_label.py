@@ -239,3 +239,24 @@ def write_label_dir(
         lines = format_label_lines(table.select(selected), with_score, decimals)
         path.write_text("".join(line + "\n" for line in lines))
     return len(frames)
+
+
+def read_box_source(path: str | Path, role: str) -> tuple[BoxTable, list[str] | None]:
+    """A box table from a parquet dir/file or a label directory, plus the label files' frames
+    (None for a table). ParameterError on `{role}_path` for anything else."""
+    from dali_cli.artifacts import BOXES_NAME, read_boxes
+    from dali_cli.errors import ParameterError
+
+    path = Path(path)
+    if path.is_file() and path.suffix == ".parquet":
+        return read_boxes(path), None
+    if path.is_dir() and (path / BOXES_NAME).is_file():
+        return read_boxes(path), None
+    if path.is_dir() and (path / "label_2").is_dir():
+        path = path / "label_2"
+    if path.is_dir() and any(path.glob("*.txt")):
+        return read_label_dir(path), list_label_frames(path)
+    raise ParameterError(
+        f"{role}_path",
+        f"{path}: neither a box table ({BOXES_NAME}) nor a directory of label .txt files",
+    )

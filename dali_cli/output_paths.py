@@ -96,24 +96,28 @@ def check_output_path(
     return target
 
 
-def is_dali_metrics_file(path: Path) -> bool:
-    """A metrics.json written by `dali eval` (a JSON object with its "sizes" block)."""
+def is_dali_metrics_file(path: Path, marker: str = "sizes") -> bool:
+    """A metrics file dali wrote: a JSON object with its `marker` block ("sizes": `dali eval`'s
+    metrics.json, "bootstrap": `dali compare`'s)."""
     try:
         document = json.loads(path.read_text())
     except (OSError, ValueError):
         return False
-    return isinstance(document, dict) and "sizes" in document
+    return isinstance(document, dict) and marker in document
 
 
 def check_metrics_output(
-    out: str | Path, inputs: Mapping[str, str | Path | list | tuple | None]
+    out: str | Path,
+    inputs: Mapping[str, str | Path | list | tuple | None],
+    marker: str = "sizes",
 ) -> Path:
-    """`dali eval --out FILE`: not an input nor inside one (`check_output_path`), and an
-    existing file is replaced only when it is a dali metrics file. Returns the absolute path."""
+    """`dali eval --out FILE` (`dali compare`: marker "bootstrap"): not an input nor inside one
+    (`check_output_path`), and an existing file is replaced only when it is such a dali metrics
+    file. Returns the absolute path."""
     target = check_output_path(out, inputs, directory=False)
     if target.is_dir():
         raise OutputPathError(f"--out {out} is a directory; give the metrics file to write")
-    if target.exists() and not is_dali_metrics_file(target):
+    if target.exists() and not is_dali_metrics_file(target, marker):
         raise OutputPathError(
             f"--out {out} exists and is not a dali metrics file; choose a new path, or move or "
             "delete it yourself"

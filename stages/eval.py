@@ -26,9 +26,11 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli import console
-from dali_cli.artifacts import BOX_FIELDS, BOXES_NAME, BoxTable, FrameSet, read_boxes
+from dali_cli.artifacts import BOX_FIELDS, BoxTable, FrameSet
 from dali_cli.atomic_file import write_atomically, write_text_atomically
 from dali_cli.errors import ParameterError, StageError
+from dali_cli.evaluate import check_ious
+from dali_cli.kitti_label import read_box_source
 
 PREDICTIONS_NAME = "predictions.parquet"
 METRICS_NAME = "metrics.json"
@@ -43,25 +45,6 @@ class EvalResult:
     metrics: dict
     written: list[Path] = field(default_factory=list)
     status: str = "ran"
-
-
-def read_table(path: Path, role: str) -> tuple[BoxTable, list[str] | None]:
-    """A box table from a parquet dir/file or a label directory, plus the label files' frames."""
-    from dali_cli.kitti_label import list_label_frames, read_label_dir
-
-    path = Path(path)
-    if path.is_file() and path.suffix == ".parquet":
-        return read_boxes(path), None
-    if path.is_dir() and (path / BOXES_NAME).is_file():
-        return read_boxes(path), None
-    if path.is_dir() and (path / "label_2").is_dir():
-        path = path / "label_2"
-    if path.is_dir() and any(path.glob("*.txt")):
-        return read_label_dir(path), list_label_frames(path)
-    raise ParameterError(
-        f"{role}_path",
-        f"{path}: neither a box table ({BOXES_NAME}) nor a directory of label .txt files",
-    )
 
 
 def resolve_scale(scale: float | None, scale_from: str | Path | None) -> float:
@@ -124,14 +107,6 @@ def mean_box_size(table: BoxTable, class_name: str, score_min: float | None = No
         return None
     lwh = table.boxes[keep, 3:6]
     return [round(float(v), 4) for v in lwh.mean(axis=0)]
-
-
-def check_ious(ious: tuple[float, ...]) -> None:
-    for iou in ious:
-        if not 0.0 <= iou < 1.0:
-            raise ParameterError("ious", f"must be in [0, 1), got {iou}")
-    if len(set(ious)) != len(ious):
-        raise ParameterError("ious", f"repeated threshold in {list(ious)}")
 
 
 def check_size_correction(
@@ -309,7 +284,7 @@ def predictions_and_truth(
             )
         if pred_path is None or gt_path is None:
             raise ParameterError(("pred_path", "gt_path"), "give predictions and ground truth")
-        pred, _ = read_table(pred_path, "pred")
+        pred, _ = read_box_source(pred_path, "pred")
         source = {"pred": str(pred_path)}
         made_at = saved_predictions_scale(Path(pred_path))
         if made_at is not None:
@@ -319,7 +294,7 @@ def predictions_and_truth(
         if pred_path is not None:
             warn_if_made_at_another_scale(Path(pred_path), made_at, scale_from, sweep_scale)
         pred = resized(pred, factors, class_name)
-    gt, label_frames = read_table(gt_path, "gt")
+    gt, label_frames = read_box_source(gt_path, "gt")
     source["gt"] = str(gt_path)
     frames = frame_ids if frame_ids is not None else label_frames
     return pred, gt, frames, source, gt_path, runtime

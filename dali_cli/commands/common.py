@@ -326,3 +326,36 @@ def run_training_command(stage: str, run, *args, extra: str = "", **options) -> 
             f"{stage}: {counts.get('steps')} steps, {counts.get('frames_seen')} frames seen"
             + (extra.format(**counts) if extra else "")
         )
+
+
+PROTOCOLS_HELP = """\b
+Protocols: kitti = easy/moderate/hard from the KITTI label fields (2D box height, occlusion,
+truncation); range = all boxes and BEV-distance bands 0-30, 30-50, 50-80 m; st3d = ST3D's
+target-domain evaluation (ground truth only in the front 90 deg FOV and the detection range,
+every box 'easy'); auto (default) = kitti when the ground truth has the KITTI fields, else range.
+dali synth labels carry the KITTI fields (2D box, truncation, occlusion level of a virtual KITTI
+camera at the sensor), so --protocol kitti gives easy/moderate/hard on synthetic data too.
+--front-only restricts any protocol to that front region, ground truth and predictions alike
+(KITTI's clouds are FOV-cropped; dali synth's are 360 degrees). Van ground truths are ignored
+for Car; --min-gt-points marks ground-truth cars with fewer points as ignored (neither miss nor
+false positive), it never drops them.
+"""
+
+
+def protocol_options(function):
+    """How AP is computed (`dali eval`, `dali compare`): --recall-positions, --protocol,
+    --front-only, --class, --min-gt-points (PROTOCOLS_HELP explains them in an epilog)."""
+    return apply_options(function, [
+        choice_option("--recall-positions", choices=["40", "11"], default="40",
+                      help="R40 or R11 AP."),
+        choice_option("--protocol", choices=["auto", "kitti", "range", "st3d"], default="auto",
+                      help="Difficulty filters (see below)."),
+        click.option("--front-only", "--crop-predictions", "front_only", is_flag=True,
+                     help="Keep only ground truth and predictions centred in the front 90 deg "
+                          "FOV and the detection range (x 0..70.4, |y| <= 40 m), as on KITTI's "
+                          "FOV-cropped clouds; for 360-degree frames such as dali synth's."),
+        click.option("--class", "class_name", default="Car", show_default=True,
+                     help="Class to evaluate."),
+        click.option("--min-gt-points", type=click.IntRange(min=0), default=0, show_default=True,
+                     help="Ignore ground-truth boxes with fewer points (needs num_points)."),
+    ])  # fmt: skip

@@ -7,33 +7,27 @@ from pathlib import Path
 import click
 
 from dali_cli.commands.common import (
+    PROTOCOLS_HELP,
     choice_option,
     device_options,
     executor_options,
     no_progress_option,
+    protocol_options,
     stage_options,
     workers_option,
 )
 
-EPILOG = """\b
+EPILOG = (
+    """\b
 Inputs (--pred, --gt): a box-table directory (boxes.parquet), a .parquet file, or a KITTI
 label_2-style directory of <frame>.txt files (predictions with a 16th score field).
 With --model MODEL --data DIR the predictions come from running the detector on DIR's frames
 (at --scale, or at the PTSN scale in PTSN_DIR/scale.json) and DIR/boxes.parquet is the ground
 truth unless --gt is given.
 
-\b
-Protocols: kitti = easy/moderate/hard from the KITTI label fields (2D box height, occlusion,
-truncation); range = all boxes and BEV-distance bands 0-30, 30-50, 50-80 m; st3d = ST3D's
-target-domain evaluation (ground truth only in the front 90 deg FOV and the detection range,
-every box 'easy'); auto (default) = kitti when the ground truth has the KITTI fields, else range.
-dali synth labels carry the KITTI fields (2D box, truncation, occlusion level of a virtual KITTI
-camera at the sensor), so --protocol kitti gives easy/moderate/hard on synthetic data too.
---front-only restricts any protocol to that front region, ground truth and predictions alike
-(KITTI's clouds are FOV-cropped; dali synth's are 360 degrees). Van ground truths are ignored
-for Car; --min-gt-points marks ground-truth cars with fewer points as ignored (neither miss nor
-false positive), it never drops them.
-
+"""
+    + PROTOCOLS_HELP
+    + """
 \b
 Size correction (--size-correction per-dim --scale-from PTSN_DIR): one isotropic PTSN scale
 matches the volume of the mean predicted car, not each dimension; the bias left per dimension
@@ -55,6 +49,7 @@ the class (predictions: score >= --size-score-min), "scale" (with --model; with 
 scale of the eval that saved them, when its metrics.json says), with a size
 correction "size_correction" (factors, E_est, E_pred and the scale.json they came from).
 """
+)
 
 
 @click.command(name="eval", epilog=EPILOG)
@@ -76,16 +71,7 @@ correction "size_correction" (factors, E_est, E_pred and the scale.json they cam
 @click.option("--size-score-min", type=click.FloatRange(0.0, 1.0), default=0.3, show_default=True,
               help="Predictions with at least this score enter the mean predicted size in "
                    "metrics.json.")  # fmt: skip
-@choice_option("--recall-positions", choices=["40", "11"], default="40", help="R40 or R11 AP.")  # fmt: skip
-@choice_option("--protocol", choices=["auto", "kitti", "range", "st3d"], default="auto",
-               help="Difficulty filters (see below).")  # fmt: skip
-@click.option("--front-only", "--crop-predictions", "front_only", is_flag=True,
-              help="Keep only ground truth and predictions centred in the front 90 deg FOV and "
-                   "the detection range (x 0..70.4, |y| <= 40 m), as on KITTI's FOV-cropped "
-                   "clouds; for 360-degree frames such as dali synth's.")  # fmt: skip
-@click.option("--class", "class_name", default="Car", show_default=True, help="Class to evaluate.")
-@click.option("--min-gt-points", type=click.IntRange(min=0), default=0, show_default=True,
-              help="Ignore ground-truth boxes with fewer points (needs num_points).")  # fmt: skip
+@protocol_options
 @choice_option("--size-correction", choices=["none", "per-dim"], default="none",
                help="per-dim: resize the predicted cars per dimension (bottom face kept) by "
                     "E_est / E_pred(ŝ) of --scale-from's sweep before evaluating: the test-time "
