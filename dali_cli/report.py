@@ -64,6 +64,9 @@ class Row:
     scale: float | None
     bands: dict  # {"0-30": {"bev", "3d", "gt"}, ...} at IoU 0.7 with the range protocol, else {}
     kitti: dict = field(default_factory=dict)  # {"0.7": {"bev": {"easy", "moderate", "hard"}, ...}}
+    # {"0.7": [p_1, ..., p_40]}: AP_3D's interpolated precision at the recall positions k/40 of
+    # the summary bucket (0 above the maximum recall), R40 blocks with curves only
+    precision_3d: dict = field(default_factory=dict)
 
 
 def _summary_key(block: dict) -> str | None:
@@ -91,6 +94,23 @@ def read_bands(document: dict) -> dict:
                 "gt": block.get("counts", {}).get(band, {}).get("gt"),
             }
     return bands
+
+
+def read_precision_3d(document: dict) -> dict:
+    """{iou: (40,) list} AP_3D's interpolated precision at the recall positions 1/40 .. 40/40 of
+    each R40 block's summary bucket (its "curves"; {} for R11 or without curves)."""
+    precision = {}
+    for key, block in document.items():
+        if not (key.startswith("Car") and isinstance(block, dict)) or "iou" not in block:
+            continue
+        if block.get("recall_positions") != 40:
+            continue
+        curves = block.get("curves", {}).get("3d", {})
+        bucket = _summary_key(curves) if isinstance(curves, dict) else None
+        values = curves.get(bucket, {}).get("precision") if bucket is not None else None
+        if isinstance(values, list) and len(values) == 41:
+            precision[f"{float(block['iou']):.1f}"] = [float(v) for v in values[1:]]
+    return precision
 
 
 def read_metrics(path: Path, document: dict | None = None) -> tuple[dict, dict, float | None]:
@@ -141,11 +161,11 @@ def collect_rows(run: Path, rows=ROWS) -> list[Row]:
         if path.is_file():
             document = json.loads(path.read_text())
             ap, sizes, scale = read_metrics(path, document)
-            bands = read_bands(document)
+            bands, precision = read_bands(document), read_precision_3d(document)
         else:
-            ap, sizes, scale, bands = {}, {}, None, {}
+            ap, sizes, scale, bands, precision = {}, {}, None, {}, {}
         kitti = read_kitti(path.with_name(KITTI_NAME))
-        collected.append(Row(name, relative, ap, sizes, scale, bands, kitti))
+        collected.append(Row(name, relative, ap, sizes, scale, bands, kitti, precision))
     return collected
 
 

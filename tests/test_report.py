@@ -279,3 +279,33 @@ def test_far_band_is_aggregated_and_paired(tmp_path):
     assert "### By distance (AP_3D@0.7, front region)" in text
     [pair] = [p for p in document["paired"] if p["row"] == "x2"]
     assert [p["difference"] for p in pair["metrics"]["AP_3D@0.7 50-80 m"]["per_run"]] == [5.0, 9.0]
+
+
+def test_paired_split_takes_out_the_recall_positions_only_one_row_reaches(tmp_path):
+    """x2 reaches one recall position more than its control (its maximum recall crossed a k/40
+    boundary) and is 0.01 better at 10 shared positions: AP_3D differs by that position's whole
+    precision / 40 plus 0.25, the shared-positions figure by 0.25 only."""
+    control = [0.0] + [0.9] * 30 + [0.0] * 10  # 41 points as dali eval writes them
+    x2 = [0.0] + [0.91] * 10 + [0.9] * 20 + [0.8] + [0.0] * 9
+    for seed in (0, 1):
+        run = tmp_path / f"experiment-s{seed}"
+        for relative, curve in (
+            ("iter2/eval", x2),
+            ("baselines/source_x2_budget/eval_ptsn", control),
+        ):
+            path = run / relative / "metrics.json"
+            path.parent.mkdir(parents=True)
+            block = {"iou": 0.7, "recall_positions": 40, "bev": {"all": 80.0},
+                     "3d": {"all": sum(curve[1:]) / 40 * 100}, "counts": {},
+                     "curves": {"3d": {"all": {"precision": curve, "recall": [0.0] * 41}}}}  # fmt: skip
+            path.write_text(json.dumps({"Car": block}))
+    result = CliRunner().invoke(main, ["report", str(tmp_path), "--out", str(tmp_path / "r")])
+    assert result.exit_code == 0, result.output
+    paired = json.loads((tmp_path / "r/report.json").read_text())["paired"]
+    [pair] = [p for p in paired if p["row"] == "x2"]
+    ap = pair["metrics"]["AP_3D@0.7"]
+    shared = pair["metrics"]["AP_3D@0.7 at the recall positions both reach"]
+    assert abs(ap["mean"] - (0.8 / 40 * 100 + 0.25)) < 1e-9
+    assert abs(shared["mean"] - 0.25) < 1e-9 and shared["verdict"] == "diagnostic"
+    assert [(p["positions"], p["positions_control"]) for p in shared["per_run"]] == [(31, 30)] * 2
+    assert "+0.25 (31 vs 30)" in result.output

@@ -12,7 +12,7 @@ import sys
 import numpy as np
 from pathlib import Path
 from dali_cli.artifacts import FrameSet
-from stages.eval import read_table
+from dali_cli.kitti_label import read_box_source as read_table
 
 def offsets(boxes, points, ring=1.0, pct=20):
     out = []
