@@ -38,7 +38,21 @@ KITTI_GT_COLUMNS = ("truncated", "occluded", "bbox_top", "bbox_bottom")
 PROTOCOLS = ("auto", "kitti", "range", "st3d")
 # ground-truth classes that are ignored (neither miss nor false positive) for an evaluated class
 SIMILAR_CLASSES = {"car": ("van",), "pedestrian": ("person_sitting",)}
-NUM_SAMPLE_POINTS = 41
+NUM_SAMPLE_POINTS = 41  # the reference's score thresholds: R40 and R11 share them
+# recall grids: KITTI's R40 (the reported metric), R11 (KITTI before 2019) and a fine R400 (not a
+# KITTI metric): R40 steps by precision / 40 (about 2 points) when a maximum recall crosses a k/40
+# boundary, R400 by a tenth of that (docs/evaluation.md, session 20)
+RECALL_POSITIONS = (40, 11, 400)
+
+
+def sample_points(recall_positions: int) -> int | None:
+    """The number of score thresholds (recall samples, 0 included) of an AP_R<recall_positions>:
+    the reference's 41 for R40 and R11; None for R400, which thresholds at every true-positive
+    score and reads the precision at the recall values k/400 (the reference's sampling indexes
+    recall positions by threshold count, right only when far more cars count than positions)."""
+    return NUM_SAMPLE_POINTS if recall_positions in (11, 40) else None
+
+
 # ST3D's target-domain evaluation: front field of view and the KITTI detection range
 ST3D_FOV_DEG = 90.0
 ST3D_RANGE_M = (0.0, -40.0, 70.4, 40.0)  # x_min, y_min, x_max, y_max of the box centre
@@ -172,8 +186,11 @@ def _band_flags(pred: _Boxes, gt: _Boxes, class_name: str, band: tuple, few_poin
 # Matching statistics
 
 
-def _sample_thresholds(tp_scores: np.ndarray, num_gt: int) -> np.ndarray:
-    """Score thresholds at (about) 41 evenly spaced recalls: the reference's get_thresholds."""
+def _sample_thresholds(
+    tp_scores: np.ndarray, num_gt: int, points: int = NUM_SAMPLE_POINTS
+) -> np.ndarray:
+    """Score thresholds at (about) `points` evenly spaced recalls: the reference's get_thresholds
+    (41 points)."""
     scores = np.sort(np.asarray(tp_scores, dtype=np.float64))[::-1]
     count = len(scores)
     if count == 0 or num_gt == 0:
@@ -181,13 +198,13 @@ def _sample_thresholds(tp_scores: np.ndarray, num_gt: int) -> np.ndarray:
     left = (np.arange(count) + 1) / num_gt  # recall if this score is the threshold
     right = np.r_[left[1:], left[-1]]  # next score's recall (i + 2) / num_gt; the last: its own
     chosen, current, start = [], 0.0, 0
-    while start < count and len(chosen) < NUM_SAMPLE_POINTS:
+    while start < count and len(chosen) < points:
         # first index at or after `start` whose recall is closest to the current target
         accept = ~((right[start:] - current) < (current - left[start:]))
         accept[-1] = True
         index = start + int(np.argmax(accept))
         chosen.append(scores[index])
-        current += 1 / (NUM_SAMPLE_POINTS - 1.0)  # accumulated like the reference, not k / 40
+        current += 1 / (points - 1.0)  # accumulated like the reference, not k / 40
         start = index + 1
     return np.asarray(chosen)
 
@@ -286,8 +303,10 @@ def _statistics(
     ignored_gt: np.ndarray,
     ignored_pred: np.ndarray,
     min_overlap: float,
+    points: int | None = NUM_SAMPLE_POINTS,
 ) -> _Curve:
-    """True/false positives and misses at every sampled threshold, over all frames at once."""
+    """True/false positives and misses at every sampled threshold (`points` of them as the
+    reference samples them; None: at every distinct true-positive score), over all frames."""
     pred_index, gt_index = pairs
     keep = (overlap > min_overlap) & (ignored_gt[gt_index] != -1) & (ignored_pred[pred_index] != -1)
     pred_index, gt_index, overlap = pred_index[keep], gt_index[keep], overlap[keep]
@@ -309,7 +328,12 @@ def _statistics(
                 _match_sequentially(component, scores, ignored_gt, ignored_pred, 0.0, False)[3]
             )
         )
-    thresholds = _sample_thresholds(np.concatenate(tp_scores), num_gt)
+    tp_scores = np.concatenate(tp_scores)
+    thresholds = (
+        np.unique(np.asarray(tp_scores, np.float64))[::-1]
+        if points is None
+        else _sample_thresholds(tp_scores, num_gt, points)
+    )
     levels = np.r_[thresholds, -math.inf]  # (T + 1,)
     tp, fp, fn = _counts_at_levels(
         (pred_index, gt_index, overlap), scores, ignored_gt, ignored_pred, levels,
@@ -399,6 +423,8 @@ def _counts_at_levels(
 
 def _average_precision(curve: _Curve, recall_positions: int) -> tuple[float | None, dict]:
     """AP in percent (None without counted ground truth) and the interpolated curves."""
+    if recall_positions == 400:
+        return _average_precision_by_recall(curve, recall_positions)
     precision = np.zeros(NUM_SAMPLE_POINTS)
     recall = np.zeros(NUM_SAMPLE_POINTS)
     count = len(curve.thresholds)
@@ -419,6 +445,31 @@ def _average_precision(curve: _Curve, recall_positions: int) -> tuple[float | No
         "thresholds": [float(t) for t in curve.thresholds],
         "precision": [float(p) for p in precision],
         "recall": [float(r) for r in recall],
+    }
+    return value, detail
+
+
+def _average_precision_by_recall(curve: _Curve, positions: int) -> tuple[float | None, dict]:
+    """AP over the recall values k / `positions`, k = 1..positions: at each, the largest precision
+    at any threshold whose recall reaches it (0 where none does), from a curve thresholded at
+    every true-positive score. Curves: "precision" and "recall" at k = 0..positions (recall k /
+    positions where reached, else 0)."""
+    grid = np.arange(positions + 1) / positions  # (P + 1,)
+    precision = np.zeros(positions + 1)
+    if len(curve.thresholds) and curve.num_gt:
+        tp = curve.tp.astype(np.float64)
+        recall = tp / curve.num_gt  # (T,) non-decreasing: thresholds fall
+        with np.errstate(invalid="ignore", divide="ignore"):
+            at = np.nan_to_num(tp / (tp + curve.fp))
+        envelope = np.maximum.accumulate(at[::-1])[::-1]  # best precision at recall >= recall[t]
+        first = np.searchsorted(recall, grid - 1e-12, side="left")  # first threshold reaching it
+        reached = first < len(recall)
+        precision[reached] = envelope[first[reached]]
+    value = None if curve.num_gt == 0 else float(precision[1:].sum() / positions * 100)
+    detail = {
+        "thresholds": [float(t) for t in curve.thresholds],
+        "precision": [float(p) for p in precision],
+        "recall": [float(r) if p > 0 else 0.0 for r, p in zip(grid, precision, strict=True)],
     }
     return value, detail
 
@@ -531,7 +582,10 @@ def evaluate(
             "pred": int(np.sum(ignored_pred == 0)),
         }
         for metric, overlap in (("bev", bev), ("3d", volume)):
-            curve = _statistics(pred_boxes, gt_boxes, pairs, overlap, ignored_gt, ignored_pred, iou)
+            curve = _statistics(
+                pred_boxes, gt_boxes, pairs, overlap, ignored_gt, ignored_pred, iou,
+                sample_points(recall_positions),
+            )  # fmt: skip
             value, detail = _average_precision(curve, recall_positions)
             result[metric][name] = value
             result["curves"][metric][name] = detail
@@ -546,8 +600,11 @@ def evaluate(
 
 def _checked_protocol(gt: BoxTable, iou: float, recall_positions: int, protocol: str) -> str:
     """The protocol to run ("auto" resolved); EvaluationError for a parameter it cannot take."""
-    if recall_positions not in (11, 40):
-        raise EvaluationError(f"recall_positions must be 11 or 40, got {recall_positions}")
+    if recall_positions not in RECALL_POSITIONS:
+        raise EvaluationError(
+            f"recall_positions must be one of {', '.join(map(str, RECALL_POSITIONS))}, "
+            f"got {recall_positions}"
+        )
     if protocol not in PROTOCOLS:
         raise EvaluationError(f"unknown protocol '{protocol}' (choose from {', '.join(PROTOCOLS)})")
     if not 0.0 <= iou < 1.0:

@@ -854,3 +854,68 @@ def test_eval_directory_is_a_manifest_tracked_artifact(tmp_path):
     (mine / "notes.txt").write_text("keep me")
     refused = runner.invoke(main, [*args[:-1], str(mine)])
     assert refused.exit_code == 1 and (mine / "notes.txt").read_text() == "keep me"
+
+
+# ---------------------------------------------------------------------------------------------
+# R400: the precision at the recall values k / 400, thresholded at every true-positive score
+
+
+def reference_ap_by_recall(frames, overlap_fn, level, min_overlap, positions=400):
+    """AP over the recall values k / positions with the reference loop's counts at every distinct
+    true-positive score (the largest precision at any threshold whose recall reaches k / N)."""
+    prepared, num_gt, tp_scores = [], 0, []
+    for gt_rows, pred_rows in frames:
+        ignored_gt, ignored_dt = reference_flags(gt_rows, pred_rows, level)
+        overlaps = overlap_fn(pred_rows.boxes, gt_rows.boxes)
+        scores = [float(s) for s in pred_rows["score"]]
+        num_gt += sum(1 for v in ignored_gt if v == 0)
+        tp_scores += reference_statistics(
+            overlaps, scores, ignored_gt, ignored_dt, min_overlap, 0.0, False
+        )[3]
+        prepared.append((overlaps, scores, ignored_gt, ignored_dt))
+    points = []  # (recall, precision) at each threshold
+    for thresh in sorted(set(tp_scores), reverse=True):
+        tp = fp = 0
+        for overlaps, scores, ignored_gt, ignored_dt in prepared:
+            a, b, _, _ = reference_statistics(
+                overlaps, scores, ignored_gt, ignored_dt, min_overlap, thresh, True
+            )
+            tp, fp = tp + a, fp + b
+        points.append((tp / num_gt, tp / (tp + fp)))
+    total = 0.0
+    for k in range(1, positions + 1):
+        reaching = [p for r, p in points if r >= k / positions - 1e-12]
+        total += max(reaching, default=0.0)
+    return total / positions * 100
+
+
+def test_fine_recall_grid_tracks_the_maximum_recall_where_r40_steps():
+    """100 cars, no false box: R400 is the recall found (in steps of 1/400); R40 jumps to the next
+    k/40 as soon as the recall passes one (the reference's sampling takes the last true positive
+    as the threshold of the position above), so 86 and 88 cars found score alike."""
+    cars = row_of_cars(100, spacing=6.0)
+    for found, r40, r400 in ((85, 85.0, 85.0), (86, 87.5, 86.0), (88, 87.5, 88.0)):
+        pred = table(cars[:found], score=np.linspace(0.95, 0.3, found))
+        truth = table(cars)
+        assert evaluate(pred, truth)["Car"]["3d"]["all"] == pytest.approx(r40)
+        fine = evaluate(pred, truth, recall_positions=400)["Car"]
+        assert fine["3d"]["all"] == pytest.approx(r400) and fine["recall_positions"] == 400
+    few = row_of_cars(20)  # R40: 100 x 19 / 40 for a perfect detector of 20 cars
+    assert evaluate(table(few, score=np.linspace(0.9, 0.5, 20)), table(few),
+                    recall_positions=400)["Car"]["bev"]["all"] == pytest.approx(100.0)  # fmt: skip
+    pred, scores, truth = known_curve_scene()  # precision 1 to recall 0.5, then at best 0.8
+    fine = evaluate(table(pred, score=scores), table(truth), recall_positions=400)["Car"]
+    assert fine["bev"]["all"] == pytest.approx((200 * 1.0 + 200 * 0.8) / 400 * 100)
+    assert len(fine["curves"]["bev"]["all"]["precision"]) == 401
+
+
+@pytest.mark.parametrize("seed, iou, crowded", [(0, 0.7, False), (2, 0.3, True), (4, 0.5, False)])
+def test_fine_recall_grid_matches_the_reference_loop(seed, iou, crowded):
+    gt_tables, pred_tables = random_scene(seed, crowded=crowded)
+    gt, pred = BoxTable.concat(gt_tables), BoxTable.concat(pred_tables)
+    metrics = evaluate(pred, gt, iou=iou, protocol="kitti", recall_positions=400)["Car"]
+    frames = list(zip(gt_tables, pred_tables, strict=True))
+    for metric, overlap_fn in (("bev", geometry.bev_iou), ("3d", geometry.iou_3d)):
+        for level, name in enumerate(("easy", "moderate", "hard")):
+            expected = reference_ap_by_recall(frames, overlap_fn, level, iou)
+            assert metrics[metric][name] == pytest.approx(expected, abs=1e-9), (metric, name)

@@ -346,8 +346,9 @@ def protocol_options(function):
     """How AP is computed (`dali eval`, `dali compare`): --recall-positions, --protocol,
     --front-only, --class, --min-gt-points (PROTOCOLS_HELP explains them in an epilog)."""
     return apply_options(function, [
-        choice_option("--recall-positions", choices=["40", "11"], default="40",
-                      help="R40 or R11 AP."),
+        choice_option("--recall-positions", choices=["40", "11", "400"], default="40",
+                      help="R40 (KITTI's) or R11 AP; 400: a fine recall grid, the same "
+                           "computation without R40's 2-point steps (not a KITTI metric)."),
         choice_option("--protocol", choices=["auto", "kitti", "range", "st3d"], default="auto",
                       help="Difficulty filters (see below)."),
         click.option("--front-only", "--crop-predictions", "front_only", is_flag=True,
