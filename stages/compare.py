@@ -17,10 +17,11 @@ MARKER = "bootstrap"  # the block that marks a `dali compare` file (output_paths
 
 
 def parse_rows(specs: tuple[str, ...]) -> dict[str, Path]:
-    """NAME=PATH (or PATH, named by itself) per --pred, in order; at least two, names unique."""
+    """NAME=PATH (or PATH, named by itself) per --pred, in order; at least two, names unique.
+    The name ends at the first "=" (a path may hold one, a name may not)."""
     rows: dict[str, Path] = {}
     for spec in specs:
-        name, _, path = spec.rpartition("=") if "=" in spec else (spec, "", spec)
+        name, _, path = spec.partition("=") if "=" in spec else (spec, "", spec)
         if not name or not path:
             raise ParameterError("preds", f"'{spec}' is not NAME=PATH")
         if name in rows:
