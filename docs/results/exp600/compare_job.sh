@@ -3,8 +3,9 @@
 # the x2-budget control (and the x2-budget oracle, for the gap), per run:
 # RUN/compare_x2_budget_r40.json (POSITIONS=400: the fine recall grid, _r400). From the repository root:
 #   bash docs/results/exp600/compare_job.sh; POSITIONS=400 bash docs/results/exp600/compare_job.sh
+#   (RUNS="experiment-s0 ..." for some runs only)
 set -uo pipefail
-for run in experiment-s0 experiment-s1 experiment-s2 experiment-nuscenes-s0 experiment-nuscenes-s1; do
+for run in ${RUNS:-experiment-s0 experiment-s1 experiment-s2 experiment-nuscenes-s0 experiment-nuscenes-s1}; do
   R=runs/$run
   [ -f $R/baselines/oracle_x2_budget/eval/predictions.parquet ] || { echo "$run: not finished"; continue; }
   ${DALI:-.venv/bin/dali} compare --gt $R/data/target_val \
