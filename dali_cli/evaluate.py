@@ -43,6 +43,7 @@ NUM_SAMPLE_POINTS = 41  # the reference's score thresholds: R40 and R11 share th
 # KITTI metric): R40 steps by precision / 40 (about 2 points) when a maximum recall crosses a k/40
 # boundary, R400 by a tenth of that (docs/evaluation.md, session 20)
 RECALL_POSITIONS = (40, 11, 400)
+LEVEL_CHUNK = 256  # score levels matched at once (memory: levels x candidate pairs)
 
 
 def sample_points(recall_positions: int) -> int | None:
@@ -335,10 +336,21 @@ def _statistics(
         else _sample_thresholds(tp_scores, num_gt, points)
     )
     levels = np.r_[thresholds, -math.inf]  # (T + 1,)
-    tp, fp, fn = _counts_at_levels(
-        (pred_index, gt_index, overlap), scores, ignored_gt, ignored_pred, levels,
-        in_loop_gt, in_loop_pred,
-    )  # fmt: skip
+    # in chunks of levels: the pass holds (levels, candidate pairs) arrays, and R400 thresholds at
+    # every true-positive score (tens of thousands on a full KITTI split)
+    counts = [
+        _counts_at_levels(
+            (pred_index, gt_index, overlap),
+            scores,
+            ignored_gt,
+            ignored_pred,
+            levels[start : start + LEVEL_CHUNK],
+            in_loop_gt,
+            in_loop_pred,
+        )  # fmt: skip
+        for start in range(0, len(levels), LEVEL_CHUNK)
+    ]
+    tp, fp, fn = (np.concatenate([c[i] for c in counts]) for i in range(3))
     for component in components:
         for k, level in enumerate(levels):
             part = _match_sequentially(component, scores, ignored_gt, ignored_pred, level, True)

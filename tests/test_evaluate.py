@@ -919,3 +919,21 @@ def test_fine_recall_grid_matches_the_reference_loop(seed, iou, crowded):
         for level, name in enumerate(("easy", "moderate", "hard")):
             expected = reference_ap_by_recall(frames, overlap_fn, level, iou)
             assert metrics[metric][name] == pytest.approx(expected, abs=1e-9), (metric, name)
+
+
+def test_score_levels_matched_in_chunks_give_the_same_counts(monkeypatch):
+    """The matching pass runs over chunks of score levels (memory); the chunk size changes
+    nothing, for the sampled R40 thresholds and for R400's every true-positive score."""
+    import dali_cli.evaluate as module
+
+    gt_tables, pred_tables = random_scene(5, frames=30)
+    gt, pred = BoxTable.concat(gt_tables), BoxTable.concat(pred_tables)
+    whole = {
+        n: evaluate(pred, gt, iou=0.3, protocol="range", recall_positions=n) for n in (40, 400)
+    }
+    monkeypatch.setattr(module, "LEVEL_CHUNK", 3)
+    for positions, expected in whole.items():
+        chunked = evaluate(pred, gt, iou=0.3, protocol="range", recall_positions=positions)
+        assert chunked["Car"]["3d"] == expected["Car"]["3d"]
+        assert chunked["Car"]["counts"] == expected["Car"]["counts"]
+        assert len(expected["Car"]["curves"]["3d"]["all"]["thresholds"]) > 3 * 3
