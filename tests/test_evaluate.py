@@ -348,8 +348,9 @@ def reference_band_flags(gt_rows: BoxTable, pred_rows: BoxTable, band: tuple):
     return ignored_gt, ignored_dt
 
 
-def reference_ap(frames, overlap_fn, level, min_overlap, flags=reference_flags):
-    """(AP_R40, AP_R11) in percent; `flags(gt_rows, pred_rows, level)` gives the ignore flags."""
+def reference_frames(frames, overlap_fn, level, min_overlap, flags=reference_flags):
+    """The reference loop's first pass: (per frame (overlaps, scores, ignored_gt, ignored_dt),
+    counted ground truths, true-positive scores)."""
     prepared = []
     num_gt = 0
     tp_scores = []
@@ -362,6 +363,12 @@ def reference_ap(frames, overlap_fn, level, min_overlap, flags=reference_flags):
             overlaps, scores, ignored_gt, ignored_dt, min_overlap, 0.0, False
         )[3]
         prepared.append((overlaps, scores, ignored_gt, ignored_dt))
+    return prepared, num_gt, tp_scores
+
+
+def reference_ap(frames, overlap_fn, level, min_overlap, flags=reference_flags):
+    """(AP_R40, AP_R11) in percent; `flags(gt_rows, pred_rows, level)` gives the ignore flags."""
+    prepared, num_gt, tp_scores = reference_frames(frames, overlap_fn, level, min_overlap, flags)
     thresholds = reference_thresholds(tp_scores, num_gt)
     precision = np.zeros(41)
     for k, thresh in enumerate(thresholds):
@@ -863,16 +870,7 @@ def test_eval_directory_is_a_manifest_tracked_artifact(tmp_path):
 def reference_ap_by_recall(frames, overlap_fn, level, min_overlap, positions=400):
     """AP over the recall values k / positions with the reference loop's counts at every distinct
     true-positive score (the largest precision at any threshold whose recall reaches k / N)."""
-    prepared, num_gt, tp_scores = [], 0, []
-    for gt_rows, pred_rows in frames:
-        ignored_gt, ignored_dt = reference_flags(gt_rows, pred_rows, level)
-        overlaps = overlap_fn(pred_rows.boxes, gt_rows.boxes)
-        scores = [float(s) for s in pred_rows["score"]]
-        num_gt += sum(1 for v in ignored_gt if v == 0)
-        tp_scores += reference_statistics(
-            overlaps, scores, ignored_gt, ignored_dt, min_overlap, 0.0, False
-        )[3]
-        prepared.append((overlaps, scores, ignored_gt, ignored_dt))
+    prepared, num_gt, tp_scores = reference_frames(frames, overlap_fn, level, min_overlap)
     points = []  # (recall, precision) at each threshold
     for thresh in sorted(set(tp_scores), reverse=True):
         tp = fp = 0
