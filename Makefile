@@ -272,8 +272,19 @@ kitti-protocol:
 	@for row in $(KITTI_ROWS); do \
 	    if [ -f $(RUN)/$$row/metrics.json ]; then $(MAKE) --no-print-directory $(RUN)/$$row/metrics_kitti.json || exit 1; fi; \
 	done
+# the main rows against the x2-budget control on the same validation frames: `dali compare` (a
+# paired bootstrap over the frames, COMPARE_SAMPLES draws) on KITTI's R40 and on the fine recall
+# grid R400, which has no R40 steps (docs/RESULTS.md, session 20); `dali report RUN1 RUN2 ...`
+# aggregates RUN/compare_r400.json and RUN/compare_r40.json over the runs. Builds every row it compares.
+COMPARE_SAMPLES ?= 400
+COMPARE_ROWS = control:baselines/source_x2_budget/eval_ptsn x2:iter2/eval x1-long:x1_long/eval \
+    control-sized:baselines/source_x2_budget/eval_ptsn_sized oracle:baselines/oracle_x2_budget/eval
+$(RUN)/compare_r%.json: $(foreach row,$(COMPARE_ROWS),$(RUN)/$(lastword $(subst :, ,$(row)))/manifest.json)
+	$(DALI) compare --gt $(TARGET_VAL) $(foreach row,$(COMPARE_ROWS),--pred $(firstword $(subst :, ,$(row)))=$(RUN)/$(lastword $(subst :, ,$(row)))/predictions.parquet) \
+	    --protocol range --front-only --iou 0.7 --recall-positions $* --samples $(COMPARE_SAMPLES) --seed $(SEED) --no-progress --out $@
+compare: $(RUN)/compare_r40.json $(RUN)/compare_r400.json
 .PHONY: baseline-sn baseline-ros baseline-oracle ablation-rc ablation-cf baselines cross-domain controls \
-    controls-x1 controls-x2 iter2-st kitti-protocol
+    controls-x1 controls-x2 iter2-st kitti-protocol compare
 
 report: | install
 	$(DALI) report $(RUN)
@@ -304,7 +315,7 @@ EXPERIMENT_FRAMES ?= 600
 EXPERIMENT_VAL_FRAMES ?= 200
 EXPERIMENT_EPOCHS ?= 4
 EXPERIMENT_RETRAIN_EPOCHS ?= 2
-EXPERIMENT_GOALS ?= iter2 x1-long controls cross-domain $(if $(filter nuscenes,$(SOURCE_SENSOR)),iter2-st)
+EXPERIMENT_GOALS ?= iter2 x1-long controls cross-domain compare $(if $(filter nuscenes,$(SOURCE_SENSOR)),iter2-st)
 EXPERIMENT_FIRST_SEED_GOALS ?= baselines
 EXPERIMENT_PREFIX = runs/experiment$(if $(filter-out waymo,$(SOURCE_SENSOR)),-$(SOURCE_SENSOR))
 experiment: install

@@ -114,7 +114,7 @@ def markdown(rows: list[dict], columns=TABLE_COLUMNS) -> str:
 def aggregate_runs(runs: list[Path]) -> tuple[str, dict]:
     """Markdown and a JSON-ready dict: mean ± std over `runs` of every row and gap figure, and
     the paired differences of the DALI rows against their equal-budget controls."""
-    from dali_cli import report_paired
+    from dali_cli import report_compare, report_paired
 
     documents = [build_report(run)[1] for run in runs]
     paired = report_paired.paired_differences(documents, [str(r) for r in runs])
@@ -152,12 +152,15 @@ def aggregate_runs(runs: list[Path]) -> tuple[str, dict]:
             "",
             report_paired.markdown(paired),
         ]
+    compare_parts, compared = report_compare.sections(runs)
+    parts += compare_parts
     document = {
         "runs": [str(r) for r in runs],
         "target": target,
         "source": source,
         "scalars": scalars,
         "paired": paired,
+        "compare": compared,
         "std": "sample standard deviation (ddof = 1) over runs",
     }
     return "\n".join(parts) + "\n", document

@@ -129,3 +129,27 @@ def test_the_nuscenes_experiment_self_trains_on_every_seed(tmp_path, sensor, sel
     expected = {f"{tmp_path / 'exp'}-s{seed}/iter2_st/model" for seed in (0, 1)}
     assert trained == (expected if self_trains else set())
     assert not (tmp_path / "exp-s0").exists()  # a plan: nothing ran
+
+
+def test_compare_runs_on_both_recall_grids_with_every_main_row(tmp_path):
+    """`make compare`: `dali compare` of the main rows against the x2-budget control, R40 and
+    R400, seeded by SEED; `make experiment` runs it on every seed."""
+    text = plan(tmp_path, "compare", "SEED=3").replace("\\\n", " ")
+    lines = [line for line in text.splitlines() if " compare " in line and "--gt" in line]
+    grids = sorted(re.search(r"--recall-positions (\d+)", line).group(1) for line in lines)
+    assert grids == ["40", "400"]
+    for line in lines:
+        assert "--pred control=" in line and "/baselines/source_x2_budget/eval_ptsn/" in line
+        for row in ("x2=", "x1-long=", "control-sized=", "oracle="):
+            assert f"--pred {row}" in line
+        assert "--seed 3" in line and "--front-only" in line
+    experiment = ("SEEDS=0 1", f"EXPERIMENT_PREFIX={tmp_path / 'exp'}")
+    text = plan(tmp_path, "experiment", *experiment).replace("\\\n", " ")
+    written = {
+        line.split("--out ")[1].split()[0]
+        for line in text.splitlines()
+        if " compare " in line and "--gt" in line
+    }
+    assert written == {
+        f"{tmp_path / 'exp'}-s{seed}/compare_r{grid}.json" for seed in (0, 1) for grid in (40, 400)
+    }

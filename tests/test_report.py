@@ -309,3 +309,32 @@ def test_paired_split_takes_out_the_recall_positions_only_one_row_reaches(tmp_pa
     assert abs(shared["mean"] - 0.25) < 1e-9 and shared["verdict"] == "diagnostic"
     assert [(p["positions"], p["positions_control"]) for p in shared["per_run"]] == [(31, 30)] * 2
     assert "+0.25 (31 vs 30)" in result.output
+
+
+def test_report_aggregates_the_runs_compare_files(tmp_path):
+    """RUN/compare_r400.json (`make compare`): each row's difference to the reference per run,
+    with the frames' bootstrap std, and its mean ± std over the runs; a run without the file
+    is left out of n."""
+    import statistics
+
+    deltas = {"s0": (-0.5, 1.3), "s1": (0.9, 1.2), "s2": None}
+    for seed, values in deltas.items():
+        run = tmp_path / f"experiment-{seed}"
+        write_metrics(run / "iter2/eval/metrics.json", 80.0, 70.0)
+        if values is None:
+            continue
+        rows = {"control": {"3d all": {"ap": 80.0, "std": 1.1}}}
+        for name, delta in zip(("x2", "x1-long"), values, strict=True):
+            rows[name] = {"3d all": {"ap": 80.0 + delta, "std": 1.0, "delta": delta,
+                                     "delta_std": 0.8, "share_not_above_reference": 0.1}}  # fmt: skip
+        summary = {"reference": "control", "frames": 200, "samples": 400, "seed": 0, "rows": rows}
+        (run / "compare_r400.json").write_text(json.dumps({"bootstrap": summary}))
+    result = CliRunner().invoke(main, ["report", str(tmp_path), "--out", str(tmp_path / "r")])
+    assert result.exit_code == 0, result.output
+    compared = json.loads((tmp_path / "r/report.json").read_text())["compare"]["compare_r400.json"]
+    x2, x1_long = compared
+    assert x2["row"] == "x2" and x2["n"] == 2 and abs(x2["mean"] - 0.2) < 1e-9
+    assert abs(x1_long["std"] - statistics.stdev([1.3, 1.2])) < 1e-9
+    assert [p["delta_std"] for p in x2["per_run"]] == [0.8, 0.8]
+    assert "| x1-long | 2 | +1.30 ± 0.80 / +1.20 ± 0.80 | +1.25 ± 0.07 |" in result.output
+    assert "compare_r40.json" not in json.loads((tmp_path / "r/report.json").read_text())["compare"]
