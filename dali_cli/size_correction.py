@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dali_cli.ptsn import expected_prediction
+from dali_cli.ptsn.stats import expected_prediction_by_frame
 
 METHODS = ("per-dim", "none")
 
@@ -69,10 +69,8 @@ def resize_keeping_bottom(boxes: np.ndarray, factors: np.ndarray) -> np.ndarray:
 
 def mean_size(boxes: np.ndarray, frame_ids: np.ndarray, mean: str = "per-frame") -> np.ndarray:
     """Mean l, w, h (3,) of boxes (N, 7) grouped by frame_ids (N,) as PTSN's E_pred (NaN if none)."""
-    frame_ids = np.asarray(frame_ids)
-    _, frame_of_box = np.unique(frame_ids, return_inverse=True)
-    sizes = [boxes[frame_of_box == f, 3:6] for f in range(frame_of_box.max(initial=-1) + 1)]
-    return expected_prediction(sizes, mean).mean_lwh
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    return expected_prediction_by_frame(boxes[:, 3:6], frame_ids, mean).mean_lwh
 
 
 def correct_sizes(

@@ -139,7 +139,9 @@ def test_compare_runs_on_both_recall_grids_with_every_main_row(tmp_path):
     grids = sorted(re.search(r"--recall-positions (\d+)", line).group(1) for line in lines)
     assert grids == ["40", "400"]
     for line in lines:
-        assert "--pred control=" in line and "/baselines/source_x2_budget/eval_ptsn/" in line
+        assert (
+            "--pred control=" in line and "baselines/source_x2_budget/eval_ptsn/predictions" in line
+        )
         for row in ("x2=", "x1-long=", "control-sized=", "oracle="):
             assert f"--pred {row}" in line
         assert "--seed 3" in line and "--front-only" in line

@@ -48,7 +48,12 @@ from dali_cli.ptsn.spec import (
     parse_size,
     ros_expected_size,
 )
-from dali_cli.ptsn.stats import SizeStats, criterion, expected_prediction
+from dali_cli.ptsn.stats import (
+    SizeStats,
+    criterion,
+    expected_prediction,
+    expected_prediction_by_frame,
+)
 
 __all__ = [
     "DEFAULT_ROS_FACTOR",
@@ -70,6 +75,7 @@ __all__ = [
     "crossing",
     "decreasing_fit",
     "expected_prediction",
+    "expected_prediction_by_frame",
     "find_scale",
     "grid_search",
     "is_monotone",

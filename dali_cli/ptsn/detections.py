@@ -24,7 +24,7 @@ import numpy as np
 
 from dali_cli.ptsn.cache import DetectionCache
 from dali_cli.ptsn.search import Evaluation
-from dali_cli.ptsn.stats import expected_prediction
+from dali_cli.ptsn.stats import expected_prediction_by_frame
 
 DETECTIONS_NAME = "detections.parquet"  # in a ptsn-sweep directory, beside scale.json
 COLUMNS = ("scale", "frame", "l", "w", "h", "score")
@@ -75,10 +75,8 @@ def e_pred_at(
     found, means, counts = [], [], []
     for value in np.unique(scales):
         at = scales == value
-        _, frame_of_box = np.unique(frames[at], return_inverse=True)
-        per_frame = [sizes[at][frame_of_box == f] for f in range(frame_of_box.max() + 1)]
         found.append(value)
-        means.append(expected_prediction(per_frame, mean).mean_lwh)
+        means.append(expected_prediction_by_frame(sizes[at], frames[at], mean).mean_lwh)
         counts.append(int(at.sum()))
     if not found:
         return np.full(3, np.nan), 0

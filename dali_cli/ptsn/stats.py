@@ -50,6 +50,18 @@ def expected_prediction(
     return SizeStats(len(counts), with_boxes, total, mean_lwh)
 
 
+def expected_prediction_by_frame(
+    sizes: np.ndarray, frame_ids: np.ndarray, mean: str = "per-frame"
+) -> SizeStats:
+    """`expected_prediction` of sizes `(N, 3)` (l, w, h) grouped by their frame ids `(N,)` (any
+    hashable labels; frames without boxes do not appear, as they do not count)."""
+    sizes = np.asarray(sizes, np.float64).reshape(-1, 3)
+    _, frame_of_box = np.unique(np.asarray(frame_ids), return_inverse=True)
+    order = np.argsort(frame_of_box, kind="stable")
+    starts = np.flatnonzero(np.diff(frame_of_box[order])) + 1
+    return expected_prediction(np.split(sizes[order], starts) if len(sizes) else [], mean)
+
+
 def criterion(mean_lwh: np.ndarray, e_est: np.ndarray, match: str = "volume") -> float:
     """c(s) of the module docstring for E_pred = `mean_lwh` (3,): decreasing in s, 0 at ŝ; NaN
     when E_pred is undefined (no boxes)."""
