@@ -228,10 +228,13 @@ def _clip_half_plane(poly, count, bound, coordinate, sign, capacity):
     side = bound[:, None] - sign * values  # (P, K), >= 0: inside
     valid = np.arange(slots)[None, :] < count[:, None]
     last = np.maximum(count - 1, 0)
-    poly_next = np.empty_like(poly)  # the next vertex, cyclic over the valid ones
+    # the next vertex, cyclic over the valid ones; zeros (not np.empty) in the slots past a row's
+    # last vertex: they are never emitted, but uninitialized memory there made `cut *= t` warn
+    # "invalid value" now and then (seen in a dali compare run, session 21)
+    poly_next = np.zeros_like(poly)
     poly_next[:, :-1] = poly[:, 1:]
     poly_next[row_index, last] = poly[:, 0]
-    side_next = np.empty_like(side)
+    side_next = np.zeros_like(side)
     side_next[:, :-1] = side[:, 1:]
     side_next[row_index, last] = side[:, 0]
     inside = side >= 0
@@ -267,7 +270,7 @@ def _polygon_area(poly: np.ndarray, count: np.ndarray) -> np.ndarray:
     """Shoelace area `(P,)` of complex polygons `(P, K)` with `count` leading valid vertices."""
     rows, slots = poly.shape
     valid = np.arange(slots)[None, :] < count[:, None]
-    poly_next = np.empty_like(poly)
+    poly_next = np.zeros_like(poly)  # as in _clip_half_plane: no uninitialized slots
     poly_next[:, :-1] = poly[:, 1:]
     poly_next[np.arange(rows), np.maximum(count - 1, 0)] = poly[:, 0]
     terms = (poly.conj() * poly_next).imag  # cross(p, p_next)

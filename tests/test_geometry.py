@@ -4,6 +4,7 @@ ground-frame scaling."""
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -55,6 +56,31 @@ def test_bev_iou_matches_shapely_far_from_origin_and_aligned():
     far_a[:, :3] += shift
     far_b[:, :3] += shift
     assert np.abs(g.bev_iou_pairs(far_a, far_b) - expected).max() <= 1e-9
+
+
+def test_bev_iou_reads_no_uninitialized_memory(monkeypatch):
+    """Memory numpy leaves uninitialized (np.empty_like) is filled with inf here: the clipping must
+    neither read it into a result nor warn about it (uninitialized slots past a polygon's last
+    vertex made `dali compare` print "invalid value encountered in multiply" now and then)."""
+    rng = np.random.default_rng(2)
+    a = random_boxes(rng, 3000)
+    b = random_boxes(rng, 3000)
+    b[:, :2] = a[:, :2] + rng.uniform(-3, 3, (len(a), 2))
+    clean = g.bev_iou_pairs(a, b)
+    real_empty_like = np.empty_like
+
+    def poisoned_empty_like(prototype, *args, **kwargs):
+        out = real_empty_like(prototype, *args, **kwargs)
+        if out.dtype.kind in "fc":
+            out.fill(np.inf)  # inf, not NaN: inf * 0 raises the invalid flag, NaN propagates
+        return out
+
+    monkeypatch.setattr(np, "empty_like", poisoned_empty_like)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        poisoned = g.bev_iou_pairs(a, b)
+    np.testing.assert_array_equal(poisoned, clean)
+    assert np.abs(clean - shapely_iou(a, b)).max() <= 1e-9
 
 
 @pytest.mark.parametrize(
