@@ -43,7 +43,6 @@ NUM_SAMPLE_POINTS = 41  # the reference's score thresholds: R40 and R11 share th
 # KITTI metric): R40 steps by precision / 40 (about 2 points) when a maximum recall crosses a k/40
 # boundary, R400 by a tenth of that (docs/evaluation.md, session 20)
 RECALL_POSITIONS = (40, 11, 400)
-LEVEL_CHUNK = 256  # score levels matched at once (memory: levels x candidate pairs)
 
 
 def sample_points(recall_positions: int) -> int | None:
@@ -336,21 +335,10 @@ def _statistics(
         else _sample_thresholds(tp_scores, num_gt, points)
     )
     levels = np.r_[thresholds, -math.inf]  # (T + 1,)
-    # in chunks of levels: the pass holds (levels, candidate pairs) arrays, and R400 thresholds at
-    # every true-positive score (tens of thousands on a full KITTI split)
-    counts = [
-        _counts_at_levels(
-            (pred_index, gt_index, overlap),
-            scores,
-            ignored_gt,
-            ignored_pred,
-            levels[start : start + LEVEL_CHUNK],
-            in_loop_gt,
-            in_loop_pred,
-        )  # fmt: skip
-        for start in range(0, len(levels), LEVEL_CHUNK)
-    ]
-    tp, fp, fn = (np.concatenate([c[i] for c in counts]) for i in range(3))
+    tp, fp, fn = _counts_at_levels(
+        (pred_index, gt_index, overlap), scores, ignored_gt, ignored_pred, levels, in_loop_gt,
+        in_loop_pred,
+    )  # fmt: skip
     for component in components:
         for k, level in enumerate(levels):
             part = _match_sequentially(component, scores, ignored_gt, ignored_pred, level, True)
@@ -392,6 +380,14 @@ def _split_greedy_groups(
     return fast, components, in_loop_gt, in_loop_pred
 
 
+def _weighted_at_least(values: np.ndarray, weights: np.ndarray, levels: np.ndarray) -> np.ndarray:
+    """Σ weights[values >= level] for each of `levels (L,)`; values, weights `(N,)`."""
+    order = np.argsort(values, kind="stable")
+    cumulative = np.r_[0, np.cumsum(weights[order])]
+    below = np.searchsorted(values[order], levels, side="left")
+    return cumulative[-1] - cumulative[below]
+
+
 def _counts_at_levels(
     pairs: tuple[np.ndarray, np.ndarray, np.ndarray],
     scores: np.ndarray,
@@ -403,33 +399,48 @@ def _counts_at_levels(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pass 2: at each score level `(L,)` match the candidate `pairs` (pred, gt, overlap) by
     largest overlap, preferring non-ignored predictions, then the first ignored one; returns
-    tp, fp, fn `(L,)` of everything but the loop's groups."""
+    tp, fp, fn `(L,)` of everything but the loop's groups.
+
+    Per ground truth its candidates are ranked by that preference; at level t it takes the first
+    with score >= t. So candidate j is taken exactly for t in (best score of the candidates ranked
+    before it, its score] (any t <= its score for the first), an interval, and each count is a
+    sum of intervals containing t: O((E + L) log E) instead of one (L, E) pass per level."""
     pred_index, gt_index, overlap = pairs
     pred_ignored = ignored_pred[pred_index]
     rank = np.where(pred_ignored == 0, -overlap, 0.0)
     order = np.lexsort((pred_index, rank, pred_ignored, gt_index))
     pred_sorted, gt_sorted = pred_index[order], gt_index[order]
     edges = len(order)
-    starts = np.flatnonzero(np.r_[True, gt_sorted[1:] != gt_sorted[:-1]]) if edges else order
+    first = np.r_[True, gt_sorted[1:] != gt_sorted[:-1]] if edges else np.zeros(0, bool)  # (E,)
+    starts = np.flatnonzero(first)
     group_gt = gt_sorted[starts]  # (G,) one group of candidate pairs per ground truth
-    active = scores[pred_sorted][None, :] >= levels[:, None]  # (L, E)
-    position = np.where(active, np.arange(edges)[None, :], edges)
-    if edges:
-        chosen = np.minimum.reduceat(position, starts, axis=1)  # (L, G) first active pair
-    else:
-        chosen = np.zeros((len(levels), 0), dtype=np.int64)
-    found = chosen < edges
-    chosen_pred = pred_sorted[np.minimum(chosen, edges - 1)] if edges else chosen
-    counted_gt = ignored_gt[group_gt] == 0  # (G,)
-    counted_pred = found & (ignored_pred[chosen_pred] == 0)  # (L, G)
-    tp = np.sum(found & counted_gt[None, :] & counted_pred, axis=1)
-    fn = np.sum(~found & counted_gt[None, :], axis=1)
+    score = scores[pred_sorted].astype(np.float64)  # (E,)
+    # the best score ranked before each candidate in its group, exactly: a running maximum of
+    # (group, score rank) packed into one integer, which no earlier group can exceed
+    distinct, score_rank = np.unique(score, return_inverse=True)
+    offset = (np.cumsum(first) - 1).astype(np.int64) * max(len(distinct), 1)
+    running = np.maximum.accumulate(offset + score_rank) if edges else offset
+    before = np.r_[-1, running[:-1]][:edges] - offset  # (E,) rank of the best before; <0: none
+    taken = first | (score_rank > before)  # taken at some level
+    later = taken & ~first
+    lower = distinct[np.maximum(before, 0)] if edges else score  # (E,) the interval's open end
+    counted_pred = (ignored_pred[pred_sorted] == 0).astype(np.int64)
+    true_pair = counted_pred * (ignored_gt[gt_sorted] == 0)
+
+    def taken_at(weights):  # Σ weights of the candidates taken at each level (L,)
+        return _weighted_at_least(score[taken], weights[taken], levels) - _weighted_at_least(
+            lower[later], weights[later], levels
+        )
+
+    tp = taken_at(true_pair)
+    best = np.maximum.reduceat(score, starts) if edges else score  # (G,)
+    fn = np.searchsorted(np.sort(best[ignored_gt[group_gt] == 0]), levels, side="left")
     has_pair = np.zeros(len(ignored_gt), dtype=bool)
     has_pair[group_gt] = True
     fn = fn + np.sum((ignored_gt == 0) & ~has_pair & ~in_loop_gt)
     eligible = np.sort(scores[(ignored_pred == 0) & ~in_loop_pred])
     kept = len(eligible) - np.searchsorted(eligible, levels, side="left")  # score >= level
-    fp = kept - np.sum(counted_pred, axis=1)
+    fp = kept - taken_at(counted_pred)
     return tp, fp, fn
 
 

@@ -919,19 +919,56 @@ def test_fine_recall_grid_matches_the_reference_loop(seed, iou, crowded):
             assert metrics[metric][name] == pytest.approx(expected, abs=1e-9), (metric, name)
 
 
-def test_score_levels_matched_in_chunks_give_the_same_counts(monkeypatch):
-    """The matching pass runs over chunks of score levels (memory); the chunk size changes
-    nothing, for the sampled R40 thresholds and for R400's every true-positive score."""
-    import dali_cli.evaluate as module
+def dense_counts_at_levels(
+    pairs, scores, ignored_gt, ignored_pred, levels, in_loop_gt, in_loop_pred
+):
+    """The matching pass written level by level (the former (L, E) implementation): at each level
+    every ground truth takes its first candidate, by the same preference, with score >= level."""
+    pred_index, gt_index, overlap = pairs
+    pred_ignored = ignored_pred[pred_index]
+    order = np.lexsort(
+        (pred_index, np.where(pred_ignored == 0, -overlap, 0.0), pred_ignored, gt_index)
+    )
+    tp, fp, fn = [], [], []
+    eligible = scores[(ignored_pred == 0) & ~in_loop_pred]
+    for level in levels:
+        taken = {}
+        for e in order:
+            if scores[pred_index[e]] >= level and gt_index[e] not in taken:
+                taken[gt_index[e]] = pred_index[e]
+        counted = [g for g in range(len(ignored_gt)) if ignored_gt[g] == 0 and not in_loop_gt[g]]
+        tp.append(sum(1 for g in counted if g in taken and ignored_pred[taken[g]] == 0))
+        fn.append(sum(1 for g in counted if g not in taken))
+        fp.append(
+            int(np.sum(eligible >= level)) - sum(ignored_pred[p] == 0 for p in taken.values())
+        )
+    return np.array(tp), np.array(fp), np.array(fn)
 
-    gt_tables, pred_tables = random_scene(5, frames=30)
-    gt, pred = BoxTable.concat(gt_tables), BoxTable.concat(pred_tables)
-    whole = {
-        n: evaluate(pred, gt, iou=0.3, protocol="range", recall_positions=n) for n in (40, 400)
-    }
-    monkeypatch.setattr(module, "LEVEL_CHUNK", 3)
-    for positions, expected in whole.items():
-        chunked = evaluate(pred, gt, iou=0.3, protocol="range", recall_positions=positions)
-        assert chunked["Car"]["3d"] == expected["Car"]["3d"]
-        assert chunked["Car"]["counts"] == expected["Car"]["counts"]
-        assert len(expected["Car"]["curves"]["3d"]["all"]["thresholds"]) > 3 * 3
+
+@pytest.mark.parametrize("seed", range(6))
+def test_matching_pass_by_intervals_equals_the_level_by_level_pass(seed):
+    """_counts_at_levels counts each candidate over the score interval in which it is taken;
+    it must give the level-by-level counts, with tied scores and overlaps, ignored predictions
+    and ground truths, and levels between and at the scores."""
+    from dali_cli.evaluate import _counts_at_levels
+
+    rng = np.random.default_rng(seed)
+    for trial in range(60):
+        num_pred, num_gt = int(rng.integers(1, 25)), int(rng.integers(1, 25))
+        pairs = np.unique(
+            rng.integers(0, [num_pred, num_gt], (int(rng.integers(0, 50)), 2)), axis=0
+        )
+        pred_index, gt_index = pairs[:, 0], pairs[:, 1]
+        tied = trial % 2 == 0
+        overlap = rng.choice([0.6, 0.8], len(pairs)) if tied else rng.uniform(0.5, 1, len(pairs))
+        scores = rng.choice([0.2, 0.5, 0.9], num_pred) if tied else rng.uniform(0, 1, num_pred)
+        ignored_gt = rng.choice([0, 1], num_gt, p=[0.8, 0.2])
+        ignored_pred = rng.choice([0, 1], num_pred, p=[0.8, 0.2])
+        in_loop_gt = np.zeros(num_gt, bool)
+        in_loop_pred = np.zeros(num_pred, bool)
+        levels = np.r_[np.unique(np.r_[scores, rng.uniform(0, 1, 4)])[::-1], -np.inf]
+        args = ((pred_index, gt_index, overlap), scores, ignored_gt, ignored_pred, levels)
+        fast = _counts_at_levels(*args, in_loop_gt, in_loop_pred)
+        dense = dense_counts_at_levels(*args, in_loop_gt, in_loop_pred)
+        for got, expected, name in zip(fast, dense, ("tp", "fp", "fn"), strict=True):
+            np.testing.assert_array_equal(got, expected, err_msg=f"{name}, trial {trial}")
