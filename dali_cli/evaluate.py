@@ -381,9 +381,11 @@ def _split_greedy_groups(
 
 
 def _weighted_at_least(values: np.ndarray, weights: np.ndarray, levels: np.ndarray) -> np.ndarray:
-    """Σ weights[values >= level] for each of `levels (L,)`; values, weights `(N,)`."""
+    """Σ weights[values >= level] `(L, K)` for each of `levels (L,)`; values `(N,)`, weights
+    `(N, K)` (one sort for all K weightings)."""
     order = np.argsort(values, kind="stable")
-    cumulative = np.r_[0, np.cumsum(weights[order])]
+    cumulative = np.concatenate([np.zeros((1, weights.shape[1]), weights.dtype),
+                                 np.cumsum(weights[order], axis=0)])  # fmt: skip
     below = np.searchsorted(values[order], levels, side="left")
     return cumulative[-1] - cumulative[below]
 
@@ -425,14 +427,12 @@ def _counts_at_levels(
     later = taken & ~first
     lower = distinct[np.maximum(before, 0)] if edges else score  # (E,) the interval's open end
     counted_pred = (ignored_pred[pred_sorted] == 0).astype(np.int64)
-    true_pair = counted_pred * (ignored_gt[gt_sorted] == 0)
-
-    def taken_at(weights):  # Σ weights of the candidates taken at each level (L,)
-        return _weighted_at_least(score[taken], weights[taken], levels) - _weighted_at_least(
-            lower[later], weights[later], levels
-        )
-
-    tp = taken_at(true_pair)
+    weights = np.c_[counted_pred * (ignored_gt[gt_sorted] == 0), counted_pred]  # (E, 2)
+    # (L, 2): true positives and matched counted predictions among the candidates taken
+    taken_counts = _weighted_at_least(score[taken], weights[taken], levels) - _weighted_at_least(
+        lower[later], weights[later], levels
+    )
+    tp = taken_counts[:, 0]
     best = np.maximum.reduceat(score, starts) if edges else score  # (G,)
     fn = np.searchsorted(np.sort(best[ignored_gt[group_gt] == 0]), levels, side="left")
     has_pair = np.zeros(len(ignored_gt), dtype=bool)
@@ -440,7 +440,7 @@ def _counts_at_levels(
     fn = fn + np.sum((ignored_gt == 0) & ~has_pair & ~in_loop_gt)
     eligible = np.sort(scores[(ignored_pred == 0) & ~in_loop_pred])
     kept = len(eligible) - np.searchsorted(eligible, levels, side="left")  # score >= level
-    fp = kept - taken_at(counted_pred)
+    fp = kept - taken_counts[:, 1]
     return tp, fp, fn
 
 
