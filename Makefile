@@ -92,10 +92,13 @@ TRAIN_FLAGS    ?=
 # NPROC=N: pretrain, retrain and self-train run as N data-parallel processes under torchrun
 # (DDP: gloo on the CPU, nccl on GPUs; --batch-size frames per process; rank 0 writes the model).
 # Unset: one process, as before. DEVICE=cuda (or cpu, cuda:N) is passed to every model stage.
+# PRECISION=bf16: bf16 autocast in every model stage (training and inference; CUDA GPUs with bf16,
+# CPUs with AVX512-BF16 or AMX: 1.4x training, 1.7x inference on a Zen 4 VM, docs/detector.md).
 NPROC          ?=
 DEVICE         ?=
+PRECISION      ?=
 TRAIN_DALI      = $(if $(NPROC),$(BIN)/torchrun --standalone --nproc-per-node $(NPROC) $(DALI),$(DALI))
-DEVICE_FLAG     = $(if $(DEVICE),--device $(DEVICE))
+DEVICE_FLAG     = $(if $(DEVICE),--device $(DEVICE)) $(if $(PRECISION),--precision $(PRECISION))
 # --minutes makes results depend on the machine and its load; epochs (the default) do not
 TRAIN_BUDGET    = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(EPOCHS))
 RETRAIN_BUDGET  = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(or $(RETRAIN_EPOCHS_$(1)),$(RETRAIN_EPOCHS)))

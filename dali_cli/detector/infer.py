@@ -231,9 +231,10 @@ class Detector:
                 else None
             )
             points, batch_index = points.to(self.device), batch_index.to(self.device)
-            with autocast(self.device, self.precision):
+            with autocast(self.device, self.precision):  # the second stage's MLP too
                 maps = run_network(self.net, points, batch_index, len(chunk), config)
-            for boxes, scores in decode(maps, config, refiner, frames_points):
+                decoded = decode(maps, config, refiner, frames_points)
+            for boxes, scores in decoded:
                 results.append((ground_boxes_to_sensor(boxes, mount, scale), scores))
         return results
 

@@ -179,7 +179,8 @@ class BoxRefiner(nn.Module):
         x = self.point_mlp(torch.cat([features, relative], dim=-1))  # (K, N, 2c)
         pooled = x.amax(dim=1)  # (K, 2c)
         hidden = self.box_mlp(torch.cat([pooled, sizes], dim=1))
-        return self.residual(hidden), self.iou(hidden)[:, 0]
+        # float32 out also under bf16 autocast: the losses and the box decoding stay in float32
+        return self.residual(hidden).float(), self.iou(hidden)[:, 0].float()
 
 
 def refine_boxes(

@@ -300,14 +300,14 @@ def optimize_step(
         np.repeat(np.arange(len(samples)), [len(p) for p, _ in samples])
     ).to(device)
     targets = build_targets([b for _, b in samples], config).to(device)
-    with autocast(device, settings.precision):
-        maps = forward(points, batch_index, len(samples))
-    loss, terms = detection_loss(maps, targets, config)
-    if net.refiner is not None:
-        loss, terms = add_refine_loss(
-            net, maps, [p for p, _ in samples], targets, loss, terms, settings.seed, step,
-            positions=list(mine),
-        )  # fmt: skip
+    with autocast(device, settings.precision):  # bf16: the networks' matrix products
+        maps = forward(points, batch_index, len(samples))  # float32 maps
+        loss, terms = detection_loss(maps, targets, config)
+        if net.refiner is not None:  # its point MLP is a third of a step's products
+            loss, terms = add_refine_loss(
+                net, maps, [p for p, _ in samples], targets, loss, terms, settings.seed, step,
+                positions=list(mine),
+            )  # fmt: skip
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     torch.nn.utils.clip_grad_norm_(net.parameters(), settings.grad_clip)
