@@ -63,7 +63,9 @@ def test_training_step_runs_both_stages_at_the_precision(precision):
     assert set(seen["refiner_out"]) == {torch.float32}  # the refine losses are float32
     assert all(torch.isfinite(value) and value.dtype == torch.float32 for value in terms.values())
     grads = [p.grad for p in net.refiner.parameters()]
-    assert all(g is not None and g.dtype == torch.float32 and torch.isfinite(g).all() for g in grads)
+    assert all(
+        g is not None and g.dtype == torch.float32 and torch.isfinite(g).all() for g in grads
+    )
     assert any(g.abs().sum() > 0 for g in grads)
 
 
