@@ -39,6 +39,7 @@ from dali_cli.detector import (
 )
 from dali_cli.detector.augment import ObjectDatabase
 from dali_cli.detector.data import detection_region
+from dali_cli.detector.runtime import cpu_model
 from dali_cli.sensors import get_profile
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -70,7 +71,7 @@ def bench_speed(args) -> dict:
     config = DetectorConfig()
     torch.manual_seed(0)
     net = PillarCenterNet(config).eval()
-    detector = Detector(net)
+    detector = Detector(net, precision=args.precision)
     detector.config.score_threshold = 0.0  # decode + NMS the full top-k: the slowest case
     frames = kitti_frames(args.data, 12)
     detector.predict(frames[:2])  # warm-up
@@ -81,6 +82,8 @@ def bench_speed(args) -> dict:
         timings.append(time.perf_counter() - started)
     result = {
         "device": f"CPU, {args.threads} torch threads",
+        "precision": args.precision,
+        "cpu_model": cpu_model(),
         "load_average_1min": os.getloadavg()[0],
         "points_per_frame": float(np.mean([len(f) for f in frames])),
         "inference_s_per_frame_median": float(np.median(timings)),
@@ -118,7 +121,11 @@ def bench_speed(args) -> dict:
         )
     data.database = ObjectDatabase.build(data.points, data.boxes, region=detection_region(config))
     train_net = PillarCenterNet(config)
-    setup = dict(batch_size=args.batch_size, threads=args.train_threads or args.threads)
+    setup = dict(
+        batch_size=args.batch_size,
+        threads=args.train_threads or args.threads,
+        precision=args.precision,
+    )
     settings = TrainSettings(epochs=args.epochs, log_every=1, **setup)
     warm = TrainSettings(epochs=0.25, log_every=1, **setup)
     train(train_net, [data], [Augmentation()], warm, progress=False)
@@ -396,6 +403,12 @@ def main() -> None:
     speed.add_argument("--train-threads", type=int, default=None, help="(default: --threads)")
     speed.add_argument("--batch-size", type=int, default=1)
     speed.add_argument("--epochs", type=float, default=4.0, help="passes over the 16 frames")
+    speed.add_argument(
+        "--precision",
+        choices=["fp32", "bf16"],
+        default="fp32",
+        help="bf16 autocast in inference and training (a CPU with AVX512-BF16 or AMX)",
+    )
     speed.add_argument("--out", default=None)
     oracle = sub.add_parser("oracle")
     oracle.add_argument("--train", required=True)
