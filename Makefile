@@ -321,12 +321,38 @@ EXPERIMENT_RETRAIN_EPOCHS ?= 2
 EXPERIMENT_GOALS ?= iter2 x1-long controls cross-domain compare $(if $(filter nuscenes,$(SOURCE_SENSOR)),iter2-st)
 EXPERIMENT_FIRST_SEED_GOALS ?= baselines
 EXPERIMENT_PREFIX = runs/experiment$(if $(filter-out waymo,$(SOURCE_SENSOR)),-$(SOURCE_SENSOR))
+# EXPERIMENT_LANES=2: each seed's data first, then its training rows as two make processes side by
+# side, each pinned (taskset) to one half of the machine's cores, so that every stage in a lane
+# (training, inference, ray casting) sees only its own cores and no two stages fight over one:
+# lane 1 the DALI chain and the rows built on it, lane 2 the rows that need only the data (the
+# controls, SN, the pretraining-budget oracle; no stage in both lanes, tests/test_makefile_lanes.py);
+# then the rest (forgetting, compare, KITTI protocol, reports) on every core. Needs Linux's taskset
+# and the whole machine. docs/RESULTS.md (session 22) has its time for one seed with every row.
+EXPERIMENT_LANES ?= 1
+LANE_DATA_ONLY = controls controls-x1 controls-x2
+lane_1_goals = $(filter-out $(LANE_DATA_ONLY) baselines compare cross-domain,$(1)) \
+    $(if $(filter baselines,$(1)),ablation-rc ablation-cf baseline-ros)
+lane_2_goals = $(filter $(LANE_DATA_ONLY),$(1)) $(if $(filter baselines,$(1)),baseline-sn baseline-oracle)
 experiment: install
+	@case "$(EXPERIMENT_LANES)" in 1|2) ;; *) echo "EXPERIMENT_LANES must be 1 or 2, got '$(EXPERIMENT_LANES)'" >&2; exit 1;; esac
+	@if [ "$(EXPERIMENT_LANES)" = 2 ] && { [ $$(nproc) -lt 2 ] || [ $$(nproc) != $$(nproc --all) ]; }; then \
+	    echo "EXPERIMENT_LANES=2 pins its lanes to cores 0..N-1: it needs the whole machine and at least 2 cores (this process may use $$(nproc) of $$(nproc --all))" >&2; exit 1; fi
 	@first=$(firstword $(SEEDS)); for seed in $(SEEDS); do \
-	    goals="$(EXPERIMENT_GOALS)"; [ $$seed = $$first ] && goals="$$goals $(EXPERIMENT_FIRST_SEED_GOALS)"; \
-	    $(MAKE) --no-print-directory $$goals kitti-protocol RUN=$(EXPERIMENT_PREFIX)-s$$seed SEED=$$seed \
-	        SOURCE_SENSOR=$(SOURCE_SENSOR) FRAMES=$(EXPERIMENT_FRAMES) VAL_FRAMES=$(EXPERIMENT_VAL_FRAMES) \
-	        EPOCHS=$(EXPERIMENT_EPOCHS) RETRAIN_EPOCHS=$(EXPERIMENT_RETRAIN_EPOCHS) || exit 1; \
+	    goals="$(EXPERIMENT_GOALS)"; lane1="$(call lane_1_goals,$(EXPERIMENT_GOALS))"; lane2="$(call lane_2_goals,$(EXPERIMENT_GOALS))"; \
+	    if [ $$seed = $$first ]; then goals="$$goals $(EXPERIMENT_FIRST_SEED_GOALS)"; \
+	        lane1="$(call lane_1_goals,$(EXPERIMENT_GOALS) $(EXPERIMENT_FIRST_SEED_GOALS))"; \
+	        lane2="$(call lane_2_goals,$(EXPERIMENT_GOALS) $(EXPERIMENT_FIRST_SEED_GOALS))"; fi; \
+	    vars="RUN=$(EXPERIMENT_PREFIX)-s$$seed SEED=$$seed SOURCE_SENSOR=$(SOURCE_SENSOR) FRAMES=$(EXPERIMENT_FRAMES) \
+	        VAL_FRAMES=$(EXPERIMENT_VAL_FRAMES) EPOCHS=$(EXPERIMENT_EPOCHS) RETRAIN_EPOCHS=$(EXPERIMENT_RETRAIN_EPOCHS)"; \
+	    if [ "$(EXPERIMENT_LANES)" = 2 ]; then \
+	        n=$$(nproc); half=$$((n / 2)); \
+	        $(MAKE) --no-print-directory data $$vars || exit 1; \
+	        echo "seed $$seed: lane 1 (cores 0-$$((half - 1))): $$lane1; lane 2 (cores $$half-$$((n - 1))): $$lane2"; \
+	        taskset -c 0-$$((half - 1)) $(MAKE) --no-print-directory $$lane1 $$vars & one=$$!; \
+	        taskset -c $$half-$$((n - 1)) $(MAKE) --no-print-directory $$lane2 $$vars & two=$$!; \
+	        wait $$one || { wait $$two; exit 1; }; wait $$two || exit 1; \
+	    fi; \
+	    $(MAKE) --no-print-directory $$goals kitti-protocol $$vars || exit 1; \
 	done
 	for seed in $(SEEDS); do $(DALI) report $(EXPERIMENT_PREFIX)-s$$seed > /dev/null || exit 1; done
 	$(DALI) report $(foreach seed,$(SEEDS),$(EXPERIMENT_PREFIX)-s$(seed)) --out $(EXPERIMENT_PREFIX)-report

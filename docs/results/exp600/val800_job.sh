@@ -8,8 +8,10 @@
 # artifact directory, skipped when up to date):
 #   bash docs/results/exp600/val800_job.sh                    # all runs below that are finished
 #   RUNS="experiment-s0" bash docs/results/exp600/val800_job.sh
+#   EVAL_FLAGS="--precision bf16" RUNS=...   # options of every model eval (session 22: bf16 rows)
 set -uo pipefail
 D=${DALI:-.venv/bin/dali}
+X=${EVAL_FLAGS:-}
 P="--protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min 0.3"
 for run in ${RUNS:-experiment-s0 experiment-s1 experiment-s2 experiment-nuscenes-s0 experiment-nuscenes-s1 experiment-nuscenes-s2}; do
   R=runs/$run; O=runs/val800/$run
@@ -27,7 +29,7 @@ for run in ${RUNS:-experiment-s0 experiment-s1 experiment-s2 experiment-nuscenes
   )
   for row in control x2 x1_long oracle; do
     set -- ${ROWS[$row]}
-    $D eval --model $1 --data $V $2 $3 $P --workers 1 --no-progress --out $O/$row || exit 1
+    $D eval $X --model $1 --data $V $2 $3 $P --workers 1 --no-progress --out $O/$row || exit 1
   done
   $D eval --pred $O/control/predictions.parquet --gt $V --scale-from $B/source_x2_budget/ptsn \
     --size-correction per-dim $P --out $O/control_sized || exit 1
