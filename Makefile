@@ -324,15 +324,16 @@ EXPERIMENT_PREFIX = runs/experiment$(if $(filter-out waymo,$(SOURCE_SENSOR)),-$(
 # EXPERIMENT_LANES=2: each seed's data first, then its training rows as two make processes side by
 # side, each pinned (taskset) to one half of the machine's cores, so that every stage in a lane
 # (training, inference, ray casting) sees only its own cores and no two stages fight over one:
-# lane 1 the DALI chain and the rows built on it, lane 2 the rows that need only the data (the
-# controls, SN, the pretraining-budget oracle; no stage in both lanes, tests/test_makefile_lanes.py);
+# lane 1 the DALI chain and the rows built on it (and SN, ROS), lane 2 the controls and the
+# pretraining-budget oracle (no stage in both lanes, tests/test_makefile_lanes.py);
 # then the rest (forgetting, compare, KITTI protocol, reports) on every core. Needs Linux's taskset
 # and the whole machine. docs/RESULTS.md (session 22) has its time for one seed with every row.
 EXPERIMENT_LANES ?= 1
 LANE_DATA_ONLY = controls controls-x1 controls-x2
+# (first seed, 600 frames: lane 1 19,200 training frames and most of the inference, lane 2 20,400)
 lane_1_goals = $(filter-out $(LANE_DATA_ONLY) baselines compare cross-domain,$(1)) \
-    $(if $(filter baselines,$(1)),ablation-rc ablation-cf baseline-ros)
-lane_2_goals = $(filter $(LANE_DATA_ONLY),$(1)) $(if $(filter baselines,$(1)),baseline-sn baseline-oracle)
+    $(if $(filter baselines,$(1)),ablation-rc ablation-cf baseline-ros baseline-sn)
+lane_2_goals = $(filter $(LANE_DATA_ONLY),$(1)) $(if $(filter baselines,$(1)),baseline-oracle)
 experiment: install
 	@case "$(EXPERIMENT_LANES)" in 1|2) ;; *) echo "EXPERIMENT_LANES must be 1 or 2, got '$(EXPERIMENT_LANES)'" >&2; exit 1;; esac
 	@if [ "$(EXPERIMENT_LANES)" = 2 ] && { [ $$(nproc) -lt 2 ] || [ $$(nproc) != $$(nproc --all) ]; }; then \
