@@ -93,7 +93,7 @@ TRAIN_FLAGS    ?=
 # (DDP: gloo on the CPU, nccl on GPUs; --batch-size frames per process; rank 0 writes the model).
 # Unset: one process, as before. DEVICE=cuda (or cpu, cuda:N) is passed to every model stage.
 # PRECISION=bf16: bf16 autocast in every model stage (training and inference; CUDA GPUs with bf16,
-# CPUs with AVX512-BF16 or AMX: 1.4x training, 1.7x inference on a Zen 4 VM, docs/detector.md).
+# CPUs with AVX512-BF16 or AMX: 1.4x training, 1.5x inference on a Zen 4 VM, docs/detector.md).
 NPROC          ?=
 DEVICE         ?=
 PRECISION      ?=

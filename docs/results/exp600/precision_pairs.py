@@ -21,7 +21,12 @@ PAIRED = {"x2": "iter2/eval/metrics.json", "x1 long": "x1_long/eval/metrics.json
 def rows(run: Path) -> dict[tuple[str, str], dict]:
     """(section, metrics path) -> report row, for the target and control sections."""
     report = json.loads((run / "report" / "report.json").read_text())
-    return {(s, r["path"]): r for s in ("target", "controls", "source") for r in report[s]}
+    return {  # rows the run did not produce are listed without figures: left out
+        (s, r["path"]): r
+        for s in ("target", "controls", "source")
+        for r in report[s]
+        if r.get("ap")
+    }
 
 
 def ap3d(row: dict) -> float:
