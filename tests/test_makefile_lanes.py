@@ -6,29 +6,18 @@ plan. Checked on `make -n` plans, with a stand-in `taskset` that records its arg
 from __future__ import annotations
 
 import os
-import subprocess
 from pathlib import Path
 
 import pytest
+from make_plans import dali_commands, make
 
-ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.skipif(
     len(os.sched_getaffinity(0)) < 2, reason="lanes need two cores to split"
 )
 
 
-def make(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        ["make", "--no-print-directory", "-C", str(ROOT), *args],
-        capture_output=True, text=True, env=env,
-    )  # fmt: skip
-
-
 def dali_lines(*args: str) -> set[str]:
-    """The dali commands of `make -n ARGS` (the plan from scratch: nothing is built)."""
-    run = make("-n", *args)
-    assert run.returncode == 0, run.stderr
-    return {line.strip() for line in run.stdout.splitlines() if "dali " in line}
+    return set(dali_commands(*args))
 
 
 def lane_calls(tmp_path: Path, *variables: str) -> list[list[str]]:

@@ -4,12 +4,12 @@ float32 / float64; fp32 (the default) runs none of them in bf16."""
 
 from __future__ import annotations
 
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from make_plans import dali_commands
 from toy_scenes import place_cars, scan
 
 from dali_cli.detector import Detector, DetectorConfig, PillarCenterNet, TrainSettings
@@ -89,13 +89,8 @@ def test_bf16_inference_refines_in_bf16_and_returns_float_boxes():
 
 def make_plan(tmp_path: Path, *variables: str) -> list[str]:
     """The dali commands `make -n` would run for x2, x1 long, the controls and the baselines."""
-    root = Path(__file__).resolve().parents[1]
-    run = subprocess.run(
-        ["make", "-n", "-C", str(root), "iter2", "x1-long", "controls", "baselines", "iter2-st",
-         f"RUN={tmp_path / 'run'}", *variables],
-        capture_output=True, text=True, check=True,
-    )  # fmt: skip
-    return [line for line in run.stdout.splitlines() if "dali " in line]
+    goals = ("iter2", "x1-long", "controls", "baselines", "iter2-st")
+    return dali_commands(*goals, f"RUN={tmp_path / 'run'}", *variables)
 
 
 def model_stage(line: str) -> str | None:

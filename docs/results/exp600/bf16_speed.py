@@ -31,11 +31,15 @@ from dali_cli.detector.runtime import cpu_model
 from dali_cli.detector.train import interleave, optimize_step, step_samples
 
 
-def step_ms(run: Path, precision: str, threads: int) -> float:
-    config = DetectorConfig()
+def training_frames(run: Path, config: DetectorConfig):
+    """The run's first 32 source frames with their labels and object database."""
     data = load_labeled(str(run / "data" / "source"), config)
     data.points, data.boxes, data.frame_ids = data.points[:32], data.boxes[:32], data.frame_ids[:32]
     data.database = ObjectDatabase.build(data.points, data.boxes, region=detection_region(config))
+    return data
+
+
+def step_ms(data, config: DetectorConfig, precision: str, threads: int) -> float:
     torch.manual_seed(0)
     net = PillarCenterNet(config)
     net.train()
@@ -51,9 +55,7 @@ def step_ms(run: Path, precision: str, threads: int) -> float:
     return float(np.median(took[4:]) * 1000)
 
 
-def inference(run: Path, precision: str) -> tuple[float, int, np.ndarray]:
-    frames = FrameSet(run / "data" / "target")
-    points = [frames.frame(i) for i in range(24)]
+def inference(run: Path, points: list, precision: str) -> tuple[float, int, np.ndarray]:
     detector = Detector.load(run / "iter2" / "model", precision=precision)
     detector.predict(points[:4], scale=1.18)
     started = time.perf_counter()
@@ -70,9 +72,13 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     print(f"{cpu_model()}, {args.threads} thread(s)")
+    config = DetectorConfig()
+    data = training_frames(args.run, config)
+    frames = FrameSet(args.run / "data" / "target")
+    points = [frames.frame(i) for i in range(24)]
     for precision in ("fp32", "bf16", "fp32", "bf16"):  # alternating: drifts in load show
-        ms = step_ms(args.run, precision, args.threads)
-        seconds, boxes, size = inference(args.run, precision)
+        ms = step_ms(data, config, precision, args.threads)
+        seconds, boxes, size = inference(args.run, points, precision)
         print(
             f"{precision}: training {ms:.0f} ms/step, inference {seconds:.3f} s/frame, "
             f"{boxes} boxes at score >= 0.3, mean l/w/h {np.round(size, 3).tolist()}"
