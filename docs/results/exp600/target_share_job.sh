@@ -1,0 +1,33 @@
+#!/bin/bash
+# Session 23 (issue 18, item 3), seed 0 unless SEED: is the oracle's lead over every retraining
+# the share of target frames in the batches? x1 long's schedule (init iter0, source sized to
+# E_est, 4,800 steps, fp32) but `--mix 1:7`: 7 of every 8 batches from the target side, one
+# epoch = 600 source frames x 8 = 4,800 steps, the same budget. SET picks the target side:
+#   SET=ppcg     iteration 1's RC + CF frames (label-free: a DALI variant)
+#   SET=rawtrue  the raw target training frames with ALL their true labels (diagnostic: reads
+#                target labels; never a default). rawtrue_job.sh is the same at 1:1 (85.7 at s = 1).
+# Each row is evaluated like x1 long (its own sweep, 200 validation frames, range + KITTI) and on
+# the 800 fresh frames of val800_job.sh. Resumable: every step is an artifact directory.
+#   SET=ppcg bash docs/results/exp600/target_share_job.sh      # from the directory holding runs/
+set -euo pipefail
+SEED=${SEED:-0}; SET=${SET:-ppcg}; MIX=${MIX:-1:7}; EPOCHS=${EPOCHS:-1}
+D=${DALI:-.venv/bin/dali}
+R=runs/experiment-s$SEED
+V=$R/variants/x1long-$SET-mix${MIX//:/}
+case $SET in
+  ppcg) TARGET_SIDE="$R/iter1/rc $R/iter1/cf" ;;
+  rawtrue) TARGET_SIDE=$R/data/target ;;
+  *) echo "SET must be ppcg or rawtrue, got '$SET'" >&2; exit 2 ;;
+esac
+P="--protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min 0.3"
+$D retrain --init $R/iter0/model --source $R/data/source --ppcg $TARGET_SIDE --source-size sn \
+    --target-size-from $R/iter1/ptsn --seed $SEED --epochs $EPOCHS --mix $MIX --threads 1 \
+    --out $V/model
+$D ptsn-sweep --model $V/model --target $R/data/target --expected-size sn --score-min 0.3 \
+    --seed $SEED --no-progress --out $V/ptsn
+$D eval --model $V/model --data $R/data/target_val --scale-from $V/ptsn $P --workers 1 \
+    --no-progress --out $V/eval
+$D eval --pred $V/eval/predictions.parquet --gt $R/data/target_val --protocol kitti \
+    --iou 0.7 --iou 0.5 --size-score-min 0.3 --out $V/eval/metrics_kitti.json
+$D eval --model $V/model --data runs/val800/data-s$SEED --scale-from $V/ptsn $P --workers 1 \
+    --no-progress --out runs/val800/experiment-s$SEED/x1long-$SET-mix${MIX//:/}
