@@ -6,14 +6,16 @@
 #   SET=ppcg     iteration 1's RC + CF frames (label-free: a DALI variant)
 #   SET=rawtrue  the raw target training frames with ALL their true labels (diagnostic: reads
 #                target labels; never a default). rawtrue_job.sh is the same at 1:1 (85.7 at s = 1).
+# INIT_FROM=scratch starts from a fresh network instead of iter0's weights (the oracle's start).
 # Each row is evaluated like x1 long (its own sweep, 200 validation frames, range + KITTI) and on
 # the 800 fresh frames of val800_job.sh. Resumable: every step is an artifact directory.
 #   SET=ppcg bash docs/results/exp600/target_share_job.sh      # from the directory holding runs/
 set -euo pipefail
-SEED=${SEED:-0}; SET=${SET:-ppcg}; MIX=${MIX:-1:7}; EPOCHS=${EPOCHS:-1}
+SEED=${SEED:-0}; SET=${SET:-ppcg}; MIX=${MIX:-1:7}; EPOCHS=${EPOCHS:-1}; INIT_FROM=${INIT_FROM:-previous}
 D=${DALI:-.venv/bin/dali}
 R=runs/experiment-s$SEED
-V=$R/variants/x1long-$SET-mix${MIX//:/}
+NAME=x1long-$SET-mix${MIX//:/}$([ $INIT_FROM = previous ] || echo -$INIT_FROM)
+V=$R/variants/$NAME
 case $SET in
   ppcg) TARGET_SIDE="$R/iter1/rc $R/iter1/cf" ;;
   rawtrue) TARGET_SIDE=$R/data/target ;;
@@ -21,7 +23,8 @@ case $SET in
 esac
 P="--protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min 0.3"
 $D retrain --init $R/iter0/model --source $R/data/source --ppcg $TARGET_SIDE --source-size sn \
-    --target-size-from $R/iter1/ptsn --seed $SEED --epochs $EPOCHS --mix $MIX --threads 1 \
+    --target-size-from $R/iter1/ptsn --seed $SEED --epochs $EPOCHS --mix $MIX \
+    --init-from $INIT_FROM --threads 1 \
     --out $V/model
 $D ptsn-sweep --model $V/model --target $R/data/target --expected-size sn --score-min 0.3 \
     --seed $SEED --no-progress --out $V/ptsn
@@ -30,4 +33,4 @@ $D eval --model $V/model --data $R/data/target_val --scale-from $V/ptsn $P --wor
 $D eval --pred $V/eval/predictions.parquet --gt $R/data/target_val --protocol kitti \
     --iou 0.7 --iou 0.5 --size-score-min 0.3 --out $V/eval/metrics_kitti.json
 $D eval --model $V/model --data runs/val800/data-s$SEED --scale-from $V/ptsn $P --workers 1 \
-    --no-progress --out runs/val800/experiment-s$SEED/x1long-$SET-mix${MIX//:/}
+    --no-progress --out runs/val800/experiment-s$SEED/$NAME
