@@ -4,6 +4,9 @@
 # E_est, 4,800 steps, fp32) but `--mix 1:7`: 7 of every 8 batches from the target side, one
 # epoch = 600 source frames x 8 = 4,800 steps, the same budget. SET picks the target side:
 #   SET=ppcg     iteration 1's RC + CF frames (label-free: a DALI variant)
+#   SET=truth-matched | pseudo-matched   the RC + CF frames of truth_job.sh's variant (built from
+#                the true boxes of the cars iteration 1 found / those found pseudo boxes as they
+#                are; diagnostics: read target labels; run truth_job.sh MODE=... first)
 #   SET=rawtrue  the raw target training frames with ALL their true labels (diagnostic: reads
 #                target labels; never a default). rawtrue_job.sh is the same at 1:1 (85.7 at s = 1).
 # INIT_FROM=scratch starts from a fresh network instead of iter0's weights (the oracle's start).
@@ -18,8 +21,9 @@ NAME=x1long-$SET-mix${MIX//:/}$([ $INIT_FROM = previous ] || echo -$INIT_FROM)
 V=$R/variants/$NAME
 case $SET in
   ppcg) TARGET_SIDE="$R/iter1/rc $R/iter1/cf" ;;
+  truth-matched|pseudo-matched) TARGET_SIDE="$R/variants/x1long-$SET/iter1/rc $R/variants/x1long-$SET/iter1/cf" ;;
   rawtrue) TARGET_SIDE=$R/data/target ;;
-  *) echo "SET must be ppcg or rawtrue, got '$SET'" >&2; exit 2 ;;
+  *) echo "SET must be ppcg, truth-matched, pseudo-matched or rawtrue, got '$SET'" >&2; exit 2 ;;
 esac
 P="--protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min 0.3"
 $D retrain --init $R/iter0/model --source $R/data/source --ppcg $TARGET_SIDE --source-size sn \

@@ -1,0 +1,22 @@
+#!/bin/bash
+# Session 23 (issue 18, item 3), seed 0 unless SEED: the oracle on x1 long's retraining budget.
+# Target-only training from scratch with all true labels (reads target labels: a baseline, never
+# a DALI stage), EPOCHS passes over the 600 target frames (default 8 = 4,800 steps, the steps x1
+# long's retraining takes after its 2,400 pretraining steps), evaluated like the x2-budget oracle
+# (s = 1) on the 200 validation frames (range + KITTI) and on val800_job.sh's 800 fresh frames.
+# Against the oracle at 2,400 (the pretraining budget) and 7,200 steps (x2's): what labelled target
+# training of the retraining's own length scores. Resumable (artifact directories).
+#   SEED=1 bash docs/results/exp600/oracle_budget_job.sh     # from the directory holding runs/
+set -euo pipefail
+SEED=${SEED:-0}; EPOCHS=${EPOCHS:-8}
+D=${DALI:-.venv/bin/dali}
+R=runs/experiment-s$SEED
+B=$R/baselines/oracle_${EPOCHS}ep
+P="--protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min 0.3"
+$D pretrain --source $R/data/target --seed $SEED --epochs $EPOCHS --threads 1 --out $B/model
+$D eval --model $B/model --data $R/data/target_val --scale 1.0 $P --workers 1 --no-progress \
+    --out $B/eval
+$D eval --pred $B/eval/predictions.parquet --gt $R/data/target_val --protocol kitti \
+    --iou 0.7 --iou 0.5 --size-score-min 0.3 --out $B/eval/metrics_kitti.json
+$D eval --model $B/model --data runs/val800/data-s$SEED --scale 1.0 $P --workers 1 --no-progress \
+    --out runs/val800/experiment-s$SEED/oracle_${EPOCHS}ep
