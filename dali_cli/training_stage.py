@@ -35,11 +35,12 @@ class TrainingOptions:
     augment: bool = True
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     progress: bool = True
+    schedule: tuple[float, float] = (0.0, 1.0)  # part of the one-cycle schedule (TrainSettings)
 
     def params(self) -> dict:
         """The manifest parameters they set (threads, device and progress do not change the
         model: they are recorded in the manifest's runtime, not here)."""
-        return {
+        params = {
             "epochs": None if self.minutes else self.epochs,
             "minutes": self.minutes,
             "seed": self.seed,
@@ -49,6 +50,9 @@ class TrainingOptions:
             "compile": self.compile_net,
             "augment": self.augment,
         }
+        if self.schedule != (0.0, 1.0):  # recorded only when set: earlier manifests stay valid
+            params["schedule"] = list(self.schedule)
+        return params
 
     def settings(self, **extra):
         """dali_cli.detector.TrainSettings of these options (`extra`: e.g. mix)."""
@@ -57,7 +61,7 @@ class TrainingOptions:
         return TrainSettings(
             epochs=self.epochs, minutes=self.minutes, batch_size=self.batch_size, lr=self.lr,
             seed=self.seed, precision=self.precision, compile=self.compile_net,
-            threads=self.threads, device=self.device, **extra,
+            threads=self.threads, device=self.device, schedule=self.schedule, **extra,
         )  # fmt: skip
 
     def augmentation(self):

@@ -94,6 +94,7 @@ def run_retrain(
     target_size: tuple[float, float, float] | None = None,
     target_size_from: str | Path | None = None,
     labels: tuple[str, ...] = ("Car",),
+    continue_schedule: bool = False,
     sensors_path: str | Path | None = None,
     force: bool = False,
     dry_run: bool = False,
@@ -106,10 +107,15 @@ def run_retrain(
     target's expected mean size `target_size` (or the E_est of the ptsn-sweep `target_size_from`,
     or `target_profile`'s car_mean_lwh_m: label-free statistics), in-box points scaled with
     them, so source and PPCG labels agree on the target's car size (metres).
+
+    `continue_schedule`: instead of a fresh one-cycle learning-rate schedule, run the rest of the
+    one `init` stopped in (`pretrain --schedule-epochs`), over this run's budget.
     """
     init, source, out = Path(init), Path(source), Path(out)
     ppcg = [Path(p) for p in ppcg]
     weights = checked_mix(ppcg, init_from, mix)
+    if continue_schedule:
+        training = continued_schedule(training, init, init_from)
     target_size = shift_size(
         source_size, target_profile, target_size, target_size_from, sensors_path
     )
@@ -190,6 +196,26 @@ def retrain_meta(
         "provenance": provenance,
         "metrics": metrics,
     }
+
+
+def continued_schedule(training: TrainingOptions, init: Path, init_from: str) -> TrainingOptions:
+    """`training` covering the rest of the learning-rate schedule `init` stopped in (its card's
+    schedule_stop); ParameterError when init ran its schedule to the end or the weights are not
+    taken from it."""
+    from dali_cli.model_card import read_card
+
+    if init_from != "previous":
+        raise ParameterError(
+            "continue_schedule", "continues INIT's schedule, so needs --init-from previous"
+        )
+    stop = read_card(init).schedule_stop
+    if stop is None:
+        raise ParameterError(
+            "continue_schedule",
+            f"{init}: its learning-rate schedule ran to the end, nothing to continue (train it "
+            "with `dali pretrain --schedule-epochs`)",
+        )
+    return dataclasses.replace(training, schedule=(stop, 1.0))
 
 
 def checked_mix(ppcg: list[Path], init_from: str, mix: str) -> tuple[int, ...]:

@@ -65,6 +65,10 @@ class GreedyOption(click.Option):
                    "--source-size sn (what `make iter2` passes).")  # fmt: skip
 @click.option("--label", "labels", multiple=True, default=("Car",), show_default=True,
               help="Box labels to train on.")  # fmt: skip
+@click.option("--continue-schedule", is_flag=True,
+              help="Run the rest of the one-cycle learning-rate schedule INIT stopped in "
+                   "(`dali pretrain --schedule-epochs`) over this run's budget, instead of a "
+                   "fresh schedule that warms up again.")  # fmt: skip
 @training_options
 def command(init, source, ppcg, out, labels, **options):
     """Retrain on the labeled source plus PPCG frame sets, alternating source and PPCG batches.

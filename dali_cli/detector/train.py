@@ -53,6 +53,10 @@ class TrainSettings:
     device: str = "auto"  # auto | cpu | cuda | cuda:N (dali_cli.device.resolve_device)
     compile: bool = False  # torch.compile the backbone and heads (~1 min cold start)
     mix: tuple[int, ...] = (1,)
+    # the part (start, stop) of the one-cycle learning-rate schedule this run covers: (0, 1) a
+    # whole schedule; pretrain --schedule-epochs runs its first part, retrain
+    # --continue-schedule the rest, so the two trainings make one schedule
+    schedule: tuple[float, float] = (0.0, 1.0)
     log_every: int = 5
     checkpoint_every_s: float = 120.0
 
@@ -77,6 +81,13 @@ def one_cycle(
     else:
         t, start, end = (progress - pct_start) / (1 - pct_start), max_lr, max_lr / final_div
     return end + (start - end) * (1 + math.cos(math.pi * t)) / 2
+
+
+def schedule_lr(fraction: float, settings: TrainSettings) -> float:
+    """Learning rate when `fraction` in [0, 1] of this run's budget is spent: the one-cycle
+    schedule at the matching point of the part settings.schedule = (start, stop) it covers."""
+    start, stop = settings.schedule
+    return one_cycle(start + (stop - start) * fraction, settings.lr, settings.pct_start)
 
 
 def interleave(mix: tuple[int, ...]) -> list[int]:
@@ -158,7 +169,7 @@ def train(
     while (step < steps) if steps else (elapsed < budget_s):
         started = time.perf_counter()
         fraction = step / steps if steps else elapsed / budget_s
-        lr = one_cycle(fraction, settings.lr, settings.pct_start)
+        lr = schedule_lr(fraction, settings)
         for group in optimizer.param_groups:
             group["lr"] = lr
         d, samples = step_samples(
