@@ -150,7 +150,7 @@ def partial_schedule(training: TrainingOptions, schedule_epochs: float | None) -
     """`training` covering the first training.epochs of a one-cycle schedule of
     `schedule_epochs` epochs (None or equal: the whole schedule, unchanged); ParameterError for
     fewer schedule epochs than trained ones or a wall-clock budget."""
-    if schedule_epochs is None or schedule_epochs == training.epochs and not training.minutes:
+    if schedule_epochs is None or (schedule_epochs == training.epochs and not training.minutes):
         return training
     if training.minutes:
         raise ParameterError("schedule_epochs", "needs an epoch budget (--epochs), not --minutes")
