@@ -11,15 +11,13 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from toy_scenes import write_toy_dataset
 
 from dali_cli.artifacts import ArtifactError, read_boxes
 from dali_cli.cli import main
 from dali_cli.detector import Detector
 from dali_cli.model_card import ModelCard, read_card
-from dali_cli.sensors import get_profile
 from stages.ptsn_sweep import read_model_card, resolve_e_est
-from tests.test_retrain import SMALL, TOY
+from tests.test_retrain import write_toy_world
 
 ROS_RANGE = (0.7, 0.9)
 
@@ -27,10 +25,7 @@ ROS_RANGE = (0.7, 0.9)
 @pytest.fixture(scope="module")
 def ros_world(tmp_path_factory):
     """A real (tiny) checkpoint pretrained with ROS, and one retrained from it."""
-    root = tmp_path_factory.mktemp("card")
-    write_toy_dataset(root / "source", get_profile("waymo"), seed=1, **TOY)
-    write_toy_dataset(root / "target", get_profile("kitti"), seed=2, **TOY)
-    (root / "config.json").write_text(json.dumps(SMALL))
+    root = write_toy_world(tmp_path_factory.mktemp("card"), "target")
     runner = CliRunner()
     common = ["--epochs", "1", "--detector-config", str(root / "config.json"), "--quiet"]
     result = runner.invoke(

@@ -45,13 +45,19 @@ TOY = dict(
 )
 
 
+def write_toy_world(root, *kitti_sets: str):
+    """root/source (Waymo-like, seed 1), one KITTI-like set per name (seeds 2, 3, ...) and
+    root/config.json (SMALL): the tiny world the training tests train on."""
+    write_toy_dataset(root / "source", get_profile("waymo"), seed=1, **TOY)
+    for seed, name in enumerate(kitti_sets, start=2):
+        write_toy_dataset(root / name, get_profile("kitti"), seed=seed, **TOY)
+    (root / "config.json").write_text(json.dumps(SMALL))
+    return root
+
+
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
-    root = tmp_path_factory.mktemp("retrain")
-    write_toy_dataset(root / "source", get_profile("waymo"), seed=1, **TOY)
-    write_toy_dataset(root / "rc", get_profile("kitti"), seed=2, **TOY)
-    write_toy_dataset(root / "cf", get_profile("kitti"), seed=3, **TOY)
-    (root / "config.json").write_text(json.dumps(SMALL))
+    root = write_toy_world(tmp_path_factory.mktemp("retrain"), "rc", "cf")
     runner = CliRunner()
     result = runner.invoke(
         main,

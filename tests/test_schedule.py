@@ -11,15 +11,13 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 from click.testing import CliRunner
-from test_retrain import SMALL, TOY
-from toy_scenes import write_toy_dataset
+from test_retrain import write_toy_world
 
 from dali_cli.cli import main
 from dali_cli.detector import TrainSettings
 from dali_cli.detector.train import one_cycle, schedule_lr
 from dali_cli.manifest import read_manifest
 from dali_cli.model_card import ModelCard
-from dali_cli.sensors import get_profile
 
 
 def lrs(steps: int, settings: TrainSettings) -> np.ndarray:
@@ -49,11 +47,7 @@ def test_model_card_reads_and_clears_the_schedule_stop():
 
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
-    root = tmp_path_factory.mktemp("schedule")
-    write_toy_dataset(root / "source", get_profile("waymo"), seed=1, **TOY)
-    write_toy_dataset(root / "rc", get_profile("kitti"), seed=2, **TOY)
-    (root / "config.json").write_text(json.dumps(SMALL))
-    return root
+    return write_toy_world(tmp_path_factory.mktemp("schedule"), "rc")
 
 
 def pretrain(world, out, *extra):

@@ -54,9 +54,10 @@ def pairs(pred, gt, score_min: float):
             b = ious[np.arange(len(rows)), best]
             ok = b > 0.3
             found[ok] = pred.boxes[cand][best[ok]]
-            t[ok] = np.diag(iou_3d(boxes[ok], found[ok])) if ok.any() else t[ok]
+            overlap = iou_3d(boxes, pred.boxes[cand])  # (M, K), once per frame
+            t[ok] = overlap[np.flatnonzero(ok), best[ok]]
             b[~ok] = 0.0
-            a = iou_3d(boxes, pred.boxes[cand]).max(axis=1)
+            a = overlap.max(axis=1)
         any3.append(a)
         match.append(found)
         bev.append(b)

@@ -12,11 +12,6 @@ SEED=${SEED:-0}; EPOCHS=${EPOCHS:-8}
 D=${DALI:-.venv/bin/dali}
 R=runs/experiment-s$SEED
 B=$R/baselines/oracle_${EPOCHS}ep
-P="--protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min 0.3"
 $D pretrain --source $R/data/target --seed $SEED --epochs $EPOCHS --threads 1 --out $B/model
-$D eval --model $B/model --data $R/data/target_val --scale 1.0 $P --workers 1 --no-progress \
-    --out $B/eval
-$D eval --pred $B/eval/predictions.parquet --gt $R/data/target_val --protocol kitti \
-    --iou 0.7 --iou 0.5 --size-score-min 0.3 --out $B/eval/metrics_kitti.json
-$D eval --model $B/model --data runs/val800/data-s$SEED --scale 1.0 $P --workers 1 --no-progress \
-    --out runs/val800/experiment-s$SEED/oracle_${EPOCHS}ep
+source "$(dirname "$0")/eval_row.sh"
+evaluate_row $B/model $B/eval runs/val800/experiment-s$SEED/oracle_${EPOCHS}ep --scale 1.0

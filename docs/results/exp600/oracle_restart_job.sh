@@ -13,12 +13,7 @@ SEED=${SEED:-0}
 D=${DALI:-.venv/bin/dali}
 R=runs/experiment-s$SEED
 V=$R/variants/oracle-restart
-P="--protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min 0.3"
 $D retrain --init $R/baselines/oracle/model --source $R/data/target --ppcg $R/data/target \
     --source-size init --seed $SEED --epochs 4 --threads 1 --out $V/model
-$D eval --model $V/model --data $R/data/target_val --scale 1.0 $P --workers 1 --no-progress \
-    --out $V/eval
-$D eval --pred $V/eval/predictions.parquet --gt $R/data/target_val --protocol kitti \
-    --iou 0.7 --iou 0.5 --size-score-min 0.3 --out $V/eval/metrics_kitti.json
-$D eval --model $V/model --data runs/val800/data-s$SEED --scale 1.0 $P --workers 1 --no-progress \
-    --out runs/val800/experiment-s$SEED/oracle_restart
+source "$(dirname "$0")/eval_row.sh"
+evaluate_row $V/model $V/eval runs/val800/experiment-s$SEED/oracle_restart --scale 1.0

@@ -25,16 +25,11 @@ case $SET in
   rawtrue) TARGET_SIDE=$R/data/target ;;
   *) echo "SET must be ppcg, truth-matched, pseudo-matched or rawtrue, got '$SET'" >&2; exit 2 ;;
 esac
-P="--protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min 0.3"
 $D retrain --init $R/iter0/model --source $R/data/source --ppcg $TARGET_SIDE --source-size sn \
     --target-size-from $R/iter1/ptsn --seed $SEED --epochs $EPOCHS --mix $MIX \
     --init-from $INIT_FROM --threads 1 \
     --out $V/model
 $D ptsn-sweep --model $V/model --target $R/data/target --expected-size sn --score-min 0.3 \
     --seed $SEED --no-progress --out $V/ptsn
-$D eval --model $V/model --data $R/data/target_val --scale-from $V/ptsn $P --workers 1 \
-    --no-progress --out $V/eval
-$D eval --pred $V/eval/predictions.parquet --gt $R/data/target_val --protocol kitti \
-    --iou 0.7 --iou 0.5 --size-score-min 0.3 --out $V/eval/metrics_kitti.json
-$D eval --model $V/model --data runs/val800/data-s$SEED --scale-from $V/ptsn $P --workers 1 \
-    --no-progress --out runs/val800/experiment-s$SEED/$NAME
+source "$(dirname "$0")/eval_row.sh"
+evaluate_row $V/model $V/eval runs/val800/experiment-s$SEED/$NAME --scale-from $V/ptsn
