@@ -11,9 +11,10 @@
 # runs/experiment-s$SEED (synthesized there if absent); the control and oracle rows are that run's
 # (their budget does not change). Evaluated on the 200 validation frames and on val800_job.sh's
 # 800 fresh frames (KITTI easy / moderate / hard on the 200). Resumable: rerun the same command
-# (make skips finished stages, training resumes from model.resume/). By default the shared part uses both cores, then x1 long and x2 run
-# as two 1-thread lanes pinned to cores 0 and 1; CORE=c runs the whole job on core c alone, its
-# rows (ROWS, default "x1-long iter2") one after the other, so that two seeds can share the VM.
+# (make skips finished stages, training resumes from model.resume/). By default the shared part
+# uses both cores, then x1 long and x2 run as two 1-thread lanes pinned to cores 0 and 1; CORE=c
+# runs the whole job on core c alone, its rows (ROWS, default "x1-long iter2") one after the
+# other, so that two seeds can share the VM.
 #   bash docs/results/exp600/short_pretrain_job.sh       # from the directory holding runs/
 #   SEED=1 CORE=0 bash docs/results/exp600/short_pretrain_job.sh
 set -euo pipefail
