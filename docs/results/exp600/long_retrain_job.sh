@@ -1,0 +1,34 @@
+#!/bin/bash
+# Session 24 (issue 18, item 3), seed 0 unless SEED: x1 long with a longer retraining on the
+# default pseudo labels. short_pretrain_job.sh moved 1,200 steps from pretraining to retraining
+# (x1 long 6,000 retraining steps from a 1,200-step pseudo-labeller) and gained nothing; this
+# separates the two changes: the default run's iteration 0 and iteration-1 PPCG frames (4
+# pretraining epochs, 2,400 steps; rebuilt if absent, which also checks that this machine
+# reproduces the recorded PTSN-only row), then x1 long retrained for RETRAIN epochs (default 5:
+# 6,000 steps, 1,200 more than the default x1 long and than x2's budget allows) in
+# RUN/variants/x1long-re$RETRAIN, evaluated on the 200 validation frames, KITTI's protocol and
+# val800_job.sh's 800 fresh frames. One core (CORE, default 1), 1-thread training as the recorded
+# runs. Resumable (make skips finished stages; training resumes from model.resume/).
+#   bash docs/results/exp600/long_retrain_job.sh          # from the directory holding runs/
+set -euo pipefail
+SEED=${SEED:-0}; N=${RETRAIN:-5}; CORE=${CORE:-1}
+HERE=$(cd "$(dirname "$0")" && pwd)
+MAKEFILE=${MAKEFILE:-$HERE/../../../Makefile}
+D=${DALI:-.venv/bin/dali}
+R=runs/experiment-s$SEED
+V=$R/variants/x1long-re$N
+M=(taskset -c $CORE make -f "$MAKEFILE" SEED=$SEED SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAMES=200 EPOCHS=4
+   RETRAIN_EPOCHS=2 WORKERS=1 SYNTH_WORKERS=1 "TRAIN_FLAGS=--threads 1")
+"${M[@]}" RUN=$R iter0 $R/iter1/rc/manifest.json $R/iter1/cf/manifest.json
+mkdir -p $V/iter1
+for shared in data library iter0; do ln -sfn ../../$shared $V/$shared; done
+for part in ptsn pseudo rc cf; do ln -sfn ../../../iter1/$part $V/iter1/$part; done
+"${M[@]}" RUN=$V RETRAIN_EPOCHS_1=1 RETRAIN_EPOCHS_2=$(( N - 1 )) $V/x1_long/eval/manifest.json
+$D eval --pred $V/x1_long/eval/predictions.parquet --gt $R/data/target_val --protocol kitti \
+    --iou 0.7 --iou 0.5 --size-score-min 0.3 --out $V/x1_long/eval/metrics_kitti.json
+VAL800=runs/val800/data-s$SEED
+[ -f $VAL800/manifest.json ] || taskset -c $CORE $D synth --sensor kitti --cars kitti --frames 800 \
+    --seed $(( SEED + 5000 )) --executor local --workers 1 --out $VAL800
+taskset -c $CORE $D eval --model $V/x1_long/model --data $VAL800 --scale-from $V/x1_long/ptsn \
+    --protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min 0.3 --workers 1 --no-progress \
+    --out runs/val800/experiment-s$SEED/x1long-re$N
