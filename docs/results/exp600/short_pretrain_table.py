@@ -20,9 +20,13 @@ ROWS = {  # row: (eval dir on the 200 frames, name on the 800, PTSN dir)
 }
 
 
-def car(path: Path) -> dict | None:
-    """The Car@0.7 block of a metrics.json, None when the row has not finished."""
-    return json.loads(path.read_text())["Car"] if path.is_file() else None
+HEADER = ("seed", "row", "AP_3D (200)", "KITTI mod 3D (200)", "AP_3D (800)", "BEV (800)",
+          "3D 50-80 m (800)", "ŝ", "l, w, h (800)")  # fmt: skip
+
+
+def metrics(path: Path) -> dict | None:
+    """A metrics.json, None when the row has not finished."""
+    return json.loads(path.read_text()) if path.is_file() else None
 
 
 def main() -> None:
@@ -30,19 +34,22 @@ def main() -> None:
     parser.add_argument("--pre", type=int, default=2, help="pretraining epochs of the variant")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     args = parser.parse_args()
-    print("| seed | row | AP_3D (200) | KITTI mod 3D (200) | AP_3D (800) | BEV (800) | 3D 50-80 m (800) | ŝ | l, w, h (800) |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| " + " | ".join(HEADER) + " |")
+    print("|" + "---|" * len(HEADER))
     for seed in args.seeds:
         run = Path(f"runs/experiment-s{seed}/variants/pretrain{args.pre}")
         val800 = Path(f"runs/val800/experiment-s{seed}/pretrain{args.pre}")
         for row, (eval_dir, name, ptsn) in ROWS.items():
-            small, big = car(run / eval_dir / "metrics.json"), car(val800 / name / "metrics.json")
-            if small is None and big is None:
+            small_metrics = metrics(run / eval_dir / "metrics.json")
+            big_metrics = metrics(val800 / name / "metrics.json")
+            if small_metrics is None and big_metrics is None:
                 continue
-            kitti_path = run / eval_dir / "metrics_kitti.json"
-            kitti = json.loads(kitti_path.read_text())["Car"]["3d"]["moderate"] if kitti_path.is_file() else None
+            small = small_metrics["Car"] if small_metrics else None
+            big = big_metrics["Car"] if big_metrics else None
+            kitti_metrics = metrics(run / eval_dir / "metrics_kitti.json")
+            kitti = kitti_metrics["Car"]["3d"]["moderate"] if kitti_metrics else None
             scale = json.loads((run / ptsn / "manifest.json").read_text())["ptsn"]["scale"]
-            sizes = json.loads((val800 / name / "metrics.json").read_text())["sizes"]["pred"] if big else None
+            sizes = big_metrics["sizes"]["pred"] if big_metrics else None
             cells = [
                 f"{small['3d']['all']:.2f}" if small else "",
                 f"{kitti:.2f}" if kitti is not None else "",
