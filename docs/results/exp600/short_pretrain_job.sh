@@ -27,7 +27,7 @@ D=${DALI:-.venv/bin/dali}
 R=runs/experiment-s$SEED
 V=$R/variants/pretrain$PRE
 COMMON=(SEED=$SEED SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAMES=200)
-ALL=(taskset -c ${CORE:-0-1}); WORKERS=$([ -n "$CORE" ] && echo 1 || echo 2)
+ALL=(taskset -c ${CORE:-0-$(( $(nproc) - 1 ))}); WORKERS=$([ -n "$CORE" ] && echo 1 || echo 2)
 "${ALL[@]}" make -f "$MAKEFILE" RUN=$R "${COMMON[@]}" SYNTH_WORKERS=$WORKERS $R/data/source/manifest.json \
     $R/data/target/manifest.json $R/data/target_val/manifest.json $R/library/manifest.json
 mkdir -p $V
