@@ -24,11 +24,7 @@ mkdir -p $V/iter1
 for shared in data library iter0; do ln -sfn ../../$shared $V/$shared; done
 for part in ptsn pseudo rc cf; do ln -sfn ../../../iter1/$part $V/iter1/$part; done
 "${M[@]}" RUN=$V RETRAIN_EPOCHS_1=1 RETRAIN_EPOCHS_2=$(( N - 1 )) $V/x1_long/eval/manifest.json
-$D eval --pred $V/x1_long/eval/predictions.parquet --gt $R/data/target_val --protocol kitti \
-    --iou 0.7 --iou 0.5 --size-score-min 0.3 --out $V/x1_long/eval/metrics_kitti.json
-VAL800=runs/val800/data-s$SEED
-[ -f $VAL800/manifest.json ] || taskset -c $CORE $D synth --sensor kitti --cars kitti --frames 800 \
-    --seed $(( SEED + 5000 )) --executor local --workers 1 --out $VAL800
-taskset -c $CORE $D eval --model $V/x1_long/model --data $VAL800 --scale-from $V/x1_long/ptsn \
-    --protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min 0.3 --workers 1 --no-progress \
-    --out runs/val800/experiment-s$SEED/x1long-re$N
+source "$HERE/eval_row.sh"
+kitti_row $V/x1_long/eval
+D="taskset -c $CORE $D" val800_row $V/x1_long/model runs/val800/experiment-s$SEED/x1long-re$N \
+    --scale-from $V/x1_long/ptsn

@@ -35,14 +35,10 @@ for shared in data library; do ln -sfn ../../$shared $V/$shared; done
 M=(make -f "$MAKEFILE" RUN=$V "${COMMON[@]}" EPOCHS=$PRE RETRAIN_EPOCHS=2 RETRAIN_EPOCHS_1=1 RETRAIN_EPOCHS_2=$(( RE - 1 )))
 "${ALL[@]}" "${M[@]}" "TRAIN_FLAGS=--threads $WORKERS" WORKERS=$WORKERS $V/iter1/rc/manifest.json \
     $V/iter1/cf/manifest.json $V/iter0/eval_ptsn/manifest.json
-VAL800=runs/val800/data-s$SEED
+source "$HERE/eval_row.sh"
 O=runs/val800/experiment-s$SEED/pretrain$PRE
-P="--protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min 0.3"
 val800_eval() {  # NAME MODEL PTSN CORE: MODEL at PTSN's scale on the 800 fresh frames
-  [ -f $VAL800/manifest.json ] || taskset -c $4 $D synth --sensor kitti --cars kitti --frames 800 \
-      --seed $(( SEED + 5000 )) --executor local --workers 1 --out $VAL800
-  taskset -c $4 $D eval --model $V/$2 --data $VAL800 --scale-from $V/$3 $P --workers 1 --no-progress \
-      --out $O/$1
+  D="taskset -c $4 $D" val800_row $V/$2 $O/$1 --scale-from $V/$3
 }
 row() {  # GOAL CORE: one row through the Makefile, then on the 800 frames
   taskset -c $2 "${M[@]}" "TRAIN_FLAGS=--threads 1" WORKERS=1 $1
@@ -61,6 +57,5 @@ else
 fi
 val800_eval iter0_ptsn iter0/model iter1/ptsn ${CORE:-0}
 for row in iter0/eval_ptsn x1_long/eval iter2/eval; do  # KITTI easy / moderate / hard, 200 frames
-  [ ! -f $V/$row/predictions.parquet ] || $D eval --pred $V/$row/predictions.parquet --gt $V/data/target_val \
-      --protocol kitti --iou 0.7 --iou 0.5 --size-score-min 0.3 --out $V/$row/metrics_kitti.json
+  [ ! -f $V/$row/predictions.parquet ] || kitti_row $V/$row
 done
