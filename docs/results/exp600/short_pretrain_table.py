@@ -13,6 +13,8 @@ import argparse
 import json
 from pathlib import Path
 
+from row_metrics import row_cells
+
 ROWS = {  # row: (eval dir on the 200 frames, name on the 800, PTSN dir)
     "PTSN only": ("iter0/eval_ptsn", "iter0_ptsn", "iter1/ptsn"),
     "x1 long": ("x1_long/eval", "x1_long", "x1_long/ptsn"),
@@ -22,11 +24,6 @@ ROWS = {  # row: (eval dir on the 200 frames, name on the 800, PTSN dir)
 
 HEADER = ("seed", "row", "AP_3D (200)", "KITTI mod 3D (200)", "AP_3D (800)", "BEV (800)",
           "3D 50-80 m (800)", "ŝ", "l, w, h (800)")  # fmt: skip
-
-
-def metrics(path: Path) -> dict | None:
-    """A metrics.json, None when the row has not finished."""
-    return json.loads(path.read_text()) if path.is_file() else None
 
 
 def main() -> None:
@@ -40,25 +37,11 @@ def main() -> None:
         run = Path(f"runs/experiment-s{seed}/variants/pretrain{args.pre}")
         val800 = Path(f"runs/val800/experiment-s{seed}/pretrain{args.pre}")
         for row, (eval_dir, name, ptsn) in ROWS.items():
-            small_metrics = metrics(run / eval_dir / "metrics.json")
-            big_metrics = metrics(val800 / name / "metrics.json")
-            if small_metrics is None and big_metrics is None:
+            cells = row_cells(run / eval_dir, val800 / name)
+            if cells is None:
                 continue
-            small = small_metrics["Car"] if small_metrics else None
-            big = big_metrics["Car"] if big_metrics else None
-            kitti_metrics = metrics(run / eval_dir / "metrics_kitti.json")
-            kitti = kitti_metrics["Car"]["3d"]["moderate"] if kitti_metrics else None
             scale = json.loads((run / ptsn / "manifest.json").read_text())["ptsn"]["scale"]
-            sizes = big_metrics["sizes"]["pred"] if big_metrics else None
-            cells = [
-                f"{small['3d']['all']:.2f}" if small else "",
-                f"{kitti:.2f}" if kitti is not None else "",
-                f"{big['3d']['all']:.2f}" if big else "",
-                f"{big['bev']['all']:.2f}" if big else "",
-                f"{big['3d']['50-80']:.2f}" if big else "",
-                f"{scale:.3f}",
-                ", ".join(f"{v:.2f}" for v in sizes) if sizes else "",
-            ]
+            cells.insert(5, f"{scale:.3f}")
             print(f"| {seed} | {row} | " + " | ".join(cells) + " |")
 
 
