@@ -14,7 +14,7 @@
 # skips finished stages and training resumes from model.resume/.
 #   bash docs/results/exp600/budget_job.sh          # from the directory holding runs/ (main's Makefile)
 set -euo pipefail
-SEED=${SEED:-0}; RE=${RETRAIN_EPOCHS:-4}
+SEED=${SEED:-0}; RE=${RETRAIN_EPOCHS:-4}; DALI=${DALI:-.venv/bin/dali}
 HERE=$(cd "$(dirname "$0")" && pwd)
 MAKEFILE=${MAKEFILE:-$HERE/../../../Makefile}
 R=runs/experiment-s$SEED
@@ -28,20 +28,20 @@ M=(make -f "$MAKEFILE" RUN=$V SEED=$SEED SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAM
 source "$HERE/eval_row.sh"
 B=$V/baselines
 lane0() {
-  local D="taskset -c 0 ${DALI:-.venv/bin/dali}"
+  local D="taskset -c 0 $DALI"
   taskset -c 0 "${M[@]}" x1-long $V/x1_long/eval/metrics_kitti.json
   val800_row $V/x1_long/model $O/x1_long --scale-from $V/x1_long/ptsn
   taskset -c 0 "${M[@]}" $B/oracle_x2_budget/eval/manifest.json $B/oracle_x2_budget/eval/metrics_kitti.json
   val800_row $B/oracle_x2_budget/model $O/oracle --scale 1.0
 }
 lane1() {
-  local D="taskset -c 1 ${DALI:-.venv/bin/dali}"
+  local D="taskset -c 1 $DALI"
   taskset -c 1 "${M[@]}" $B/source_x2_budget/eval_ptsn_sized/manifest.json \
       $B/source_x2_budget/eval_ptsn/metrics_kitti.json $B/source_x2_budget/eval_ptsn_sized/metrics_kitti.json
   val800_row $B/source_x2_budget/model $O/control --scale-from $B/source_x2_budget/ptsn
   $D eval --pred $O/control/predictions.parquet --gt runs/val800/data-s$SEED \
       --scale-from $B/source_x2_budget/ptsn --size-correction per-dim $RANGE_PROTOCOL --out $O/control_sized
-  SEED=$SEED EPOCHS=$(( 4 * RE )) DALI="taskset -c 1 ${DALI:-.venv/bin/dali}" bash "$HERE/oracle_budget_job.sh"
+  SEED=$SEED EPOCHS=$(( 4 * RE )) DALI="taskset -c 1 $DALI" bash "$HERE/oracle_budget_job.sh"
 }
 lane0 & l0=$!
 lane1 & l1=$!

@@ -14,14 +14,27 @@ from pathlib import Path
 
 from row_metrics import row_cells
 
-# row: (eval dir on the 200 frames under the variant or the run, name on the 800 frames)
-ROWS = {
-    "control (source + test-time PTSN)": ("baselines/source_x2_budget/eval_ptsn", "control"),
-    "sized control": ("baselines/source_x2_budget/eval_ptsn_sized", "control_sized"),
-    "x1 long": ("x1_long/eval", "x1_long"),
-    "oracle, x1 long's retraining length": (None, None),  # oracle_budget_job.sh's row
-    "oracle, whole budget": ("baselines/oracle_x2_budget/eval", "oracle"),
-}
+
+def rows(re: int) -> list[tuple[str, str, str, str]]:
+    """(row, eval dir on the 200 frames under RUN, dir on the 800 frames under
+    runs/val800/experiment-s<SEED>, training steps) of budget_job.sh with RETRAIN_EPOCHS=re:
+    600 frames per epoch, pretraining 4 epochs, retraining 2 x re epochs at 1:1."""
+    variant, val800, whole = f"variants/budget-re{re}", f"budget-re{re}", (4 + 4 * re) * 600
+    return [
+        ("control (source + test-time PTSN)", f"{variant}/baselines/source_x2_budget/eval_ptsn",
+         f"{val800}/control", f"{whole:,}"),
+        ("sized control", f"{variant}/baselines/source_x2_budget/eval_ptsn_sized",
+         f"{val800}/control_sized", f"{whole:,}"),
+        ("x1 long", f"{variant}/x1_long/eval", f"{val800}/x1_long",
+         f"{4 * 600:,} + {4 * re * 600:,}"),
+        # oracle_budget_job.sh's row, EPOCHS=4 x re
+        ("oracle, x1 long's retraining length", f"baselines/oracle_{4 * re}ep/eval",
+         f"oracle_{4 * re}ep", f"{4 * re * 600:,}"),
+        ("oracle, whole budget", f"{variant}/baselines/oracle_x2_budget/eval",
+         f"{val800}/oracle", f"{whole:,}"),
+    ]  # fmt: skip
+
+
 HEADER = ("seed", "row", "steps", "AP_3D (200)", "KITTI mod 3D (200)", "AP_3D (800)", "BEV (800)",
           "3D 50-80 m (800)", "l, w, h (800)")  # fmt: skip
 
@@ -31,32 +44,14 @@ def main() -> None:
     parser.add_argument("--retrain-epochs", type=int, default=4, help="the job's RETRAIN_EPOCHS")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     args = parser.parse_args()
-    re = args.retrain_epochs
-    steps = {  # 600 frames per epoch; pretraining 4 epochs, retraining 2 x RE epochs at 1:1
-        "control (source + test-time PTSN)": (4 + 4 * re) * 600,
-        "sized control": (4 + 4 * re) * 600,
-        "x1 long": f"{4 * 600:,} + {4 * re * 600:,}",
-        "oracle, x1 long's retraining length": 4 * re * 600,
-        "oracle, whole budget": (4 + 4 * re) * 600,
-    }
     print("| " + " | ".join(HEADER) + " |")
     print("|" + "---|" * len(HEADER))
     for seed in args.seeds:
-        run = Path(f"runs/experiment-s{seed}")
-        variant = run / "variants" / f"budget-re{re}"
-        val800 = Path(f"runs/val800/experiment-s{seed}")
-        for row, (eval_dir, name) in ROWS.items():
-            if eval_dir is None:  # oracle_budget_job.sh's row: RUN/baselines/oracle_<E>ep
-                eval_dir = f"../../baselines/oracle_{4 * re}ep/eval"
-                big_dir = val800 / f"oracle_{4 * re}ep"
-            else:
-                big_dir = val800 / f"budget-re{re}" / name
-            cells = row_cells(variant / eval_dir, big_dir)
-            if cells is None:
-                continue
-            count = steps[row]
-            cells.insert(0, f"{count:,}" if isinstance(count, int) else count)
-            print(f"| {seed} | {row} | " + " | ".join(cells) + " |")
+        run, val800 = Path(f"runs/experiment-s{seed}"), Path(f"runs/val800/experiment-s{seed}")
+        for row, eval_dir, val800_dir, steps in rows(args.retrain_epochs):
+            cells = row_cells(run / eval_dir, val800 / val800_dir)
+            if cells is not None:
+                print(f"| {seed} | {row} | {steps} | " + " | ".join(cells) + " |")
 
 
 if __name__ == "__main__":

@@ -41,7 +41,7 @@ def main() -> None:
             if cells is None:
                 continue
             scale = json.loads((run / ptsn / "manifest.json").read_text())["ptsn"]["scale"]
-            cells.insert(5, f"{scale:.3f}")
+            cells.insert(-1, f"{scale:.3f}")  # before the sizes cell
             print(f"| {seed} | {row} | " + " | ".join(cells) + " |")
 
 
