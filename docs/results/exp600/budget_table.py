@@ -1,10 +1,11 @@
-"""Sessions 23/25: the rows of budget_job.sh (a 12,000-step budget), one line per seed and row.
+"""Sessions 23/25/26: the rows of budget_job.sh (a 12,000-step budget) and of the session-26 jobs on
+that budget (x2_long_job.sh; truth_job.sh with RETRAIN_EPOCHS), one line per seed and row.
 
     python docs/results/exp600/budget_table.py [--retrain-epochs 4] [--seeds 0]
 
 Reads (from the directory holding runs/) each finished row's metrics on the 200 validation frames
-(RUN/variants/budget-re<RE>/<row>/metrics.json, KITTI moderate from metrics_kitti.json) and on
-the 800 fresh frames (runs/val800/experiment-s<SEED>/budget-re<RE>/<row>/metrics.json). Prints
+(RUN/variants/<job's variant>/<row>/metrics.json, KITTI moderate from metrics_kitti.json) and
+on the 800 fresh frames (runs/val800/experiment-s<SEED>/<job's dir>/metrics.json). Prints
 AP_3D@0.7 (R40, front region, all boxes), AP_BEV@0.7 and AP_3D@0.7 at 50-80 m on the 800
 frames and the mean predicted l, w, h; a row not finished is left blank or left out.
 """
@@ -17,9 +18,11 @@ from row_metrics import row_cells
 
 def rows(re: int) -> list[tuple[str, str, str, str]]:
     """(row, eval dir on the 200 frames under RUN, dir on the 800 frames under
-    runs/val800/experiment-s<SEED>, training steps) of budget_job.sh with RETRAIN_EPOCHS=re:
-    600 frames per epoch, pretraining 4 epochs, retraining 2 x re epochs at 1:1."""
+    runs/val800/experiment-s<SEED>, training steps) of the jobs with RETRAIN_EPOCHS=re: 600
+    steps per pretraining epoch (4 epochs), 1,200 per retraining epoch (600 source + 600 PPCG
+    frames), 2 x re retraining epochs; x2 splits them as make does (re // 2 in iteration 1)."""
     variant, val800, whole = f"variants/budget-re{re}", f"budget-re{re}", (4 + 4 * re) * 600
+    x2_first = re // 2
     return [
         ("control (source + test-time PTSN)", f"{variant}/baselines/source_x2_budget/eval_ptsn",
          f"{val800}/control", f"{whole:,}"),
@@ -27,6 +30,18 @@ def rows(re: int) -> list[tuple[str, str, str, str]]:
          f"{val800}/control_sized", f"{whole:,}"),
         ("x1 long", f"{variant}/x1_long/eval", f"{val800}/x1_long",
          f"{4 * 600:,} + {4 * re * 600:,}"),
+        ("x2 (make's split)", f"variants/x2long-re{re}/iter2/eval", f"x2long-re{re}/iter2",
+         f"{4 * 600:,} + {x2_first * 1200:,} + {(2 * re - x2_first) * 1200:,}"),
+        # truth_job.sh's variant: reads target labels, a diagnostic
+        ("x1 long, PPCG from the true boxes (diagnostic)",
+         f"variants/x1long-truth-matched-re{re}/x1_long/eval", f"x1long-truth-matched-re{re}",
+         f"{4 * 600:,} + {4 * re * 600:,}"),
+        # target_share_job.sh SET=rawtrue MIX=1:1 EPOCHS=2 x re: reads target labels, a diagnostic
+        ("x1 long, raw target frames with all true labels (diagnostic), at its ŝ",
+         f"variants/x1long-rawtrue-mix11-ep{2 * re}/eval", f"x1long-rawtrue-mix11-ep{2 * re}",
+         f"{4 * 600:,} + {4 * re * 600:,}"),
+        ("the same at s = 1", f"variants/x1long-rawtrue-mix11-ep{2 * re}/eval-s1",
+         f"x1long-rawtrue-mix11-ep{2 * re}-s1", f"{4 * 600:,} + {4 * re * 600:,}"),
         # oracle_budget_job.sh's row, EPOCHS=4 x re
         ("oracle, x1 long's retraining length", f"baselines/oracle_{4 * re}ep/eval",
          f"oracle_{4 * re}ep", f"{4 * re * 600:,}"),

@@ -10,6 +10,10 @@
 #   SET=rawtrue  the raw target training frames with ALL their true labels (diagnostic: reads
 #                target labels; never a default). rawtrue_job.sh is the same at 1:1 (85.7 at s = 1).
 # INIT_FROM=scratch starts from a fresh network instead of iter0's weights (the oracle's start).
+# EPOCHS (default 1) sets the budget, 600 x (1 + 7) steps per epoch at 1:7, 600 x 2 at 1:1; a row
+# with EPOCHS other than 1 gets an -ep<EPOCHS> suffix (session 26: SET=rawtrue MIX=1:1 EPOCHS=8,
+# x1 long's 9,600 steps on the 12,000-step budget). SET=rawtrue is also evaluated at s = 1 on the
+# 800 fresh frames (<name>-s1): its frames are the target's own, at s = 1.
 # Each row is evaluated like x1 long (its own sweep, 200 validation frames, range + KITTI) and on
 # the 800 fresh frames of val800_job.sh. Resumable: every step is an artifact directory.
 #   SET=ppcg bash docs/results/exp600/target_share_job.sh      # from the directory holding runs/
@@ -17,7 +21,7 @@ set -euo pipefail
 SEED=${SEED:-0}; SET=${SET:-ppcg}; MIX=${MIX:-1:7}; EPOCHS=${EPOCHS:-1}; INIT_FROM=${INIT_FROM:-previous}
 D=${DALI:-.venv/bin/dali}
 R=runs/experiment-s$SEED
-NAME=x1long-$SET-mix${MIX//:/}$([ $INIT_FROM = previous ] || echo -$INIT_FROM)
+NAME=x1long-$SET-mix${MIX//:/}$([ $INIT_FROM = previous ] || echo -$INIT_FROM)$([ $EPOCHS = 1 ] || echo -ep$EPOCHS)
 V=$R/variants/$NAME
 case $SET in
   ppcg) TARGET_SIDE="$R/iter1/rc $R/iter1/cf" ;;
@@ -33,3 +37,4 @@ $D ptsn-sweep --model $V/model --target $R/data/target --expected-size sn --scor
     --seed $SEED --no-progress --out $V/ptsn
 source "$(dirname "$0")/eval_row.sh"
 evaluate_row $V/model $V/eval runs/val800/experiment-s$SEED/$NAME --scale-from $V/ptsn
+[ $SET != rawtrue ] || val800_row $V/model runs/val800/experiment-s$SEED/$NAME-s1 --scale 1.0
