@@ -30,10 +30,10 @@ if [ ! -e $V/iter1/pseudo/manifest.json ]; then  # the box set, written whole or
         "$MODE" > $V/iter1/pseudo.tmp/manifest.json
     mv $V/iter1/pseudo.tmp $V/iter1/pseudo
 fi
-make -f "${MAKEFILE:-$HERE/../../../Makefile}" x1-long kitti-protocol RUN=$V SEED=$SEED SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAMES=200 \
-    EPOCHS=4 RETRAIN_EPOCHS=$RE TRAIN_FLAGS="--threads 1"
+make -f "${MAKEFILE:-$HERE/../../../Makefile}" x1-long kitti-protocol RUN=$V SEED=$SEED \
+    SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAMES=200 EPOCHS=4 RETRAIN_EPOCHS=$RE TRAIN_FLAGS="--threads 1"
 if [ $RE != 2 ]; then
-    D=.venv/bin/dali; source "$HERE/eval_row.sh"
+    D=${DALI:-.venv/bin/dali}; source "$HERE/eval_row.sh"
     val800_row $V/x1_long/model runs/val800/experiment-s$SEED/x1long-$MODE-re$RE \
         --scale-from $V/x1_long/ptsn
 fi
