@@ -3,9 +3,11 @@
 # R40 and R400) of the 12,000-step rows on the 800 fresh frames, against the control: x1 long and
 # the control's rows of budget_job.sh, x2 of x2_long_job.sh, and the diagnostics that read target
 # labels, PPCG from the true boxes (truth_job.sh RETRAIN_EPOCHS=4) and the raw target frames with
-# all true labels at its ŝ and at s = 1 (target_share_job.sh SET=rawtrue MIX=1:1 EPOCHS=8), each
-# where finished.
-# Writes runs/val800/experiment-s$SEED/budget-re$RE/compare26_r{40,400}.json.
+# all true labels at its ŝ and at s = 1 (target_share_job.sh SET=rawtrue MIX=1:1 EPOCHS=8; session
+# 27: MIX=1:7 EPOCHS=2, with and without INIT_FROM=scratch), each where finished.
+# Writes runs/val800/experiment-s$SEED/budget-re$RE/compare27_r{40,400}.json (session 26's run of
+# it, without the 1:7 rows, wrote compare26_r*; the bootstrap draws frames, so each pair's figure
+# does not depend on which other rows are present).
 #   taskset -c 0 bash docs/results/exp600/budget_compare.sh     # from the directory holding runs/
 set -euo pipefail
 SEED=${SEED:-0}; RE=${RETRAIN_EPOCHS:-4}; D=${DALI:-.venv/bin/dali}
@@ -14,11 +16,14 @@ rows=()  # NAME=DIR under O; NAME holds no '='
 for row in "control=budget-re$RE/control" "x1 long=budget-re$RE/x1_long" "x2=x2long-re$RE/iter2" \
     "x1 long, true boxes=x1long-truth-matched-re$RE" "x1 long, raw target=x1long-rawtrue-mix11-ep$(( 2 * RE ))" \
     "x1 long, raw target at s 1=x1long-rawtrue-mix11-ep$(( 2 * RE ))-s1" \
+    "raw target 1:7=x1long-rawtrue-mix17-ep$(( RE / 2 ))" "raw target 1:7 at s 1=x1long-rawtrue-mix17-ep$(( RE / 2 ))-s1" \
+    "raw target 1:7 scratch=x1long-rawtrue-mix17-scratch-ep$(( RE / 2 ))" \
+    "raw target 1:7 scratch at s 1=x1long-rawtrue-mix17-scratch-ep$(( RE / 2 ))-s1" \
     "oracle=budget-re$RE/oracle"; do
   [ -f "$O/${row#*=}/predictions.parquet" ] && rows+=(--pred "${row%%=*}=$O/${row#*=}/predictions.parquet")
 done
 for positions in 40 400; do
   $D compare "${rows[@]}" --gt runs/val800/data-s$SEED --protocol range --front-only --iou 0.7 \
       --recall-positions $positions --samples 400 --seed 0 --no-progress \
-      --out $O/budget-re$RE/compare26_r$positions.json
+      --out $O/budget-re$RE/compare27_r$positions.json
 done

@@ -1,5 +1,6 @@
-"""Sessions 23/25/26: the rows of budget_job.sh (a 12,000-step budget) and of the session-26 jobs on
-that budget (x2_long_job.sh; truth_job.sh with RETRAIN_EPOCHS), one line per seed and row.
+"""Sessions 23/25-27: the rows of budget_job.sh (a 12,000-step budget) and of the session-26/27 jobs
+on that budget (x2_long_job.sh; truth_job.sh with RETRAIN_EPOCHS; target_share_job.sh with
+SET=rawtrue), one line per seed and row.
 
     python docs/results/exp600/budget_table.py [--retrain-epochs 4] [--seeds 0]
 
@@ -42,6 +43,20 @@ def rows(re: int) -> list[tuple[str, str, str, str]]:
          f"{4 * 600:,} + {4 * re * 600:,}"),
         ("the same at s = 1", f"variants/x1long-rawtrue-mix11-ep{2 * re}/eval-s1",
          f"x1long-rawtrue-mix11-ep{2 * re}-s1", f"{4 * 600:,} + {4 * re * 600:,}"),
+        # target_share_job.sh SET=rawtrue MIX=1:7 EPOCHS=re // 2 [INIT_FROM=scratch] (session 27):
+        # the same frames and steps, 7 of 8 batches from the target; diagnostics
+        ("x1 long, raw target, 1:7 (diagnostic), at its ŝ",
+         f"variants/x1long-rawtrue-mix17-ep{re // 2}/eval", f"x1long-rawtrue-mix17-ep{re // 2}",
+         f"{4 * 600:,} + {4 * re * 600:,}"),
+        ("the same at s = 1", f"variants/x1long-rawtrue-mix17-ep{re // 2}/eval-s1",
+         f"x1long-rawtrue-mix17-ep{re // 2}-s1",
+         f"{4 * 600:,} + {4 * re * 600:,}"),
+        ("raw target, 1:7, from scratch (diagnostic), at its ŝ",
+         f"variants/x1long-rawtrue-mix17-scratch-ep{re // 2}/eval",
+         f"x1long-rawtrue-mix17-scratch-ep{re // 2}", f"{4 * re * 600:,}"),
+        ("the same at s = 1", f"variants/x1long-rawtrue-mix17-scratch-ep{re // 2}/eval-s1",
+         f"x1long-rawtrue-mix17-scratch-ep{re // 2}-s1",
+         f"{4 * re * 600:,}"),
         # oracle_budget_job.sh's row, EPOCHS=4 x re
         ("oracle, x1 long's retraining length", f"baselines/oracle_{4 * re}ep/eval",
          f"oracle_{4 * re}ep", f"{4 * re * 600:,}"),
