@@ -57,12 +57,12 @@ def rows(re: int) -> list[tuple[str, str, str, str]]:
         ("the same at s = 1", f"variants/x1long-rawtrue-mix17-scratch-ep{re // 2}/eval-s1",
          f"x1long-rawtrue-mix17-scratch-ep{re // 2}-s1",
          f"{4 * re * 600:,}"),
-        # target_share_job.sh SET=ppcg MIX=1:7 EPOCHS=re // 2 [INIT_FROM=scratch] (session 27): the
-        # same recipes on iteration 1's PPCG frames; label-free, DALI variants
+        # target_share_job.sh SET=ppcg MIX=1:7 EPOCHS=re // 2 and MIX=1:3 EPOCHS=re (session 27):
+        # x1 long with less of the source on iteration 1's PPCG frames; label-free, DALI variants
+        ("x1 long, PPCG 1:3", f"variants/x1long-ppcg-mix13-ep{re}/eval",
+         f"x1long-ppcg-mix13-ep{re}", f"{4 * 600:,} + {4 * re * 600:,}"),
         ("x1 long, PPCG 1:7", f"variants/x1long-ppcg-mix17-ep{re // 2}/eval",
          f"x1long-ppcg-mix17-ep{re // 2}", f"{4 * 600:,} + {4 * re * 600:,}"),
-        ("PPCG 1:7, from scratch", f"variants/x1long-ppcg-mix17-scratch-ep{re // 2}/eval",
-         f"x1long-ppcg-mix17-scratch-ep{re // 2}", f"{4 * 600:,} (labeller) + {4 * re * 600:,}"),
         # oracle_budget_job.sh's row, EPOCHS=4 x re
         ("oracle, x1 long's retraining length", f"baselines/oracle_{4 * re}ep/eval",
          f"oracle_{4 * re}ep", f"{4 * re * 600:,}"),
