@@ -14,6 +14,9 @@
 # with EPOCHS other than 1 gets an -ep<EPOCHS> suffix (session 26: SET=rawtrue MIX=1:1 EPOCHS=8,
 # x1 long's 9,600 steps on the 12,000-step budget). SET=rawtrue is also evaluated at s = 1 on the
 # 800 fresh frames (<name>-s1): its frames are the target's own, at s = 1.
+# Session 27 (12,000-step budget): SET=rawtrue MIX=1:7 EPOCHS=2, with and without INIT_FROM=scratch
+# (which of the retraining's source share, initialisation and restarted schedule caps it), then
+# SET=ppcg MIX=1:7 EPOCHS=2 and SET=ppcg MIX=1:3 EPOCHS=4 (the label-free retraining, less source).
 # Each row is evaluated like x1 long (its own sweep, 200 validation frames, range + KITTI) and on
 # the 800 fresh frames of val800_job.sh. Resumable: every step is an artifact directory.
 #   SET=ppcg bash docs/results/exp600/target_share_job.sh      # from the directory holding runs/
