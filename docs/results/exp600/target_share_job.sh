@@ -6,7 +6,8 @@
 #   SET=ppcg     iteration 1's RC + CF frames (label-free: a DALI variant)
 #   SET=truth-matched | pseudo-matched   the RC + CF frames of truth_job.sh's variant (built from
 #                the true boxes of the cars iteration 1 found / those found pseudo boxes as they
-#                are; diagnostics: read target labels; run truth_job.sh MODE=... first)
+#                are; diagnostics: read target labels; run truth_job.sh MODE=... first; TRUTH_VARIANT
+#                names its variant directory when not x1long-<SET>, e.g. x1long-truth-matched-re4)
 #   SET=rawtrue  the raw target training frames with ALL their true labels (diagnostic: reads
 #                target labels; never a default). rawtrue_job.sh is the same at 1:1 (85.7 at s = 1).
 # INIT_FROM=scratch starts from a fresh network instead of iter0's weights (the oracle's start).
@@ -28,7 +29,7 @@ NAME=x1long-$SET-mix${MIX//:/}$([ $INIT_FROM = previous ] || echo -$INIT_FROM)$(
 V=$R/variants/$NAME
 case $SET in
   ppcg) TARGET_SIDE="$R/iter1/rc $R/iter1/cf" ;;
-  truth-matched|pseudo-matched) TARGET_SIDE="$R/variants/x1long-$SET/iter1/rc $R/variants/x1long-$SET/iter1/cf" ;;
+  truth-matched|pseudo-matched) P=$R/variants/${TRUTH_VARIANT:-x1long-$SET}; TARGET_SIDE="$P/iter1/rc $P/iter1/cf" ;;
   rawtrue) TARGET_SIDE=$R/data/target ;;
   *) echo "SET must be ppcg, truth-matched, pseudo-matched or rawtrue, got '$SET'" >&2; exit 2 ;;
 esac
