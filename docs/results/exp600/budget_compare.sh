@@ -6,7 +6,8 @@
 # all true labels at its ŝ and at s = 1 (target_share_job.sh SET=rawtrue MIX=1:1 EPOCHS=8; session
 # 27: MIX=1:7 EPOCHS=2, with and without INIT_FROM=scratch), and x1 long with less of the source
 # on iteration 1's PPCG frames (SET=ppcg MIX=1:3 EPOCHS=4, MIX=1:7 EPOCHS=2; label-free) and on
-# the true boxes' (SET=truth-matched MIX=1:7 EPOCHS=2), each where finished.
+# the true boxes' and the found cars' pseudo boxes' (SET=truth-matched|pseudo-matched MIX=1:7
+# EPOCHS=2), each where finished.
 # Writes runs/val800/experiment-s$SEED/budget-re$RE/compare27_r{40,400}.json (session 26's run of
 # it, without the 1:7 rows, wrote compare26_r*; the bootstrap draws frames, so each pair's figure
 # does not depend on which other rows are present).
@@ -22,6 +23,7 @@ for row in "control=budget-re$RE/control" "x1 long=budget-re$RE/x1_long" "x2=x2l
     "raw target 1:7 scratch=x1long-rawtrue-mix17-scratch-ep$(( RE / 2 ))" \
     "raw target 1:7 scratch at s 1=x1long-rawtrue-mix17-scratch-ep$(( RE / 2 ))-s1" \
     "true boxes 1:7=x1long-truth-matched-mix17-ep$(( RE / 2 ))" \
+    "found pseudo boxes 1:7=x1long-pseudo-matched-mix17-ep$(( RE / 2 ))" \
     "x1 long, PPCG 1:3=x1long-ppcg-mix13-ep$RE" "x1 long, PPCG 1:7=x1long-ppcg-mix17-ep$(( RE / 2 ))" \
     "oracle=budget-re$RE/oracle"; do
   [ -f "$O/${row#*=}/predictions.parquet" ] && rows+=(--pred "${row%%=*}=$O/${row#*=}/predictions.parquet")

@@ -57,11 +57,14 @@ def rows(re: int) -> list[tuple[str, str, str, str]]:
         ("the same at s = 1", f"variants/x1long-rawtrue-mix17-scratch-ep{re // 2}/eval-s1",
          f"x1long-rawtrue-mix17-scratch-ep{re // 2}-s1",
          f"{4 * re * 600:,}"),
-        # target_share_job.sh SET=truth-matched MIX=1:7 EPOCHS=re // 2 (session 27): truth_job.sh's
-        # PPCG frames from the true boxes at 1:7; a diagnostic
+        # target_share_job.sh SET=truth-matched|pseudo-matched MIX=1:7 EPOCHS=re // 2 (session 27):
+        # truth_job.sh's PPCG frames (MODE=truth-matched, pseudo-matched) at 1:7; diagnostics
         ("x1 long, PPCG from the true boxes, 1:7 (diagnostic)",
          f"variants/x1long-truth-matched-mix17-ep{re // 2}/eval",
          f"x1long-truth-matched-mix17-ep{re // 2}", f"{4 * 600:,} + {4 * re * 600:,}"),
+        ("x1 long, the found cars' pseudo boxes only (false ones dropped), 1:7 (diagnostic)",
+         f"variants/x1long-pseudo-matched-mix17-ep{re // 2}/eval",
+         f"x1long-pseudo-matched-mix17-ep{re // 2}", f"{4 * 600:,} + {4 * re * 600:,}"),
         # target_share_job.sh SET=ppcg MIX=1:7 EPOCHS=re // 2 and MIX=1:3 EPOCHS=re (session 27):
         # x1 long with less of the source on iteration 1's PPCG frames; label-free, DALI variants
         ("x1 long, PPCG 1:3", f"variants/x1long-ppcg-mix13-ep{re}/eval",
