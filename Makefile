@@ -2,8 +2,10 @@
 #   make demo   create the venv, install, run a small synthetic source -> target adaptation
 #   make test   create the venv, install, run the test suite
 SHELL := /bin/bash
-# this file, for the recursive makes: `make -f PATH/Makefile` from another directory keeps using it
+# the recursive makes' flags: this file, so that `make -f PATH/Makefile` run from another
+# directory keeps using it ($(MAKE) stays literal in each recipe, so `make -n` still recurses)
 SELF  := $(abspath $(firstword $(MAKEFILE_LIST)))
+SUBMAKE_FLAGS := -f "$(SELF)" --no-print-directory
 .DEFAULT_GOAL := help
 
 PYTHON   ?= python3
@@ -275,7 +277,7 @@ KITTI_ROWS = iter0/eval iter0/eval_ptsn iter1/eval iter2/eval iter2_st/eval x1_l
     baselines/source_x1_budget/eval_ptsn_sized baselines/source_x2_budget/eval_ptsn_sized
 kitti-protocol:
 	@for row in $(KITTI_ROWS); do \
-	    if [ -f $(RUN)/$$row/metrics.json ]; then $(MAKE) -f "$(SELF)" --no-print-directory $(RUN)/$$row/metrics_kitti.json || exit 1; fi; \
+	    if [ -f $(RUN)/$$row/metrics.json ]; then $(MAKE) $(SUBMAKE_FLAGS) $(RUN)/$$row/metrics_kitti.json || exit 1; fi; \
 	done
 # the main rows against the x2-budget control on the same validation frames: `dali compare` (a
 # paired bootstrap over the frames, COMPARE_SAMPLES draws) on KITTI's R40 and on the fine recall
@@ -300,7 +302,7 @@ DEMO_EPOCHS ?= 6
 # SN baseline (1.5 min more) is `make baseline-sn RUN=runs/demo FRAMES=48 EPOCHS=6`, left out to
 # keep the demo within 10 minutes on a 2-core VM (issue 18; docs/RESULTS.md, session 14)
 demo: install
-	$(MAKE) -f "$(SELF)" --no-print-directory iter2 RUN=runs/demo FRAMES=$(DEMO_FRAMES) EPOCHS=$(DEMO_EPOCHS)
+	$(MAKE) $(SUBMAKE_FLAGS) iter2 RUN=runs/demo FRAMES=$(DEMO_FRAMES) EPOCHS=$(DEMO_EPOCHS)
 	$(DALI) report runs/demo
 	@echo
 	@echo "This was the small demo (runs/demo). The full synthetic benchmark: make experiment"
@@ -349,13 +351,13 @@ experiment: install
 	        VAL_FRAMES=$(EXPERIMENT_VAL_FRAMES) EPOCHS=$(EXPERIMENT_EPOCHS) RETRAIN_EPOCHS=$(EXPERIMENT_RETRAIN_EPOCHS)"; \
 	    if [ "$(EXPERIMENT_LANES)" = 2 ]; then \
 	        n=$$(nproc); half=$$((n / 2)); \
-	        $(MAKE) -f "$(SELF)" --no-print-directory data $$vars || exit 1; \
+	        $(MAKE) $(SUBMAKE_FLAGS) data $$vars || exit 1; \
 	        echo "seed $$seed: lane 1 (cores 0-$$((half - 1))): $$lane1; lane 2 (cores $$half-$$((n - 1))): $$lane2"; \
-	        taskset -c 0-$$((half - 1)) $(MAKE) -f "$(SELF)" --no-print-directory $$lane1 $$vars & one=$$!; \
-	        taskset -c $$half-$$((n - 1)) $(MAKE) -f "$(SELF)" --no-print-directory $$lane2 $$vars & two=$$!; \
+	        taskset -c 0-$$((half - 1)) $(MAKE) $(SUBMAKE_FLAGS) $$lane1 $$vars & one=$$!; \
+	        taskset -c $$half-$$((n - 1)) $(MAKE) $(SUBMAKE_FLAGS) $$lane2 $$vars & two=$$!; \
 	        wait $$one || { wait $$two; exit 1; }; wait $$two || exit 1; \
 	    fi; \
-	    $(MAKE) -f "$(SELF)" --no-print-directory $$goals kitti-protocol $$vars || exit 1; \
+	    $(MAKE) $(SUBMAKE_FLAGS) $$goals kitti-protocol $$vars || exit 1; \
 	done
 	for seed in $(SEEDS); do $(DALI) report $(EXPERIMENT_PREFIX)-s$$seed > /dev/null || exit 1; done
 	$(DALI) report $(foreach seed,$(SEEDS),$(EXPERIMENT_PREFIX)-s$(seed)) --out $(EXPERIMENT_PREFIX)-report

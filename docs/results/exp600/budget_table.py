@@ -17,6 +17,30 @@ from pathlib import Path
 from row_metrics import row_cells
 
 
+def target_share_rows(
+    re: int,
+    label: str,
+    target_set: str,
+    mix: str,
+    steps: str,
+    *,
+    scratch: bool = False,
+    at_s1: bool = False,
+) -> list[tuple[str, str, str, str]]:
+    """The rows of `target_share_job.sh SET=target_set MIX=mix [INIT_FROM=scratch]` on x1 long's
+    4 x re x 600 retraining steps (EPOCHS = 4 x re / (a + b) at MIX=a:b), named as the job names
+    them; at_s1 adds its evaluation at s = 1 on the 800 frames (SET=rawtrue)."""
+    source, target = (int(part) for part in mix.split(":"))
+    epochs = 4 * re // (source + target)
+    name = f"x1long-{target_set}-mix{source}{target}{'-scratch' if scratch else ''}" + (
+        "" if epochs == 1 else f"-ep{epochs}"
+    )
+    rows = [(label, f"variants/{name}/eval", name, steps)]
+    if at_s1:  # evaluated on the 800 frames only: no eval-s1 on the 200
+        rows.append(("the same at s = 1", f"variants/{name}/eval-s1", f"{name}-s1", steps))
+    return rows
+
+
 def rows(re: int) -> list[tuple[str, str, str, str]]:
     """(row, eval dir on the 200 frames under RUN, dir on the 800 frames under
     runs/val800/experiment-s<SEED>, training steps) of the jobs with RETRAIN_EPOCHS=re: 600
@@ -24,56 +48,41 @@ def rows(re: int) -> list[tuple[str, str, str, str]]:
     frames), 2 x re retraining epochs; x2 splits them as make does (re // 2 in iteration 1)."""
     variant, val800, whole = f"variants/budget-re{re}", f"budget-re{re}", (4 + 4 * re) * 600
     x2_first = re // 2
+    retrain = f"{4 * re * 600:,}"
+    x1_long = f"{4 * 600:,} + {retrain}"
     return [
         ("control (source + test-time PTSN)", f"{variant}/baselines/source_x2_budget/eval_ptsn",
          f"{val800}/control", f"{whole:,}"),
         ("sized control", f"{variant}/baselines/source_x2_budget/eval_ptsn_sized",
          f"{val800}/control_sized", f"{whole:,}"),
-        ("x1 long", f"{variant}/x1_long/eval", f"{val800}/x1_long",
-         f"{4 * 600:,} + {4 * re * 600:,}"),
+        ("x1 long", f"{variant}/x1_long/eval", f"{val800}/x1_long", x1_long),
         ("x2 (make's split)", f"variants/x2long-re{re}/iter2/eval", f"x2long-re{re}/iter2",
          f"{4 * 600:,} + {x2_first * 1200:,} + {(2 * re - x2_first) * 1200:,}"),
         # truth_job.sh's variant: reads target labels, a diagnostic
         ("x1 long, PPCG from the true boxes (diagnostic)",
          f"variants/x1long-truth-matched-re{re}/x1_long/eval", f"x1long-truth-matched-re{re}",
-         f"{4 * 600:,} + {4 * re * 600:,}"),
-        # target_share_job.sh SET=rawtrue MIX=1:1 EPOCHS=2 x re: reads target labels, a diagnostic
-        ("x1 long, raw target frames with all true labels (diagnostic), at its ŝ",
-         f"variants/x1long-rawtrue-mix11-ep{2 * re}/eval", f"x1long-rawtrue-mix11-ep{2 * re}",
-         f"{4 * 600:,} + {4 * re * 600:,}"),
-        ("the same at s = 1", f"variants/x1long-rawtrue-mix11-ep{2 * re}/eval-s1",
-         f"x1long-rawtrue-mix11-ep{2 * re}-s1", f"{4 * 600:,} + {4 * re * 600:,}"),
-        # target_share_job.sh SET=rawtrue MIX=1:7 EPOCHS=re // 2 [INIT_FROM=scratch] (session 27):
-        # the same frames and steps, 7 of 8 batches from the target; diagnostics
-        ("x1 long, raw target, 1:7 (diagnostic), at its ŝ",
-         f"variants/x1long-rawtrue-mix17-ep{re // 2}/eval", f"x1long-rawtrue-mix17-ep{re // 2}",
-         f"{4 * 600:,} + {4 * re * 600:,}"),
-        ("the same at s = 1", f"variants/x1long-rawtrue-mix17-ep{re // 2}/eval-s1",
-         f"x1long-rawtrue-mix17-ep{re // 2}-s1",
-         f"{4 * 600:,} + {4 * re * 600:,}"),
-        ("raw target, 1:7, from scratch (diagnostic), at its ŝ",
-         f"variants/x1long-rawtrue-mix17-scratch-ep{re // 2}/eval",
-         f"x1long-rawtrue-mix17-scratch-ep{re // 2}", f"{4 * re * 600:,}"),
-        ("the same at s = 1", f"variants/x1long-rawtrue-mix17-scratch-ep{re // 2}/eval-s1",
-         f"x1long-rawtrue-mix17-scratch-ep{re // 2}-s1",
-         f"{4 * re * 600:,}"),
-        # target_share_job.sh SET=truth-matched|pseudo-matched MIX=1:7 EPOCHS=re // 2 (session 27):
-        # truth_job.sh's PPCG frames (MODE=truth-matched, pseudo-matched) at 1:7; diagnostics
-        ("x1 long, PPCG from the true boxes, 1:7 (diagnostic)",
-         f"variants/x1long-truth-matched-mix17-ep{re // 2}/eval",
-         f"x1long-truth-matched-mix17-ep{re // 2}", f"{4 * 600:,} + {4 * re * 600:,}"),
-        ("x1 long, the found cars' pseudo boxes only (false ones dropped), 1:7 (diagnostic)",
-         f"variants/x1long-pseudo-matched-mix17-ep{re // 2}/eval",
-         f"x1long-pseudo-matched-mix17-ep{re // 2}", f"{4 * 600:,} + {4 * re * 600:,}"),
-        # target_share_job.sh SET=ppcg MIX=1:7 EPOCHS=re // 2 and MIX=1:3 EPOCHS=re (session 27):
-        # x1 long with less of the source on iteration 1's PPCG frames; label-free, DALI variants
-        ("x1 long, PPCG 1:3", f"variants/x1long-ppcg-mix13-ep{re}/eval",
-         f"x1long-ppcg-mix13-ep{re}", f"{4 * 600:,} + {4 * re * 600:,}"),
-        ("x1 long, PPCG 1:7", f"variants/x1long-ppcg-mix17-ep{re // 2}/eval",
-         f"x1long-ppcg-mix17-ep{re // 2}", f"{4 * 600:,} + {4 * re * 600:,}"),
+         x1_long),
+        # target_share_job.sh SET=rawtrue: reads target labels, diagnostics; 1:1 (session 26) and
+        # 1:7 with and without INIT_FROM=scratch (session 27)
+        *target_share_rows(re, "x1 long, raw target frames with all true labels (diagnostic), at its ŝ",
+                           "rawtrue", "1:1", x1_long, at_s1=True),
+        *target_share_rows(re, "x1 long, raw target, 1:7 (diagnostic), at its ŝ", "rawtrue",
+                           "1:7", x1_long, at_s1=True),
+        *target_share_rows(re, "raw target, 1:7, from scratch (diagnostic), at its ŝ", "rawtrue",
+                           "1:7", retrain, scratch=True, at_s1=True),
+        # SET=truth-matched|pseudo-matched at 1:7 (session 27): truth_job.sh's PPCG frames
+        # (MODE=truth-matched, pseudo-matched); diagnostics
+        *target_share_rows(re, "x1 long, PPCG from the true boxes, 1:7 (diagnostic)",
+                           "truth-matched", "1:7", x1_long),
+        *target_share_rows(re, "x1 long, the found cars' pseudo boxes only (false ones dropped), "
+                           "1:7 (diagnostic)", "pseudo-matched", "1:7", x1_long),
+        # SET=ppcg (session 27): x1 long with less of the source on iteration 1's PPCG frames;
+        # label-free, DALI variants
+        *target_share_rows(re, "x1 long, PPCG 1:3", "ppcg", "1:3", x1_long),
+        *target_share_rows(re, "x1 long, PPCG 1:7", "ppcg", "1:7", x1_long),
         # oracle_budget_job.sh's row, EPOCHS=4 x re
         ("oracle, x1 long's retraining length", f"baselines/oracle_{4 * re}ep/eval",
-         f"oracle_{4 * re}ep", f"{4 * re * 600:,}"),
+         f"oracle_{4 * re}ep", retrain),
         ("oracle, whole budget", f"{variant}/baselines/oracle_x2_budget/eval",
          f"{val800}/oracle", f"{whole:,}"),
     ]  # fmt: skip
