@@ -80,6 +80,9 @@ def rows(re: int) -> list[tuple[str, str, str, str]]:
         # label-free, DALI variants
         *target_share_rows(re, "x1 long, PPCG 1:3", "ppcg", "1:3", x1_long),
         *target_share_rows(re, "x1 long, PPCG 1:7", "ppcg", "1:7", x1_long),
+        # SET=rawpseudo (session 28): the same pseudo boxes on the raw target frames, no PPCG
+        *target_share_rows(re, "x1 long, raw target frames with the pseudo boxes (no PPCG), 1:7",
+                           "rawpseudo", "1:7", x1_long),
         # oracle_budget_job.sh's row, EPOCHS=4 x re
         ("oracle, x1 long's retraining length", f"baselines/oracle_{4 * re}ep/eval",
          f"oracle_{4 * re}ep", retrain),

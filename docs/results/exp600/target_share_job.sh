@@ -10,6 +10,9 @@
 #                names its variant directory when not x1long-<SET>, e.g. x1long-truth-matched-re4)
 #   SET=rawtrue  the raw target training frames with ALL their true labels (diagnostic: reads
 #                target labels; never a default). rawtrue_job.sh is the same at 1:1 (85.7 at s = 1).
+#   SET=rawpseudo  the raw target training frames with iteration 1's pseudo boxes instead of PPCG
+#                (label-free: a DALI variant without PPCG; the frame set variants/rawpseudo-frames
+#                links data/target's frames.zarr and copies iter1/pseudo's boxes.parquet)
 # INIT_FROM=scratch starts from a fresh network instead of iter0's weights (the oracle's start).
 # EPOCHS (default 1) sets the budget, 600 x (1 + 7) steps per epoch at 1:7, 600 x 2 at 1:1; a row
 # with EPOCHS other than 1 gets an -ep<EPOCHS> suffix (session 26: SET=rawtrue MIX=1:1 EPOCHS=8,
@@ -18,6 +21,8 @@
 # Session 27 (12,000-step budget): SET=rawtrue MIX=1:7 EPOCHS=2, with and without INIT_FROM=scratch
 # (which of the retraining's source share, initialisation and restarted schedule caps it), then
 # SET=ppcg MIX=1:7 EPOCHS=2 and SET=ppcg MIX=1:3 EPOCHS=4 (the label-free retraining, less source).
+# Session 28: SET=rawpseudo MIX=1:7 EPOCHS=2 (does PPCG beat the same pseudo boxes on the raw
+# frames?) beside session 27's truth-matched / pseudo-matched 1:7 rows.
 # Each row is evaluated like x1 long (its own sweep, 200 validation frames, range + KITTI) and on
 # the 800 fresh frames of val800_job.sh. Resumable: every step is an artifact directory.
 #   SET=ppcg bash docs/results/exp600/target_share_job.sh      # from the directory holding runs/
@@ -31,8 +36,17 @@ case $SET in
   ppcg) TARGET_SIDE="$R/iter1/rc $R/iter1/cf" ;;
   truth-matched|pseudo-matched) P=$R/variants/${TRUTH_VARIANT:-x1long-$SET}; TARGET_SIDE="$P/iter1/rc $P/iter1/cf" ;;
   rawtrue) TARGET_SIDE=$R/data/target ;;
-  *) echo "SET must be ppcg, truth-matched, pseudo-matched or rawtrue, got '$SET'" >&2; exit 2 ;;
+  rawpseudo) TARGET_SIDE=$R/variants/rawpseudo-frames ;;
+  *) echo "SET must be ppcg, truth-matched, pseudo-matched, rawtrue or rawpseudo, got '$SET'" >&2; exit 2 ;;
 esac
+if [ $SET = rawpseudo ] && [ ! -e $TARGET_SIDE/manifest.json ]; then  # written whole or not at all
+    rm -rf $TARGET_SIDE.tmp; mkdir -p $TARGET_SIDE.tmp
+    ln -s ../../data/target/frames.zarr $TARGET_SIDE.tmp/frames.zarr
+    cp $R/iter1/pseudo/boxes.parquet $TARGET_SIDE.tmp/
+    printf '{"stage": "variant", "made_by": "docs/results/exp600/target_share_job.sh", "frames": "%s", "boxes": "%s"}\n' \
+        $R/data/target $R/iter1/pseudo > $TARGET_SIDE.tmp/manifest.json
+    mv $TARGET_SIDE.tmp $TARGET_SIDE
+fi
 $D retrain --init $R/iter0/model --source $R/data/source --ppcg $TARGET_SIDE --source-size sn \
     --target-size-from $R/iter1/ptsn --seed $SEED --epochs $EPOCHS --mix $MIX \
     --init-from $INIT_FROM --threads 1 \
