@@ -26,8 +26,9 @@ from dali_cli.artifacts import read_boxes  # noqa: E402
 from dali_cli.geometry import iou_3d_pairs, wrap_angle  # noqa: E402
 
 
-def quality(truth, boxes) -> dict:
-    """The measures of the module docstring for one box table against the truth table."""
+def matched_pairs(truth, boxes) -> tuple[np.ndarray, np.ndarray]:
+    """The boxes of `boxes` paired one to one with true cars of `truth` in the same frame (greedy
+    by score, BEV IoU > 0.3): pseudo (P, 7) and true (P, 7) float64 boxes, row p a pair."""
     truth_rows = truth.rows_by_frame()
     pred, true = [], []
     for frame_id, rows in boxes.rows_by_frame().items():
@@ -35,7 +36,12 @@ def quality(truth, boxes) -> dict:
         matched = match(boxes.boxes[rows], boxes["score"][rows], truth.boxes[t_rows], 0.3)
         pred.append(boxes.boxes[rows[matched >= 0]])
         true.append(truth.boxes[t_rows[matched[matched >= 0]]])
-    pred, true = np.concatenate(pred), np.concatenate(true)
+    return np.concatenate(pred), np.concatenate(true)
+
+
+def quality(truth, boxes) -> dict:
+    """The measures of the module docstring for one box table against the truth table."""
+    pred, true = matched_pairs(truth, boxes)
     c, s = np.cos(true[:, 6]), np.sin(true[:, 6])
     d = pred[:, :2] - true[:, :2]
     along, across = np.abs(c * d[:, 0] + s * d[:, 1]), np.abs(-s * d[:, 0] + c * d[:, 1])

@@ -8,7 +8,8 @@
 # on iteration 1's PPCG frames (SET=ppcg MIX=1:3 EPOCHS=4, MIX=1:7 EPOCHS=2; label-free) and on
 # the true boxes' and the found cars' pseudo boxes' (SET=truth-matched|pseudo-matched MIX=1:7
 # EPOCHS=2), and (session 28) the raw target frames with iteration 1's pseudo boxes instead of
-# PPCG (SET=rawpseudo MIX=1:7 EPOCHS=2; label-free), each where finished.
+# PPCG (SET=rawpseudo MIX=1:7 EPOCHS=2) and PPCG from `pseudo-label --tta` boxes (LABELS=tta
+# SET=ppcg MIX=1:7 EPOCHS=2), both label-free, each where finished.
 # Writes runs/val800/experiment-s$SEED/budget-re$RE/compare27_r{40,400}.json (session 26's run of
 # it, without the 1:7 rows, wrote compare26_r*; the bootstrap draws frames, so each pair's figure
 # does not depend on which other rows are present).
@@ -27,6 +28,7 @@ for row in "control=budget-re$RE/control" "x1 long=budget-re$RE/x1_long" "x2=x2l
     "found pseudo boxes 1:7=x1long-pseudo-matched-mix17-ep$(( RE / 2 ))" \
     "x1 long, PPCG 1:3=x1long-ppcg-mix13-ep$RE" "x1 long, PPCG 1:7=x1long-ppcg-mix17-ep$(( RE / 2 ))" \
     "raw target, pseudo boxes 1:7=x1long-rawpseudo-mix17-ep$(( RE / 2 ))" \
+    "PPCG from --tta boxes 1:7=x1long-ppcg-tta-mix17-ep$(( RE / 2 ))" \
     "oracle=budget-re$RE/oracle"; do
   [ -f "$O/${row#*=}/predictions.parquet" ] && rows+=(--pred "${row%%=*}=$O/${row#*=}/predictions.parquet")
 done

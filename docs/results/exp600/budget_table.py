@@ -26,14 +26,16 @@ def target_share_rows(
     *,
     scratch: bool = False,
     at_s1: bool = False,
+    labels: str = "",
 ) -> list[tuple[str, str, str, str]]:
-    """The rows of `target_share_job.sh SET=target_set MIX=mix [INIT_FROM=scratch]` on x1 long's
-    4 x re x 600 retraining steps (EPOCHS = 4 x re / (a + b) at MIX=a:b), named as the job names
-    them; at_s1 adds its evaluation at s = 1 on the 800 frames (SET=rawtrue)."""
+    """The rows of `target_share_job.sh SET=target_set MIX=mix [INIT_FROM=scratch] [LABELS=labels]`
+    on x1 long's 4 x re x 600 retraining steps (EPOCHS = 4 x re / (a + b) at MIX=a:b), named as
+    the job names them; at_s1 adds its evaluation at s = 1 on the 800 frames (SET=rawtrue)."""
     source, target = (int(part) for part in mix.split(":"))
     epochs = 4 * re // (source + target)
-    name = f"x1long-{target_set}-mix{source}{target}{'-scratch' if scratch else ''}" + (
-        "" if epochs == 1 else f"-ep{epochs}"
+    name = (
+        f"x1long-{target_set}{f'-{labels}' if labels else ''}-mix{source}{target}"
+        f"{'-scratch' if scratch else ''}{'' if epochs == 1 else f'-ep{epochs}'}"
     )
     rows = [(label, f"variants/{name}/eval", name, steps)]
     if at_s1:  # evaluated on the 800 frames only: no eval-s1 on the 200
@@ -83,6 +85,9 @@ def rows(re: int) -> list[tuple[str, str, str, str]]:
         # SET=rawpseudo (session 28): the same pseudo boxes on the raw target frames, no PPCG
         *target_share_rows(re, "x1 long, raw target frames with the pseudo boxes (no PPCG), 1:7",
                            "rawpseudo", "1:7", x1_long),
+        # SET=ppcg LABELS=tta (session 28): PPCG from `pseudo-label --tta` boxes; label-free
+        *target_share_rows(re, "x1 long, PPCG from --tta pseudo boxes, 1:7", "ppcg", "1:7", x1_long,
+                           labels="tta"),
         # oracle_budget_job.sh's row, EPOCHS=4 x re
         ("oracle, x1 long's retraining length", f"baselines/oracle_{4 * re}ep/eval",
          f"oracle_{4 * re}ep", retrain),

@@ -22,22 +22,35 @@
 # (which of the retraining's source share, initialisation and restarted schedule caps it), then
 # SET=ppcg MIX=1:7 EPOCHS=2 and SET=ppcg MIX=1:3 EPOCHS=4 (the label-free retraining, less source).
 # Session 28: SET=rawpseudo MIX=1:7 EPOCHS=2 (does PPCG beat the same pseudo boxes on the raw
-# frames?) beside session 27's truth-matched / pseudo-matched 1:7 rows.
+# frames?) beside session 27's truth-matched / pseudo-matched 1:7 rows; and LABELS=tta SET=ppcg
+# MIX=1:7 EPOCHS=2: PPCG from `pseudo-label --tta` boxes (ten fused views, label-free; the make
+# chain in variants/labels-tta, which links the seed's data, library, iter0 and first sweep).
+# The boxes' quality is worth little at 1:1 and much at 1:7 (true boxes of the found cars against
+# the pseudo ones, 800 frames: 85.81 / 85.58 at 1:1, 87.72 / 85.00 at 1:7).
 # Each row is evaluated like x1 long (its own sweep, 200 validation frames, range + KITTI) and on
 # the 800 fresh frames of val800_job.sh. Resumable: every step is an artifact directory.
 #   SET=ppcg bash docs/results/exp600/target_share_job.sh      # from the directory holding runs/
 set -euo pipefail
 SEED=${SEED:-0}; SET=${SET:-ppcg}; MIX=${MIX:-1:7}; EPOCHS=${EPOCHS:-1}; INIT_FROM=${INIT_FROM:-previous}
+LABELS=${LABELS:-}
 D=${DALI:-.venv/bin/dali}
 R=runs/experiment-s$SEED
-NAME=x1long-$SET-mix${MIX//:/}$([ $INIT_FROM = previous ] || echo -$INIT_FROM)$([ $EPOCHS = 1 ] || echo -ep$EPOCHS)
+NAME=x1long-$SET${LABELS:+-$LABELS}-mix${MIX//:/}$([ $INIT_FROM = previous ] || echo -$INIT_FROM)$([ $EPOCHS = 1 ] || echo -ep$EPOCHS)
 V=$R/variants/$NAME
-case $SET in
+case $SET$LABELS in
   ppcg) TARGET_SIDE="$R/iter1/rc $R/iter1/cf" ;;
+  ppcgtta) L=$R/variants/labels-tta; TARGET_SIDE="$L/iter1/rc $L/iter1/cf"
+    mkdir -p $L/iter1
+    for shared in data library iter0; do ln -sfn ../../$shared $L/$shared; done
+    ln -sfn ../../../iter1/ptsn $L/iter1/ptsn
+    make -f "${MAKEFILE:-$(dirname "$0")/../../../Makefile}" $L/iter1/rc/manifest.json \
+        $L/iter1/cf/manifest.json RUN=$L SEED=$SEED SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAMES=200 \
+        EPOCHS=4 RETRAIN_EPOCHS=2 PSEUDO_FLAGS=--tta ;;
   truth-matched|pseudo-matched) P=$R/variants/${TRUTH_VARIANT:-x1long-$SET}; TARGET_SIDE="$P/iter1/rc $P/iter1/cf" ;;
   rawtrue) TARGET_SIDE=$R/data/target ;;
   rawpseudo) TARGET_SIDE=$R/variants/rawpseudo-frames ;;
-  *) echo "SET must be ppcg, truth-matched, pseudo-matched, rawtrue or rawpseudo, got '$SET'" >&2; exit 2 ;;
+  *) echo "SET must be ppcg, truth-matched, pseudo-matched, rawtrue or rawpseudo (LABELS=tta only with" \
+        "SET=ppcg), got SET='$SET' LABELS='$LABELS'" >&2; exit 2 ;;
 esac
 if [ $SET = rawpseudo ] && [ ! -e $TARGET_SIDE/manifest.json ]; then  # written whole or not at all
     rm -rf $TARGET_SIDE.tmp; mkdir -p $TARGET_SIDE.tmp
