@@ -59,7 +59,11 @@ def main() -> None:
     args = parser.parse_args()
     truth = read_boxes(args.truth)
     truth = truth.select(np.flatnonzero(np.asarray(truth["label"]).astype(str) == "Car"))
-    print("| boxes | band m | pairs | 3D IoU >= 0.7 | " + " | ".join(f"{p} fixed" for p in PARTS) + " |")
+    print(
+        "| boxes | band m | pairs | 3D IoU >= 0.7 | "
+        + " | ".join(f"{p} fixed" for p in PARTS)
+        + " |"
+    )
     print("|---|---|---|---|" + "---|" * len(PARTS))
     for path in args.boxes:
         pred, true = matched_pairs(truth, read_boxes(path))
@@ -70,7 +74,9 @@ def main() -> None:
             band = (distance >= low) & (distance < high)
             name = "all" if high == np.inf else f"{low:.0f}-{high:.0f}"
             cells = " | ".join(f"{shares[p][band].mean():.3f}" for p in PARTS)
-            print(f"| {path} | {name} | {band.sum()} | {shares['as is'][band].mean():.3f} | {cells} |")
+            print(
+                f"| {path} | {name} | {band.sum()} | {shares['as is'][band].mean():.3f} | {cells} |"
+            )
 
 
 if __name__ == "__main__":
