@@ -59,18 +59,24 @@ def quality(truth, boxes) -> dict:
     }
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def truth_and_box_dirs(doc: str):
+    """Parse --truth DIR --boxes DIR [DIR ...] (the script's help from `doc`): the truth table's
+    cars and the box directories."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     parser.add_argument("--truth", type=Path, required=True)
     parser.add_argument("--boxes", type=Path, nargs="+", required=True)
     args = parser.parse_args()
     truth = read_boxes(args.truth)
-    truth = truth.select(np.flatnonzero(np.asarray(truth["label"]).astype(str) == "Car"))
+    return truth.select(np.flatnonzero(np.asarray(truth["label"]).astype(str) == "Car")), args.boxes
+
+
+def main() -> None:
+    truth, box_dirs = truth_and_box_dirs(__doc__)
     print(
         "| boxes | matched | along m | across m | yaw deg | 3D IoU >= 0.7 | mean 3D IoU | heading right |"
     )
     print("|---|---|---|---|---|---|---|---|")
-    for path in args.boxes:
+    for path in box_dirs:
         q = quality(truth, read_boxes(path))
         print(
             f"| {path} | {q['matched']} | {q['along_m']:.3f} | {q['across_m']:.3f} | "

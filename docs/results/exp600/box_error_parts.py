@@ -11,7 +11,6 @@ The part whose fix lifts the share most is where the label-free pseudo labeller 
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -21,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[3]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "docs" / "results" / "demo7"))
 
-from label_quality import matched_pairs  # noqa: E402
+from label_quality import matched_pairs, truth_and_box_dirs  # noqa: E402
 
 from dali_cli.artifacts import read_boxes  # noqa: E402
 from dali_cli.geometry import iou_3d_pairs, wrap_angle  # noqa: E402
@@ -53,19 +52,14 @@ PARTS = ("along", "across", "z", "l", "w", "h", "sizes", "yaw")
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--truth", type=Path, required=True)
-    parser.add_argument("--boxes", type=Path, nargs="+", required=True)
-    args = parser.parse_args()
-    truth = read_boxes(args.truth)
-    truth = truth.select(np.flatnonzero(np.asarray(truth["label"]).astype(str) == "Car"))
+    truth, box_dirs = truth_and_box_dirs(__doc__)
     print(
         "| boxes | band m | pairs | 3D IoU >= 0.7 | "
         + " | ".join(f"{p} fixed" for p in PARTS)
         + " |"
     )
     print("|---|---|---|---|" + "---|" * len(PARTS))
-    for path in args.boxes:
+    for path in box_dirs:
         pred, true = matched_pairs(truth, read_boxes(path))
         distance = np.hypot(true[:, 0], true[:, 1])
         shares = {"as is": iou_3d_pairs(pred, true) >= 0.7}
