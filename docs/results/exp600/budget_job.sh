@@ -20,9 +20,7 @@ MAKEFILE=${MAKEFILE:-$HERE/../../../Makefile}
 R=runs/experiment-s$SEED
 V=$R/variants/budget-re$RE
 O=runs/val800/experiment-s$SEED/budget-re$RE
-mkdir -p $V/iter1
-for shared in data library iter0; do ln -sfn ../../$shared $V/$shared; done
-for part in ptsn pseudo rc cf; do ln -sfn ../../../iter1/$part $V/iter1/$part; done
+source "$HERE/variant_links.sh"; link_variant $V ptsn pseudo rc cf
 M=(make -f "$MAKEFILE" RUN=$V SEED=$SEED SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAMES=200 EPOCHS=4
    RETRAIN_EPOCHS=$RE "TRAIN_FLAGS=--threads 1")
 source "$HERE/eval_row.sh"

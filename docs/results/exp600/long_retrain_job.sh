@@ -20,9 +20,7 @@ V=$R/variants/x1long-re$N
 M=(taskset -c $CORE make -f "$MAKEFILE" SEED=$SEED SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAMES=200 EPOCHS=4
    RETRAIN_EPOCHS=2 WORKERS=1 SYNTH_WORKERS=1 "TRAIN_FLAGS=--threads 1")
 "${M[@]}" RUN=$R iter0 $R/iter1/rc/manifest.json $R/iter1/cf/manifest.json
-mkdir -p $V/iter1
-for shared in data library iter0; do ln -sfn ../../$shared $V/$shared; done
-for part in ptsn pseudo rc cf; do ln -sfn ../../../iter1/$part $V/iter1/$part; done
+source "$HERE/variant_links.sh"; link_variant $V ptsn pseudo rc cf
 "${M[@]}" RUN=$V RETRAIN_EPOCHS_1=1 RETRAIN_EPOCHS_2=$(( N - 1 )) $V/x1_long/eval/manifest.json
 source "$HERE/eval_row.sh"
 kitti_row $V/x1_long/eval

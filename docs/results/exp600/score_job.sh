@@ -13,9 +13,7 @@ set -euo pipefail
 SEED=${SEED:-0}; SCORE=${SCORE:-0.5}; ROW=${ROW:-x1long}
 R=runs/experiment-s$SEED
 V=$R/variants/$ROW-score${SCORE/./}
-mkdir -p $V/iter1
-for shared in data library iter0; do ln -sfn ../../$shared $V/$shared; done
-ln -sfn ../../../iter1/ptsn $V/iter1/ptsn
+source "$(dirname "$0")/variant_links.sh"; link_variant $V ptsn
 goal=$([ "$ROW" = x2 ] && echo iter2 || echo x1-long)
 make $goal kitti-protocol RUN=$V SEED=$SEED SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAMES=200 EPOCHS=4 \
     RETRAIN_EPOCHS=2 PSEUDO_FLAGS="--score-min $SCORE" TRAIN_FLAGS="--threads 1"

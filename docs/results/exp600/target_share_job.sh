@@ -40,9 +40,7 @@ V=$R/variants/$NAME
 case $SET$LABELS in
   ppcg) TARGET_SIDE="$R/iter1/rc $R/iter1/cf" ;;
   ppcgtta) L=$R/variants/labels-tta; TARGET_SIDE="$L/iter1/rc $L/iter1/cf"
-    mkdir -p $L/iter1
-    for shared in data library iter0; do ln -sfn ../../$shared $L/$shared; done
-    ln -sfn ../../../iter1/ptsn $L/iter1/ptsn
+    source "$(dirname "$0")/variant_links.sh"; link_variant $L ptsn
     make -f "${MAKEFILE:-$(dirname "$0")/../../../Makefile}" $L/iter1/rc/manifest.json \
         $L/iter1/cf/manifest.json RUN=$L SEED=$SEED SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAMES=200 \
         EPOCHS=4 RETRAIN_EPOCHS=2 PSEUDO_FLAGS=--tta ;;

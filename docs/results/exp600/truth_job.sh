@@ -16,9 +16,7 @@ SEED=${SEED:-0}; MODE=${MODE:-truth-matched}; RE=${RETRAIN_EPOCHS:-2}
 HERE=$(cd "$(dirname "$0")" && pwd)
 R=runs/experiment-s$SEED
 V=$R/variants/x1long-$MODE$([ $RE = 2 ] || echo -re$RE)
-mkdir -p $V/iter1
-for shared in data library iter0; do ln -sfn ../../$shared $V/$shared; done
-ln -sfn ../../../iter1/ptsn $V/iter1/ptsn
+source "$HERE/variant_links.sh"; link_variant $V ptsn
 if [ ! -e $V/iter1/pseudo/manifest.json ]; then  # the box set, written whole or not at all
     rm -rf $V/iter1/pseudo.tmp
     .venv/bin/python "$HERE/../demo6/hybrid_boxes.py" --truth $R/data/target \
