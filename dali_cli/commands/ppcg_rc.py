@@ -48,6 +48,12 @@ def ppcg_options(function):
                           "LiDAR points lie on a car's surface, so a pseudo box a little off "
                           "leaves part of the car outside it as raw points beside the model "
                           "(0: the points in the box, as the paper)."),
+        click.option("--occlusion/--no-occlusion", default=False, show_default=True,
+                     help="The fitted model hides what lies behind it: the frame's other points "
+                          "whose rays meet a box's model before they reach the point are re-cast "
+                          "onto it (RC) or dropped (CF), so no scene shows through a model car "
+                          "placed where the pseudo box, not the real car, is "
+                          "(dali_cli.ppcg.occlusion)."),
         click.option("--label", default="Car", show_default=True,
                      help="Process boxes of this label; other rows pass through as 'raw'."),
         workers_option("1"),
