@@ -24,6 +24,7 @@ from dali_cli.artifacts import BOX_FIELDS, BoxTable, FrameSet, write_boxes
 from dali_cli.device import InferenceOptions, inference_runtime, inference_setup
 from dali_cli.errors import ParameterError, StageError
 from dali_cli.executors import make_executor, run_on
+from dali_cli.ground_fit import GroundFit, fit_heights
 from dali_cli.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.pseudo_labeler import FrameLabeler, label_frame  # noqa: F401 (public here)
 from dali_cli.scale_file import ScaleResult, read_scale, write_scale
@@ -89,6 +90,7 @@ def pseudo_label(
     size_correction_method: str = "per-dim",
     views: tta.Views | None = None,
     point_fit: box_fit.PointFit | None = box_fit.PointFit(),
+    ground_fit: GroundFit | None = None,
     force: bool = False,
     dry_run: bool = False,
     workers: int | None = None,
@@ -98,7 +100,9 @@ def pseudo_label(
 ) -> StageOutcome:
     """Run the pseudo-label stage (see the module docstring). `views`: the test-time
     augmentation (None or a single view: the detector once at ŝ). `point_fit`: move each box
-    onto its points after the size correction (default: the standard fit; None: off). `executor`, `workers`,
+    onto its points after the size correction (default: the standard fit; None: off).
+    `ground_fit`: then put each box's bottom on the ground around it (dali_cli.ground_fit;
+    default None: off). `executor`, `workers`,
     `ray_address`: the engine of the detector runs (dali_cli.executors); `inference`: device,
     precision, batch size, progress and (tests) the detector loader (InferenceOptions)."""
     model_dir, target_dir = Path(model_dir), Path(target_dir)
@@ -122,6 +126,7 @@ def pseudo_label(
         # recorded only when on: labels made before test-time augmentation stay up to date
         **({"tta": views.record()} if views is not None and not views.single else {}),
         **({"fit_points": point_fit.record()} if point_fit is not None else {}),
+        **({"fit_ground": ground_fit.record()} if ground_fit is not None else {}),
     }  # fmt: skip
     inputs = {"model": model_dir, "target": target_dir}
     inputs.update({"scale_from": scale_from} if scale_from is not None else {})
@@ -140,16 +145,20 @@ def pseudo_label(
         table, implausible, seconds = label_frames(
             labeler, pool, directory, target, inference.get("progress", True)
         )
-        correction = fitted = None
+        correction = fitted = grounded = None
         if method != "none" and len(table):
             table, correction = correct_table(table, e_est, score_min)
-        if correction is not None or point_fit is not None:  # boxes changed: one more pass
-            table, fitted = place_on_points(table, target, point_fit)
+        if correction is not None or point_fit is not None or ground_fit is not None:
+            # boxes changed: one more pass
+            table, fitted, grounded = place_on_points(table, target, point_fit, ground_fit)
+        fits = {
+            **({"point_fit": fitted} if fitted is not None else {}),
+            **({"ground_fit": grounded} if grounded is not None else {}),
+        }
         write_outputs(
             directory, table, scale_record(used, scale_source, mount_height_m),
             summarize(table, len(target), e_est),
-            {"boxes_implausible": implausible, "size_correction": correction,
-             **({"point_fit": fitted} if fitted is not None else {})},
+            {"boxes_implausible": implausible, "size_correction": correction, **fits},
         )  # fmt: skip
         skipped_correction = method != size_correction_method
         return BuildResult(
@@ -160,7 +169,7 @@ def pseudo_label(
                 "pseudo_label": {"scale_source": scale_source},
                 "runtime": inference_runtime(torch_device),
                 "size_correction": correction or {"method": method},
-                **({"point_fit": fitted} if fitted is not None else {}),
+                **fits,
                 "executor": pool.report(),
             },
         )
@@ -308,28 +317,54 @@ def correct_table(table: BoxTable, e_est: list, score_min: float) -> tuple[BoxTa
 
 
 def place_on_points(
-    table: BoxTable, target: FrameSet, fit: box_fit.PointFit | None
-) -> tuple[BoxTable, dict | None]:
+    table: BoxTable,
+    target: FrameSet,
+    fit: box_fit.PointFit | None,
+    ground: GroundFit | None = None,
+) -> tuple[BoxTable, dict | None, dict | None]:
     """One pass over the target frames: every box moved onto its frame's points when `fit` is
-    given (dali_cli.box_fit; sizes, z, scores and the other columns kept), and num_points
-    recounted on the original points; the fit's record (None without a fit): boxes fitted
-    (enough points), mean shift (m) and turn (deg) over them."""
-    from dali_cli.geometry import count_points_in_boxes, wrap_angle
+    given (dali_cli.box_fit; sizes, z, scores and the other columns kept), then its bottom put
+    on the ground around it when `ground` is given (dali_cli.ground_fit: z only), and
+    num_points recounted on the original points. Returns the table, the point fit's record
+    (None without it: boxes fitted (enough points), mean shift (m) and turn (deg) over them)
+    and the ground fit's (None without it: boxes moved, mean and mean |shift| of z over them)."""
+    from dali_cli.geometry import count_points_in_boxes
 
     boxes, counts = table.boxes.copy(), np.asarray(table["num_points"]).copy()
     used = np.zeros(len(table), np.int64)
+    grounded = np.zeros(len(table), bool)
     rows = table.rows_by_frame()
     for frame_id, points in target.iter_frames():
         if frame_id in rows:
             r = rows[frame_id]
             if fit is not None:
                 boxes[r], used[r] = box_fit.fit_boxes(table.boxes[r], points, fit)
+            if ground is not None:
+                boxes[r], grounded[r] = fit_heights(boxes[r], points, ground)
             counts[r] = count_points_in_boxes(points, boxes[r])
     moved = table.with_columns(
         **{name: boxes[:, i] for i, name in enumerate(BOX_FIELDS)}, num_points=counts
     )
+    ground_record = None
+    if ground is not None:
+        lift = boxes[grounded, 2] - table.boxes[grounded, 2]  # the point fit keeps z
+        ground_record = {
+            "boxes_moved": int(grounded.sum()),
+            "boxes_kept": int((~grounded).sum()),
+            "mean_shift_m": round(float(lift.mean()), 4) if grounded.any() else 0.0,
+            "mean_abs_shift_m": round(float(np.abs(lift).mean()), 4) if grounded.any() else 0.0,
+        }
+    return moved, point_fit_record(table, boxes, used, fit), ground_record
+
+
+def point_fit_record(
+    table: BoxTable, boxes: np.ndarray, used: np.ndarray, fit: box_fit.PointFit | None
+) -> dict | None:
+    """The point fit's record (place_on_points), None without a fit."""
+    from dali_cli.geometry import wrap_angle
+
     if fit is None:
-        return moved, None
+        return None
     fitted = used >= fit.min_points
     shift = np.hypot(*(boxes[:, :2] - table.boxes[:, :2]).T)
     turn = np.degrees(np.abs(wrap_angle(boxes[:, 6] - table.boxes[:, 6])))
@@ -339,7 +374,7 @@ def place_on_points(
         "mean_shift_m": round(float(shift[fitted].mean()), 4) if fitted.any() else 0.0,
         "mean_turn_deg": round(float(turn[fitted].mean()), 3) if fitted.any() else 0.0,
     }
-    return moved, record
+    return record
 
 
 def print_summary(summary: dict, scale: float) -> None:
@@ -366,4 +401,11 @@ def print_summary(summary: dict, scale: float) -> None:
             f"point fit: {fitted['boxes_fitted']} boxes fitted to their points (mean shift "
             f"{fitted['mean_shift_m']:.2f} m, turn {fitted['mean_turn_deg']:.1f} deg); "
             f"{fitted['boxes_too_few_points']} with too few points kept"
+        )
+    grounded = summary.get("ground_fit")
+    if grounded:
+        console.echo(
+            f"ground fit: {grounded['boxes_moved']} boxes put on the ground around them (mean "
+            f"|shift| {grounded['mean_abs_shift_m']:.3f} m, mean {grounded['mean_shift_m']:+.3f} "
+            f"m); {grounded['boxes_kept']} kept (too little ground, or too far from it)"
         )

@@ -74,16 +74,22 @@ def views_of(on: bool, factors: tuple[float, ...], mirror: bool):
                    "points it holds: shifts up to 1 m along the car and 0.2 m across, turns "
                    "up to 8 degrees (dali_cli.box_fit). Target points only, no label. Matched "
                    "boxes at 3D IoU >= 0.7: 0.48-0.57 -> 0.67-0.71 (docs/RESULTS.md, session 13).")  # fmt: skip
+@click.option("--fit-ground/--no-fit-ground", default=False, show_default=True,
+              help="Then put each box's bottom on the ground the target points show around it "
+                   "(a robust plane or level fit to the free points within 10 m of the box; "
+                   "x, y, size and yaw kept; dali_cli.ground_fit). Target points only, no "
+                   "label.")  # fmt: skip
 @workers_option("1")
 @executor_options
 @target_scaling_options
 def command(model_dir, target_dir, out, sensors_path, no_progress, tta, tta_scales, tta_mirror,
-            fit_points, **options):  # fmt: skip
+            fit_points, fit_ground, **options):  # fmt: skip
     """Pseudo-label the target: run the model on the target points scaled by ŝ about the ground
     (with --tta in ten views fused box by box), de-scale the boxes, keep score >=
     --score-min, BEV NMS at --nms-iou, then (by default)
     correct each dimension's remaining size bias against E_est (target statistics only),
-    and (by default, --fit-points) move each box onto its points.
+    and (by default, --fit-points) move each box onto its points (with --fit-ground, then put
+    its bottom on the ground around it).
 
     Reads MODEL, the TARGET frame set (never its labels) and --scale-from's scale.json.
     Writes OUT/boxes.parquet (one row per pseudo box: frame_id, x, y, z, l, w, h, yaw, score,
@@ -93,6 +99,7 @@ def command(model_dir, target_dir, out, sensors_path, no_progress, tta, tta_scal
     OUT/summary.json (boxes per frame, mean size vs E_est, score histogram) and manifest.json.
     """
     from dali_cli.box_fit import PointFit
+    from dali_cli.ground_fit import GroundFit
     from stages.pseudo_label import pseudo_label
 
     pseudo_label(
@@ -103,5 +110,6 @@ def command(model_dir, target_dir, out, sensors_path, no_progress, tta, tta_scal
         progress=not no_progress,
         views=views_of(tta, tta_scales, tta_mirror),
         point_fit=PointFit() if fit_points else None,
+        ground_fit=GroundFit() if fit_ground else None,
         **options,
     )

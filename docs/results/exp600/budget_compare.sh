@@ -9,8 +9,11 @@
 # the true boxes' and the found cars' pseudo boxes' (SET=truth-matched|pseudo-matched MIX=1:7
 # EPOCHS=2), and (session 28) the raw target frames with iteration 1's pseudo boxes instead of
 # PPCG (SET=rawpseudo MIX=1:7 EPOCHS=2) and PPCG from `pseudo-label --tta` boxes (LABELS=tta
-# SET=ppcg MIX=1:7 EPOCHS=2), both label-free, each where finished.
-# Writes runs/val800/experiment-s$SEED/budget-re$RE/compare27_r{40,400}.json (session 26's run of
+# SET=ppcg MIX=1:7 EPOCHS=2), both label-free, and (session 29) PPCG with `--occlusion` (PPCG=occ
+# SET=ppcg, MIX=1:7 EPOCHS=2 and MIX=1:1 EPOCHS=8), each where finished. ONLY (an extended regex)
+# keeps the rows whose names match it, the control always (TAG names the output then, e.g.
+# ONLY='^x1 long$|PPCG 1:7|occlusion' TAG=compare29).
+# Writes runs/val800/experiment-s$SEED/budget-re$RE/${TAG:-compare27}_r{40,400}.json (session 26's run of
 # it, without the 1:7 rows, wrote compare26_r*; the bootstrap draws frames, so each pair's figure
 # does not depend on which other rows are present).
 #   taskset -c 0 bash docs/results/exp600/budget_compare.sh     # from the directory holding runs/
@@ -29,11 +32,15 @@ for row in "control=budget-re$RE/control" "x1 long=budget-re$RE/x1_long" "x2=x2l
     "x1 long, PPCG 1:3=x1long-ppcg-mix13-ep$RE" "x1 long, PPCG 1:7=x1long-ppcg-mix17-ep$(( RE / 2 ))" \
     "raw target, pseudo boxes 1:7=x1long-rawpseudo-mix17-ep$(( RE / 2 ))" \
     "PPCG from --tta boxes 1:7=x1long-ppcg-tta-mix17-ep$(( RE / 2 ))" \
+    "PPCG with occlusion 1:7=x1long-ppcg-occ-mix17-ep$(( RE / 2 ))" \
+    "x1 long, PPCG with occlusion=x1long-ppcg-occ-mix11-ep$(( 2 * RE ))" \
     "oracle=budget-re$RE/oracle"; do
-  [ -f "$O/${row#*=}/predictions.parquet" ] && rows+=(--pred "${row%%=*}=$O/${row#*=}/predictions.parquet")
+  name=${row%%=*}
+  [ -z "${ONLY:-}" ] || [ "$name" = control ] || [[ "$name" =~ $ONLY ]] || continue
+  [ -f "$O/${row#*=}/predictions.parquet" ] && rows+=(--pred "$name=$O/${row#*=}/predictions.parquet")
 done
 for positions in 40 400; do
   $D compare "${rows[@]}" --gt runs/val800/data-s$SEED --protocol range --front-only --iou 0.7 \
       --recall-positions $positions --samples 400 --seed 0 --no-progress \
-      --out $O/budget-re$RE/compare27_r$positions.json
+      --out $O/budget-re$RE/${TAG:-compare27}_r$positions.json
 done

@@ -1,4 +1,4 @@
-"""Sessions 23/25-27: the rows of budget_job.sh (a 12,000-step budget) and of the session-26/27 jobs
+"""Sessions 23/25-29: the rows of budget_job.sh (a 12,000-step budget) and of the session-26/27 jobs
 on that budget (x2_long_job.sh; truth_job.sh with RETRAIN_EPOCHS; target_share_job.sh with
 SET=rawtrue), one line per seed and row.
 
@@ -26,15 +26,16 @@ def target_share_rows(
     *,
     scratch: bool = False,
     at_s1: bool = False,
-    labels: str = "",
+    variant: str = "",
 ) -> list[tuple[str, str, str, str]]:
-    """The rows of `target_share_job.sh SET=target_set MIX=mix [INIT_FROM=scratch] [LABELS=labels]`
+    """The rows of `target_share_job.sh SET=target_set MIX=mix [INIT_FROM=scratch]
+    [LABELS=variant | PPCG=variant]`
     on x1 long's 4 x re x 600 retraining steps (EPOCHS = 4 x re / (a + b) at MIX=a:b), named as
     the job names them; at_s1 adds its evaluation at s = 1 on the 800 frames (SET=rawtrue)."""
     source, target = (int(part) for part in mix.split(":"))
     epochs = 4 * re // (source + target)
     name = (
-        f"x1long-{target_set}{f'-{labels}' if labels else ''}-mix{source}{target}"
+        f"x1long-{target_set}{f'-{variant}' if variant else ''}-mix{source}{target}"
         f"{'-scratch' if scratch else ''}{'' if epochs == 1 else f'-ep{epochs}'}"
     )
     rows = [(label, f"variants/{name}/eval", name, steps)]
@@ -87,7 +88,12 @@ def rows(re: int) -> list[tuple[str, str, str, str]]:
                            "rawpseudo", "1:7", x1_long),
         # SET=ppcg LABELS=tta (session 28): PPCG from `pseudo-label --tta` boxes; label-free
         *target_share_rows(re, "x1 long, PPCG from --tta pseudo boxes, 1:7", "ppcg", "1:7", x1_long,
-                           labels="tta"),
+                           variant="tta"),
+        # SET=ppcg PPCG=occ (session 29): `ppcg-rc/ppcg-cf --occlusion`; label-free
+        *target_share_rows(re, "x1 long, PPCG with --occlusion, 1:7", "ppcg", "1:7", x1_long,
+                           variant="occ"),
+        *target_share_rows(re, "x1 long, PPCG with --occlusion (1:1)", "ppcg", "1:1", x1_long,
+                           variant="occ"),
         # oracle_budget_job.sh's row, EPOCHS=4 x re
         ("oracle, x1 long's retraining length", f"baselines/oracle_{4 * re}ep/eval",
          f"oracle_{4 * re}ep", retrain),

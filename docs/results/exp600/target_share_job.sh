@@ -28,6 +28,8 @@
 # Session 29: PPCG=occ SET=ppcg: PPCG with `ppcg-rc/ppcg-cf --occlusion` (the model car hides the
 # scene behind it; label-free; the make chain in variants/ppcg-occ, which links the seed's data,
 # library, iter0 and first sweep and pseudo labels), at MIX=1:7 EPOCHS=2 and MIX=1:1 EPOCHS=8.
+# LABELS=ground SET=ppcg: PPCG from `pseudo-label --fit-ground` boxes (each bottom on the ground
+# around it; variants/labels-ground), alone or with PPCG=occ (variants/labels-ground-ppcg-occ).
 # The boxes' quality is worth little at 1:1 and much at 1:7 (true boxes of the found cars against
 # the pseudo ones, 800 frames: 85.81 / 85.58 at 1:1, 87.72 / 85.00 at 1:7).
 # Each row is evaluated like x1 long (its own sweep, 200 validation frames, range + KITTI) and on
@@ -40,23 +42,27 @@ D=${DALI:-.venv/bin/dali}
 R=runs/experiment-s$SEED
 NAME=x1long-$SET${LABELS:+-$LABELS}${PPCG:+-$PPCG}-mix${MIX//:/}$([ $INIT_FROM = previous ] || echo -$INIT_FROM)$([ $EPOCHS = 1 ] || echo -ep$EPOCHS)
 V=$R/variants/$NAME
-case $SET$LABELS$PPCG in
-  ppcg) TARGET_SIDE="$R/iter1/rc $R/iter1/cf" ;;
-  ppcgocc) L=$R/variants/ppcg-occ; TARGET_SIDE="$L/iter1/rc $L/iter1/cf"
-    source "$(dirname "$0")/variant_links.sh"; link_variant $L ptsn pseudo
-    make -f "${MAKEFILE:-$(dirname "$0")/../../../Makefile}" $L/iter1/rc/manifest.json \
-        $L/iter1/cf/manifest.json RUN=$L SEED=$SEED SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAMES=200 \
-        EPOCHS=4 RETRAIN_EPOCHS=2 PPCG_FLAGS=--occlusion ;;
-  ppcgtta) L=$R/variants/labels-tta; TARGET_SIDE="$L/iter1/rc $L/iter1/cf"
-    source "$(dirname "$0")/variant_links.sh"; link_variant $L ptsn
-    make -f "${MAKEFILE:-$(dirname "$0")/../../../Makefile}" $L/iter1/rc/manifest.json \
-        $L/iter1/cf/manifest.json RUN=$L SEED=$SEED SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAMES=200 \
-        EPOCHS=4 RETRAIN_EPOCHS=2 PSEUDO_FLAGS=--tta ;;
+case $LABELS in tta) PSEUDO_FLAGS=--tta ;; ground) PSEUDO_FLAGS=--fit-ground ;; "") PSEUDO_FLAGS= ;;
+  *) echo "LABELS must be tta or ground, got '$LABELS'" >&2; exit 2 ;; esac
+case $PPCG in occ) PPCG_FLAGS=--occlusion ;; "") PPCG_FLAGS= ;;
+  *) echo "PPCG must be occ, got '$PPCG'" >&2; exit 2 ;; esac
+if [ -n "$LABELS$PPCG" ] && [ $SET != ppcg ]; then
+  echo "LABELS and PPCG go with SET=ppcg only, got SET='$SET'" >&2; exit 2
+fi
+case $SET in
+  ppcg) if [ -z "$LABELS$PPCG" ]; then TARGET_SIDE="$R/iter1/rc $R/iter1/cf"; else
+      # the make chain in a variant: labels-<LABELS>, ppcg-<PPCG> or labels-<LABELS>-ppcg-<PPCG>
+      L=$R/variants/$(echo ${LABELS:+labels-$LABELS}${LABELS:+${PPCG:+-}}${PPCG:+ppcg-$PPCG})
+      TARGET_SIDE="$L/iter1/rc $L/iter1/cf"
+      source "$(dirname "$0")/variant_links.sh"; link_variant $L ptsn $([ -n "$LABELS" ] || echo pseudo)
+      make -f "${MAKEFILE:-$(dirname "$0")/../../../Makefile}" $L/iter1/rc/manifest.json \
+          $L/iter1/cf/manifest.json RUN=$L SEED=$SEED SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAMES=200 \
+          EPOCHS=4 RETRAIN_EPOCHS=2 PSEUDO_FLAGS="$PSEUDO_FLAGS" PPCG_FLAGS="$PPCG_FLAGS"
+    fi ;;
   truth-matched|pseudo-matched) P=$R/variants/${TRUTH_VARIANT:-x1long-$SET}; TARGET_SIDE="$P/iter1/rc $P/iter1/cf" ;;
   rawtrue) TARGET_SIDE=$R/data/target ;;
   rawpseudo) TARGET_SIDE=$R/variants/rawpseudo-frames ;;
-  *) echo "SET must be ppcg, truth-matched, pseudo-matched, rawtrue or rawpseudo (LABELS=tta or" \
-        "PPCG=occ only with SET=ppcg, not both), got SET='$SET' LABELS='$LABELS' PPCG='$PPCG'" >&2
+  *) echo "SET must be ppcg, truth-matched, pseudo-matched, rawtrue or rawpseudo, got SET='$SET'" >&2
      exit 2 ;;
 esac
 if [ $SET = rawpseudo ] && [ ! -e $TARGET_SIDE/manifest.json ]; then  # written whole or not at all
