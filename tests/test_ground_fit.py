@@ -43,7 +43,12 @@ def scene(rng, slope=(0.02, -0.01), offset=-1.73):
         ]
     )
     clutter = np.column_stack(
-        [rng.uniform(0, 60, 300), rng.uniform(-20, 20, 300), rng.uniform(0.5, 3.0, 300), np.ones(300)]
+        [
+            rng.uniform(0, 60, 300),
+            rng.uniform(-20, 20, 300),
+            rng.uniform(0.5, 3.0, 300),
+            np.ones(300),
+        ]
     )
     parts = [road(*slope, offset, rng), wall, clutter, *[car_points(b, rng) for b in truth]]
     return np.concatenate(parts).astype(np.float32), truth
@@ -143,9 +148,9 @@ def test_the_stage_puts_the_boxes_on_the_ground_and_records_it(tmp_path, monkeyp
                                        atol=0.01)  # fmt: skip
     manifest = json.loads((tmp_path / "ground" / "manifest.json").read_text())
     assert manifest["params"]["fit_ground"] == GroundFit().record()
-    assert "fit_ground" not in json.loads((tmp_path / "plain" / "manifest.json").read_text())[
-        "params"
-    ]  # earlier labels stay up to date
+    assert (
+        "fit_ground" not in json.loads((tmp_path / "plain" / "manifest.json").read_text())["params"]
+    )  # earlier labels stay up to date
     summary = json.loads((tmp_path / "ground" / "summary.json").read_text())["ground_fit"]
     assert summary["boxes_moved"] == 6 and summary["boxes_kept"] == 0
     assert summary["mean_shift_m"] == pytest.approx(-0.25, abs=0.01)
