@@ -94,6 +94,12 @@ def rows(re: int) -> list[tuple[str, str, str, str]]:
                            variant="occ"),
         *target_share_rows(re, "x1 long, PPCG with --occlusion (1:1)", "ppcg", "1:1", x1_long,
                            variant="occ"),
+        # SET=ppcg LABELS=ground [PPCG=occ] (session 29): PPCG from `pseudo-label --fit-ground`
+        # boxes, without and with --occlusion; label-free
+        *target_share_rows(re, "x1 long, PPCG from --fit-ground boxes, 1:7", "ppcg", "1:7",
+                           x1_long, variant="ground"),
+        *target_share_rows(re, "x1 long, PPCG from --fit-ground boxes with --occlusion, 1:7",
+                           "ppcg", "1:7", x1_long, variant="ground-occ"),
         # oracle_budget_job.sh's row, EPOCHS=4 x re
         ("oracle, x1 long's retraining length", f"baselines/oracle_{4 * re}ep/eval",
          f"oracle_{4 * re}ep", retrain),

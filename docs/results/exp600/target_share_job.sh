@@ -29,7 +29,8 @@
 # scene behind it; label-free; the make chain in variants/ppcg-occ, which links the seed's data,
 # library, iter0 and first sweep and pseudo labels), at MIX=1:7 EPOCHS=2 and MIX=1:1 EPOCHS=8.
 # LABELS=ground SET=ppcg: PPCG from `pseudo-label --fit-ground` boxes (each bottom on the ground
-# around it; variants/labels-ground), alone or with PPCG=occ (variants/labels-ground-ppcg-occ).
+# around it; variants/labels-ground), alone or with PPCG=occ (variants/labels-ground-ppcg-occ);
+# LABELS=tta-ground: both label options (variants/labels-tta-ground[-ppcg-occ]).
 # The boxes' quality is worth little at 1:1 and much at 1:7 (true boxes of the found cars against
 # the pseudo ones, 800 frames: 85.81 / 85.58 at 1:1, 87.72 / 85.00 at 1:7).
 # Each row is evaluated like x1 long (its own sweep, 200 validation frames, range + KITTI) and on
@@ -42,8 +43,9 @@ D=${DALI:-.venv/bin/dali}
 R=runs/experiment-s$SEED
 NAME=x1long-$SET${LABELS:+-$LABELS}${PPCG:+-$PPCG}-mix${MIX//:/}$([ $INIT_FROM = previous ] || echo -$INIT_FROM)$([ $EPOCHS = 1 ] || echo -ep$EPOCHS)
 V=$R/variants/$NAME
-case $LABELS in tta) PSEUDO_FLAGS=--tta ;; ground) PSEUDO_FLAGS=--fit-ground ;; "") PSEUDO_FLAGS= ;;
-  *) echo "LABELS must be tta or ground, got '$LABELS'" >&2; exit 2 ;; esac
+case $LABELS in tta) PSEUDO_FLAGS=--tta ;; ground) PSEUDO_FLAGS=--fit-ground ;;
+  tta-ground) PSEUDO_FLAGS="--tta --fit-ground" ;; "") PSEUDO_FLAGS= ;;
+  *) echo "LABELS must be tta, ground or tta-ground, got '$LABELS'" >&2; exit 2 ;; esac
 case $PPCG in occ) PPCG_FLAGS=--occlusion ;; "") PPCG_FLAGS= ;;
   *) echo "PPCG must be occ, got '$PPCG'" >&2; exit 2 ;; esac
 if [ -n "$LABELS$PPCG" ] && [ $SET != ppcg ]; then
@@ -55,6 +57,9 @@ case $SET in
       L=$R/variants/$(echo ${LABELS:+labels-$LABELS}${LABELS:+${PPCG:+-}}${PPCG:+ppcg-$PPCG})
       TARGET_SIDE="$L/iter1/rc $L/iter1/cf"
       source "$(dirname "$0")/variant_links.sh"; link_variant $L ptsn $([ -n "$LABELS" ] || echo pseudo)
+      # both: the labels-<LABELS> variant's pseudo labels when made (the same stage, same inputs)
+      [ -z "$LABELS" ] || [ -z "$PPCG" ] || [ ! -f $R/variants/labels-$LABELS/iter1/pseudo/manifest.json ] \
+          || ln -sfn ../../labels-$LABELS/iter1/pseudo $L/iter1/pseudo
       make -f "${MAKEFILE:-$(dirname "$0")/../../../Makefile}" $L/iter1/rc/manifest.json \
           $L/iter1/cf/manifest.json RUN=$L SEED=$SEED SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAMES=200 \
           EPOCHS=4 RETRAIN_EPOCHS=2 PSEUDO_FLAGS="$PSEUDO_FLAGS" PPCG_FLAGS="$PPCG_FLAGS"
