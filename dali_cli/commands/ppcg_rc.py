@@ -53,7 +53,8 @@ def ppcg_options(function):
                           "whose rays meet a box's model before they reach the point are re-cast "
                           "onto it (RC) or dropped (CF), so no scene shows through a model car "
                           "placed where the pseudo box, not the real car, is "
-                          "(dali_cli.ppcg.occlusion)."),
+                          "(dali_cli.ppcg.occlusion). Off by default: level with it off on the "
+                          "12,000-step benchmark, seed 0 (docs/RESULTS.md, session 29)."),
         click.option("--label", default="Car", show_default=True,
                      help="Process boxes of this label; other rows pass through as 'raw'."),
         workers_option("1"),
