@@ -22,3 +22,16 @@ def write_stub_inputs(tmp_path: Path, clouds: list[np.ndarray]) -> tuple[Path, P
     model.mkdir()
     (model / "model.json").write_text(json.dumps({"config": {"sensor": "waymo"}}))
     return target, model
+
+
+def pseudo_label_cli(model: Path, target: Path, out: Path, *options: str):
+    """`dali pseudo-label` at s = 1 through the CLI (click's CliRunner result)."""
+    from click.testing import CliRunner
+
+    from dali_cli.cli import main
+
+    return CliRunner().invoke(
+        main,
+        ["pseudo-label", "--model", str(model), "--target", str(target), "--scale", "1.0",
+         "--out", str(out), "--no-progress", *options],
+    )  # fmt: skip

@@ -9,12 +9,10 @@ import json
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
-from stub_stage import write_stub_inputs
+from stub_stage import pseudo_label_cli, write_stub_inputs
 
 from dali_cli.artifacts import read_boxes
 from dali_cli.box_fit import PointFit, fit_boxes, pose_costs
-from dali_cli.cli import main
 from dali_cli.geometry import count_points_in_boxes, wrap_angle
 
 MOUNT = 1.73
@@ -218,11 +216,7 @@ def test_the_stage_fits_the_boxes_by_default_recounts_and_records_the_fit(tmp_pa
     monkeypatch.setattr(stages.pseudo_label, "load_detector", lambda _: AlongOffsetDetector())
 
     def label(out, *options):
-        return CliRunner().invoke(
-            main,
-            ["pseudo-label", "--model", str(model), "--target", str(target), "--scale", "1.0",
-             "--out", str(out), "--no-progress", *options],
-        )  # fmt: skip
+        return pseudo_label_cli(model, target, out, *options)
 
     for out, options in ((tmp_path / "plain", ["--no-fit-points"]), (tmp_path / "fit", [])):
         result = label(out, *options)

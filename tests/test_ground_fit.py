@@ -119,26 +119,17 @@ class FloatingDetector:
 def test_the_stage_puts_the_boxes_on_the_ground_and_records_it(tmp_path, monkeypatch):
     import json
 
-    from click.testing import CliRunner
-    from stub_stage import write_stub_inputs
+    from stub_stage import pseudo_label_cli, write_stub_inputs
     from test_box_fit import stage_cars, stage_points
 
     import stages.pseudo_label
     from dali_cli.artifacts import read_boxes
-    from dali_cli.cli import main
 
     target, model = write_stub_inputs(tmp_path, [stage_points(i) for i in range(3)])
     monkeypatch.setattr(stages.pseudo_label, "load_detector", lambda _: FloatingDetector())
 
-    def label(out, *options):
-        return CliRunner().invoke(
-            main,
-            ["pseudo-label", "--model", str(model), "--target", str(target), "--scale", "1.0",
-             "--out", str(out), "--no-progress", *options],
-        )  # fmt: skip
-
     for name, options in (("plain", []), ("ground", ["--fit-ground"])):
-        result = label(tmp_path / name, *options)
+        result = pseudo_label_cli(model, target, tmp_path / name, *options)
         assert result.exit_code == 0, result.output
     for name, lift in (("plain", 0.25), ("ground", 0.0)):
         table = read_boxes(tmp_path / name)
