@@ -91,6 +91,7 @@ def pseudo_label(
     views: tta.Views | None = None,
     point_fit: box_fit.PointFit | None = box_fit.PointFit(),
     ground_fit: GroundFit | None = None,
+    ignore_min: float | None = None,
     force: bool = False,
     dry_run: bool = False,
     workers: int | None = None,
@@ -102,10 +103,16 @@ def pseudo_label(
     augmentation (None or a single view: the detector once at ŝ). `point_fit`: move each box
     onto its points after the size correction (default: the standard fit; None: off).
     `ground_fit`: then put each box's bottom on the ground around it (dali_cli.ground_fit;
-    default None: off). `executor`, `workers`,
+    default None: off). `ignore_min`: boxes scored in [ignore_min, score_min) are written too,
+    as they are, labelled DontCare: ignore regions for `retrain --ignore-label DontCare`
+    (default None: none). `executor`, `workers`,
     `ray_address`: the engine of the detector runs (dali_cli.executors); `inference`: device,
     precision, batch size, progress and (tests) the detector loader (InferenceOptions)."""
     model_dir, target_dir = Path(model_dir), Path(target_dir)
+    if ignore_min is not None and not 0 <= ignore_min < score_min:
+        raise ParameterError(
+            "ignore_min", f"must be at least 0 and below --score-min {score_min}, got {ignore_min}"
+        )
     torch_device, precision = inference_setup(inference, "pseudo_label")
     used, scale_source = used_scale(model_dir, scale, scale_from)
     scale = used.scale  # ŝ exactly as the sweep found it (or the option's)
@@ -127,13 +134,15 @@ def pseudo_label(
         **({"tta": views.record()} if views is not None and not views.single else {}),
         **({"fit_points": point_fit.record()} if point_fit is not None else {}),
         **({"fit_ground": ground_fit.record()} if ground_fit is not None else {}),
+        **({"ignore_min": ignore_min} if ignore_min is not None else {}),
     }  # fmt: skip
     inputs = {"model": model_dir, "target": target_dir}
     inputs.update({"scale_from": scale_from} if scale_from is not None else {})
 
     engine = make_executor(executor, workers, ray_address)
     labeler = FrameLabeler(
-        str(model_dir), str(target_dir), scale, mount_height_m, max_range_m, score_min, nms_iou,
+        str(model_dir), str(target_dir), scale, mount_height_m, max_range_m,
+        score_min if ignore_min is None else ignore_min, nms_iou,
         inference.get("batch_size", 8), inference.get("detector_loader") or load_detector,
         device=torch_device, precision=precision, views=views,
     )  # fmt: skip
@@ -145,6 +154,7 @@ def pseudo_label(
         table, implausible, seconds = label_frames(
             labeler, pool, directory, target, inference.get("progress", True)
         )
+        table, ignored = split_ignore_band(table, score_min)
         correction = fitted = grounded = None
         if method != "none" and len(table):
             table, correction = correct_table(table, e_est, score_min)
@@ -155,14 +165,21 @@ def pseudo_label(
             **({"point_fit": fitted} if fitted is not None else {}),
             **({"ground_fit": grounded} if grounded is not None else {}),
         }
+        band = {} if ignore_min is None else {"boxes_ignore": len(ignored)}
         write_outputs(
-            directory, table, scale_record(used, scale_source, mount_height_m),
+            directory, with_ignore_band(table, ignored),
+            scale_record(used, scale_source, mount_height_m),
             summarize(table, len(target), e_est),
-            {"boxes_implausible": implausible, "size_correction": correction, **fits},
+            {"boxes_implausible": implausible, **band, "size_correction": correction, **fits},
         )  # fmt: skip
         skipped_correction = method != size_correction_method
         return BuildResult(
-            counts={"frames": len(target), "boxes": len(table), "boxes_implausible": implausible},
+            counts={
+                "frames": len(target),
+                "boxes": len(table),
+                "boxes_implausible": implausible,
+                **band,
+            },  # fmt: skip
             timings={"detector_seconds": round(seconds, 3)},
             notes=pseudo_label_notes(implausible, skipped_correction, len(table), score_min),
             extra={
@@ -275,6 +292,30 @@ def label_frames(
         num_points=np.concatenate(counts_all),
     )
     return table, implausible, seconds
+
+
+def split_ignore_band(table: BoxTable, score_min: float) -> tuple[BoxTable, BoxTable]:
+    """(the pseudo boxes: score >= score_min, the rest relabelled IGNORE_LABEL as they are)."""
+    from dali_cli.detector.ignore import IGNORE_LABEL
+
+    scores = np.asarray(table["score"])
+    band = table.select(np.flatnonzero(scores < score_min))
+    band = band.with_columns(label=np.full(len(band), IGNORE_LABEL, dtype=object))
+    return table.select(np.flatnonzero(scores >= score_min)), band
+
+
+def with_ignore_band(table: BoxTable, band: BoxTable) -> BoxTable:
+    """The pseudo boxes followed by the ignore band's rows, which keep their detected boxes (the
+    size correction's factors 1: not corrected)."""
+    if len(band) == 0:
+        return table
+    extra = {
+        name: np.ones(len(band), np.float64)
+        for name in table.columns
+        if name not in band.columns and name.startswith("size_factor_")
+    }
+    band = band.with_columns(**extra)
+    return BoxTable.concat([table, BoxTable({n: band.columns[n] for n in table.columns})])
 
 
 def pseudo_label_notes(

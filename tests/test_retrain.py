@@ -241,3 +241,44 @@ def test_source_size_sn_reads_e_est_from_a_ptsn_sweep(world, tmp_path):
     )
     assert failed.exit_code != 0 and "E_est" in failed.output
     assert not (tmp_path / "x").exists()
+
+
+def test_ignore_label_makes_ppcg_boxes_ignore_regions_and_is_recorded(world, tmp_path):
+    """--ignore-label DontCare: those PPCG rows are neither targets nor dropped, but the
+    training's ignore regions, counted in the manifest; pooled sets keep each frame's regions."""
+    import shutil
+
+    from dali_cli.artifacts import read_boxes, write_boxes
+    from stages.retrain import pool
+
+    marked = tmp_path / "marked"
+    shutil.copytree(world / "rc", marked)
+    table = read_boxes(marked)
+    labels = np.asarray(table["label"]).astype(object)
+    labels[::3] = "DontCare"
+    write_boxes(marked, table.with_columns(label=labels))
+    regions = int((labels == "DontCare").sum())
+    runner = CliRunner()
+    base = ["retrain", "--init", str(world / "iter0"), "--source", str(world / "source"),
+            "--epochs", "1", "--quiet", "--lr", "1e-12", "--ppcg", str(marked)]  # fmt: skip
+    result = runner.invoke(
+        main, [*base, "--ignore-label", "DontCare", "--out", str(tmp_path / "a")]
+    )
+    assert result.exit_code == 0, result.output
+    manifest = read_manifest(tmp_path / "a")
+    assert manifest["params"]["ignore_labels"] == ["DontCare"]
+    assert manifest["outputs"]["counts"]["ppcg_ignore_regions"] == regions > 0
+    plain = runner.invoke(main, [*base, "--out", str(tmp_path / "b")])
+    assert plain.exit_code == 0, plain.output
+    manifest = read_manifest(tmp_path / "b")
+    assert "ignore_labels" not in manifest["params"]  # earlier retrainings stay up to date
+    assert "ppcg_ignore_regions" not in manifest["outputs"]["counts"]
+
+    config = DetectorConfig.from_dict(SMALL)
+    with_regions = load_labeled(marked, config, ignore_labels=("DontCare",))
+    without = load_labeled(world / "cf", config)
+    pooled = pool([without, with_regions], "ppcg")
+    assert [len(r) for r in pooled.ignore] == [0] * len(without) + [
+        len(r) for r in with_regions.ignore
+    ]
+    assert pool([without], "ppcg").ignore is None

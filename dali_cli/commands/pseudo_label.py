@@ -80,6 +80,11 @@ def views_of(on: bool, factors: tuple[float, ...], mirror: bool):
                    "x, y, size and yaw kept; dali_cli.ground_fit). Target points only, no "
                    "label. Off by default: better heights (0.838 -> 0.859 of the matched boxes "
                    "at 3D IoU >= 0.7), the same retrained model (docs/RESULTS.md, session 29).")  # fmt: skip
+@click.option("--ignore-min", type=click.FloatRange(0, 1), default=None,
+              help="Also write the boxes scored in [--ignore-min, --score-min), as detected, "
+                   "labelled DontCare: ignore regions for `dali retrain --ignore-label "
+                   "DontCare` (neither car nor background there). PPCG passes them through "
+                   "untouched. Off by default.")  # fmt: skip
 @workers_option("1")
 @executor_options
 @target_scaling_options

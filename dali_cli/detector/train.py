@@ -279,7 +279,7 @@ def step_samples(
     mine,
 ) -> tuple[int, list]:
     """The data set of optimizer step `step` (the mix's interleaving) and this rank's augmented
-    samples `(points (n, 4), boxes (k, 7))` of its batch: frame j of the global batch is drawn
+    samples (data.Sample: points (n, 4), boxes (k, 7), ignore regions (k', 7)) of its batch: frame j of the global batch is drawn
     from (seed, step, j), whatever the rank."""
     d = pattern[step % len(pattern)]
     cycles, within = divmod(step, len(pattern))
@@ -306,17 +306,19 @@ def optimize_step(
     from dali_cli.device import autocast
 
     config = net.config
-    points = torch.from_numpy(np.concatenate([p for p, _ in samples])).to(device)  # (P, 4)
+    points = torch.from_numpy(np.concatenate([s.points for s in samples])).to(device)  # (P, 4)
     batch_index = torch.from_numpy(
-        np.repeat(np.arange(len(samples)), [len(p) for p, _ in samples])
+        np.repeat(np.arange(len(samples)), [len(s.points) for s in samples])
     ).to(device)
-    targets = build_targets([b for _, b in samples], config).to(device)
+    targets = build_targets([s.boxes for s in samples], config, [s.ignore for s in samples]).to(
+        device
+    )
     with autocast(device, settings.precision):  # bf16: the networks' matrix products
         maps = forward(points, batch_index, len(samples))  # float32 maps
         loss, terms = detection_loss(maps, targets, config)
         if net.refiner is not None:  # its point MLP is a third of a step's products
             loss, terms = add_refine_loss(
-                net, maps, [p for p, _ in samples], targets, loss, terms, settings.seed, step,
+                net, maps, [s.points for s in samples], targets, loss, terms, settings.seed, step,
                 positions=list(mine),
             )  # fmt: skip
     optimizer.zero_grad(set_to_none=True)
@@ -351,8 +353,9 @@ def add_refine_loss(
     positions = range(len(points_list)) if positions is None else positions
     rngs = [np.random.default_rng([seed, step, REFINE_STREAM, j]) for j in positions]
     box, iou = refine_loss(
-        net.refiner, points_list, list(boxes.cpu().numpy()), targets.objects, config, rngs
-    )
+        net.refiner, points_list, list(boxes.cpu().numpy()), targets.objects, config, rngs,
+        targets.ignore_boxes,
+    )  # fmt: skip
     w_box, w_iou = config.refine_weights
     total = loss + w_box * box + w_iou * iou
     return total, {
