@@ -126,6 +126,9 @@ PSEUDO_FLAGS   ?=
 # options of both ppcg-rc and ppcg-cf, e.g. PPCG_FLAGS="--no-orient-models --point-margin-m 0"
 # (the paper's PPCG: car models as the detector's heading has them, the points in the box only)
 PPCG_FLAGS     ?=
+# retrain options (iterations and x1 long), e.g. RETRAIN_FLAGS="--ignore-label DontCare" with
+# PSEUDO_FLAGS="--score-min 0.6 --ignore-min 0.3": the boxes scored 0.3-0.6 as ignore regions
+RETRAIN_FLAGS  ?=
 # evaluation: all boxes and range bands of the front region (90 deg FOV, detection range, as ST3D
 # evaluates KITTI), AP at IoU 0.7 and 0.5
 EVAL_FLAGS     ?= --protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
@@ -171,7 +174,7 @@ $(RUN)/iter$(1)/rc/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY
 $(RUN)/iter$(1)/cf/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
 	$(DALI) ppcg-cf --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) $(PPCG_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/model/manifest.json: $(RUN)/iter$(1)/rc/manifest.json $(RUN)/iter$(1)/cf/manifest.json $(SOURCE)/manifest.json
-	$(TRAIN_DALI) retrain --init $(RUN)/iter$(2)/model --source $(SOURCE) --ppcg $(RUN)/iter$(1)/rc $(RUN)/iter$(1)/cf $(call SOURCE_SIZE_FLAGS,$(1)) --seed $(SEED) $(call RETRAIN_BUDGET,$(1)) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $$(@D)
+	$(TRAIN_DALI) retrain --init $(RUN)/iter$(2)/model --source $(SOURCE) --ppcg $(RUN)/iter$(1)/rc $(RUN)/iter$(1)/cf $(call SOURCE_SIZE_FLAGS,$(1)) --seed $(SEED) $(call RETRAIN_BUDGET,$(1)) $(RETRAIN_FLAGS) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $$(@D)
 $(RUN)/iter$(1)/eval/manifest.json: $(RUN)/iter$(3)/ptsn/manifest.json $(TARGET_VAL)/manifest.json
 	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter$(1)/model --data $(TARGET_VAL) --scale-from $(RUN)/iter$(3)/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 iter$(1): iter$(2) $(RUN)/iter$(1)/eval/manifest.json
@@ -186,7 +189,7 @@ $(foreach n,1 2 3 4 5,$(eval $(call ITER,$(n),$(shell echo $$(( $(n) - 1 ))),$(s
 # +3.8 ± 1.6 AP_3D@0.7 over the control on four seeds, x2 +1.6 ± 0.9)
 X1_LONG_BUDGET = $(if $(MINUTES),--minutes $$(( 2 * $(MINUTES) )),--epochs $$(( $(RETRAIN_EPOCHS_1) + $(RETRAIN_EPOCHS_2) )))
 $(RUN)/x1_long/model/manifest.json: $(RUN)/iter1/rc/manifest.json $(RUN)/iter1/cf/manifest.json $(SOURCE)/manifest.json
-	$(TRAIN_DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/rc $(RUN)/iter1/cf $(call SOURCE_SIZE_FLAGS,1) --seed $(SEED) $(X1_LONG_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
+	$(TRAIN_DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/rc $(RUN)/iter1/cf $(call SOURCE_SIZE_FLAGS,1) --seed $(SEED) $(X1_LONG_BUDGET) $(RETRAIN_FLAGS) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/x1_long/ptsn/manifest.json: $(RUN)/x1_long/model/manifest.json $(TARGET)/manifest.json
 	$(DALI) ptsn-sweep $(DEVICE_FLAG) --model $(RUN)/x1_long/model --target $(TARGET) --expected-size $(EXPECTED) --score-min $(SCORE_MIN) --seed $(SEED) --out $(@D)
 $(RUN)/x1_long/eval/manifest.json: $(RUN)/x1_long/ptsn/manifest.json $(TARGET_VAL)/manifest.json
