@@ -11,7 +11,9 @@
 # PPCG (SET=rawpseudo MIX=1:7 EPOCHS=2) and PPCG from `pseudo-label --tta` boxes (LABELS=tta
 # SET=ppcg MIX=1:7 EPOCHS=2), both label-free, and (session 29) PPCG with `--occlusion` (PPCG=occ
 # SET=ppcg, MIX=1:7 EPOCHS=2 and MIX=1:1 EPOCHS=8) and from `pseudo-label --fit-ground` boxes
-# (LABELS=ground, with and without PPCG=occ, 1:7), each where finished. ONLY (an extended regex)
+# (LABELS=ground, with and without PPCG=occ, 1:7), and (session 30) with the boxes scored 0.3-0.6
+# as ignore regions (LABELS=ignore SET=ppcg, MIX=1:7 EPOCHS=2 and MIX=1:1 EPOCHS=8), each where
+# finished. ONLY (an extended regex)
 # keeps the rows whose names match it, the control always (TAG names the output then, e.g.
 # ONLY='^x1 long$|PPCG 1:7|occlusion' TAG=compare29).
 # Writes runs/val800/experiment-s$SEED/budget-re$RE/${TAG:-compare27}_r{40,400}.json (session 26's run of
@@ -37,6 +39,8 @@ for row in "control=budget-re$RE/control" "x1 long=budget-re$RE/x1_long" "x2=x2l
     "x1 long, PPCG with occlusion=x1long-ppcg-occ-mix11-ep$(( 2 * RE ))" \
     "PPCG from --fit-ground boxes 1:7=x1long-ppcg-ground-mix17-ep$(( RE / 2 ))" \
     "PPCG from --fit-ground boxes with occlusion 1:7=x1long-ppcg-ground-occ-mix17-ep$(( RE / 2 ))" \
+    "ignore regions 1:7=x1long-ppcg-ignore-mix17-ep$(( RE / 2 ))" \
+    "x1 long, ignore regions=x1long-ppcg-ignore-mix11-ep$(( 2 * RE ))" \
     "oracle=budget-re$RE/oracle"; do
   name=${row%%=*}
   [ -z "${ONLY:-}" ] || [ "$name" = control ] || [[ "$name" =~ $ONLY ]] || continue

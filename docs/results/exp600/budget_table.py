@@ -100,6 +100,12 @@ def rows(re: int) -> list[tuple[str, str, str, str]]:
                            x1_long, variant="ground"),
         *target_share_rows(re, "x1 long, PPCG from --fit-ground boxes with --occlusion, 1:7",
                            "ppcg", "1:7", x1_long, variant="ground-occ"),
+        # SET=ppcg LABELS=ignore (session 30): `pseudo-label --score-min 0.6 --ignore-min 0.3`,
+        # `retrain --ignore-label DontCare` (the boxes scored 0.3-0.6 as ignore regions); label-free
+        *target_share_rows(re, "x1 long, PPCG from boxes >= 0.6, 0.3-0.6 ignored, 1:7", "ppcg",
+                           "1:7", x1_long, variant="ignore"),
+        *target_share_rows(re, "x1 long, PPCG from boxes >= 0.6, 0.3-0.6 ignored (1:1)", "ppcg",
+                           "1:1", x1_long, variant="ignore"),
         # oracle_budget_job.sh's row, EPOCHS=4 x re
         ("oracle, x1 long's retraining length", f"baselines/oracle_{4 * re}ep/eval",
          f"oracle_{4 * re}ep", retrain),
