@@ -12,8 +12,8 @@
 # SET=ppcg MIX=1:7 EPOCHS=2), both label-free, and (session 29) PPCG with `--occlusion` (PPCG=occ
 # SET=ppcg, MIX=1:7 EPOCHS=2 and MIX=1:1 EPOCHS=8) and from `pseudo-label --fit-ground` boxes
 # (LABELS=ground, with and without PPCG=occ, 1:7), and (session 30) with the boxes scored 0.3-0.6
-# as ignore regions (LABELS=ignore SET=ppcg, MIX=1:7 EPOCHS=2 and MIX=1:1 EPOCHS=8), each where
-# finished. ONLY (an extended regex)
+# as ignore regions (LABELS=ignore SET=ppcg, MIX=1:7 EPOCHS=2 and MIX=1:1 EPOCHS=8) and with the
+# 0.6 cut alone (LABELS=cut06, 1:7), each where finished. ONLY (an extended regex)
 # keeps the rows whose names match it, the control always (TAG names the output then, e.g.
 # ONLY='^x1 long$|PPCG 1:7|occlusion' TAG=compare29).
 # Writes runs/val800/experiment-s$SEED/budget-re$RE/${TAG:-compare27}_r{40,400}.json (session 26's run of
@@ -41,6 +41,7 @@ for row in "control=budget-re$RE/control" "x1 long=budget-re$RE/x1_long" "x2=x2l
     "PPCG from --fit-ground boxes with occlusion 1:7=x1long-ppcg-ground-occ-mix17-ep$(( RE / 2 ))" \
     "ignore regions 1:7=x1long-ppcg-ignore-mix17-ep$(( RE / 2 ))" \
     "x1 long, ignore regions=x1long-ppcg-ignore-mix11-ep$(( 2 * RE ))" \
+    "cut 0.6 without ignore regions 1:7=x1long-ppcg-cut06-mix17-ep$(( RE / 2 ))" \
     "oracle=budget-re$RE/oracle"; do
   name=${row%%=*}
   [ -z "${ONLY:-}" ] || [ "$name" = control ] || [[ "$name" =~ $ONLY ]] || continue

@@ -106,6 +106,8 @@ def rows(re: int) -> list[tuple[str, str, str, str]]:
                            "1:7", x1_long, variant="ignore"),
         *target_share_rows(re, "x1 long, PPCG from boxes >= 0.6, 0.3-0.6 ignored (1:1)", "ppcg",
                            "1:1", x1_long, variant="ignore"),
+        *target_share_rows(re, "x1 long, PPCG from boxes >= 0.6, no ignore regions, 1:7", "ppcg",
+                           "1:7", x1_long, variant="cut06"),
         # oracle_budget_job.sh's row, EPOCHS=4 x re
         ("oracle, x1 long's retraining length", f"baselines/oracle_{4 * re}ep/eval",
          f"oracle_{4 * re}ep", retrain),
