@@ -13,6 +13,7 @@ from make_plans import dali_commands
 from toy_scenes import place_cars, scan
 
 from dali_cli.detector import Detector, DetectorConfig, PillarCenterNet, TrainSettings
+from dali_cli.detector.data import Sample
 from dali_cli.detector.train import optimize_step
 from dali_cli.sensors import get_profile
 
@@ -54,9 +55,8 @@ def test_training_step_runs_both_stages_at_the_precision(precision):
     seen = dtypes_seen(net)
     optimizer = torch.optim.AdamW(net.parameters(), lr=1e-3)
     settings = TrainSettings(epochs=1, batch_size=1, threads=1, precision=precision)
-    terms = optimize_step(
-        net, net, optimizer, [toy_frame(0)], settings, torch.device("cpu"), 0, [0]
-    )
+    sample = Sample(*toy_frame(0), np.zeros((0, 7)))  # no ignore regions
+    terms = optimize_step(net, net, optimizer, [sample], settings, torch.device("cpu"), 0, [0])
     expected = torch.bfloat16 if precision == "bf16" else torch.float32
     assert seen["conv"] == [expected]
     assert seen["refiner_linear"] and set(seen["refiner_linear"]) == {expected}
