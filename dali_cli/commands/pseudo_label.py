@@ -85,8 +85,8 @@ def views_of(on: bool, factors: tuple[float, ...], mirror: bool):
                    "labelled DontCare: ignore regions for `dali retrain --ignore-label "
                    "DontCare` (neither car nor background there). PPCG passes them through "
                    "untouched. Off by default: with --score-min 0.6 --ignore-min 0.3 the 1:7 "
-                   "retraining gained +0.39 +- 0.29 AP_3D, 1:1 was level, one seed "
-                   "(docs/RESULTS.md, session 30).")  # fmt: skip
+                   "retraining gained +0.39 +- 0.29 AP_3D, but --score-min 0.6 alone as much; "
+                   "1:1 level; one seed (docs/RESULTS.md, session 30).")  # fmt: skip
 @workers_option("1")
 @executor_options
 @target_scaling_options
