@@ -29,18 +29,22 @@ MARGIN_M = 0.5  # footprints grow by this on each side: the heat around a car sp
 def inside_footprints(xy: np.ndarray, boxes: np.ndarray, margin_m: float = 0.0) -> np.ndarray:
     """(N,) bool: which points xy (N, 2) (m) lie inside the BEV footprint of any box (k, 7),
     each side grown by `margin_m`."""
+    from dali_cli.geometry import box_frames, inside_box_frames
+
     xy = np.asarray(xy, np.float64).reshape(-1, 2)
     boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
     if len(boxes) == 0 or len(xy) == 0:
         return np.zeros(len(xy), bool)
-    d = xy[:, None, :] - boxes[None, :, :2]  # (N, k, 2)
-    c, s = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])  # (k,)
-    along = c * d[..., 0] + s * d[..., 1]  # (N, k) in each box's frame
-    across = -s * d[..., 0] + c * d[..., 1]
-    inside = (np.abs(along) <= boxes[:, 3] / 2 + margin_m) & (
-        np.abs(across) <= boxes[:, 4] / 2 + margin_m
+    cos, sin, centre, half = box_frames(boxes, margin_m, np.float64)  # (k,), (k, 3)
+    shape = (len(xy), len(boxes))
+    xyz = np.concatenate(  # (N, k, 3): each point at each box's own height (a BEV test)
+        [
+            np.broadcast_to(xy[:, None, :], (*shape, 2)),
+            np.broadcast_to(centre[:, 2:3], (*shape, 1)),
+        ],
+        axis=-1,
     )
-    return inside.any(axis=1)
+    return inside_box_frames(xyz, cos, sin, centre, half).any(axis=1)
 
 
 def ignored_cells(boxes: np.ndarray, config: DetectorConfig) -> np.ndarray:
