@@ -54,7 +54,8 @@ def main() -> None:
     print("|---|---|---|")
     for lo, hi in zip(SCORE_BANDS[:-1], SCORE_BANDS[1:], strict=True):
         band = (score_all >= lo) & (score_all < hi)
-        print(f"| {lo:.2f}-{min(hi, 1.0):.2f} | {band.sum()} | {true_all[band].mean():.3f} |")
+        share = f"{true_all[band].mean():.3f}" if band.any() else "-"  # no box in the band
+        print(f"| {lo:.2f}-{min(hi, 1.0):.2f} | {band.sum()} | {share} |")
     t = truth.boxes
     region = (t[:, 0] >= 0) & (t[:, 0] < 70.4) & (np.abs(t[:, 1]) < 40)
     region &= np.asarray(truth["num_points"]) >= 5
