@@ -27,11 +27,24 @@ def parse_rows(specs: tuple[str, ...]) -> dict[str, Path]:
         if name in rows:
             raise ParameterError("preds", f"row name '{name}' given twice")
         if not Path(path).exists():
-            raise ParameterError("preds", f"{path}: not found (row '{name}')")
+            raise ParameterError("preds", f"{path}: not found (row '{name}')" + _name_hint(spec))
         rows[name] = Path(path)
     if len(rows) < 2:
         raise ParameterError("preds", "give at least two --pred rows to compare")
     return rows
+
+
+def _name_hint(spec: str) -> str:
+    """When `spec` names an existing path after a later "=", the row's name held an "=": say so."""
+    cuts = [i for i, char in enumerate(spec) if char == "="][1:]
+    for cut in cuts:
+        name, path = spec[:cut], spec[cut + 1 :]
+        if Path(path).exists():
+            return (
+                f"; '{path}' exists: a row name cannot contain '=' (the name ends at the first"
+                f" one), rename the row '{name}'"
+            )
+    return ""
 
 
 def ap_metric(gt_path, settings: Protocol):

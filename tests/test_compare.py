@@ -116,6 +116,11 @@ def test_cli_errors_name_the_problem_and_write_nothing(scene, tmp_path):
     absent = runner.invoke(main, [*base, "--pred", f"a={paths['perfect']}",
                                   "--pred", f"b={tmp_path / 'nope'}"])  # fmt: skip
     assert absent.exit_code == 2 and "nope" in absent.output
+    assert "cannot contain" not in absent.output  # no path after another "=": no hint
+    equals = runner.invoke(main, [*base, "--pred", f"a={paths['perfect']}",
+                                  "--pred", f"cars >= 0.6={paths['missing']}"])  # fmt: skip
+    assert equals.exit_code == 2, equals.output
+    assert "a row name cannot contain '='" in equals.output and "'cars >= 0.6'" in equals.output
     foreign = tmp_path / "notes.json"
     foreign.write_text('{"mine": 1}')
     rows = ["--pred", f"a={paths['perfect']}", "--pred", f"b={paths['missing']}"]

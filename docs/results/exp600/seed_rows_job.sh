@@ -25,7 +25,7 @@ wait $A; wait $B
 O=runs/val800/experiment-s$SEED
 for pos in 40 400; do
   $D compare --gt $V800 --pred "PPCG 1:7"=$O/x1long-ppcg-mix17-ep2/predictions.parquet \
-    --pred "PPCG 1:7, cars >= 0.6"=$O/x1long-ppcg-cut06-mix17-ep2/predictions.parquet \
+    --pred "PPCG 1:7, cars from 0.6"=$O/x1long-ppcg-cut06-mix17-ep2/predictions.parquet \
     --protocol range --front-only --iou 0.7 --recall-positions $pos --samples 400 --seed 0 \
     --no-progress --out $O/direct31_cut17_r$pos.json
 done
