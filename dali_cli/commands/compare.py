@@ -39,7 +39,7 @@ the row does not beat the reference. --out FILE.json writes it ({"bootstrap": {"
 @click.command(name="compare", epilog=EPILOG)
 @click.option("--pred", "preds", multiple=True, required=True, metavar="NAME=PATH",
               help="A row: its name and its predictions; repeat (the first is the "
-                   "reference).")  # fmt: skip
+                   "reference). The name ends at the first '=', so it cannot hold one.")  # fmt: skip
 @click.option("--gt", "gt_path", required=True, type=click.Path(exists=True, path_type=Path),
               help="Ground truth (box table or label_2 dir) of the frames.")  # fmt: skip
 @click.option("--iou", type=float, default=0.7, show_default=True,

@@ -7,6 +7,8 @@
 # 800 fresh validation frames, R40 and R400 -> runs/val800/experiment-s<SEED>/direct31_cut17_r*.json.
 # Resumable: every step is an artifact directory. From the directory holding runs/:
 #   SEED=1 bash /work/main/docs/results/exp600/seed_rows_job.sh
+# Start it unpinned (no taskset around it): the cut row's pseudo labels, RC and CF run in its
+# subshell without a taskset of their own, and would share the other row's core.
 set -euo pipefail
 SEED=${SEED:-1}
 HERE=$(cd "$(dirname "$0")" && pwd)
