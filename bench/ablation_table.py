@@ -22,7 +22,7 @@ HEADER = (
 def row(name: str, directory: Path) -> str:
     """The table row of one eval directory (AP in %, sizes in m), read with `dali report`'s own
     readers of metrics.json and metrics_kitti.json."""
-    from dali_cli.report import BANDS, read_bands, read_kitti, read_metrics
+    from dali_cli.reporting.report import BANDS, read_bands, read_kitti, read_metrics
 
     path = directory / "metrics.json"
     document = json.loads(path.read_text())

@@ -27,7 +27,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dali_cli.artifacts import BoxTable, FrameSet, read_boxes
 from dali_cli.detector import (
     Augmentation,
     Detector,
@@ -41,6 +40,7 @@ from dali_cli.detector.augment import ObjectDatabase
 from dali_cli.detector.data import detection_region
 from dali_cli.detector.runtime import cpu_model
 from dali_cli.sensors import get_profile
+from dali_cli.store.artifacts import BoxTable, FrameSet, read_boxes
 
 RESULTS = Path(__file__).resolve().parent / "results"
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the toy scenes
@@ -142,7 +142,7 @@ def score_val_set(detector, val, val_frames, gt, mount_height_m: float) -> dict:
     """AP_BEV / AP_3D at IoU 0.7 and 0.5 on a labeled val set (protocols st3d, st3d with >= 10
     points, range, and kitti's moderate when the labels carry KITTI difficulty fields), the
     inference time per frame and the mean predicted size at score >= 0.3."""
-    from dali_cli.evaluate import evaluate, has_kitti_columns
+    from dali_cli.evaluation.evaluate import evaluate, has_kitti_columns
 
     started = time.perf_counter()
     predictions = detector.predict(val_frames, mount_height_m=mount_height_m)
@@ -327,7 +327,7 @@ def match_detections(
 
 def bench_errors(args) -> dict:
     """Error breakdown of matched detections (score >= --score-min) in the st3d region."""
-    from dali_cli.evaluate import in_st3d_region
+    from dali_cli.evaluation.evaluate import in_st3d_region
     from dali_cli.geometry import iou_3d_pairs
 
     torch.set_num_threads(args.threads)

@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli import geometry
-from dali_cli.artifacts import BoxTable, write_boxes
-from dali_cli.evaluate import evaluate
-from dali_cli.kitti_label import write_label_dir
+from dali_cli.evaluation.evaluate import evaluate
+from dali_cli.evaluation.kitti_label import write_label_dir
+from dali_cli.store.artifacts import BoxTable, write_boxes
 
 RESULTS = Path(__file__).resolve().parent / "results" / "eval.json"
 CAR = (3.9, 1.6, 1.5)

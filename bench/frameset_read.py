@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.artifacts import FRAMES_NAME, FrameSet, FrameSetWriter
+from dali_cli.store.artifacts import FRAMES_NAME, FrameSet, FrameSetWriter
 
 RESULTS = Path(__file__).resolve().parent / "results" / "frameset_read.json"
 POINTS_PER_FRAME = 120_000

@@ -21,7 +21,7 @@ KITTI = "KITTI mod AP_3D@0.7"
 
 def read_row(directory: Path) -> dict[str, float] | None:
     """{metric: AP %} of one eval directory, None when it has no metrics.json yet."""
-    from dali_cli.report import read_kitti, read_metrics
+    from dali_cli.reporting.report import read_kitti, read_metrics
 
     path = directory / "metrics.json"
     if not path.is_file():
@@ -36,7 +36,7 @@ def read_row(directory: Path) -> dict[str, float] | None:
 def paired_table(base: tuple[str, str], rows: list[tuple[str, str]], seeds: list[int]) -> str:
     """Markdown: per row and metric, the per-seed values, the differences to the base and their
     mean ± sample std."""
-    from dali_cli.report_aggregate import statistics
+    from dali_cli.reporting.aggregate import statistics
 
     lines = [
         f"| row | metric | per seed ({', '.join(map(str, seeds))}) | mean ± std "

@@ -36,7 +36,7 @@ def make_frames(directory: Path, sensor: str, frames: int, seed: int) -> dict:
     """Synthesize `frames` frames of `sensor` with jittered labels as pseudo boxes."""
     from pareto.data import jittered_frames
 
-    from dali_cli.artifacts import BoxTable, FrameSetWriter, write_boxes, write_frameset
+    from dali_cli.store.artifacts import BoxTable, FrameSetWriter, write_boxes, write_frameset
 
     made = jittered_frames(sensor, frames, seed)
     data = [(frame_id, points) for frame_id, points, _ in made]
@@ -93,8 +93,8 @@ def run_stage(mode: str, target: Path, library: Path, out: Path, models: str) ->
     same frames (bench/pareto/ppcg_phases.py)."""
     from pareto.ppcg_phases import Phases, floor_embree, floor_read, floor_write
 
-    from dali_cli.artifacts import DEFAULT_CHUNK_POINTS, FrameSet
-    from dali_cli.manifest import read_manifest
+    from dali_cli.store.artifacts import DEFAULT_CHUNK_POINTS, FrameSet
+    from dali_cli.store.manifest import read_manifest
     from stages.ppcg_cf import ppcg_cf
     from stages.ppcg_rc import ppcg_rc
 

@@ -96,7 +96,7 @@ def run_stage(
     """Run one stage as a user would (`dali ...` in a fresh process, --force); returns the
     command's wall and CPU seconds (its workers' included) and its manifest (wall_seconds = the
     stage's own build time)."""
-    from dali_cli.manifest import read_manifest
+    from dali_cli.store.manifest import read_manifest
 
     dali = str(Path(sys.executable).with_name("dali"))
     engine_args = ["--executor", engine, "--workers", str(workers)]
@@ -204,8 +204,8 @@ def driver_merge(frames_dir: Path, root: Path) -> dict:
     """The driver's serial share of a sharded stage: reading shard files and appending their
     frames to the artifact's FrameSetWriter, per frame and per million points, with zstd chunks
     (synth's frames.zarr) and raw chunks (ppcg's)."""
-    from dali_cli.artifacts import FrameSet, FrameSetWriter
     from dali_cli.executors.shards import ShardFramesWriter, read_shard_frames
+    from dali_cli.store.artifacts import FrameSet, FrameSetWriter
 
     frames = FrameSet(frames_dir)
     shards = []
@@ -238,7 +238,7 @@ def driver_merge(frames_dir: Path, root: Path) -> dict:
 
 
 def pool_overhead(calls: int = 200) -> dict:
-    from dali_cli.workers import process_pool
+    from dali_cli.runtime.workers import process_pool
 
     started = time.perf_counter()
     with process_pool(1) as pool:

@@ -11,7 +11,7 @@ import importlib
 import click
 
 from dali_cli import __version__
-from dali_cli.errors import ParameterError, StageError
+from dali_cli.runtime.errors import ParameterError, StageError
 
 # command name -> module under dali_cli.commands (each defines `command`)
 COMMANDS: dict[str, tuple[str, str]] = {

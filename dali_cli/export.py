@@ -13,9 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli import kitti_label
-from dali_cli.artifacts import BoxTable
-from dali_cli.frame_ids import child_path
+from dali_cli.evaluation import kitti_label
 from dali_cli.importers.common import ImportFormatError
 from dali_cli.importers.kitti import (
     DEFAULT_IMAGE_SIZE,
@@ -27,6 +25,8 @@ from dali_cli.importers.kitti import (
     png_size,
     read_calib,
 )
+from dali_cli.store.artifacts import BoxTable
+from dali_cli.store.frame_ids import child_path
 
 LABEL_DECIMALS = 4  # KITTI's own files have 2; 4 keep export -> import within 1e-4 m
 KITTI_COLUMNS = (

@@ -23,7 +23,9 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from dali_cli.artifacts import (
+from dali_cli.geometry import point_box_indices, wrap_angle
+from dali_cli.procedural import KINDS, generate_car_mesh
+from dali_cli.store.artifacts import (
     COMPLETE_CHUNKS_ATTR,
     STORE_EVERY_CHUNK,
     ArtifactError,
@@ -31,8 +33,6 @@ from dali_cli.artifacts import (
     read_boxes,
     read_whole_array,
 )
-from dali_cli.geometry import point_box_indices, wrap_angle
-from dali_cli.procedural import KINDS, generate_car_mesh
 
 LIBRARY_ZARR = "library.zarr"
 MESHES_INDEX = "meshes.parquet"

@@ -23,7 +23,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from dali_cli.cores import available_cores
+from dali_cli.runtime.cores import available_cores
 
 _MIN_RAYS_PER_THREAD = 16_384
 _CACHE_SIZE = 512

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.errors import StageError
+from dali_cli.runtime.errors import StageError
 
 DEFAULT_SENSORS_PATH = Path(__file__).resolve().parent.parent / "sensors.toml"
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.errors import StageError
+from dali_cli.runtime.errors import StageError
 
 
 def shift_frame(
@@ -38,7 +38,7 @@ def too_small(boxes: np.ndarray, delta_lwh: np.ndarray) -> np.ndarray:
 
 def model_delta(model_dir: str | Path) -> tuple[float, float, float]:
     """The SN shift (l, w, h in m) a model's training applied to its source, from its card."""
-    from dali_cli.model_card import read_card
+    from dali_cli.store.model_card import read_card
 
     card = read_card(model_dir)
     if card.sn_delta_lwh_m is None:

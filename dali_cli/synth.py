@@ -103,8 +103,8 @@ def iter_frames(
 
 def frame_table(frame: SynthFrame):
     """One frame's labels as a BoxTable: every car with >= 1 point, its KITTI label fields."""
-    from dali_cli.artifacts import BoxTable
-    from dali_cli.camera import kitti_label_columns
+    from dali_cli.evaluation.camera import kitti_label_columns
+    from dali_cli.store.artifacts import BoxTable
 
     return BoxTable.from_arrays(
         np.full(len(frame.boxes), frame.frame_id, dtype=object),
@@ -133,9 +133,9 @@ class SynthShards:
         return self
 
     def run(self, shard, directory: Path) -> dict:
-        from dali_cli.artifacts import BoxTable, write_boxes
         from dali_cli.executors import naming_frames
         from dali_cli.executors.shards import ShardFramesWriter
+        from dali_cli.store.artifacts import BoxTable, write_boxes
 
         writer, tables = ShardFramesWriter(directory), []
         for index in range(shard.start, shard.stop):
@@ -190,8 +190,8 @@ def build_synth(
 
     from tqdm import tqdm
 
-    from dali_cli.artifacts import BoxTable, FrameSetWriter, read_boxes, write_boxes
-    from dali_cli.manifest import BuildResult
+    from dali_cli.store.artifacts import BoxTable, FrameSetWriter, read_boxes, write_boxes
+    from dali_cli.store.manifest import BuildResult
 
     started = time.perf_counter()
     attrs = {
@@ -234,7 +234,7 @@ def build_synth(
         "and max range; labels for every car with >= 1 point",
         "occlusion = share of a car's rays blocked by something nearer (0 = fully visible)",
         "KITTI label fields (truncated, occluded level, alpha, bbox_*) from a virtual KITTI left "
-        "colour camera at the sensor (dali_cli.camera), so `dali eval --protocol kitti` gives "
+        "colour camera at the sensor (dali_cli.evaluation.camera), so `dali eval --protocol kitti` gives "
         "easy/moderate/hard",
     ]
     extra = {"executor": executor.report()} if executor is not None else {}

@@ -1,5 +1,5 @@
 """Stage compare: AP of several prediction tables on the same frames, with a paired bootstrap
-over the frames (dali_cli.bootstrap): how far each row's AP, and its difference to the first
+over the frames (dali_cli.evaluation.bootstrap): how far each row's AP, and its difference to the first
 row, would move with another draw of evaluation frames. Reads tables and labels only; writes
 one JSON file (atomically) or nothing. Not an artifact stage: the file is always recomputed."""
 
@@ -9,9 +9,9 @@ import json
 from dataclasses import asdict
 from pathlib import Path
 
-from dali_cli.artifacts import BoxTable
-from dali_cli.errors import ParameterError, StageError
-from dali_cli.evaluate import Protocol
+from dali_cli.evaluation.evaluate import Protocol
+from dali_cli.runtime.errors import ParameterError, StageError
+from dali_cli.store.artifacts import BoxTable
 
 MARKER = "bootstrap"  # the block that marks a `dali compare` file (output_paths)
 
@@ -48,9 +48,9 @@ def _name_hint(spec: str) -> str:
 
 
 def ap_metric(gt_path, settings: Protocol):
-    """metric(pred, gt) -> {"3d <band>": AP, "bev <band>": AP} of `dali_cli.evaluate.evaluate`
+    """metric(pred, gt) -> {"3d <band>": AP, "bev <band>": AP} of `dali_cli.evaluation.evaluate.evaluate`
     with `settings`; an EvaluationError becomes a StageError naming the truth file."""
-    from dali_cli.evaluate import EvaluationError, evaluate
+    from dali_cli.evaluation.evaluate import EvaluationError, evaluate
 
     def metric(pred: BoxTable, gt: BoxTable) -> dict[str, float | None]:
         try:
@@ -75,9 +75,9 @@ def run_compare(
     """The comparison document ({"bootstrap": BootstrapResult.summary(), "settings", "inputs"})
     of the --pred rows against `gt_path`; written to `out` (a .json file) when given. Checks the
     rows, the IoU and the output path before any evaluation."""
-    from dali_cli.bootstrap import paired_bootstrap
-    from dali_cli.evaluate import check_ious
-    from dali_cli.kitti_label import read_box_source
+    from dali_cli.evaluation.bootstrap import paired_bootstrap
+    from dali_cli.evaluation.evaluate import check_ious
+    from dali_cli.evaluation.kitti_label import read_box_source
 
     rows = parse_rows(tuple(preds))
     check_ious((settings.iou,))
@@ -86,7 +86,7 @@ def run_compare(
     inputs = {"gt": gt_path, **{f"pred {name}": path for name, path in rows.items()}}
     target = None
     if out is not None:
-        from dali_cli.output_paths import check_metrics_output
+        from dali_cli.store.output_paths import check_metrics_output
 
         if Path(out).suffix != ".json":
             raise ParameterError("out", f"{out}: give a .json file to write")
@@ -106,7 +106,7 @@ def run_compare(
         "inputs": {"gt": str(gt_path), "preds": {name: str(p) for name, p in rows.items()}},
     }
     if target is not None:
-        from dali_cli.atomic_file import write_text_atomically
+        from dali_cli.store.atomic_file import write_text_atomically
 
         write_text_atomically(target, json.dumps(document, indent=2) + "\n")
     return document

@@ -1,4 +1,4 @@
-"""Stage eval: KITTI-protocol AP_BEV / AP_3D of predictions against labels (dali_cli.evaluate).
+"""Stage eval: KITTI-protocol AP_BEV / AP_3D of predictions against labels (dali_cli.evaluation.evaluate).
 
 The predictions are a box table (or KITTI label directory), or come from running a model on a
 frame set at a scale (1, or ŝ of a ptsn-sweep's scale.json) through the detector's one predict
@@ -10,7 +10,7 @@ loop (`dali_cli.detector.predict_frameset`). Output, either:
 - a metrics file (`out` ending in .json): FILE and predictions.parquet beside it, each atomic.
 With `size_correction="per-dim"` the Car predictions are resized per dimension before they are
 evaluated (and saved) by the factors E_est / E_pred(ŝ) of the `scale_from` sweep
-(`dali_cli.size_correction.factors_from_sweep`: label-free, from the unlabeled target training
+(`dali_cli.labels.size_correction.factors_from_sweep`: label-free, from the unlabeled target training
 frames; with `size_factor_score_min`, E_pred over the sweep's boxes with at least that score,
 from its detections.parquet), bottom face kept; metrics.json records them under
 "size_correction". It works on both routes: a model run at ŝ, or a prediction table (then
@@ -25,12 +25,12 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli import console
-from dali_cli.artifacts import BOX_FIELDS, BoxTable, FrameSet
-from dali_cli.atomic_file import write_atomically, write_text_atomically
-from dali_cli.errors import ParameterError, StageError
-from dali_cli.evaluate import check_ious
-from dali_cli.kitti_label import read_box_source
+from dali_cli.evaluation.evaluate import check_ious
+from dali_cli.evaluation.kitti_label import read_box_source
+from dali_cli.runtime import console
+from dali_cli.runtime.errors import ParameterError, StageError
+from dali_cli.store.artifacts import BOX_FIELDS, BoxTable, FrameSet
+from dali_cli.store.atomic_file import write_atomically, write_text_atomically
 
 PREDICTIONS_NAME = "predictions.parquet"
 METRICS_NAME = "metrics.json"
@@ -54,7 +54,7 @@ def resolve_scale(scale: float | None, scale_from: str | Path | None) -> float:
     if scale_from is None:
         value = 1.0 if scale is None else scale
     else:
-        from dali_cli.scale_file import read_scale
+        from dali_cli.store.scale_file import read_scale
 
         value = read_scale(scale_from).scale
     if not value > 0:
@@ -114,7 +114,7 @@ def check_size_correction(
 ) -> None:
     """ParameterError for an unknown method, a correction without a sweep to read it from, or a
     factor score cut without a correction."""
-    from dali_cli.size_correction import METHODS
+    from dali_cli.labels.size_correction import METHODS
 
     if method not in METHODS:
         raise ParameterError(
@@ -144,9 +144,9 @@ def sweep_size_correction(
     lacks E_est or E_pred_at_scale."""
     if method == "none":
         return None
-    from dali_cli.artifacts import ArtifactError
-    from dali_cli.scale_file import read_scale, scale_path
-    from dali_cli.size_correction import factors_from_sweep
+    from dali_cli.labels.size_correction import factors_from_sweep
+    from dali_cli.store.artifacts import ArtifactError
+    from dali_cli.store.scale_file import read_scale, scale_path
 
     sweep = read_scale(scale_from)
     e_pred, cut = sweep.e_pred, {}
@@ -177,9 +177,9 @@ def confident_e_pred(sweep, scale_from, score_min: float) -> tuple[tuple[float, 
     (boxes under it were not kept)."""
     import pyarrow.parquet as pq
 
-    from dali_cli.artifacts import ArtifactError
     from dali_cli.ptsn.detections import COLUMNS, DETECTIONS_NAME, e_pred_at
-    from dali_cli.scale_file import scale_path
+    from dali_cli.store.artifacts import ArtifactError
+    from dali_cli.store.scale_file import scale_path
 
     sweep_cut = sweep.record.get("score_min")
     if isinstance(sweep_cut, int | float) and score_min < sweep_cut:
@@ -211,7 +211,7 @@ def confident_e_pred(sweep, scale_from, score_min: float) -> tuple[tuple[float, 
 
 def resized(pred: BoxTable, factors: np.ndarray, class_name: str) -> BoxTable:
     """`pred` with its `class_name` boxes resized by `factors` (3,), bottom face kept."""
-    from dali_cli.size_correction import correct_class_sizes
+    from dali_cli.labels.size_correction import correct_class_sizes
 
     boxes = correct_class_sizes(pred.boxes, pred["label"], class_name, factors)
     return pred.with_columns(**{name: boxes[:, i] for i, name in enumerate(BOX_FIELDS)})
@@ -266,7 +266,7 @@ def predictions_and_truth(
             raise ParameterError(("model", "data"), "the model and its frame set go together")
         if pred_path is not None:
             raise ParameterError(("pred_path", "model"), "give predictions or a model, not both")
-        from dali_cli.device import inference_device, inference_runtime
+        from dali_cli.runtime.device import inference_device, inference_runtime
 
         torch_device = inference_device(device, precision)  # a missing GPU: error, no output
         chosen_scale = resolve_scale(scale, scale_from)
@@ -355,7 +355,7 @@ def run_eval(
         return eval_artifact(Path(out), inputs, routes, options, save_predictions, force, dry_run)
     out = Path(out) if out is not None else None
     if out is not None:  # before any work: an output dali must not write fails at once
-        from dali_cli.output_paths import check_metrics_output
+        from dali_cli.store.output_paths import check_metrics_output
 
         check_metrics_output(out, inputs)
     if dry_run:  # a metrics file (or the terminal) is not a stage artifact: it is always rerun
@@ -378,7 +378,7 @@ def keeps_predictions(save_predictions: bool, model, size_correction: str) -> bo
 
 def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
     """(the metrics document, the predictions evaluated) of one evaluation."""
-    from dali_cli.evaluate import EvaluationError, evaluate
+    from dali_cli.evaluation.evaluate import EvaluationError, evaluate
 
     pred, gt, frame_ids, source, gt_path, runtime = predictions_and_truth(**routes)
     correction = source.pop("size_correction", None)
@@ -429,7 +429,7 @@ def write_outputs(metrics_path: Path, metrics: dict, pred: BoxTable | None) -> l
 
 def eval_artifact(out, inputs, routes, options, save_predictions, force, dry_run) -> EvalResult:
     """The evaluation as the artifact directory `out` under the stage contract."""
-    from dali_cli.manifest import BuildResult, run_stage
+    from dali_cli.store.manifest import BuildResult, run_stage
 
     computed: dict = {}
 

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from dali_cli.manifest import StageOutcome, run_stage
+from dali_cli.store.manifest import StageOutcome, run_stage
 
 
 def export_frame_ids(table, frames_dir: Path | None) -> list[str]:
     """Frames of the FrameSet (when given), then any other frame of the box table, in order."""
-    from dali_cli.artifacts import FrameSet
+    from dali_cli.store.artifacts import FrameSet
 
     ids = list(FrameSet(frames_dir).frame_ids) if frames_dir is not None else []
     known = set(ids)
@@ -38,9 +38,9 @@ def export_kitti(
 ) -> StageOutcome:
     """KITTI label_2 files `out`/data/<frame>.txt of the box table `boxes_dir` through the
     calib files under `calib_root` (every frame of `frames_dir`, or of the box table's dir)."""
-    from dali_cli.artifacts import FRAMES_NAME, read_boxes
     from dali_cli.export import build_export_kitti
     from dali_cli.importers.kitti import find_calib_dir
+    from dali_cli.store.artifacts import FRAMES_NAME, read_boxes
 
     table = read_boxes(boxes_dir)
     if score_min is not None:
@@ -92,8 +92,8 @@ def export_openpcdet(
 ) -> StageOutcome:
     """The FrameSet `data_dir` as `out`/points/<frame>.npy and, with boxes (`boxes_dir`, else
     the frame set's own), `out`/labels/<frame>.txt."""
-    from dali_cli.artifacts import BOXES_NAME, FrameSet, read_boxes
     from dali_cli.importers.openpcdet import write_dataset
+    from dali_cli.store.artifacts import BOXES_NAME, FrameSet, read_boxes
 
     frames = FrameSet(data_dir)
     if boxes_dir is None and (Path(data_dir) / BOXES_NAME).is_file():

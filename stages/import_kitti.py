@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from dali_cli.manifest import StageOutcome, run_stage
 from dali_cli.sensors import get_profile
+from dali_cli.store.manifest import StageOutcome, run_stage
 
 
 def import_kitti(

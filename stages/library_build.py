@@ -7,9 +7,9 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from dali_cli import console
-from dali_cli.errors import ParameterError
-from dali_cli.manifest import BuildResult, StageOutcome, run_stage
+from dali_cli.runtime import console
+from dali_cli.runtime.errors import ParameterError
+from dali_cli.store.manifest import BuildResult, StageOutcome, run_stage
 
 NOTE = "meshes normalized to the unit box (l along +x, w along +y, up +z), native size kept"
 

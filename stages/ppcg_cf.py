@@ -6,14 +6,14 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Unpack
 
-from dali_cli.artifacts import FrameSet
-from dali_cli.device import check_options
-from dali_cli.errors import ParameterError
-from dali_cli.manifest import StageOutcome
 from dali_cli.ppcg.cf import CfParams
 from dali_cli.ppcg.frame import DEFAULT_POINT_MARGIN_M
 from dali_cli.ppcg.point_models import angular_threshold_rad
 from dali_cli.ppcg.run import PpcgOptions, run_ppcg, target_profile
+from dali_cli.runtime.device import check_options
+from dali_cli.runtime.errors import ParameterError
+from dali_cli.store.artifacts import FrameSet
+from dali_cli.store.manifest import StageOutcome
 
 
 def ppcg_cf(

@@ -1,9 +1,9 @@
 """Stage pseudo_label: run the detector on the target at the PTSN scale ŝ (with test-time
-augmentation: in ten views, ŝ x 0.9..1.1 each also mirrored, fused box by box, dali_cli.tta),
+augmentation: in ten views, ŝ x 0.9..1.1 each also mirrored, fused box by box, dali_cli.labels.tta),
 de-scale, drop
-implausible boxes (dali_cli.plausibility, counted), keep score >= score_min, BEV NMS, remove the
-remaining per-dimension size bias against E_est (`dali_cli.size_correction`, on by default),
-move each box onto its points (`dali_cli.box_fit`, on by default), count the
+implausible boxes (dali_cli.labels.plausibility, counted), keep score >= score_min, BEV NMS, remove the
+remaining per-dimension size bias against E_est (`dali_cli.labels.size_correction`, on by default),
+move each box onto its points (`dali_cli.labels.box_fit`, on by default), count the
 original points in each box; write boxes.parquet, scale.json (the ScaleResult the
 labels were made at: ŝ stored once, exactly as found) and summary.json (boxes per frame, mean
 size vs E_est, score histogram)."""
@@ -19,16 +19,18 @@ from typing import Unpack
 
 import numpy as np
 
-from dali_cli import box_fit, console, ptsn, size_correction, tta
-from dali_cli.artifacts import BOX_FIELDS, BoxTable, FrameSet, write_boxes
-from dali_cli.device import InferenceOptions, inference_runtime, inference_setup
-from dali_cli.errors import ParameterError, StageError
+from dali_cli import ptsn
 from dali_cli.executors import make_executor, run_on
-from dali_cli.ground_fit import GroundFit, fit_heights
-from dali_cli.manifest import BuildResult, StageOutcome, run_stage
-from dali_cli.pseudo_labeler import FrameLabeler, label_frame  # noqa: F401 (public here)
-from dali_cli.scale_file import ScaleResult, read_scale, write_scale
+from dali_cli.labels import box_fit, size_correction, tta
+from dali_cli.labels.ground_fit import GroundFit, fit_heights
+from dali_cli.labels.pseudo_labeler import FrameLabeler, label_frame  # noqa: F401 (public here)
+from dali_cli.runtime import console
+from dali_cli.runtime.device import InferenceOptions, inference_runtime, inference_setup
+from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.sensors import get_profile
+from dali_cli.store.artifacts import BOX_FIELDS, BoxTable, FrameSet, write_boxes
+from dali_cli.store.manifest import BuildResult, StageOutcome, run_stage
+from dali_cli.store.scale_file import ScaleResult, read_scale, write_scale
 
 STAGE = "pseudo_label"
 SUMMARY_NAME = "summary.json"
@@ -102,7 +104,7 @@ def pseudo_label(
     """Run the pseudo-label stage (see the module docstring). `views`: the test-time
     augmentation (None or a single view: the detector once at ŝ). `point_fit`: move each box
     onto its points after the size correction (default: the standard fit; None: off).
-    `ground_fit`: then put each box's bottom on the ground around it (dali_cli.ground_fit;
+    `ground_fit`: then put each box's bottom on the ground around it (dali_cli.labels.ground_fit;
     default None: off). `ignore_min`: boxes scored in [ignore_min, score_min) are written too,
     as they are, labelled DontCare: ignore regions for `retrain --ignore-label DontCare`
     (default None: none). `executor`, `workers`,
@@ -327,7 +329,7 @@ def pseudo_label_notes(
     if implausible:
         notes.append(
             f"dropped {implausible} implausible boxes with score >= {score_min} (size or "
-            "distance beyond dali_cli.plausibility's limits)"
+            "distance beyond dali_cli.labels.plausibility's limits)"
         )
         console.warn(notes[-1])
     if skipped_correction:
@@ -364,8 +366,8 @@ def place_on_points(
     ground: GroundFit | None = None,
 ) -> tuple[BoxTable, dict | None, dict | None]:
     """One pass over the target frames: every box moved onto its frame's points when `fit` is
-    given (dali_cli.box_fit; sizes, z, scores and the other columns kept), then its bottom put
-    on the ground around it when `ground` is given (dali_cli.ground_fit: z only), and
+    given (dali_cli.labels.box_fit; sizes, z, scores and the other columns kept), then its bottom put
+    on the ground around it when `ground` is given (dali_cli.labels.ground_fit: z only), and
     num_points recounted on the original points. Returns the table, the point fit's record
     (None without it: boxes fitted (enough points), mean shift (m) and turn (deg) over them)
     and the ground fit's (None without it: boxes moved, mean and mean |shift| of z over them)."""

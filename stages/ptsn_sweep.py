@@ -14,15 +14,16 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from dali_cli import console, ptsn
-from dali_cli.artifacts import FrameSet
-from dali_cli.device import InferenceOptions, inference_runtime, inference_setup, place
-from dali_cli.errors import ParameterError, StageError
-from dali_cli.manifest import BuildResult, StageOutcome, run_stage
-from dali_cli.model_card import ModelCard, read_card
+from dali_cli import ptsn
 from dali_cli.ptsn import detections
-from dali_cli.scale_file import write_scale
+from dali_cli.runtime import console
+from dali_cli.runtime.device import InferenceOptions, inference_runtime, inference_setup, place
+from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.sensors import get_profile
+from dali_cli.store.artifacts import FrameSet
+from dali_cli.store.manifest import BuildResult, StageOutcome, run_stage
+from dali_cli.store.model_card import ModelCard, read_card
+from dali_cli.store.scale_file import write_scale
 
 STAGE = "ptsn_sweep"
 SWEEP_NAME = "sweep.parquet"
@@ -149,7 +150,7 @@ def ptsn_sweep(
     **inference: Unpack[InferenceOptions],
 ) -> StageOutcome:
     """Run the PTSN sweep stage (see the module docstring); `inference`: device, precision,
-    batch size, progress and (tests) the detector loader (dali_cli.device.InferenceOptions)."""
+    batch size, progress and (tests) the detector loader (dali_cli.runtime.device.InferenceOptions)."""
     model_dir, target_dir = Path(model_dir), Path(target_dir)
     torch_device, precision = inference_setup(inference, "ptsn_sweep")
     if frames is not None and frame_fraction is not None:
@@ -254,7 +255,7 @@ def run_sweep(
     )  # fmt: skip
     write_scale(directory, document)
     if params["plot"]:
-        from dali_cli.report_plots import plot_sweep
+        from dali_cli.reporting.plots import plot_sweep
 
         title = f"PTSN sweep: ŝ = {result.scale:.3f} ({search}, {match})"
         plot_sweep(rows, result.scale, e_est, directory / PLOT_NAME, title)

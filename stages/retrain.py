@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli import console, training_stage
-from dali_cli.errors import ParameterError, StageError
-from dali_cli.manifest import StageOutcome, content_hash
-from dali_cli.training_stage import PreparedTraining, TrainingOptions
+from dali_cli.runtime import console, training_stage
+from dali_cli.runtime.errors import ParameterError, StageError
+from dali_cli.runtime.training_stage import PreparedTraining, TrainingOptions
+from dali_cli.store.manifest import StageOutcome, content_hash
 
 INIT_FROM = ("previous", "scratch")
 SOURCE_SIZES = ("init", "sn")
@@ -57,7 +57,7 @@ def drop_boxless_sets(paths: list[Path], sets: list, weights: tuple[int, ...]):
 
 def expected_size_of(ptsn_dir: str | Path) -> tuple[float, float, float]:
     """E_est (l, w, h in m) recorded by a ptsn-sweep: the label-free expected target size."""
-    from dali_cli.scale_file import read_scale
+    from dali_cli.store.scale_file import read_scale
 
     e_est = read_scale(ptsn_dir).e_est
     if e_est is None or not all(isinstance(v, int | float) and v > 0 for v in e_est):
@@ -219,7 +219,7 @@ def continued_schedule(training: TrainingOptions, init: Path, init_from: str) ->
     """`training` covering the rest of the learning-rate schedule `init` stopped in (its card's
     schedule_stop); ParameterError when init ran its schedule to the end or the weights are not
     taken from it."""
-    from dali_cli.model_card import read_card
+    from dali_cli.store.model_card import read_card
 
     if init_from != "previous":
         raise ParameterError(

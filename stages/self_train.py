@@ -17,23 +17,23 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.errors import StageError
-from dali_cli.manifest import StageOutcome, check_made_from, content_hash
-from dali_cli.training_stage import (
+from dali_cli.runtime.errors import StageError
+from dali_cli.runtime.training_stage import (
     PreparedTraining,
     TrainingOptions,
     attach_database,
     run_training_stage,
     seeded_network,
 )
+from dali_cli.store.manifest import StageOutcome, check_made_from, content_hash
 
 
 def pseudo_label_scale(pseudo: Path) -> float:
     """The scale ŝ at which the pseudo boxes of `pseudo` were made: its scale.json (the
     ScaleResult pseudo-label writes), or, for outputs of earlier versions without one, the
     boxes' `scale` column."""
-    from dali_cli.artifacts import read_boxes
-    from dali_cli.scale_file import read_scale, scale_path
+    from dali_cli.store.artifacts import read_boxes
+    from dali_cli.store.scale_file import read_scale, scale_path
 
     if scale_path(pseudo).is_file():
         return read_scale(pseudo).scale

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.errors import ParameterError, StageError
-from dali_cli.manifest import BuildResult, StageOutcome, run_stage
+from dali_cli.runtime.errors import ParameterError, StageError
+from dali_cli.store.manifest import BuildResult, StageOutcome, run_stage
 
 
 def size_norm(
@@ -41,8 +41,8 @@ def size_norm(
 def build(data: Path, out: Path, delta: np.ndarray, labels: tuple[str, ...]) -> BuildResult:
     """Write the shifted frame set into `out`; StageError naming the frame and row of a box the
     shift would leave without a positive size (nothing is written then)."""
-    from dali_cli.artifacts import FrameSet, FrameSetWriter, read_boxes, write_boxes
     from dali_cli.size_norm import shift_frame, too_small
+    from dali_cli.store.artifacts import FrameSet, FrameSetWriter, read_boxes, write_boxes
 
     frames, table = FrameSet(data), read_boxes(data)
     rows_of = table.rows_by_frame()
@@ -72,6 +72,6 @@ def build(data: Path, out: Path, delta: np.ndarray, labels: tuple[str, ...]) -> 
 
 def _carried_attrs(attrs: dict) -> dict:
     """The input frame set's attributes a derived set keeps (not its count or writer flags)."""
-    from dali_cli.artifacts import COMPLETE_CHUNKS_ATTR
+    from dali_cli.store.artifacts import COMPLETE_CHUNKS_ATTR
 
     return {k: v for k, v in attrs.items() if k not in ("sensor", "count", COMPLETE_CHUNKS_ATTR)}

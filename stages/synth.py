@@ -8,7 +8,7 @@ import hashlib
 import json
 from pathlib import Path
 
-from dali_cli.manifest import StageOutcome, run_stage
+from dali_cli.store.manifest import StageOutcome, run_stage
 
 
 def synth(
@@ -29,8 +29,8 @@ def synth(
     """`frames` scenes scanned with `sensor`'s pattern, cars sized by `cars_profile` (default:
     the sensor's own); frame k depends only on (seed, k), whatever the engine (`executor`,
     `workers`, `ray_address`: dali_cli.executors) and `threads`."""
-    from dali_cli.cores import available_cores
     from dali_cli.executors import make_executor, run_on
+    from dali_cli.runtime.cores import available_cores
     from dali_cli.sensors import get_profile
     from dali_cli.synth import build_synth
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.artifacts import write_frameset
+from dali_cli.store.artifacts import write_frameset
 
 
 def write_stub_inputs(tmp_path: Path, clouds: list[np.ndarray]) -> tuple[Path, Path]:

@@ -11,7 +11,7 @@ import pyarrow.parquet as pq
 import pytest
 import zarr
 
-from dali_cli.artifacts import (
+from dali_cli.store.artifacts import (
     ArtifactError,
     BoxTable,
     FrameSet,
@@ -449,7 +449,7 @@ def test_all_zero_offsets_are_stored_and_their_loss_is_detected(tmp_path):
 def test_streaming_reads_frames_that_straddle_blocks(tmp_path, monkeypatch, compress, block_points):
     """iter_frames reads block by block; frames across a block's end (or spanning several
     blocks, or empty at a boundary) come back exactly, in any order of indices."""
-    import dali_cli.artifacts as artifacts
+    import dali_cli.store.artifacts as artifacts
 
     rng = np.random.default_rng(block_points)
     sizes = [5, 11, 0, 30, 3, 17, 0, 9, 44, 1, 8, 13]

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.artifacts import BoxTable, read_boxes, write_boxes
+from dali_cli.store.artifacts import BoxTable, read_boxes, write_boxes
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -1,4 +1,4 @@
-"""The point fit of pseudo boxes (dali_cli.box_fit, `dali pseudo-label --fit-points`): a box
+"""The point fit of pseudo boxes (dali_cli.labels.box_fit, `dali pseudo-label --fit-points`): a box
 placed off a car seen on its near faces is moved back onto them, a box already on them stays,
 the fit follows the scene under rigid motion, ignores the ground, other cars' points and boxes
 with too few points; the stage records it and recounts the points."""
@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from stub_stage import pseudo_label_cli, write_stub_inputs
 
-from dali_cli.artifacts import read_boxes
-from dali_cli.box_fit import PointFit, fit_boxes, pose_costs
 from dali_cli.geometry import count_points_in_boxes, wrap_angle
+from dali_cli.labels.box_fit import PointFit, fit_boxes, pose_costs
+from dali_cli.store.artifacts import read_boxes
 
 MOUNT = 1.73
 LWH = np.array([3.9, 1.6, 1.5])

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dali_cli import camera
-from dali_cli.artifacts import BoxTable
-from dali_cli.evaluate import evaluate
+from dali_cli.evaluation import camera
+from dali_cli.evaluation.evaluate import evaluate
 from dali_cli.importers.kitti import read_calib
+from dali_cli.store.artifacts import BoxTable
 
 CALIB_FIXTURE = Path(__file__).parent / "fixtures/real/kitti/training/calib/000008.txt"
 CAR = (3.9, 1.6, 1.5)  # l, w, h in metres

@@ -1,4 +1,4 @@
-"""`dali compare` and dali_cli.bootstrap: rows evaluated on all frames and on paired draws of the
+"""`dali compare` and dali_cli.evaluation.bootstrap: rows evaluated on all frames and on paired draws of the
 frames with replacement, with the difference to the first row; errors write nothing."""
 
 from __future__ import annotations
@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from dali_cli.artifacts import BoxTable, read_boxes, write_boxes
-from dali_cli.bootstrap import FrameIndex, paired_bootstrap, resampled
 from dali_cli.cli import main
-from dali_cli.evaluate import evaluate
+from dali_cli.evaluation.bootstrap import FrameIndex, paired_bootstrap, resampled
+from dali_cli.evaluation.evaluate import evaluate
+from dali_cli.store.artifacts import BoxTable, read_boxes, write_boxes
 
 FLAGS = ["--protocol", "range", "--front-only", "--iou", "0.7"]
 

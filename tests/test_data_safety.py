@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from dali_cli.artifacts import BoxTable, write_boxes, write_frameset
-from dali_cli.atomic_dir import OutputBusyError, OutputLock, recover_interrupted
 from dali_cli.cli import main
-from dali_cli.manifest import BuildResult, content_hash, read_manifest, run_stage
-from dali_cli.output_paths import OutputPathError
+from dali_cli.store.artifacts import BoxTable, write_boxes, write_frameset
+from dali_cli.store.atomic_dir import OutputBusyError, OutputLock, recover_interrupted
+from dali_cli.store.manifest import BuildResult, content_hash, read_manifest, run_stage
+from dali_cli.store.output_paths import OutputPathError
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -156,9 +156,9 @@ CRASH_SCRIPT = textwrap.dedent(
     """
     import os, sys
     import numpy as np
-    from dali_cli import atomic_dir
-    from dali_cli.artifacts import BoxTable, write_boxes
-    from dali_cli.manifest import BuildResult, run_stage
+    from dali_cli.store import atomic_dir
+    from dali_cli.store.artifacts import BoxTable, write_boxes
+    from dali_cli.store.manifest import BuildResult, run_stage
 
     out, step, exchange, value = sys.argv[1], sys.argv[2], sys.argv[3] == "1", float(sys.argv[4])
     if not exchange:
@@ -266,8 +266,8 @@ def test_racing_processes_to_one_new_out_leave_one_complete_artifact(tmp_path):
         """
         import sys, time
         import numpy as np
-        from dali_cli.artifacts import BoxTable, write_boxes
-        from dali_cli.manifest import run_stage
+        from dali_cli.store.artifacts import BoxTable, write_boxes
+        from dali_cli.store.manifest import run_stage
         def build(tmp):
             time.sleep(1.0)
             write_boxes(tmp, BoxTable.from_arrays(["a"], np.ones((1, 7))))
@@ -328,7 +328,7 @@ def test_content_hash_sees_an_edit_that_restores_size_and_mtime(tmp_path):
 
 def test_file_hashes_are_cached_across_the_commit_rename(tmp_path, monkeypatch):
     """An artifact's files are hashed while it is built; reading it next must not hash again."""
-    import dali_cli.file_hashes as file_hashes
+    import dali_cli.store.file_hashes as file_hashes
 
     out = tmp_path / "out"
     run_stage("demo", out, {}, {}, build_boxes(1.0), echo=quiet)

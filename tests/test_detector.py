@@ -13,7 +13,6 @@ from click.testing import CliRunner
 from toy_scenes import SMALL_NET as SMALL
 from toy_scenes import place_cars, scan, write_toy_dataset
 
-from dali_cli.artifacts import FrameSet
 from dali_cli.cli import main
 from dali_cli.detector import (
     Augmentation,
@@ -38,6 +37,7 @@ from dali_cli.detector.targets import (
 )
 from dali_cli.geometry import count_points_in_boxes, iou_3d, point_box_indices
 from dali_cli.sensors import get_profile
+from dali_cli.store.artifacts import FrameSet
 
 PLACE = dict(x_range_m=(6.0, 22.0), y_range_m=(-9.0, 9.0))
 SCAN = dict(beams=32, points_per_beam=400, azimuth_range_deg=(-60.0, 60.0))

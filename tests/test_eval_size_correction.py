@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from dali_cli.artifacts import BoxTable, read_boxes, write_boxes
 from dali_cli.cli import main
-from dali_cli.size_correction import correct_class_sizes, factors_from_sweep
+from dali_cli.labels.size_correction import correct_class_sizes, factors_from_sweep
+from dali_cli.store.artifacts import BoxTable, read_boxes, write_boxes
 
 BIAS = np.array([1.0, 1.25, 0.8])  # a model's anisotropic bias: w x 1.25, h x 0.8
 FLAGS = ["--protocol", "range", "--front-only", "--iou", "0.7"]

@@ -14,16 +14,16 @@ import pytest
 from click.testing import CliRunner
 
 from dali_cli import geometry
-from dali_cli.artifacts import BoxTable, read_boxes, write_boxes, write_frameset
 from dali_cli.cli import main
-from dali_cli.evaluate import (
+from dali_cli.evaluation.evaluate import (
     DIFFICULTIES,
     RANGE_BANDS_M,
     EvaluationError,
     evaluate,
     format_table,
 )
-from dali_cli.kitti_label import read_label_dir, read_label_file, write_label_dir
+from dali_cli.evaluation.kitti_label import read_label_dir, read_label_file, write_label_dir
+from dali_cli.store.artifacts import BoxTable, read_boxes, write_boxes, write_frameset
 
 CAR = (3.9, 1.6, 1.5)
 
@@ -558,7 +558,7 @@ def test_pseudo_lidar_conversion_preserves_iou():
     rng = np.random.default_rng(7)
     a = np.c_[rng.uniform(-10, 10, (200, 3)), rng.uniform(1, 5, (200, 3)), rng.uniform(-3, 3, 200)]
     b = a + np.c_[rng.normal(0, 0.5, (200, 3)), np.zeros((200, 3)), rng.normal(0, 0.2, 200)]
-    from dali_cli.kitti_label import camera_to_pseudo_lidar, pseudo_lidar_to_camera
+    from dali_cli.evaluation.kitti_label import camera_to_pseudo_lidar, pseudo_lidar_to_camera
 
     def converted(boxes):
         # read the LiDAR boxes as if they were camera labels: another rigid frame
@@ -812,7 +812,7 @@ def test_eval_directory_is_a_manifest_tracked_artifact(tmp_path):
     """`dali eval --out DIR`: metrics.json + manifest.json under the stage contract; a rerun with
     the same inputs is skipped, a KITTI metrics file added later does not make it stale, changed
     inputs or parameters rerun it, and an older run's plain eval directory may be replaced."""
-    from dali_cli.manifest import read_manifest
+    from dali_cli.store.manifest import read_manifest
 
     cars = row_of_cars(20)
     for name, rows, score in (("gt", cars, None), ("pred", cars[:15], np.linspace(0.9, 0.3, 15))):
@@ -950,7 +950,7 @@ def test_matching_pass_by_intervals_equals_the_level_by_level_pass(seed):
     """_counts_at_levels counts each candidate over the score interval in which it is taken;
     it must give the level-by-level counts, with tied scores and overlaps, ignored predictions
     and ground truths, and levels between and at the scores."""
-    from dali_cli.evaluate import _counts_at_levels
+    from dali_cli.evaluation.evaluate import _counts_at_levels
 
     rng = np.random.default_rng(seed)
     for trial in range(60):

@@ -16,14 +16,14 @@ import torch
 from click.testing import CliRunner
 from toy_scenes import SMALL_NET
 
-from dali_cli.artifacts import FrameSet, read_boxes
 from dali_cli.cli import main
 from dali_cli.detector.config import DetectorConfig
 from dali_cli.detector.infer import save_checkpoint
 from dali_cli.detector.model import PillarCenterNet
 from dali_cli.executors import Shard, ShardsFailed, plan_shards
 from dali_cli.executors.local import LocalExecutor
-from dali_cli.manifest import read_manifest
+from dali_cli.store.artifacts import FrameSet, read_boxes
+from dali_cli.store.manifest import read_manifest
 
 FRAMES = 6
 

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from dali_cli.artifacts import BoxTable, read_boxes, write_boxes, write_frameset
 from dali_cli.cli import main
 from dali_cli.export import frame_label_lines
 from dali_cli.importers import kitti
-from dali_cli.manifest import read_manifest
+from dali_cli.store.artifacts import BoxTable, read_boxes, write_boxes, write_frameset
+from dali_cli.store.manifest import read_manifest
 
 DATA = Path(__file__).resolve().parent / "fixtures" / "real"
 KITTI = DATA / "kitti"

@@ -1,11 +1,11 @@
-"""`pseudo-label --fit-ground` (dali_cli.ground_fit): each box's bottom on the ground around it."""
+"""`pseudo-label --fit-ground` (dali_cli.labels.ground_fit): each box's bottom on the ground around it."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from dali_cli.ground_fit import GroundFit, fit_heights, ground_under
+from dali_cli.labels.ground_fit import GroundFit, fit_heights, ground_under
 
 
 def road(slope_x: float, slope_y: float, offset: float, rng, count=6000, noise=0.02):
@@ -123,7 +123,7 @@ def test_the_stage_puts_the_boxes_on_the_ground_and_records_it(tmp_path, monkeyp
     from test_box_fit import stage_cars, stage_points
 
     import stages.pseudo_label
-    from dali_cli.artifacts import read_boxes
+    from dali_cli.store.artifacts import read_boxes
 
     target, model = write_stub_inputs(tmp_path, [stage_points(i) for i in range(3)])
     monkeypatch.setattr(stages.pseudo_label, "load_detector", lambda _: FloatingDetector())

@@ -189,8 +189,8 @@ def test_ground_truth_sampling_pastes_no_car_into_an_ignore_region():
 
 
 def test_load_labeled_reads_ignore_labels_as_regions(tmp_path):
-    from dali_cli.artifacts import BoxTable, write_boxes, write_frameset
     from dali_cli.detector import load_labeled
+    from dali_cli.store.artifacts import BoxTable, write_boxes, write_frameset
 
     rng = np.random.default_rng(1)
     points = rng.uniform([5, -10, -1.7, 0], [25, 10, 0.5, 1], (4000, 4)).astype(np.float32)
@@ -226,7 +226,7 @@ def test_pseudo_label_writes_the_band_as_dontcare_and_leaves_the_cars_as_they_we
     from stub_stage import pseudo_label_cli, write_stub_inputs
 
     import stages.pseudo_label
-    from dali_cli.artifacts import read_boxes
+    from dali_cli.store.artifacts import read_boxes
 
     rng = np.random.default_rng(2)
     clouds = [rng.uniform([0, -20, -1.7, 0], [40, 20, 0.2, 1], (3000, 4)).astype(np.float32)]

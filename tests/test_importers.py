@@ -13,12 +13,12 @@ from click.testing import CliRunner
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dali_cli.artifacts import FrameSet, read_boxes
 from dali_cli.cli import main
 from dali_cli.export import KITTI_COLUMNS
 from dali_cli.geometry import box_corners, count_points_in_boxes
 from dali_cli.importers import kitti, nuscenes
-from dali_cli.manifest import read_manifest
+from dali_cli.store.artifacts import FrameSet, read_boxes
+from dali_cli.store.manifest import read_manifest
 
 DATA = Path(__file__).resolve().parent / "fixtures" / "real"
 KITTI = DATA / "kitti"

@@ -10,7 +10,6 @@ import pytest
 import trimesh
 from click.testing import CliRunner
 
-from dali_cli.artifacts import BoxTable, write_boxes, write_frameset
 from dali_cli.cli import main
 from dali_cli.library import (
     LibraryError,
@@ -24,6 +23,7 @@ from dali_cli.library import (
     write_library,
 )
 from dali_cli.procedural import KINDS
+from dali_cli.store.artifacts import BoxTable, write_boxes, write_frameset
 
 
 @pytest.mark.parametrize("kind", KINDS)

@@ -25,9 +25,9 @@ from test_retrain import SMALL as SMALL_DETECTOR
 from test_retrain import TOY as RETRAIN_TOY
 from toy_scenes import write_toy_dataset
 
-from dali_cli.artifacts import read_boxes, write_boxes
 from dali_cli.cli import main
 from dali_cli.sensors import get_profile
+from dali_cli.store.artifacts import read_boxes, write_boxes
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures" / "real"
 KITTI_ROOT = FIXTURES / "kitti"

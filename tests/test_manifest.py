@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from dali_cli import __version__
-from dali_cli.artifacts import BoxTable, read_boxes, write_boxes
-from dali_cli.errors import StageError
-from dali_cli.manifest import (
+from dali_cli.runtime.errors import StageError
+from dali_cli.store.artifacts import BoxTable, read_boxes, write_boxes
+from dali_cli.store.manifest import (
     BuildResult,
     check_made_from,
     content_hash,
@@ -144,7 +144,7 @@ def test_failure_on_first_run_leaves_nothing(tmp_path):
 
 
 def test_output_without_manifest_is_refused_not_wiped(tmp_path):
-    from dali_cli.output_paths import OutputPathError
+    from dali_cli.store.output_paths import OutputPathError
 
     out = tmp_path / "out"
     out.mkdir()

@@ -12,10 +12,10 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from dali_cli.artifacts import ArtifactError, read_boxes
 from dali_cli.cli import main
 from dali_cli.detector import Detector
-from dali_cli.model_card import ModelCard, read_card
+from dali_cli.store.artifacts import ArtifactError, read_boxes
+from dali_cli.store.model_card import ModelCard, read_card
 from stages.ptsn_sweep import read_model_card, resolve_e_est
 from tests.test_retrain import write_toy_world
 

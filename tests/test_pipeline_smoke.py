@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from dali_cli.artifacts import read_boxes
+from dali_cli.store.artifacts import read_boxes
 
 REPO = Path(__file__).resolve().parents[1]
 VENV = Path(sys.prefix)

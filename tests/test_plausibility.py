@@ -1,4 +1,4 @@
-"""Plausibility limits of boxes (dali_cli.plausibility) and the training-label reader that refuses
+"""Plausibility limits of boxes (dali_cli.labels.plausibility) and the training-label reader that refuses
 implausible labels (pretrain with l = 1e30 used to end in numpy's "negative dimensions")."""
 
 from __future__ import annotations
@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from dali_cli import plausibility
-from dali_cli.artifacts import ArtifactError, BoxTable, write_boxes, write_frameset
 from dali_cli.cli import main
 from dali_cli.detector import DetectorConfig, load_labeled
+from dali_cli.labels import plausibility
 from dali_cli.sensors import get_profile
+from dali_cli.store.artifacts import ArtifactError, BoxTable, write_boxes, write_frameset
 
 CAR = [12.0, 3.0, -0.9, 3.9, 1.6, 1.5, 0.4]
 

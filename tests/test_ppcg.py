@@ -9,10 +9,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from dali_cli.artifacts import BoxTable, FrameSet, read_boxes, write_boxes, write_frameset
 from dali_cli.geometry import bev_iou
 from dali_cli.library import point_models_from_frame, procedural_car, write_library
-from dali_cli.manifest import read_manifest
 from dali_cli.ppcg.cf import CfParams, cf_frame
 from dali_cli.ppcg.fitting import model_to_sensor, sensor_to_model
 from dali_cli.ppcg.models import ModelBank
@@ -20,6 +18,8 @@ from dali_cli.ppcg.point_models import angular_threshold_rad
 from dali_cli.ppcg.rc import RcParams, rc_frame
 from dali_cli.raycast import Scene, cast, cast_into_box
 from dali_cli.sensors import get_profile
+from dali_cli.store.artifacts import BoxTable, FrameSet, read_boxes, write_boxes, write_frameset
+from dali_cli.store.manifest import read_manifest
 
 PROFILE = get_profile("kitti")
 GROUND_Z = -PROFILE.mount_height_m

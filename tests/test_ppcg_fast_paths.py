@@ -1,6 +1,6 @@
 """PPCG's fast paths give the same bits as the reference paths they replace (issue 21.3).
 
-- raw chunk I/O (dali_cli.raw_chunks) writes the very files Zarr writes and reads the same points
+- raw chunk I/O (dali_cli.store.raw_chunks) writes the very files Zarr writes and reads the same points
 - CF's ray generation (window.windows_directions) equals window_rays box by box
 - cf.median equals np.median
 """
@@ -10,10 +10,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dali_cli.artifacts import FrameSet, FrameSetWriter
 from dali_cli.ppcg.cf import median
 from dali_cli.ppcg.window import AngularWindows, box_windows, window_rays, windows_directions
 from dali_cli.sensors import get_profile
+from dali_cli.store.artifacts import FrameSet, FrameSetWriter
 
 
 def _frames(rng, count=7):

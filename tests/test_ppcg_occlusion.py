@@ -7,13 +7,13 @@ import pytest
 from click.testing import CliRunner
 from test_ppcg import PROFILE, bank_of, car, dataset, on_ground, rc_params, scan  # noqa: F401
 
-from dali_cli.artifacts import read_boxes
-from dali_cli.manifest import read_manifest
 from dali_cli.ppcg.cf import CfParams, cf_frame
 from dali_cli.ppcg.fitting import sensor_to_model
 from dali_cli.ppcg.occlusion import GAP_M
 from dali_cli.ppcg.rc import rc_frame
 from dali_cli.raycast import cast_into_box
+from dali_cli.store.artifacts import read_boxes
+from dali_cli.store.manifest import read_manifest
 
 TRUTH = np.array(
     [on_ground(14.0, 4.0, car(1).native_lwh, 0.6), on_ground(25.0, -6.0, car(2).native_lwh, -2.0)]

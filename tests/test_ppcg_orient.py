@@ -9,13 +9,13 @@ import pytest
 from click.testing import CliRunner
 from test_ppcg import PROFILE, bank_of, car, dataset, on_ground, rc_params, scan  # noqa: F401
 
-from dali_cli.artifacts import FrameSet, read_boxes, write_boxes
 from dali_cli.geometry import point_box_indices, wrap_angle
-from dali_cli.manifest import read_manifest
 from dali_cli.ppcg.cf import CfParams, cf_frame
 from dali_cli.ppcg.frame import car_points, ground_heights
 from dali_cli.ppcg.orient import MIN_POINTS, flips, heading_costs, turned
 from dali_cli.ppcg.rc import rc_frame
+from dali_cli.store.artifacts import FrameSet, read_boxes, write_boxes
+from dali_cli.store.manifest import read_manifest
 
 SCENES = [
     [on_ground(14.0, 4.0, car(1).native_lwh, 0.6), on_ground(25.0, -6.0, car(2).native_lwh, -2.0)],
@@ -197,7 +197,7 @@ def test_the_point_margin_is_recorded_only_when_used(dataset, tmp_path):  # noqa
     ppcg_rc(target, target, library, tmp_path / "b", progress=False)  # the default: 0.3 m
     assert "point_margin_m" not in read_manifest(tmp_path / "a")["params"]
     assert read_manifest(tmp_path / "b")["params"]["point_margin_m"] == 0.3
-    from dali_cli.errors import ParameterError
+    from dali_cli.runtime.errors import ParameterError
 
     with pytest.raises(ParameterError, match="point_margin_m"):
         ppcg_rc(target, target, library, tmp_path / "c", point_margin_m=-1.0, progress=False)

@@ -12,15 +12,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from stub_stage import write_stub_inputs
 
-from dali_cli.artifacts import read_boxes
 from dali_cli.cli import main
 from dali_cli.geometry import (
     descale_boxes_about_ground,
     scale_boxes_about_ground,
     scale_points_about_ground,
 )
-from dali_cli.scale_file import read_scale
-from dali_cli.tta import DEFAULT_SCALE_FACTORS, mirror_boxes
+from dali_cli.labels.tta import DEFAULT_SCALE_FACTORS, mirror_boxes
+from dali_cli.store.artifacts import read_boxes
+from dali_cli.store.scale_file import read_scale
 
 KITTI_LWH = np.array([3.89, 1.62, 1.53])
 MOUNT = 1.73  # the kitti profile's mount height
@@ -312,7 +312,7 @@ def test_size_correction_removes_an_anisotropic_bias(setup, monkeypatch):
 
 
 def test_correct_sizes_matches_e_est_per_frame_and_pooled():
-    from dali_cli.size_correction import correct_sizes
+    from dali_cli.labels.size_correction import correct_sizes
 
     rng = np.random.default_rng(5)
     n = 200

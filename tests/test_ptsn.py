@@ -11,8 +11,8 @@ import pytest
 from click.testing import CliRunner
 
 from dali_cli import ptsn
-from dali_cli.artifacts import write_frameset
 from dali_cli.cli import main
+from dali_cli.store.artifacts import write_frameset
 
 SOURCE_LWH = np.array([4.66, 2.08, 1.73])
 KITTI_LWH = np.array([3.89, 1.62, 1.53])

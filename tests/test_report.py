@@ -7,7 +7,7 @@ import json
 from click.testing import CliRunner
 
 from dali_cli.cli import main
-from dali_cli.report import build_report, collect_rows, gap_closed
+from dali_cli.reporting.report import build_report, collect_rows, gap_closed
 
 
 def write_metrics(path, bev, ap3d, iou=0.7, bucket="all", **extra):
@@ -124,7 +124,7 @@ def test_x1_long_row_gap_and_pairing_with_the_x2_budget_controls(tmp_path):
     is computed against the x2-budget control and oracle, and it is paired with that control;
     the control size-corrected at test time (eval_ptsn_sized) is a control row of its own, paired
     apart from the plain one and the base of its own gap closed."""
-    from dali_cli.report import SOURCE_X2_BUDGET_SIZED, X1_LONG
+    from dali_cli.reporting.report import SOURCE_X2_BUDGET_SIZED, X1_LONG
 
     values = {"s0": (50.0, 56.0, 40.0, 55.0), "s1": (52.0, 55.0, 47.0, 54.5)}
     for seed, (x2, long, control, sized) in values.items():
@@ -220,7 +220,7 @@ def test_report_pairs_each_dali_row_with_its_control_per_seed(tmp_path):
 
 
 def test_paired_verdict_needs_two_seeds_and_a_clear_margin():
-    from dali_cli.report_paired import verdict
+    from dali_cli.reporting.paired import verdict
 
     assert verdict({"n": 1, "mean": 9.0, "std": None}) == "undecided"
     assert verdict({"n": 3, "mean": 3.5, "std": 2.0}) == "not met"  # inside 2 std
@@ -253,7 +253,7 @@ def test_bench_paired_rows_differences_by_seed(tmp_path):
 def test_far_band_is_aggregated_and_paired(tmp_path):
     """The 50-80 m band (where PPCG should help most) gets its mean ± std over runs and its
     paired difference against the control; a row without bands (KITTI protocol) stays out."""
-    from dali_cli.report_aggregate import aggregate_runs
+    from dali_cli.reporting.aggregate import aggregate_runs
 
     def write_banded(path, all_3d, far_3d):
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -22,8 +22,8 @@ from dali_cli.detector import (
     train,
 )
 from dali_cli.detector.train import batch_indices, interleave
-from dali_cli.manifest import read_manifest
 from dali_cli.sensors import get_profile
+from dali_cli.store.manifest import read_manifest
 
 SMALL = dict(
     x_range_m=[0.0, 25.6],
@@ -161,7 +161,7 @@ def test_ppcg_sets_without_boxes_are_left_out_not_trained_as_background(world, t
     hold the target's cars: training on them would teach that cars are background."""
     import shutil
 
-    from dali_cli.artifacts import BoxTable, write_boxes
+    from dali_cli.store.artifacts import BoxTable, write_boxes
 
     empty = tmp_path / "empty"
     shutil.copytree(world / "rc", empty)
@@ -218,7 +218,7 @@ def test_source_size_sn_shifts_the_source_to_the_given_target_size(world, tmp_pa
 def test_source_size_sn_reads_e_est_from_a_ptsn_sweep(world, tmp_path):
     """--target-size-from PTSN_DIR: the source is sized to that sweep's E_est (the value make
     iter2 passes); a sweep without E_est is a clear error and writes nothing."""
-    from dali_cli.scale_file import write_scale
+    from dali_cli.store.scale_file import write_scale
 
     sweep = tmp_path / "ptsn"
     sweep.mkdir()
@@ -248,7 +248,7 @@ def test_ignore_label_makes_ppcg_boxes_ignore_regions_and_is_recorded(world, tmp
     training's ignore regions, counted in the manifest; pooled sets keep each frame's regions."""
     import shutil
 
-    from dali_cli.artifacts import read_boxes, write_boxes
+    from dali_cli.store.artifacts import read_boxes, write_boxes
     from stages.retrain import pool
 
     marked = tmp_path / "marked"

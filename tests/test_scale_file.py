@@ -8,10 +8,10 @@ import json
 import pytest
 from click.testing import CliRunner
 
-from dali_cli.artifacts import ArtifactError
 from dali_cli.cli import main
-from dali_cli.manifest import read_manifest
-from dali_cli.scale_file import read_scale, write_scale
+from dali_cli.store.artifacts import ArtifactError
+from dali_cli.store.manifest import read_manifest
+from dali_cli.store.scale_file import read_scale, write_scale
 
 
 @pytest.mark.parametrize("bad", [float("inf"), float("nan"), 0.0, -1.0, True, "1.1", None])
@@ -46,7 +46,7 @@ def test_scale_result_is_typed_and_pseudo_label_scales_about_its_pivot(tmp_path)
     and pseudo-label scales about the sweep's pivot, not a height it resolves another way."""
     import numpy as np
 
-    from dali_cli.artifacts import write_frameset
+    from dali_cli.store.artifacts import write_frameset
     from stages.pseudo_label import pseudo_label
 
     document = {"scale": 1.25, "E_est": [3.9, 1.6, 1.5], "E_pred_at_scale": [3.8, 1.7, None],
@@ -89,8 +89,8 @@ def test_self_train_reads_the_scale_of_earlier_pseudo_label_outputs(tmp_path):
     """Outputs of earlier versions carry ŝ as a per-box 'scale' column and no scale.json."""
     import numpy as np
 
-    from dali_cli.artifacts import BoxTable, write_boxes
-    from dali_cli.errors import StageError
+    from dali_cli.runtime.errors import StageError
+    from dali_cli.store.artifacts import BoxTable, write_boxes
     from stages.self_train import pseudo_label_scale
 
     boxes = np.tile([[5.0, 0.0, -1.0, 3.9, 1.6, 1.5, 0.0]], (3, 1))

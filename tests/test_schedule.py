@@ -16,8 +16,8 @@ from test_retrain import write_toy_world
 from dali_cli.cli import main
 from dali_cli.detector import TrainSettings
 from dali_cli.detector.train import one_cycle, schedule_lr
-from dali_cli.manifest import read_manifest
-from dali_cli.model_card import ModelCard
+from dali_cli.store.manifest import read_manifest
+from dali_cli.store.model_card import ModelCard
 
 
 def lrs(steps: int, settings: TrainSettings) -> np.ndarray:

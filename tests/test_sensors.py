@@ -179,7 +179,7 @@ def test_waymo_top_is_the_calibrated_non_uniform_pattern():
 
 
 def test_synth_scans_exactly_the_waymo_top_beams(tmp_path):
-    from dali_cli.artifacts import FrameSet
+    from dali_cli.store.artifacts import FrameSet
 
     out = tmp_path / "w"
     result = CliRunner().invoke(

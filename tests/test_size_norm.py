@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from dali_cli.artifacts import BoxTable, FrameSet, read_boxes, write_boxes, write_frameset
 from dali_cli.cli import main
 from dali_cli.size_norm import shift_frame
+from dali_cli.store.artifacts import BoxTable, FrameSet, read_boxes, write_boxes, write_frameset
 
 DELTA = np.array([-0.6, -0.4, -0.2])
 

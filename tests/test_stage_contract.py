@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from dali_cli.artifacts import ArtifactError
 from dali_cli.cli import main
-from dali_cli.errors import ParameterError, StageError
+from dali_cli.runtime.errors import ParameterError, StageError
+from dali_cli.store.artifacts import ArtifactError
 
 ROOT = Path(__file__).resolve().parent.parent
 # modules that stages and engines call: they must not depend on the command line

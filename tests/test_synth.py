@@ -9,11 +9,11 @@ import pytest
 from click.testing import CliRunner
 
 from dali_cli import geometry, synth
-from dali_cli.artifacts import FrameSet, read_boxes
-from dali_cli.camera import kitti_label_columns
 from dali_cli.cli import main
+from dali_cli.evaluation.camera import kitti_label_columns
 from dali_cli.raycast import cast_into_box
 from dali_cli.sensors import get_profile
+from dali_cli.store.artifacts import FrameSet, read_boxes
 from dali_cli.world import cars as world_cars
 from dali_cli.world import scan as world_scan
 from dali_cli.world import scene as world_scene

@@ -17,12 +17,12 @@ from click.testing import CliRunner
 from test_retrain import SMALL, TOY
 from toy_scenes import write_toy_dataset
 
-from dali_cli.artifacts import FrameSet, read_boxes, write_boxes
 from dali_cli.cli import main
 from dali_cli.geometry import descale_boxes_about_ground, scale_boxes_about_ground
 from dali_cli.library import procedural_car, write_library
-from dali_cli.manifest import read_manifest
 from dali_cli.sensors import get_profile
+from dali_cli.store.artifacts import FrameSet, read_boxes, write_boxes
+from dali_cli.store.manifest import read_manifest
 
 BIAS = np.array([1.20, 1.29, 1.14])  # Waymo / KITTI per-dimension size ratios
 POISON = b"poison: DALI stages must never read the target's labels\n"

@@ -1,4 +1,4 @@
-"""Test-time augmentation of pseudo-labelling (dali_cli.tta): the mirror, box fusion, and the
+"""Test-time augmentation of pseudo-labelling (dali_cli.labels.tta): the mirror, box fusion, and the
 stage with a detector whose errors depend on the view: fused labels are closer to the cars and
 keep fewer false boxes than one pass, and the manifest records the views."""
 
@@ -13,7 +13,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from stub_stage import write_stub_inputs
 
-from dali_cli.artifacts import read_boxes
 from dali_cli.cli import main
 from dali_cli.geometry import (
     count_points_in_boxes,
@@ -21,7 +20,8 @@ from dali_cli.geometry import (
     scale_boxes_about_ground,
     wrap_angle,
 )
-from dali_cli.tta import Views, fuse_boxes, mirror_boxes, mirror_points
+from dali_cli.labels.tta import Views, fuse_boxes, mirror_boxes, mirror_points
+from dali_cli.store.artifacts import read_boxes
 
 CAR = np.array([10.0, 2.0, -0.9, 3.9, 1.6, 1.5, 0.4])
 

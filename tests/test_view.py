@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 from click.testing import CliRunner
 
-from dali_cli.artifacts import BoxTable, write_boxes, write_frameset
 from dali_cli.cli import main
-from dali_cli.view import BOX_COLOURS
+from dali_cli.reporting.view import BOX_COLOURS
+from dali_cli.store.artifacts import BoxTable, write_boxes, write_frameset
 
 
 def read_png(path):

@@ -14,7 +14,6 @@ import pyarrow.parquet as pq
 import pytest
 from click.testing import CliRunner
 
-from dali_cli.artifacts import FrameSet, read_boxes
 from dali_cli.cli import main
 from dali_cli.geometry import count_points_in_boxes
 from dali_cli.importers.waymo import v1, v2
@@ -24,6 +23,7 @@ from dali_cli.importers.waymo.range_image import (
     row_inclinations,
     uniform_inclinations,
 )
+from dali_cli.store.artifacts import FrameSet, read_boxes
 
 SEGMENT = "1005081002024129653_5313_150_5333_150"
 STAMPS = (1_550_000_000_000_000, 1_550_000_000_100_000, 1_550_000_000_200_000)

@@ -46,7 +46,7 @@ def test_workers_and_resource_tracker_die_with_a_killed_parent(tmp_path, kind):
         script = textwrap.dedent(
             """
             import time
-            from dali_cli.workers import process_pool
+            from dali_cli.runtime.workers import process_pool
             with process_pool(2) as pool:
                 list(pool.map(time.sleep, [0.01, 0.01]))  # both workers started
                 print("ready", flush=True)

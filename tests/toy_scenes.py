@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.artifacts import BoxTable, write_boxes, write_frameset
 from dali_cli.sensors import SensorProfile, spherical_directions
+from dali_cli.store.artifacts import BoxTable, write_boxes, write_frameset
 
 # a small detector configuration (a 25.6 m x 25.6 m grid, narrow layers) for fast tests
 SMALL_NET = dict(

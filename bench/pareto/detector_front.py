@@ -27,9 +27,9 @@ def measure(
     variants run in turn within each repeat, so a slow minute of the machine hits them all."""
     import torch
 
-    from dali_cli.artifacts import FrameSet, read_boxes
     from dali_cli.detector import Detector
     from dali_cli.sensors import get_profile
+    from dali_cli.store.artifacts import FrameSet, read_boxes
 
     detector = Detector.load(model_dir)
     base = detector.config
@@ -104,8 +104,8 @@ def _timed_predict(detector, frames, precision: str, mount: float):
 
 def _scored(variant: dict, default: bool, frames, results, gt) -> dict:
     """The variant's AP_3D@0.7 (front region, all boxes; KITTI moderate) from its detections."""
-    from dali_cli.artifacts import BoxTable
-    from dali_cli.evaluate import evaluate
+    from dali_cli.evaluation.evaluate import evaluate
+    from dali_cli.store.artifacts import BoxTable
 
     ids, boxes, scores = [], [], []
     for (frame_id, _), (frame_boxes, frame_scores) in zip(frames, results, strict=True):

@@ -23,7 +23,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from dali_cli.report import read_kitti, read_metrics
+from dali_cli.reporting.report import read_kitti, read_metrics
 
 PILLARS_M = (0.24, 0.40)  # swept around the detector's default, which is always a point
 

@@ -26,8 +26,8 @@ import numpy as np
 
 # (phase, module path, owner attribute or None, function name)
 _WRAPPED = (
-    ("read", "dali_cli.artifacts", "FrameSet", "_read_points"),
-    ("read", "dali_cli.artifacts", "FrameSet", "_checked"),
+    ("read", "dali_cli.store.artifacts", "FrameSet", "_read_points"),
+    ("read", "dali_cli.store.artifacts", "FrameSet", "_checked"),
     ("points_in_boxes", "dali_cli.ppcg.rc", None, "car_points"),
     ("points_in_boxes", "dali_cli.ppcg.cf", None, "car_points"),
     ("select_models", "dali_cli.ppcg.models", "ModelBank", "select"),
@@ -37,8 +37,8 @@ _WRAPPED = (
     ("embree", "dali_cli.raycast", "Scene", "_trace"),
     ("assemble", "dali_cli.ppcg.rc", None, "assemble"),
     ("assemble", "dali_cli.ppcg.cf", None, "assemble"),
-    ("write", "dali_cli.artifacts", "FrameSetWriter", "append"),
-    ("write", "dali_cli.artifacts", "FrameSetWriter", "close"),
+    ("write", "dali_cli.store.artifacts", "FrameSetWriter", "append"),
+    ("write", "dali_cli.store.artifacts", "FrameSetWriter", "close"),
 )
 
 
@@ -138,7 +138,7 @@ def floor_read(frames_dir: Path) -> tuple[float, float]:
 def floor_write(points: np.ndarray, chunk_points: int) -> tuple[float, float]:
     """(Wall, CPU) seconds to write `points` `(N, 4)` float32 as raw chunk files with a CRC-32C each (the
     last one padded to a whole chunk, as the format stores it)."""
-    from dali_cli.raw_chunks import write_chunk
+    from dali_cli.store.raw_chunks import write_chunk
 
     points = np.ascontiguousarray(points, np.float32)
     with tempfile.TemporaryDirectory(prefix="dali-floor-") as tmp:

@@ -43,8 +43,8 @@ def _shared_cache_class():
 def load_frames(model_dir, target_dir, scale_low: float, scale_high: float, limit=None):
     """The detector and the target's (first `limit`) frames cropped as ptsn-sweep crops them."""
     from dali_cli import ptsn
-    from dali_cli.artifacts import FrameSet
     from dali_cli.detector import Detector
+    from dali_cli.store.artifacts import FrameSet
 
     detector = Detector.load(model_dir)
     frames = [

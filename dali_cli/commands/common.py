@@ -298,7 +298,7 @@ def target_scaling_options(function):
 def pop_training(options: dict):
     """The TrainingOptions of a training command's parsed `options` (training_options), which
     are removed from `options`; the rest are the stage's own."""
-    from dali_cli.training_stage import TrainingOptions
+    from dali_cli.runtime.training_stage import TrainingOptions
 
     return TrainingOptions(
         epochs=options.pop("epochs"),

@@ -55,7 +55,7 @@ def command(preds, gt_path, iou, recall_positions, protocol, front_only, class_n
             min_gt_points, samples, seed, out, no_progress):  # fmt: skip
     """AP of several prediction tables on the same frames, and how much of each difference is
     the choice of frames (a paired bootstrap over the frames)."""
-    from dali_cli.evaluate import Protocol
+    from dali_cli.evaluation.evaluate import Protocol
     from stages.compare import format_comparison, run_compare
 
     settings = Protocol(

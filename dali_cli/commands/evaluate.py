@@ -124,7 +124,7 @@ def command(
 ):
     """Average precision (KITTI protocol, BEV and 3D, float64 rotated IoU) of predictions.
     With --model, the detector runs on --executor with --workers."""
-    from dali_cli.evaluate import format_table
+    from dali_cli.evaluation.evaluate import format_table
     from stages.eval import run_eval
 
     result = run_eval(

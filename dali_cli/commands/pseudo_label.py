@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import click
 
-from dali_cli import tta
 from dali_cli.commands.common import (
     choice_option,
     executor_options,
@@ -14,6 +13,7 @@ from dali_cli.commands.common import (
     target_scaling_options,
     workers_option,
 )
+from dali_cli.labels import tta
 
 
 def parse_scale_factors(ctx, param, value: str) -> tuple[float, ...]:
@@ -31,7 +31,7 @@ def views_of(on: bool, factors: tuple[float, ...], mirror: bool):
     usage error rather than silently ignored."""
     from click.core import ParameterSource
 
-    from dali_cli import tta as augmentation
+    from dali_cli.labels import tta as augmentation
 
     if not on:
         context = click.get_current_context()
@@ -72,12 +72,12 @@ def views_of(on: bool, factors: tuple[float, ...], mirror: bool):
 @click.option("--fit-points/--no-fit-points", default=True, show_default=True,
               help="Move and turn each pseudo box (its size kept) so its sides hug the target "
                    "points it holds: shifts up to 1 m along the car and 0.2 m across, turns "
-                   "up to 8 degrees (dali_cli.box_fit). Target points only, no label. Matched "
+                   "up to 8 degrees (dali_cli.labels.box_fit). Target points only, no label. Matched "
                    "boxes at 3D IoU >= 0.7: 0.48-0.57 -> 0.67-0.71 (docs/RESULTS.md, session 13).")  # fmt: skip
 @click.option("--fit-ground/--no-fit-ground", default=False, show_default=True,
               help="Then put each box's bottom on the ground the target points show around it "
                    "(a robust plane or level fit to the free points within 10 m of the box; "
-                   "x, y, size and yaw kept; dali_cli.ground_fit). Target points only, no "
+                   "x, y, size and yaw kept; dali_cli.labels.ground_fit). Target points only, no "
                    "label. Off by default: better heights (0.838 -> 0.859 of the matched boxes "
                    "at 3D IoU >= 0.7), the same retrained model (docs/RESULTS.md, session 29).")  # fmt: skip
 @click.option("--ignore-min", type=click.FloatRange(0, 1), default=None,
@@ -107,8 +107,8 @@ def command(model_dir, target_dir, out, sensors_path, no_progress, tta, tta_scal
     scale_source and the pivot mount_height_m; the one record of ŝ in the output),
     OUT/summary.json (boxes per frame, mean size vs E_est, score histogram) and manifest.json.
     """
-    from dali_cli.box_fit import PointFit
-    from dali_cli.ground_fit import GroundFit
+    from dali_cli.labels.box_fit import PointFit
+    from dali_cli.labels.ground_fit import GroundFit
     from stages.pseudo_label import pseudo_label
 
     pseudo_label(

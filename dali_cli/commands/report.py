@@ -8,8 +8,8 @@ from pathlib import Path
 
 import click
 
-from dali_cli.atomic_file import write_text_atomically
-from dali_cli.report import build_report
+from dali_cli.reporting.report import build_report
+from dali_cli.store.atomic_file import write_text_atomically
 
 
 @click.command(name="report")
@@ -29,7 +29,7 @@ def command(runs: tuple[Path, ...], out_dir: Path | None, plots: bool) -> None:
     With several RUNs (e.g. one per seed), or a directory holding runs: mean ± sample std per
     row and column over the runs, written to --out (default: their common parent's report/).
     """
-    from dali_cli.report_aggregate import aggregate_runs, find_runs, is_run
+    from dali_cli.reporting.aggregate import aggregate_runs, find_runs, is_run
 
     if len(runs) > 1 or not is_run(runs[0]):
         found = find_runs(list(runs))
@@ -47,7 +47,7 @@ def command(runs: tuple[Path, ...], out_dir: Path | None, plots: bool) -> None:
     text, document = build_report(run)
     out_dir.mkdir(parents=True, exist_ok=True)
     if plots:
-        from dali_cli.report_plots import draw_plots
+        from dali_cli.reporting.plots import draw_plots
 
         document["plots"] = [str(p) for p in draw_plots(run, out_dir / "plots")]
         if not document["plots"]:

@@ -54,13 +54,13 @@ def command(
     y up, coloured by height or intensity) with the boxes of each box table in its own colour,
     Car solid, other labels dashed, a tick towards each box's front; --side adds an x-z view.
     For checking imported data and pseudo labels by eye. Writes only OUT."""
-    from dali_cli.artifacts import BOXES_NAME, ArtifactError, FrameSet, read_boxes
+    from dali_cli.store.artifacts import BOXES_NAME, ArtifactError, FrameSet, read_boxes
 
     try:
         import matplotlib  # noqa: F401  (a dev extra, not a core dependency)
     except ImportError:
         raise click.ClickException("dali view needs matplotlib: pip install matplotlib") from None
-    from dali_cli.view import BoxSet, render_frame
+    from dali_cli.reporting.view import BoxSet, render_frame
 
     frames = FrameSet(data_dir)
     frame_id = frame

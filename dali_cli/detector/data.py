@@ -9,9 +9,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from dali_cli.artifacts import ArtifactError, FrameSet, read_boxes
 from dali_cli.detector import augment
 from dali_cli.detector.config import DetectorConfig
+from dali_cli.store.artifacts import ArtifactError, FrameSet, read_boxes
 
 
 @dataclass
@@ -75,11 +75,11 @@ def load_labeled(
     Points and boxes that global rotation (<= 45 deg) cannot bring into the detection range are
     dropped (beyond its far corner + 10 m, or more than 135 deg off +x for a front range); boxes
     of other labels or with fewer than `min_points` points are not targets. A box of `labels`
-    outside dali_cli.plausibility's limits (size, distance from the sensor) is an ArtifactError
+    outside dali_cli.labels.plausibility's limits (size, distance from the sensor) is an ArtifactError
     naming the file, row, frame and field: corrupt labels or labels not in metres.
     """
-    from dali_cli import plausibility
     from dali_cli.geometry import count_points_in_boxes
+    from dali_cli.labels import plausibility
     from dali_cli.sensors import get_profile
 
     frames = FrameSet(data_dir)

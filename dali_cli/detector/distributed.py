@@ -31,7 +31,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
-from dali_cli.errors import StageError
+from dali_cli.runtime.errors import StageError
 
 DEFAULT_TIMEOUT_S = 1800.0  # a collective waiting longer than this fails the run
 

@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dali_cli.artifacts import ArtifactError, BoxTable, FrameSet
 from dali_cli.detector.config import DetectorConfig
 from dali_cli.detector.model import PillarCenterNet
 from dali_cli.detector.refine import BoxRefiner, refine_boxes
@@ -26,7 +25,8 @@ from dali_cli.geometry import (
     unscale_ground_boxes,
     wrap_angle,
 )
-from dali_cli.model_card import ModelCard, read_meta
+from dali_cli.store.artifacts import ArtifactError, BoxTable, FrameSet
+from dali_cli.store.model_card import ModelCard, read_meta
 
 WEIGHTS_NAME = "model.pt"
 META_NAME = "model.json"
@@ -145,7 +145,7 @@ class Detector:
         precision: str = "fp32",
     ):
         """`device`: where the network runs (default: where its weights are); `precision`:
-        fp32, or bf16 autocast (dali_cli.device.autocast)."""
+        fp32, or bf16 autocast (dali_cli.runtime.device.autocast)."""
         if device is None:  # where the weights are (a parameterless stand-in: the CPU)
             device = next((p.device for p in net.parameters()), torch.device("cpu"))
         self.device = device
@@ -217,7 +217,7 @@ class Detector:
         mount = self.config.mount_height_m if mount_height_m is None else float(mount_height_m)
         if not scale > 0:
             raise ValueError(f"scale must be positive, got {scale}")
-        from dali_cli.device import autocast
+        from dali_cli.runtime.device import autocast
 
         config = inference_config(self.config, scale)
         refiner = getattr(self.net, "refiner", None) if config.refine else None
@@ -329,7 +329,7 @@ def predict_frameset(
     from tqdm import tqdm
 
     from dali_cli.detector.runtime import available_cores
-    from dali_cli.pseudo_labeler import FrameLabeler
+    from dali_cli.labels.pseudo_labeler import FrameLabeler
     from dali_cli.sensors import get_profile
 
     torch.set_num_threads(available_cores())

@@ -6,7 +6,7 @@ from __future__ import annotations
 import platform
 from pathlib import Path
 
-from dali_cli.cores import available_cores
+from dali_cli.runtime.cores import available_cores
 
 CPUINFO = Path("/proc/cpuinfo")
 
@@ -40,7 +40,7 @@ def runtime_info(threads: int, device=None, world=None) -> dict:
     torchrun run the world size, the backend and the processes per machine."""
     import torch
 
-    from dali_cli.device import describe
+    from dali_cli.runtime.device import describe
 
     record = {
         "threads": int(threads),

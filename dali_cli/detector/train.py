@@ -50,7 +50,7 @@ class TrainSettings:
     seed: int = 0
     precision: str = "fp32"  # "bf16" autocast: on CUDA, or on CPUs with AMX / AVX512-BF16
     threads: int | None = None  # None: this process's share of the cores (runtime.training_threads)
-    device: str = "auto"  # auto | cpu | cuda | cuda:N (dali_cli.device.resolve_device)
+    device: str = "auto"  # auto | cpu | cuda | cuda:N (dali_cli.runtime.device.resolve_device)
     compile: bool = False  # torch.compile the backbone and heads (~1 min cold start)
     mix: tuple[int, ...] = (1,)
     # the part (start, stop) of the one-cycle learning-rate schedule this run covers: (0, 1) a
@@ -209,7 +209,7 @@ def train(
 def training_device(settings: TrainSettings, device, world: World):
     """(device, torch threads) of this process: `device` or settings.device resolved (for the
     local rank), its precision checked; torch's thread count set to this process's share."""
-    from dali_cli.device import check_precision, resolve_device
+    from dali_cli.runtime.device import check_precision, resolve_device
 
     device = device if device is not None else resolve_device(settings.device, world.local_rank)
     check_precision(settings.precision, device)
@@ -303,7 +303,7 @@ def optimize_step(
 ) -> dict:  # fmt: skip
     """One optimizer step on `samples` (forward, detection + refine losses, clipped backward);
     returns the loss terms (tensors)."""
-    from dali_cli.device import autocast
+    from dali_cli.runtime.device import autocast
 
     config = net.config
     points = torch.from_numpy(np.concatenate([s.points for s in samples])).to(device)  # (P, 4)
@@ -378,7 +378,7 @@ def save_resume_state(
     path: Path, key: str, net, optimizer, step: int, elapsed: float, log: list
 ) -> None:
     """Everything needed to continue: weights, optimizer, step, elapsed time, log (atomic write)."""
-    from dali_cli.atomic_file import write_atomically
+    from dali_cli.store.atomic_file import write_atomically
 
     state = {
         "key": key,

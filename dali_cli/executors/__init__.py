@@ -28,8 +28,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
-from dali_cli import console
-from dali_cli.errors import ParameterError, StageError
+from dali_cli.runtime import console
+from dali_cli.runtime.errors import ParameterError, StageError
 
 ENGINES = ("local", "ray")
 SHARDS_DIR = "shards"  # inside the artifact's temporary directory; removed before the commit

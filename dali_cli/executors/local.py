@@ -1,5 +1,5 @@
 """The local engine: shards run in this process (one worker) or in a pool of spawned processes
-on this machine (dali_cli.workers.process_pool: workers die with their parent)."""
+on this machine (dali_cli.runtime.workers.process_pool: workers die with their parent)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, wait
 from pathlib import Path
 
-from dali_cli import console
 from dali_cli.executors import Executor, Shard, ShardWorker, run_shard
+from dali_cli.runtime import console
 
 _worker: ShardWorker | None = None  # the pool process's worker, made once by _start
 
@@ -42,7 +42,7 @@ class LocalExecutor(Executor):
                 except Exception as error:
                     yield shard, error
             return
-        from dali_cli.workers import process_pool
+        from dali_cli.runtime.workers import process_pool
 
         count = min(self.workers, len(shards))
         console.info(f"executor: local process pool, {count} worker(s), {len(shards)} shards")

@@ -16,9 +16,9 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from dali_cli import console
-from dali_cli.errors import StageError
 from dali_cli.executors import Executor, Shard, ShardWorker, run_shard
+from dali_cli.runtime import console
+from dali_cli.runtime.errors import StageError
 
 RESTARTS = 2  # times Ray restarts a lost actor and retries its shard
 LOCAL_OBJECT_STORE_BYTES = 128 * 2**20  # only shards' small payloads and summaries travel

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.errors import StageError
-from dali_cli.frame_ids import name_problem
+from dali_cli.runtime.errors import StageError
+from dali_cli.store.frame_ids import name_problem
 
 
 class ImportFormatError(StageError):
@@ -67,7 +67,7 @@ def read_text_lines(path: str | Path, what: str) -> list[str]:
 def read_id_list(path: str | Path) -> list[str]:
     """Frame ids from a text file, one per line (blank lines and `#` comments ignored).
 
-    Each id must be able to name a file (dali_cli.frame_ids: no path separators, `..`, control
+    Each id must be able to name a file (dali_cli.store.frame_ids: no path separators, `..`, control
     characters; at most 200 bytes): ids become file names in exports, and an id such as
     `../../other/velodyne/000008` would otherwise read and later write outside the dataset.
     Errors name the file and the line."""
@@ -114,8 +114,8 @@ def write_imported(
     """
     from tqdm import tqdm
 
-    from dali_cli.artifacts import BoxTable, FrameSetWriter, write_boxes
-    from dali_cli.manifest import BuildResult
+    from dali_cli.store.artifacts import BoxTable, FrameSetWriter, write_boxes
+    from dali_cli.store.manifest import BuildResult
 
     tables = []
     unlabeled = 0

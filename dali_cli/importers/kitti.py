@@ -18,8 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli import kitti_label
-from dali_cli.artifacts import BoxTable
+from dali_cli.evaluation import kitti_label
 from dali_cli.geometry import count_points_in_boxes, wrap_angle
 from dali_cli.importers.common import (
     ImportFormatError,
@@ -28,7 +27,8 @@ from dali_cli.importers.common import (
     read_text_lines,
     write_imported,
 )
-from dali_cli.manifest import BuildResult
+from dali_cli.store.artifacts import BoxTable
+from dali_cli.store.manifest import BuildResult
 
 DEFAULT_IMAGE_SIZE = (1242, 375)  # width, height in pixels; KITTI images are 1224..1242 x 370..376
 IGNORE_TYPES = ("DontCare",)  # rows without a 3D box: kept for their 2D region only
@@ -188,7 +188,7 @@ class CameraObjects:
 
 def parse_label_file(path: str | Path) -> CameraObjects:
     """Read one label_2 file (15 fields per line, or 16 with a detection score) as raw camera
-    fields. Parsing is `dali_cli.kitti_label`'s: malformed lines raise ArtifactError naming the
+    fields. Parsing is `dali_cli.evaluation.kitti_label`'s: malformed lines raise ArtifactError naming the
     file and line (`path:line: ...`); DontCare's placeholder size -1 becomes 0."""
     table = kitti_label.read_label_file(path)
     hwl, location, rotation_y = kitti_label.pseudo_lidar_to_camera(table.boxes)

@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.artifacts import BoxTable, TableValueError, int32_column
 from dali_cli.geometry import count_points_in_boxes, wrap_angle
 from dali_cli.importers.common import (
     ImportFormatError,
@@ -23,7 +22,8 @@ from dali_cli.importers.common import (
     read_float_records,
     write_imported,
 )
-from dali_cli.manifest import BuildResult
+from dali_cli.store.artifacts import BoxTable, TableValueError, int32_column
+from dali_cli.store.manifest import BuildResult
 
 _INT32 = np.iinfo(np.int32)
 

@@ -11,8 +11,6 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.artifacts import BoxTable
-from dali_cli.frame_ids import child_path
 from dali_cli.geometry import count_points_in_boxes, wrap_angle
 from dali_cli.importers.common import (
     ImportFormatError,
@@ -22,7 +20,9 @@ from dali_cli.importers.common import (
     read_text_lines,
     write_imported,
 )
-from dali_cli.manifest import BuildResult
+from dali_cli.store.artifacts import BoxTable
+from dali_cli.store.frame_ids import child_path
+from dali_cli.store.manifest import BuildResult
 
 DEFAULT_CAR_CLASSES = ("Car", "Vehicle")
 

@@ -53,8 +53,8 @@ class _Worker:
     """Per-process state: the frame set, the model bank and the sensor profile."""
 
     def __init__(self, job: Job, bank: ModelBank | None = None):
-        from dali_cli.artifacts import FrameSet
         from dali_cli.sensors import get_profile
+        from dali_cli.store.artifacts import FrameSet
 
         self.job = job
         self.frames = FrameSet(job.target_dir)
@@ -182,8 +182,8 @@ def run_frames(
             raise ValueError(f"{count} box lists for {len(worker.frames)} frames")
         yield from worker.run(None, boxes_by_frame)
         return
-    from dali_cli.artifacts import FrameSet
     from dali_cli.executors import plan_shards, shard_results
+    from dali_cli.store.artifacts import FrameSet
 
     frame_ids = FrameSet(job.target_dir).frame_ids
     if len(frame_ids) != count:

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.artifacts import ArtifactError, FrameSet, read_boxes
 from dali_cli.geometry import wrap_angle
-from dali_cli.manifest import read_manifest
 from dali_cli.ppcg.fitting import sensor_to_model
+from dali_cli.store.artifacts import ArtifactError, FrameSet, read_boxes
+from dali_cli.store.manifest import read_manifest
 
 _MARGIN_M = 0.6  # drawn around each box
 

@@ -6,7 +6,7 @@ boxes.parquet = the input rows (in order) plus ppcg (rc | cf | raw), ppcg_reason
 (ok | dense | too_few_points | no_hits | label), points_before / points_after (the box's points
 above its ground height, before / after), model_id ("" when raw); num_points becomes the
 number of points in the box in the new frame (rows of other labels keep theirs). Rows of the
-processed label outside dali_cli.plausibility's limits are dropped, neither re-cast nor passed on
+processed label outside dali_cli.labels.plausibility's limits are dropped, neither re-cast nor passed on
 to retraining (manifest count dropped_implausible, a note naming the first).
 """
 
@@ -20,18 +20,19 @@ from typing import TypedDict, Unpack
 
 import numpy as np
 
-from dali_cli import console, plausibility
-from dali_cli.artifacts import BoxTable, FrameSet, FrameSetWriter, read_boxes, write_boxes
-from dali_cli.errors import ParameterError, StageError
 from dali_cli.executors import make_executor, run_on
-from dali_cli.manifest import BuildResult, StageOutcome, check_made_from, run_stage
+from dali_cli.labels import plausibility
 from dali_cli.ppcg.cf import CfParams
 from dali_cli.ppcg.driver import Job, run_frames
 from dali_cli.ppcg.models import ModelBank
 from dali_cli.ppcg.orient import turned
 from dali_cli.ppcg.point_models import angular_threshold_rad
 from dali_cli.ppcg.rc import RcParams
+from dali_cli.runtime import console
+from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.sensors import get_profile
+from dali_cli.store.artifacts import BoxTable, FrameSet, FrameSetWriter, read_boxes, write_boxes
+from dali_cli.store.manifest import BuildResult, StageOutcome, check_made_from, run_stage
 
 
 def resolve_orient(params: RcParams | CfParams, models: str) -> RcParams | CfParams:
@@ -91,7 +92,7 @@ def drop_implausible(
     table: BoxTable, label: str | None, max_range_m: float, boxes_path: Path
 ) -> tuple[BoxTable, int, str | None]:
     """The rows of `table` to keep: those of the processed `label` (all when None) with positive
-    sizes but outside dali_cli.plausibility's limits are dropped (non-positive sizes stay an
+    sizes but outside dali_cli.labels.plausibility's limits are dropped (non-positive sizes stay an
     error of boxes_by_frame). Returns (kept table, dropped count, a note naming the first)."""
     boxes = table.boxes
     selected = np.ones(len(table), bool)

@@ -18,8 +18,8 @@ The package: `spec` (scale range, E_est specs, errors, the Predictor protocol), 
 and the criterion), `cache` (DetectionCache), `search` (find_scale: grid and bracket), `frames`
 (frame selection, the bracket's subsample, the crop to the detector's view), `detections` (the
 sweep's boxes kept, E_pred(ŝ) over a stricter score cut from them). I/O is the stage's
-(`stages.ptsn_sweep`, `dali_cli.scale_file`); the sweep plot is the report's
-(`dali_cli.report_plots.plot_sweep`).
+(`stages.ptsn_sweep`, `dali_cli.store.scale_file`); the sweep plot is the report's
+(`dali_cli.reporting.plots.plot_sweep`).
 """
 
 from dali_cli.ptsn.cache import DetectionCache

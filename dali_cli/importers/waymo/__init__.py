@@ -80,8 +80,8 @@ class WaymoSource:
 
 def convert(frame: WaymoFrame, returns: int, lidars: str):
     """WaymoFrame → (frame id, points (n, 4) float32 TOP frame, BoxTable, points per laser)."""
-    from dali_cli.artifacts import BoxTable
     from dali_cli.importers.common import check_id
+    from dali_cli.store.artifacts import BoxTable
 
     identifier = check_id(frame_id(frame.segment, frame.timestamp_micros), frame.where())
     points, per_laser = scan_points(frame, returns, lidars)

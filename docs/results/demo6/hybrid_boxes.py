@@ -29,7 +29,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from pseudo_labels import match  # noqa: E402
 
-from dali_cli.artifacts import BoxTable, read_boxes, write_boxes  # noqa: E402
+from dali_cli.store.artifacts import BoxTable, read_boxes, write_boxes  # noqa: E402
 
 
 def main() -> None:

@@ -1,5 +1,5 @@
 #!/bin/bash
-# x2 with point-fitted pseudo labels (dali pseudo-label --fit-points, dali_cli.box_fit) in both
+# x2 with point-fitted pseudo labels (dali pseudo-label --fit-points, dali_cli.labels.box_fit) in both
 # iterations, the default chain otherwise (pretraining 288 frames, each retraining 576); reuses
 # runs/d5-s$SEED's data, library, iteration-0 model and first sweep (docs/results/demo5/seed_job.sh),
 # then evaluates on the 400-frame validation set (docs/results/demo6/val400_job.sh SEED ROW).

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dali_cli.artifacts import FrameSet
+from dali_cli.store.artifacts import FrameSet
 from dali_cli.detector import (
     Augmentation,
     Detector,

@@ -24,7 +24,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from pseudo_labels import match  # noqa: E402
 
-from dali_cli.artifacts import read_boxes  # noqa: E402
+from dali_cli.store.artifacts import read_boxes  # noqa: E402
 
 SCORE_BANDS = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.6, 0.7, 0.8, 1.01)
 RANGE_BANDS = ((0.0, 30.0), (30.0, 50.0), (50.0, 80.0))

@@ -1,5 +1,5 @@
 """One file written atomically: into a hidden temporary beside it, then renamed onto it, so a
-reader (or a crash) never sees half a file. Whole artifact directories: dali_cli.atomic_dir."""
+reader (or a crash) never sees half a file. Whole artifact directories: dali_cli.store.atomic_dir."""
 
 from __future__ import annotations
 

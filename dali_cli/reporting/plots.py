@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.scale_file import read_scale
+from dali_cli.store.scale_file import read_scale
 
 
 def _pyplot():
@@ -101,7 +101,7 @@ def plot_ptsn_curves(run: Path, out: Path) -> Path | None:
 
 def plot_size_distributions(run: Path, out: Path, target: Path | None = None) -> Path | None:
     """Histograms of pseudo-label l, w, h per iteration against the target's label sizes."""
-    from dali_cli.artifacts import read_boxes
+    from dali_cli.store.artifacts import read_boxes
 
     pseudo_dirs = sorted(p.parent for p in run.glob("iter*/pseudo/boxes.parquet"))
     if not pseudo_dirs:
@@ -152,7 +152,7 @@ SIZE_SCORE_MIN = 0.3
 
 def _evaluation(run: Path, relative: str):
     """(predictions BoxTable, metrics dict) of an evaluation directory, or None."""
-    from dali_cli.artifacts import read_boxes
+    from dali_cli.store.artifacts import read_boxes
 
     directory = run / relative
     if (
@@ -166,7 +166,7 @@ def _evaluation(run: Path, relative: str):
 
 def _ground_truth(run: Path, metrics: dict):
     """The evaluated frame set's directory and labels (the path recorded in metrics.json)."""
-    from dali_cli.artifacts import read_boxes
+    from dali_cli.store.artifacts import read_boxes
 
     recorded = metrics.get("Car", {}).get("source", {}).get("data")
     candidates = [Path(recorded)] if recorded else []
@@ -214,8 +214,8 @@ def plot_method_sizes(run: Path, out: Path, found: list | None = None) -> Path |
 def plot_bev_views(run: Path, out: Path, frames: int = 2, found: list | None = None) -> Path | None:
     """Bird's-eye views of target validation frames: points, ground truth and the predictions
     (score >= 0.3) of the first and the last method row that was evaluated."""
-    from dali_cli.artifacts import FrameSet
     from dali_cli.geometry import bev_corners
+    from dali_cli.store.artifacts import FrameSet
 
     found = evaluations(run) if found is None else found
     if not found:

@@ -6,7 +6,7 @@ which `dali report` aggregates) and the validation frames. With 200 frames AP_3D
 steps: resizing every box by 3 mm in height moved one control by 1.4 AP_3D (docs/RESULTS.md,
 session 20), because a few near cars sit at IoU ≈ 0.7. The bootstrap draws the evaluation frames
 with replacement (the same draw for every row: paired), evaluates each row on the draw with the
-full KITTI-protocol code (`dali_cli.evaluate.evaluate`, thresholds and all) and reports the spread
+full KITTI-protocol code (`dali_cli.evaluation.evaluate.evaluate`, thresholds and all) and reports the spread
 of each row's AP and of its difference to the first row.
 
 Frames are the unit (the boxes of one frame are not independent). A frame drawn twice enters twice,
@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dali_cli.artifacts import BoxTable
+from dali_cli.store.artifacts import BoxTable
 
 Metric = Callable[[BoxTable, BoxTable], dict[str, float]]  # (pred, gt) -> {name: AP}
 

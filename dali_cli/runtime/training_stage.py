@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli import console
-from dali_cli.errors import ParameterError
-from dali_cli.manifest import BuildResult, StageOutcome, content_hash, run_stage
+from dali_cli.runtime import console
+from dali_cli.runtime.errors import ParameterError
+from dali_cli.store.manifest import BuildResult, StageOutcome, content_hash, run_stage
 
 
 @dataclass(frozen=True)
@@ -245,7 +245,7 @@ def run_training_stage(
     tells the other ranks whether to train; they train with it and write nothing, and rank 0
     commits only after every rank finished (a failing rank fails the stage, no artifact)."""
     from dali_cli.detector import distributed
-    from dali_cli.device import resolve_device
+    from dali_cli.runtime.device import resolve_device
 
     world = distributed.launched()
     params = {**params, **training.params()}

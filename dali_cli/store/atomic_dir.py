@@ -19,9 +19,9 @@ import shutil
 from collections.abc import Callable
 from pathlib import Path
 
-from dali_cli import console
-from dali_cli.errors import StageError
-from dali_cli.output_paths import is_dali_artifact
+from dali_cli.runtime import console
+from dali_cli.runtime.errors import StageError
+from dali_cli.store.output_paths import is_dali_artifact
 
 RENAME_EXCHANGE = 2
 AT_FDCWD = -100

@@ -185,11 +185,11 @@ def stage_timings(run: Path) -> dict[str, dict[str, float]]:
 
 def ptsn_scales(run: Path) -> dict[str, dict]:
     """ŝ and the size numbers of every PTSN sweep in the run: each scale.json's record, read
-    through the one scale contract (dali_cli.scale_file.read_scale); an unreadable one is
+    through the one scale contract (dali_cli.store.scale_file.read_scale); an unreadable one is
     reported and left out."""
-    from dali_cli import console
-    from dali_cli.artifacts import ArtifactError
-    from dali_cli.scale_file import read_scale
+    from dali_cli.runtime import console
+    from dali_cli.store.artifacts import ArtifactError
+    from dali_cli.store.scale_file import read_scale
 
     scales = {}
     for path in sorted(run.glob("iter*/ptsn/scale.json")):

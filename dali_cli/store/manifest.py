@@ -20,12 +20,13 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
-from dali_cli import __version__, console
-from dali_cli.atomic_dir import OutputLock, recover_interrupted, replace_directory
-from dali_cli.atomic_file import write_text_atomically
-from dali_cli.errors import StageError
-from dali_cli.file_hashes import hash_tree as _hash_files
-from dali_cli.output_paths import check_output_path
+from dali_cli import __version__
+from dali_cli.runtime import console
+from dali_cli.runtime.errors import StageError
+from dali_cli.store.atomic_dir import OutputLock, recover_interrupted, replace_directory
+from dali_cli.store.atomic_file import write_text_atomically
+from dali_cli.store.file_hashes import hash_tree as _hash_files
+from dali_cli.store.output_paths import check_output_path
 
 MANIFEST_NAME = "manifest.json"
 # how content hashes are computed; manifests of older versions hashed raw bytes differently

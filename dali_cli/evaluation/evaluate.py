@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dali_cli import geometry
-from dali_cli.artifacts import BoxTable
+from dali_cli.store.artifacts import BoxTable
 
 DIFFICULTIES = ("easy", "moderate", "hard")
 MIN_HEIGHT_PX = (40.0, 25.0, 25.0)
@@ -705,7 +705,7 @@ def format_table(metrics: dict) -> str:
 
 def check_ious(ious: tuple[float, ...]) -> None:
     """ParameterError for an IoU threshold outside [0, 1) or one given twice."""
-    from dali_cli.errors import ParameterError
+    from dali_cli.runtime.errors import ParameterError
 
     for iou in ious:
         if not 0.0 <= iou < 1.0:

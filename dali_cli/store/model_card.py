@@ -16,7 +16,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from dali_cli.artifacts import ArtifactError, read_json
+from dali_cli.store.artifacts import ArtifactError, read_json
 
 META_NAME = "model.json"
 SIZE_NORMS = ("none", "sn", "ros")

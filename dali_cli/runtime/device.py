@@ -12,7 +12,7 @@ import re
 from collections.abc import Callable
 from typing import TypedDict
 
-from dali_cli.errors import ParameterError, StageError
+from dali_cli.runtime.errors import ParameterError, StageError
 
 DEVICE_SPECS = "auto, cpu, cuda or cuda:N"
 PRECISIONS = ("fp32", "bf16")

@@ -12,7 +12,7 @@ import re
 from collections.abc import Iterable
 from pathlib import Path
 
-from dali_cli.errors import StageError
+from dali_cli.runtime.errors import StageError
 
 # NAME_MAX is 255 bytes on Linux/macOS file systems; writers add suffixes such as ".txt" or
 # ".npy" (and temp names), so ids keep a margin below it.

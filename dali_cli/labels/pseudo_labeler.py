@@ -1,6 +1,6 @@
 """The per-frame part of pseudo-labelling (stages.pseudo_label): run the detector on batches of
 target frames at the PTSN scale (in several views fused into one set of boxes when test-time
-augmentation is on, dali_cli.tta), drop implausible boxes, cut scores, BEV NMS, count the
+augmentation is on, dali_cli.labels.tta), drop implausible boxes, cut scores, BEV NMS, count the
 original points in each box. In this process, or as shards on an executor's workers (dali_cli.executors),
 each loading the detector once; the batches are the same either way (shards are whole batches),
 so the labels are too."""
@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli import plausibility, tta
-from dali_cli.errors import StageError
+from dali_cli.labels import plausibility, tta
+from dali_cli.runtime.errors import StageError
 
 
 @dataclass
@@ -55,7 +55,7 @@ class FrameLabeler:
     """What labelling a frame needs (picklable: it is also the executors' worker factory);
     `loader(model_dir)` returns the detector (an object with `predict`). `raw`: the detector's
     predictions as they are (dali eval): only the score cut, no plausibility check, no NMS.
-    `views`: test-time augmentation (dali_cli.tta); None or a single view: the detector once at
+    `views`: test-time augmentation (dali_cli.labels.tta); None or a single view: the detector once at
     ŝ (always so when `raw`)."""
 
     model_dir: str
@@ -75,8 +75,8 @@ class FrameLabeler:
     views: tta.Views | None = None
 
     def load(self):
-        """The detector, loaded and placed on this process's device (dali_cli.device)."""
-        from dali_cli.device import inference_device, place
+        """The detector, loaded and placed on this process's device (dali_cli.runtime.device)."""
+        from dali_cli.runtime.device import inference_device, place
 
         device = self.device
         if device is None or isinstance(device, str):
@@ -187,8 +187,8 @@ class FrameLabeler:
         """An executor worker: the detector, loaded once, on one thread (one worker per core)."""
         import torch
 
-        from dali_cli.artifacts import FrameSet
         from dali_cli.executors import count_load
+        from dali_cli.store.artifacts import FrameSet
 
         torch.set_num_threads(1)
         count_load("detector")

@@ -13,7 +13,7 @@ import json
 from collections.abc import Mapping
 from pathlib import Path
 
-from dali_cli.errors import StageError
+from dali_cli.runtime.errors import StageError
 
 MANIFEST_NAME = "manifest.json"
 

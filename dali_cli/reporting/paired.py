@@ -16,14 +16,14 @@ is left of the difference when that step is taken out.
 
 from __future__ import annotations
 
-from dali_cli.report import (
+from dali_cli.reporting.aggregate import COLUMNS, dig, statistics
+from dali_cli.reporting.report import (
     SOURCE_X1_BUDGET,
     SOURCE_X1_BUDGET_SIZED,
     SOURCE_X2_BUDGET,
     SOURCE_X2_BUDGET_SIZED,
     X1_LONG,
 )
-from dali_cli.report_aggregate import COLUMNS, dig, statistics
 
 # (DALI row, its equal-budget control): the control trained on as many frames as the row's
 # model saw in all, then evaluated with test-time PTSN, and the same control size-corrected at

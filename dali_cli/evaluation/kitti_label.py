@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.artifacts import ArtifactError, BoxTable
-from dali_cli.frame_ids import check_name, child_path
 from dali_cli.geometry import wrap_angle
+from dali_cli.store.artifacts import ArtifactError, BoxTable
+from dali_cli.store.frame_ids import check_name, child_path
 
 LABEL_SUFFIX = ".txt"
 BBOX_COLUMNS = ("bbox_left", "bbox_top", "bbox_right", "bbox_bottom")
@@ -153,7 +153,7 @@ def _is_float(text: str) -> bool:
 
 def label_files(directory: str | Path) -> list[Path]:
     """The `<frame>.txt` files of a label directory, sorted by name; each stem must be a valid
-    frame id (dali_cli.frame_ids), FrameIdError naming the file otherwise."""
+    frame id (dali_cli.store.frame_ids), FrameIdError naming the file otherwise."""
     directory = Path(directory)
     if not directory.is_dir():
         raise ArtifactError(f"{directory}: label directory not found")
@@ -244,8 +244,8 @@ def write_label_dir(
 def read_box_source(path: str | Path, role: str) -> tuple[BoxTable, list[str] | None]:
     """A box table from a parquet dir/file or a label directory, plus the label files' frames
     (None for a table). ParameterError on `{role}_path` for anything else."""
-    from dali_cli.artifacts import BOXES_NAME, read_boxes
-    from dali_cli.errors import ParameterError
+    from dali_cli.runtime.errors import ParameterError
+    from dali_cli.store.artifacts import BOXES_NAME, read_boxes
 
     path = Path(path)
     if path.is_file() and path.suffix == ".parquet":

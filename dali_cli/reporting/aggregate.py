@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.report import BANDS, DIFFICULTIES, build_report
+from dali_cli.reporting.report import BANDS, DIFFICULTIES, build_report
 
 # (column title, how to read it from a row of report.json)
 COLUMNS: tuple[tuple[str, tuple], ...] = (
@@ -114,7 +114,8 @@ def markdown(rows: list[dict], columns=TABLE_COLUMNS) -> str:
 def aggregate_runs(runs: list[Path]) -> tuple[str, dict]:
     """Markdown and a JSON-ready dict: mean ± std over `runs` of every row and gap figure, and
     the paired differences of the DALI rows against their equal-budget controls."""
-    from dali_cli import report_compare, report_paired
+    from dali_cli.reporting import compare as report_compare
+    from dali_cli.reporting import paired as report_paired
 
     documents = [build_report(run)[1] for run in runs]
     paired = report_paired.paired_differences(documents, [str(r) for r in runs])

@@ -101,7 +101,7 @@ def render_frame(
         draw_side_view(axes[1, 0], shown, values, limits, box_sets)
     axes[-1, 0].set_xlabel("x (m)")
     figure.tight_layout()
-    from dali_cli.atomic_file import write_atomically
+    from dali_cli.store.atomic_file import write_atomically
 
     try:
         write_atomically(

@@ -11,7 +11,7 @@ Box table: `<dir>/boxes.parquet`, one row per box, columns frame_id, x, y, z, l,
 plus optional extra columns.
 
 Every reader validates what it reads and raises ArtifactError naming the path and the problem:
-frame ids (dali_cli.frame_ids), column types and integer ranges, NaN/inf, and every chunk of points
+frame ids (dali_cli.store.frame_ids), column types and integer ranges, NaN/inf, and every chunk of points
 it reads (present, and its CRC-32C checksum when the writer recorded one). docs/input-validation.md
 lists what is checked where.
 """
@@ -27,9 +27,9 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-from dali_cli import raw_chunks
-from dali_cli.errors import StageError
-from dali_cli.frame_ids import FrameIdError, check_name, first_bad_name
+from dali_cli.runtime.errors import StageError
+from dali_cli.store import raw_chunks
+from dali_cli.store.frame_ids import FrameIdError, check_name, first_bad_name
 
 FRAMES_NAME = "frames.zarr"
 BOXES_NAME = "boxes.parquet"
@@ -208,7 +208,7 @@ class FrameSet:
 
     def _read_raw(self, start: int, stop: int) -> np.ndarray:
         """points[start:stop] of an uncompressed array, straight from its chunk files (see
-        dali_cli.raw_chunks); a range within one chunk that covers at least half of it comes back
+        dali_cli.store.raw_chunks); a range within one chunk that covers at least half of it comes back
         as a view of the chunk's buffer, without a copy (a small range is copied so that the
         chunk's memory is not held for it)."""
         first, last = start // self._chunk, (stop - 1) // self._chunk
@@ -335,7 +335,7 @@ class FrameSetWriter:
         )
         self._chunk = chunk_points
         # uncompressed: frames are copied into one chunk buffer and each full chunk is written
-        # straight to its file (dali_cli.raw_chunks: the same bytes Zarr writes, a third of
+        # straight to its file (dali_cli.store.raw_chunks: the same bytes Zarr writes, a third of
         # the time); compressed chunks go through Zarr
         self._raw = not compress
         self._parts: list[np.ndarray] = []  # raw: the next chunk's rows, as views of the frames

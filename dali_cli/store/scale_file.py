@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from dali_cli.artifacts import ArtifactError, read_json
+from dali_cli.store.artifacts import ArtifactError, read_json
 
 SCALE_NAME = "scale.json"
 
