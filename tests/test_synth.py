@@ -257,3 +257,47 @@ def test_bad_input_gives_clear_errors_and_no_output(tmp_path):
     )
     assert result.exit_code == 2
     assert not (tmp_path / "x").exists()
+
+
+def test_returns_weaken_with_range_and_darkness_and_the_ego_body_blocks_steep_rays():
+    intensity = np.array([0.05, 0.05, 0.4, 0.4])
+    distance = np.array([10.0, 60.0, 10.0, 60.0])
+    p = world_scan.return_probability(intensity, distance)
+    assert ((p >= 0) & (p <= 1)).all()
+    assert p[1] < p[0] and p[3] < p[2] and p[1] < p[3]  # farther and darker: fewer returns
+    assert p[0] > 0.99  # a dark car 10 m away always returns
+    kitti = get_profile("kitti")
+    pattern = world_scan._pattern(kitti)
+    blocked = world_scan.ego_blocked(pattern.directions, kitti.mount_height_m)
+    elevation = np.degrees(np.arcsin(pattern.directions[:, 2]))
+    azimuth = np.degrees(np.arctan2(pattern.directions[:, 1], pattern.directions[:, 0]))
+    assert not blocked[elevation > -15.0].any()  # the body is below the sensor, near it
+    ahead_steep = (np.abs(azimuth) < 10) & (elevation < -23.0)
+    assert blocked[ahead_steep].all()
+    waymo = get_profile("waymo")  # mounted higher, beams no steeper than -18 deg: nothing hidden
+    assert not world_scan.ego_blocked(world_scan._pattern(waymo).directions, 2.0).any()
+
+
+def test_world_looks_like_real_kitti_scans_in_front():
+    """Against the real KITTI statistics (docs/synth.md: drive 0001 and the object frames, +-40
+    deg in front), with wide margins for 6 frames: intensity mostly 0.1-0.4 (not the ground's
+    near-zero grazing returns), a few cars in view, points above the ground, dark car returns."""
+    from dali_cli.reporting import domains
+
+    kitti = get_profile("kitti")
+    rng = np.random.default_rng(0)
+    frames = [synth.synth_frame(4, k, kitti, kitti) for k in range(6)]
+    stats = domains.summarize(
+        [domains.frame_stats(f.points, f.boxes, 80.0, rng) for f in frames]
+    ).values
+    assert 0.15 <= stats["intensity_median"] <= 0.35 and 0.3 <= stats["intensity_p90"] <= 0.5
+    assert 1.0 <= stats["cars_per_frame"] <= 5.0
+    assert 15_000 <= stats["points_per_frame"] <= 32_000
+    assert -1.73 < stats["height_median_m"] < -1.5  # sidewalks, walls, vegetation lift it
+    ground = np.concatenate([f.points[f.owner == -1] for f in frames])
+    near = np.hypot(ground[:, 0], ground[:, 1]) < 4.5
+    azimuth = np.degrees(np.abs(np.arctan2(ground[:, 1], ground[:, 0])))
+    ahead, aside = (near & (azimuth < 20)).sum(), (near & (np.abs(azimuth - 90) < 20)).sum()
+    assert ahead < 0.5 * aside  # the ego's hood hides most steep beams ahead, not beside it
+    car = np.concatenate([f.points[f.owner >= 0, 3] for f in frames])
+    assert np.median(car) < 0.12  # real car returns are dark (median 0.02-0.06)

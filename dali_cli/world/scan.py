@@ -15,7 +15,7 @@ from dali_cli.geometry import bev_corners, rotate_xy, wrap_angle
 from dali_cli.raycast import Scene, cast, cast_into_box
 from dali_cli.sensors import SensorProfile
 from dali_cli.world.cars import pool_car
-from dali_cli.world.scene import SynthScene
+from dali_cli.world.scene import EGO_FOOTPRINT, SynthScene
 
 # ---------------------------------------------------------------------------------------------
 # Intensity and returns
@@ -28,7 +28,24 @@ INCIDENCE_FLOOR = 0.6  # intensity at grazing incidence, as a share of the head-
 TEXTURE_SIGMA = 0.25  # log-normal spread of a surface's reflectance from return to return
 SIGNAL_REFERENCE_M = 10.0  # range at which the return probability depends on reflectance alone
 # echo strength (intensity / (range / reference)^2) that returns with probability 1 - 1/e
-SIGNAL_SCALE = 0.012
+SIGNAL_SCALE = 0.0015
+
+
+EGO_BODY_HEIGHT_M = 0.65  # the ego car's hood and boot line above the ground (the roof is under the
+# sensor): real KITTI scans lose most returns of the beams below about -20 deg in front to it
+
+
+def ego_blocked(directions: np.ndarray, mount_height_m: float) -> np.ndarray:
+    """`(N,)` bool: rays from the sensor `(N, 3)` that meet the ego car's body (EGO_FOOTPRINT up
+    to EGO_BODY_HEIGHT_M) before anything else; they return nothing. The sensor sits above the
+    footprint, so such a ray enters the body through its top face."""
+    drop = mount_height_m - EGO_BODY_HEIGHT_M  # the top face below the sensor (m)
+    down = directions[:, 2] < -1e-9
+    t = np.full(len(directions), np.inf)
+    t[down] = drop / -directions[down, 2]
+    with np.errstate(invalid="ignore"):
+        x, y = t * directions[:, 0], t * directions[:, 1]
+        return down & (np.abs(x) < EGO_FOOTPRINT[3] / 2) & (np.abs(y) < EGO_FOOTPRINT[4] / 2)
 
 
 def return_probability(intensity: np.ndarray, distance: np.ndarray) -> np.ndarray:
@@ -176,6 +193,7 @@ def scan_scene(
             marking = near_line & ((along % 9.0) < 3.0)  # dashed lines
         reflect[ground] = sensor.intensity_ground * np.where(marking, 4.0, 1.0)
 
+    owner[ego_blocked(directions, sensor.mount_height_m)] = -3
     visible = np.bincount(owner[owner >= 0], minlength=len(scene.cars))
     returned = owner != -3
     noisy = distance + rng.normal(0.0, sensor.range_noise_sigma_m, count)

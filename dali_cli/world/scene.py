@@ -15,9 +15,9 @@ from dali_cli.geometry import bev_corners, footprints_overlap, rotate_xy, wrap_a
 from dali_cli.sensors import SensorProfile
 from dali_cli.world.cars import POOL_SIZE, sample_car_sizes
 
-MIN_CARS, MAX_CARS = 2, 13
+MIN_CARS, MAX_CARS = 2, 15
 MIN_RANGE_M, MAX_RANGE_M = 3.0, 80.0
-NEAR_BIAS = 2.0  # car positions along the road: |u| = max * U^NEAR_BIAS
+NEAR_BIAS = 2.3  # car positions along the road: |u| = max * U^NEAR_BIAS
 EGO_FOOTPRINT = np.array([0.0, 0.0, 0.0, 5.2, 2.6, 1.6, 0.0])  # the sensor's own car, with margin
 
 
@@ -203,17 +203,17 @@ def _ground_and_street(rng: np.random.Generator, sensor: SensorProfile) -> tuple
     """The scene's ground and road, drawn in this order from `rng`."""
     ground = Ground(
         mount_height_m=sensor.mount_height_m,
-        slope=rng.normal(0.0, 0.004, 2).clip(-0.012, 0.012),
+        slope=rng.normal(0.0, 0.01, 2).clip(-0.03, 0.03),
         wave_vectors=rng.normal(0.0, 1.0, (3, 2)) * (2 * np.pi / rng.uniform(3.0, 25.0, (3, 1))),
         amplitudes=rng.uniform(0.003, 0.012, 3),
         phases=rng.uniform(0, 2 * np.pi, 3),
     )
     heading = float(rng.normal(0.0, 0.06))
-    lanes_per_side = int(rng.integers(1, 3))
+    lanes_per_side = 1 if rng.random() < 0.7 else 2
     lane = rng.uniform(3.2, 3.7)
     road_half = lanes_per_side * lane + rng.uniform(0.0, 2.5)  # + parking strip
     ego_v = -rng.uniform(0.3, 0.7) * lane  # the ego drives in a right-hand lane
-    sidewalk = rng.uniform(2.0, 5.0)
+    sidewalk = rng.uniform(2.0, 4.0)
     cross = rng.random() < 0.45
     cross_u = float(rng.choice([-1, 1]) * rng.uniform(15.0, 50.0)) if cross else np.inf
     cross_half = rng.uniform(4.0, 8.0)
@@ -251,7 +251,7 @@ def _add_sidewalks(rng, street: _Street, clutter: _Clutter) -> None:
 def _add_walls(rng, street: _Street, clutter: _Clutter) -> None:
     """Building walls behind the sidewalks, in segments with gaps."""
     for side in (-1, 1):
-        if rng.random() < 0.1:
+        if rng.random() < 0.05:
             continue
         setback = street.road_half + street.sidewalk + rng.uniform(0.0, 4.0)
         u = -street.reach
@@ -264,7 +264,7 @@ def _add_walls(rng, street: _Street, clutter: _Clutter) -> None:
                 wall = np.array([center, v, 0, length, thickness, rng.uniform(3.0, 15.0), 0])
                 clutter.boxes.append((wall, rng.uniform(0.6, 1.4)))
                 clutter.layout.add(wall)
-            u += length + (rng.uniform(2.0, 12.0) if rng.random() < 0.5 else 0.3)
+            u += length + (rng.uniform(2.0, 12.0) if rng.random() < 0.3 else 0.3)
 
 
 def _add_pole(rng, u: float, v: float, clutter: _Clutter) -> None:
@@ -278,13 +278,31 @@ def _add_pole(rng, u: float, v: float, clutter: _Clutter) -> None:
 
 def _add_tree(rng, u: float, v: float, clutter: _Clutter) -> None:
     trunk = rng.uniform(0.12, 0.3)
-    crown = rng.uniform(1.2, 3.0, 3) * [1, 1, 0.8]
+    crown = rng.uniform(1.8, 3.8, 3) * [1, 1, 0.8]
     tree = np.array([u, v, 0, 2 * trunk, 2 * trunk, 5.0, 0])
     if clutter.layout.free(tree, 0.3):
-        top = rng.uniform(2.5, 4.0)
+        top = rng.uniform(2.8, 4.5)
         clutter.meshes.append((*_cylinder_mesh(u, v, -0.5, trunk, top + 0.5 + crown[2] * 0.5), 0.7))
         clutter.meshes.append((*_blob_mesh(np.array([u, v, top + crown[2]]), crown, rng), 0.45))
         clutter.layout.add(tree)
+
+
+def _add_street_ends(rng, street: _Street, clutter: _Clutter) -> None:
+    """Where the street bends or ends: building fronts or tree lines across it, 45-85 m ahead
+    or behind (each in 40% of the scenes)."""
+    for direction in (-1, 1):
+        if rng.random() >= 0.4:
+            continue
+        u = direction * rng.uniform(45.0, 85.0)
+        if street.on_cross(u, 5.0):
+            continue
+        width = 2 * (street.road_half + street.sidewalk) + rng.uniform(10.0, 40.0)
+        depth = rng.uniform(1.0, 6.0)
+        v = street.lateral(rng.uniform(-5.0, 5.0))
+        front = np.array([u + direction * depth / 2, v, 0, depth, width, rng.uniform(4, 15), 0])
+        if clutter.layout.free(front, 0.5):
+            clutter.boxes.append((front, rng.uniform(0.6, 1.4)))
+            clutter.layout.add(front)
 
 
 def _add_fences_and_hedges(rng, street: _Street, clutter: _Clutter) -> None:
@@ -319,13 +337,13 @@ def _add_poles_and_trees(rng, street: _Street, clutter: _Clutter) -> None:
                     _add_pole(rng, u, v, clutter)
                 else:
                     _add_tree(rng, u, v, clutter)
-            u += rng.uniform(5.0, 18.0)
+            u += rng.uniform(4.0, 12.0)
 
 
 def _add_bushes_and_containers(rng, street: _Street, clutter: _Clutter) -> None:
     """Bushes and hedges beside the road; car-sized containers and kiosks (false-positive bait)."""
     road_half, sidewalk, reach = street.road_half, street.sidewalk, street.reach
-    for _ in range(int(rng.integers(8, 20))):
+    for _ in range(int(rng.integers(12, 30))):
         side = rng.choice([-1, 1])
         u, v = (
             rng.uniform(-reach, reach),
@@ -438,12 +456,13 @@ def generate_scene(
     rng: np.random.Generator, sensor: SensorProfile, cars: SensorProfile
 ) -> SynthScene:
     """Lay out one street scene (see module docstring); every draw comes from `rng`, in order:
-    ground and road, sidewalks, walls, fences and hedges, poles and trees, bushes and containers, cars, car models."""
+    ground and road, sidewalks, walls, fences and hedges, street ends, poles and trees, bushes and containers, cars, car models."""
     ground, street = _ground_and_street(rng, sensor)
     clutter = _Clutter()
     _add_sidewalks(rng, street, clutter)
     _add_walls(rng, street, clutter)
     _add_fences_and_hedges(rng, street, clutter)
+    _add_street_ends(rng, street, clutter)
     _add_poles_and_trees(rng, street, clutter)
     _add_bushes_and_containers(rng, street, clutter)
     placed = _place_cars(rng, street, clutter, sensor, cars)
@@ -456,7 +475,8 @@ def generate_scene(
         ground=ground,
         cars=car_boxes,
         car_models=rng.integers(0, POOL_SIZE, len(car_boxes)),
-        car_reflectance=rng.uniform(0.5, 1.7, len(car_boxes)),
+        # paint from near-black to white: real car returns are mostly dark, a few bright
+        car_reflectance=np.exp(rng.uniform(np.log(0.15), np.log(3.0), len(car_boxes))),
         clutter_vertices=vertices,
         clutter_faces=faces,
         face_reflectance=reflectance,
