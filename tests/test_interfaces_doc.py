@@ -74,9 +74,7 @@ def cli_commands() -> dict[str, click.Command]:
 
 def options_of(command: click.Command) -> set[str]:
     """The command's option names as a user types them (the long primary name of each)."""
-    return {
-        max(param.opts, key=len) for param in command.params if isinstance(param, click.Option)
-    }
+    return {max(param.opts, key=len) for param in command.params if isinstance(param, click.Option)}
 
 
 ROWS, SHARED, READERS = parse_stage_table()
