@@ -157,7 +157,7 @@ iter0: $(RUN)/iter0/eval/manifest.json $(RUN)/iter0/eval_ptsn/manifest.json
 
 # SOURCE_SIZE=sn (default): retraining shifts the source cars to the sweep's label-free E_est,
 # so source and PPCG labels agree on the target's size (demo scale, docs/results/history.md:
-# +3.8 ± 1.7 AP_3D@0.7 for x2 over 3 seeds); SOURCE_SIZE=init keeps the initial model's sizes (before).
+# +3.8 ± 1.7 AP_3D@0.7 for x2 over 3 seeds); SOURCE_SIZE=init keeps the initial model's sizes (the paper's).
 SOURCE_SIZE ?= sn
 SOURCE_SIZE_FLAGS = --source-size $(SOURCE_SIZE)$(if $(filter sn,$(SOURCE_SIZE)), --target-size-from $(RUN)/iter$(1)/ptsn)
 
