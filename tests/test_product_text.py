@@ -14,9 +14,9 @@ ARCHIVE = ROOT / "docs" / "results"
 SUFFIXES = {".py", ".md", ".sh", ".toml", ".txt", ""}
 
 HISTORY = re.compile(
-    r"\b[Ss]essions? \d+"  # "session 12", "sessions 15-17"
-    r"|\b[Ss]ession-\d+"  # "the session-12 ablation"
-    r"|\b[Ii]ssues? #?\d+"  # "issue 18", "issues 22.9", "issue #7"
+    r"\b[Ss]essions? \d+"  # a session number or range
+    r"|\b[Ss]ession-\d+"  # a session number as an adjective
+    r"|\b[Ii]ssues? #?\d+"  # an issue number, with or without #, with or without an item
     r"|\.\./shared/"  # a path outside the repository
 )
 
@@ -25,7 +25,7 @@ HISTORY = re.compile(
 LEAVING = re.compile(
     r"(?<![\w-])-*(tta|fit[-_]ground|ground_fit|ignore[-_]min|ignore[-_]label|ignore regions"
     r"|continue[-_]schedule|schedule[-_]epochs|occlusion|size[-_]factor[-_]score[-_]min"
-    r"|confident_e_pred|refine_passes|flip_test|compile)(?![\w-])"
+    r"|confident_e_pred|refine_passes|flip_test|--compile|compile_net)(?![\w-])"
 )
 WINDOW = 8  # lines above a hit that may name the leaving option it belongs to
 
