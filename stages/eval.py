@@ -357,7 +357,8 @@ def run_eval(
     if out is not None:  # before any work: an output dali must not write fails at once
         from dali_cli.store.output_paths import check_metrics_output
 
-        check_metrics_output(out, inputs)
+        keep = keeps_predictions(save_predictions, model, size_correction)
+        check_metrics_output(out, inputs, beside=(PREDICTIONS_NAME,) if keep else ())
     if dry_run:  # a metrics file (or the terminal) is not a stage artifact: it is always rerun
         where = out if out is not None else "the terminal"
         console.echo(f"eval: would run -> {where} (a metrics file is always recomputed)")

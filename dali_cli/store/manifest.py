@@ -12,7 +12,6 @@ is skipped. docs/data-safety.md says what this guarantees.
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import time
 from collections.abc import Callable, Mapping
@@ -23,7 +22,13 @@ from pathlib import Path
 from dali_cli import __version__
 from dali_cli.runtime import console
 from dali_cli.runtime.errors import StageError
-from dali_cli.store.atomic_dir import OutputLock, recover_interrupted, replace_directory
+from dali_cli.store.atomic_dir import (
+    LEFTOVER_MARKER,
+    OutputLock,
+    make_temporary,
+    recover_interrupted,
+    replace_directory,
+)
 from dali_cli.store.atomic_file import write_text_atomically
 from dali_cli.store.file_hashes import hash_tree as _hash_files
 from dali_cli.store.output_paths import check_output_path
@@ -34,8 +39,9 @@ HASH_METHOD = "blake2b-128 of names and per-file blake2b-128 digests"
 
 
 def hash_tree(path: str | Path, exclude: tuple[str, ...] = (MANIFEST_NAME,)) -> str:
-    """Content hash of an artifact directory (every file but its manifest) or of one file."""
-    return _hash_files(path, exclude)
+    """Content hash of an artifact directory (every file but its manifest and a leftover marker
+    a crash may have left in it) or of one file."""
+    return _hash_files(path, (*exclude, LEFTOVER_MARKER))
 
 
 def content_hash(path: str | Path) -> str:
@@ -165,7 +171,7 @@ def run_stage(
     metrics_kitti.json): not part of its content hash, gone when the stage rebuilds it.
     """
     given = Path(out)
-    out = check_output_path(given, inputs)
+    out = check_output_path(given, inputs, stage=stage)
     params = _normalized(params)
     if dry_run:
         reason = why_stale(out, stage, _input_records(inputs), params, derived)
@@ -198,10 +204,7 @@ def _build_and_commit(
 ) -> tuple[dict, float]:
     """Build into `<out>.tmp-<pid>`, write the manifest last, commit atomically; on any error
     (or Ctrl-C) remove the temporary directory and leave `out` as it was."""
-    temporary = out.parent / f"{out.name}.tmp-{os.getpid()}"
-    if temporary.exists():
-        shutil.rmtree(temporary)
-    temporary.mkdir()
+    temporary = make_temporary(out)
     started = time.perf_counter()
     try:
         result = build(temporary)
@@ -210,7 +213,7 @@ def _build_and_commit(
         elif isinstance(result, dict):
             result = BuildResult(counts=result)
         wall = time.perf_counter() - started
-        files = sorted(p for p in temporary.rglob("*") if p.is_file())
+        files = sorted(p for p in temporary.rglob("*") if p.is_file() and p.name != LEFTOVER_MARKER)
         manifest = {
             "stage": stage,
             "dali_version": __version__,
