@@ -27,6 +27,7 @@ import numpy as np
 
 from dali_cli.evaluation.evaluate import check_ious
 from dali_cli.evaluation.kitti_label import read_box_source
+from dali_cli.labels import plausibility
 from dali_cli.runtime import console
 from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.store.artifacts import BOX_FIELDS, BoxTable, FrameSet
@@ -382,6 +383,9 @@ def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
     from dali_cli.evaluation.evaluate import EvaluationError, evaluate
 
     pred, gt, frame_ids, source, gt_path, runtime = predictions_and_truth(**routes)
+    for table, where in ((pred, routes["pred_path"] or "the predictions"), (gt, gt_path)):
+        positive = (table.boxes[:, 3:6] > 0).all(axis=1)
+        plausibility.refuse_implausible(table.boxes, positive, str(where), table.frame_id)
     correction = source.pop("size_correction", None)
     class_name = options["class_name"]
     metrics: dict = {}

@@ -34,7 +34,7 @@ class FiniteFloat(click.FloatRange):
     """A finite float (NaN and ±inf refused), optionally within a range: click's FloatRange
     lets NaN through every bound (NaN compares false) and accepts inf."""
 
-    name = "finite float"
+    name = "float"
 
     def convert(self, value, param, ctx):
         number = click.FLOAT.convert(value, param, ctx)

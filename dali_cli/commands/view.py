@@ -63,7 +63,12 @@ def command(
     except ImportError:
         raise click.ClickException("dali view needs matplotlib: pip install matplotlib") from None
     from dali_cli.reporting.view import BoxSet, render_frame
+    from dali_cli.store.output_paths import check_file_output, is_dali_png
 
+    box_inputs = [_parse_boxes(value)[1] for value in boxes]
+    check_file_output(
+        out, {"data": data_dir, "boxes": box_inputs}, is_dali_png, "a PNG dali view wrote"
+    )
     frames = FrameSet(data_dir)
     frame_id = frame
     if frame not in frames.frame_ids:

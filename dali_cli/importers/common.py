@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.runtime.errors import StageError
+from dali_cli.runtime.limits import check_limit
 from dali_cli.store.frame_ids import name_problem
 
 
@@ -22,6 +23,9 @@ def read_float_records(path: str | Path, fields: int) -> np.ndarray:
     """
     path = Path(path)
     try:
+        if path.is_dir():
+            raise ImportFormatError(f"{path}: a directory, not a point file")
+        check_limit("point_file_bytes", path.stat().st_size, str(path))
         raw = path.read_bytes()
     except FileNotFoundError:
         raise ImportFormatError(f"{path}: point file not found") from None

@@ -27,6 +27,7 @@ from dali_cli.importers.common import (
     read_text_lines,
     write_imported,
 )
+from dali_cli.labels import plausibility
 from dali_cli.store.artifacts import BoxTable
 from dali_cli.store.manifest import BuildResult
 
@@ -408,6 +409,8 @@ def load_frame(layout: KittiLayout, frame_id: str, crop_fov: bool = False):
     objects = parse_label_file(label_path)
     boxes, extra = objects_to_lidar_columns(objects, calib)
     counts = count_points_in_boxes(points, boxes) if len(boxes) else np.zeros(0, np.int32)
+    real = objects.type.astype(str) != "DontCare"
+    plausibility.refuse_implausible(boxes, real, str(label_path), [frame_id] * len(boxes))
     table = BoxTable.from_arrays(
         np.full(len(boxes), frame_id, dtype=object),
         boxes,

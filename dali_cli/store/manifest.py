@@ -21,7 +21,7 @@ from pathlib import Path
 
 from dali_cli import __version__
 from dali_cli.runtime import console
-from dali_cli.runtime.errors import StageError
+from dali_cli.runtime.errors import StageError, WriteError
 from dali_cli.store.atomic_dir import (
     LEFTOVER_MARKER,
     OutputLock,
@@ -60,10 +60,16 @@ def check_made_from(artifact: str | Path, role: str, expected_input: str | Path)
     share frame ids. Artifacts without a manifest (imported or hand-made tables) pass unchecked.
     """
     artifact = Path(artifact)
-    manifest = read_manifest(artifact) if artifact.is_dir() else None
-    records = (manifest or {}).get("inputs", {}).get(role)
+    manifest = read_input_manifest(artifact) if artifact.is_dir() else None
+    inputs = (manifest or {}).get("inputs", {})
+    records = inputs.get(role) if isinstance(inputs, dict) else None
     if not records:
         return
+    if not isinstance(records, list) or not all(isinstance(r, dict) for r in records):
+        raise StageError(
+            f"{artifact / MANIFEST_NAME}: inputs.{role} is not a list of input records; "
+            "the manifest is damaged (rebuild the artifact)"
+        )
     expected = content_hash(expected_input)
     if expected not in {record.get("hash") for record in records}:
         made_from = ", ".join(str(record.get("path")) for record in records)
@@ -74,12 +80,30 @@ def check_made_from(artifact: str | Path, role: str, expected_input: str | Path)
 
 
 def read_manifest(directory: str | Path) -> dict | None:
-    """The manifest of an artifact directory, or None when absent or unreadable."""
+    """The manifest of an artifact directory, or None when absent or unreadable (not a file,
+    not UTF-8, not JSON, not a JSON object): an output with such a manifest is rebuilt."""
     path = Path(directory) / MANIFEST_NAME
     try:
-        return json.loads(path.read_text())
-    except (FileNotFoundError, NotADirectoryError, json.JSONDecodeError):
+        document = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
         return None
+    return document if isinstance(document, dict) else None
+
+
+def read_input_manifest(directory: str | Path) -> dict | None:
+    """The manifest of an input artifact: None when it has none; a StageError naming the file
+    when it is there but unreadable (not a file, not UTF-8, not JSON, not a JSON object)."""
+    path = Path(directory) / MANIFEST_NAME
+    if not path.exists() and not path.is_symlink():
+        return None
+    try:
+        document = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as error:
+        reason = error.strerror if isinstance(error, OSError) else str(error)[:120]
+        raise StageError(f"{path}: not a dali manifest ({reason})", path=path) from None
+    if not isinstance(document, dict):
+        raise StageError(f"{path}: not a dali manifest (not a JSON object)", path=path)
+    return document
 
 
 def _normalized(value):
@@ -234,6 +258,9 @@ def _build_and_commit(
         }
         _write_json_atomic(temporary / MANIFEST_NAME, manifest)
         replace_directory(temporary, out)
+    except OSError as error:
+        shutil.rmtree(temporary, ignore_errors=True)
+        raise WriteError(out, error) from None
     except BaseException:
         shutil.rmtree(temporary, ignore_errors=True)
         raise
