@@ -22,20 +22,33 @@ META_NAME = "model.json"
 SIZE_NORMS = ("none", "sn", "ros")
 
 
+def _finite(value) -> float | None:
+    """A JSON number as a finite float, else None (booleans, strings, NaN, 1e999, 10**400)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    try:
+        number = float(value)
+    except OverflowError:
+        return None
+    return number if math.isfinite(number) else None
+
+
 def _size(value) -> tuple[float, float, float] | None:
-    """(l, w, h) in metres from a JSON list of three positive numbers, else None."""
+    """(l, w, h) in metres from a JSON list of three finite numbers (an SN delta may be
+    negative), else None."""
     if isinstance(value, list | tuple) and len(value) == 3:
-        if all(isinstance(v, int | float) and not isinstance(v, bool) for v in value):
-            values = tuple(float(v) for v in value)
-            if all(math.isfinite(v) for v in values):
-                return values
+        values = tuple(_finite(v) for v in value)
+        if all(v is not None for v in values):
+            return values
     return None
 
 
 def _pair(value) -> tuple[float, float] | None:
+    """(lo, hi) from a JSON list of two finite numbers 0 < lo <= hi, else None."""
     if isinstance(value, list | tuple) and len(value) == 2:
-        if all(isinstance(v, int | float) and not isinstance(v, bool) for v in value):
-            return (float(value[0]), float(value[1]))
+        low, high = _finite(value[0]), _finite(value[1])
+        if low is not None and high is not None and 0 < low <= high:
+            return (low, high)
     return None
 
 
@@ -113,9 +126,7 @@ class ModelCard:
             detector=_text(card.get("detector")),
             stage=_text(card.get("stage")),
             source_sensor=_text(card.get("source_sensor")),
-            mount_height_m=float(mount)
-            if isinstance(mount, int | float) and not isinstance(mount, bool)
-            else None,
+            mount_height_m=mount if (mount := _finite(mount)) is not None and mount >= 0 else None,
             source_mean_lwh_m=_size(card.get("source_mean_lwh_m")),
             size_norm=size_norm if size_norm in SIZE_NORMS else "none",
             sn_delta_lwh_m=_size(card.get("sn_delta_lwh_m")),
