@@ -117,12 +117,18 @@ class DetectorConfig:
                 f"{list(self.y_range_m)} makes a {rows} x {cols} pillar grid, more than "
                 f"{MAX_GRID_CELLS} cells"
             )
-        widths = (self.pfn_channels, *self.block_channels, 3 * self.up_channels, self.head_channels)
-        feature_bytes = rows * cols * max(widths) * 4
+        widths = {
+            "pfn_channels": self.pfn_channels,
+            "block_channels": max(self.block_channels),
+            "up_channels": 3 * self.up_channels,
+            "head_channels": self.head_channels,
+        }
+        widest = max(widths, key=widths.get)
+        feature_bytes = rows * cols * widths[widest] * 4
         if feature_bytes > MAX_FEATURE_BYTES:
             raise ValueError(
-                f"a {rows} x {cols} pillar grid with {max(widths)} channels needs "
-                f"{feature_bytes / 2**30:.0f} GiB for one feature map, more than "
+                f"pillar_m and {widest}: a {rows} x {cols} pillar grid with {widths[widest]} "
+                f"channels needs {feature_bytes / 2**30:.0f} GiB for one feature map, more than "
                 f"{MAX_FEATURE_BYTES / 2**30:.0f} GiB: use a larger pillar_m or narrower layers"
             )
 

@@ -396,6 +396,8 @@ def load_frame(layout: KittiLayout, frame_id: str, crop_fov: bool = False):
     points = read_velodyne(layout.velodyne_dir / f"{frame_id}.bin")
     label_path = layout.label_dir / f"{frame_id}.txt"
     has_labels = label_path.is_file()
+    if not has_labels and (label_path.exists() or label_path.is_symlink()):
+        raise ImportFormatError(f"{label_path}: not a label file (a directory or a broken link)")
     calib = None
     if has_labels or crop_fov:
         calib_path = layout.calib_dir / f"{frame_id}.txt"
