@@ -423,3 +423,25 @@ def test_a_full_disk_is_one_line_naming_the_output_and_the_old_output_survives(
     assert "intact" in result.output
     assert tree_hashes(out) == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+SCALE_FILES = {
+    "huge-int": b'{"scale": 1' + b"0" * 400 + b"}",
+    "nan": b'{"scale": NaN}',
+    "string": b'{"scale": "1.0"}',
+    "list": b"[1]",
+    "non-utf8": b'{"scale": \xff}',
+}
+
+
+@pytest.mark.parametrize("how", [*SCALE_FILES, "directory"])
+def test_a_hostile_scale_file_is_refused_naming_it(world, tmp_path, how):
+    sweep = tmp_path / "sweep"
+    sweep.mkdir()
+    if how == "directory":
+        (sweep / "scale.json").mkdir()
+    else:
+        (sweep / "scale.json").write_bytes(SCALE_FILES[how])
+    args = ["eval", "--model", world / "model", "--data", world / "target", "--scale-from",
+            sweep, "--out", tmp_path / "m.json", "--no-progress"]  # fmt: skip
+    expect_refused(tmp_path, args, tmp_path / "m.json", "scale.json")

@@ -12,44 +12,26 @@ checkpoint's ROS range and source mean).
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
 from dali_cli.store.artifacts import ArtifactError, read_json
+from dali_cli.store.json_numbers import finite_number, finite_numbers
 
 META_NAME = "model.json"
 SIZE_NORMS = ("none", "sn", "ros")
 
 
-def _finite(value) -> float | None:
-    """A JSON number as a finite float, else None (booleans, strings, NaN, 1e999, 10**400)."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        return None
-    try:
-        number = float(value)
-    except OverflowError:
-        return None
-    return number if math.isfinite(number) else None
-
-
 def _size(value) -> tuple[float, float, float] | None:
     """(l, w, h) in metres from a JSON list of three finite numbers (an SN delta may be
     negative), else None."""
-    if isinstance(value, list | tuple) and len(value) == 3:
-        values = tuple(_finite(v) for v in value)
-        if all(v is not None for v in values):
-            return values
-    return None
+    return finite_numbers(value, 3)
 
 
 def _pair(value) -> tuple[float, float] | None:
     """(lo, hi) from a JSON list of two finite numbers 0 < lo <= hi, else None."""
-    if isinstance(value, list | tuple) and len(value) == 2:
-        low, high = _finite(value[0]), _finite(value[1])
-        if low is not None and high is not None and 0 < low <= high:
-            return (low, high)
-    return None
+    pair = finite_numbers(value, 2, positive=True)
+    return pair if pair is not None and pair[0] <= pair[1] else None
 
 
 def _text(value) -> str | None:
@@ -126,7 +108,9 @@ class ModelCard:
             detector=_text(card.get("detector")),
             stage=_text(card.get("stage")),
             source_sensor=_text(card.get("source_sensor")),
-            mount_height_m=mount if (mount := _finite(mount)) is not None and mount >= 0 else None,
+            mount_height_m=mount
+            if (mount := finite_number(mount)) is not None and mount >= 0
+            else None,
             source_mean_lwh_m=_size(card.get("source_mean_lwh_m")),
             size_norm=size_norm if size_norm in SIZE_NORMS else "none",
             sn_delta_lwh_m=_size(card.get("sn_delta_lwh_m")),
