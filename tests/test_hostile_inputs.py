@@ -36,7 +36,8 @@ TOY = {**RETRAIN_TOY, "frames": 2, "cars_per_frame": 2, "beams": 16, "points_per
 POSITIVE_BAD = ("nan", "inf", "-inf", "-1", "0", "1e999", "x", "")
 NON_NEGATIVE_BAD = ("nan", "inf", "-1", "1e999", "x")
 FRACTION_BAD = ("nan", "inf", "-0.5", "1.5", "x")
-COUNT_BAD = ("0", "-1", "1.5", "nan", "x")
+COUNT_BAD = ("0", "-1", "1.5", "nan", "x", "1000000000")
+SEED_BAD = ("-1", "1.5", "x", "99999999999999999999")
 SIZE_BAD = ("nan,1,1", "0,0,0", "-4,1,1", "inf,1,1", "1,1", "a,b,c", "1,1,1,1")
 DELTA_BAD = ("nan,0,0", "inf,0,0", "-inf,0,0", "1,2", "x,0,0")
 RANGE_BAD = ("1,0.5", "nan,1", "1,inf", "0,1", "1", "1,1")
@@ -109,10 +110,10 @@ def option_cases():
                          "--nms-iou": FRACTION_BAD, "--batch-size": COUNT_BAD},
         "ptsn-sweep": {"--mount-height-m": POSITIVE_BAD, "--frame-fraction": FRACTION_BAD + ("0",),
                        "--subsample-fraction": FRACTION_BAD, "--noise": NON_NEGATIVE_BAD,
-                       "--ros-factor": POSITIVE_BAD, "--frames": COUNT_BAD},
+                       "--ros-factor": POSITIVE_BAD, "--frames": COUNT_BAD[:-1]},
         "pretrain": {"--target-size": SIZE_BAD, "--ros-range": RANGE_BAD,
                      "--minutes": POSITIVE_BAD, "--lr": POSITIVE_BAD, "--epochs": POSITIVE_BAD,
-                     "--batch-size": COUNT_BAD},
+                     "--batch-size": COUNT_BAD, "--seed": SEED_BAD, "--threads": COUNT_BAD},
         "retrain": {"--target-size": SIZE_BAD, "--lr": POSITIVE_BAD, "--minutes": POSITIVE_BAD},
         "size-norm": {"--delta": DELTA_BAD},
         "view": {"--range-m": POSITIVE_BAD, "--score-min": FRACTION_BAD,
@@ -121,7 +122,7 @@ def option_cases():
         "export-openpcdet": {"--score-min": FRACTION_BAD},
         "eval": {"--scale": POSITIVE_BAD, "--iou": FRACTION_BAD,
                  "--size-score-min": FRACTION_BAD},
-        "synth": {"--frames": COUNT_BAD},
+        "synth": {"--frames": COUNT_BAD[:-1], "--seed": SEED_BAD, "--threads": COUNT_BAD},
         "import-kitti": {"--intensity-max": POSITIVE_BAD},
     }  # fmt: skip
     return [

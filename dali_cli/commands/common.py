@@ -91,6 +91,13 @@ class FloatTuple(click.ParamType):
         return tuple(numbers)
 
 
+SEED = click.IntRange(0, 2**32 - 1)
+"""A random seed: what numpy and torch both accept."""
+COUNT_LIMIT = 4096
+BATCH = click.IntRange(1, COUNT_LIMIT)
+"""Frames per batch, workers, threads: at least 1, at most COUNT_LIMIT (more would only
+exhaust memory or processes before the first step)."""
+
 POSITIVE_TRIPLE = FloatTuple(3, POSITIVE)
 """'l,w,h': three finite numbers > 0 (a box size in metres)."""
 FINITE_TRIPLE = FloatTuple(3)
@@ -218,7 +225,7 @@ def workers_option(local_default: str):
     """--workers N: processes (local) or actors (ray) that run the stage's frames."""
     return click.option(
         "--workers",
-        type=click.IntRange(min=1),
+        type=BATCH,
         default=None,
         help=f"Workers: processes of this machine (--executor local; default {local_default}) or "
         "Ray actors (--executor ray; default one per CPU of the cluster). The output does not "
@@ -268,12 +275,12 @@ def training_options(function):
         ),
         click.option(
             "--seed",
-            type=int,
+            type=SEED,
             default=0,
             show_default=True,
             help="Seed of initialization, sampling and augmentation.",
         ),
-        click.option("--batch-size", type=click.IntRange(min=1), default=1, show_default=True),
+        click.option("--batch-size", type=BATCH, default=1, show_default=True),
         click.option(
             "--lr",
             type=POSITIVE,
@@ -291,7 +298,7 @@ def training_options(function):
         ),
         click.option(
             "--threads",
-            type=click.IntRange(min=1),
+            type=BATCH,
             default=None,
             help="torch threads per process (default: every core this process may use, divided "
             "by the processes torchrun starts on this machine; recorded in the manifest).",
@@ -338,7 +345,7 @@ def target_scaling_options(function):
             default=None,
             help="Target sensor height above ground for scaling (default: the target profile's).",
         ),
-        click.option("--batch-size", type=click.IntRange(min=1), default=8, show_default=True),
+        click.option("--batch-size", type=BATCH, default=8, show_default=True),
         no_progress_option,
         device_options,
         sensors_option,

@@ -6,7 +6,13 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import FRACTION, PROTOCOLS_HELP, no_progress_option, protocol_options
+from dali_cli.commands.common import (
+    FRACTION,
+    PROTOCOLS_HELP,
+    SEED,
+    no_progress_option,
+    protocol_options,
+)
 
 EPILOG = (
     """\b
@@ -47,7 +53,7 @@ the row does not beat the reference. --out FILE.json writes it ({"bootstrap": {"
 @protocol_options
 @click.option("--samples", type=click.IntRange(min=2), default=1000, show_default=True,
               help="Bootstrap draws (about 0.1 s each per row on 200 frames).")  # fmt: skip
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the draws.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the draws.")
 @click.option("--out", type=click.Path(path_type=Path),
               help="Also write the comparison to this .json file (atomically).")  # fmt: skip
 @no_progress_option

@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from dali_cli.commands.common import (
+    SEED,
     apply_options,
     executor_options,
     finite_range,
@@ -33,7 +34,7 @@ def ppcg_options(function):
                      help="Model kind to fit  [default: cad if the library has meshes, else points]"),
         click.option("--top-k", type=click.IntRange(min=1), default=1, show_default=True,
                      help="Pick at random among the K best models (per-box seed); 1 = the best."),
-        click.option("--seed", type=int, default=0, show_default=True, help="Run seed."),
+        click.option("--seed", type=SEED, default=0, show_default=True, help="Run seed."),
         click.option("--ground-margin-m", type=finite_range(min=0), default=0.1,
                      show_default=True,
                      help="Points of a box below max(box bottom, -mount height) + this are "

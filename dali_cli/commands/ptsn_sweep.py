@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from dali_cli.commands.common import (
+    SEED,
     choice_option,
     finite_range,
     model_target_out_options,
@@ -56,7 +57,7 @@ SCALE_RANGE = ScaleRangeType()
                     "boxes.")  # fmt: skip
 @choice_option("--match", choices=["volume", "lwh"], default="volume",
                help="Match mean volume (a 1-D root) or l, w, h in the least-squares sense.")  # fmt: skip
-@click.option("--seed", type=int, default=0, show_default=True,
+@click.option("--seed", type=SEED, default=0, show_default=True,
               help="Seed of the frame subsamples.")  # fmt: skip
 @click.option("--subsample-fraction", type=finite_range(0, 1, min_open=True), default=0.25,
               show_default=True, help="bracket: fraction of the frames used for the secant phase.")  # fmt: skip
