@@ -32,10 +32,11 @@ from dali_cli.runtime import console
 from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.store.artifacts import BOX_FIELDS, BoxTable, FrameSet
 from dali_cli.store.atomic_file import write_atomically, write_text_atomically
+from dali_cli.store.output_paths import DERIVED_FILES
 
 PREDICTIONS_NAME = "predictions.parquet"
 METRICS_NAME = "metrics.json"
-KITTI_METRICS_NAME = "metrics_kitti.json"  # written beside metrics.json by a second eval
+KITTI_METRICS_NAME = DERIVED_FILES["eval"][0]  # written beside metrics.json by a second eval
 
 
 @dataclass

@@ -444,3 +444,21 @@ def test_eval_dry_run_to_a_metrics_file_writes_nothing(tmp_path):
     assert again.exit_code == 0 and metrics.read_bytes() == before
     terminal = CliRunner().invoke(main, [*base, "--dry-run"])
     assert terminal.exit_code == 0 and "AP_3D" not in terminal.output
+
+
+def test_a_file_output_inside_an_artifact_only_where_the_artifact_allows_it(tmp_path):
+    """metrics_kitti.json may be added to an eval artifact (the Makefile's KITTI-protocol eval),
+    nothing may be written into another stage's artifact behind its manifest."""
+    target = make_target(tmp_path / "T")
+    base = ["eval", "--pred", str(target), "--gt", str(target)]
+    for stage in ("eval", "pseudo-label"):
+        run_stage(stage, tmp_path / stage, {}, {}, build_boxes(1.0), echo=quiet)
+    added = CliRunner().invoke(
+        main, [*base, "--out", str(tmp_path / "eval" / "metrics_kitti.json")]
+    )
+    assert added.exit_code == 0, added.output
+    before = snapshot(tmp_path / "pseudo-label")
+    for name in ("metrics_kitti.json", "metrics.json"):
+        refused = CliRunner().invoke(main, [*base, "--out", str(tmp_path / "pseudo-label" / name)])
+        assert refused.exit_code == 1 and "inside the dali artifact" in refused.output
+    assert snapshot(tmp_path / "pseudo-label") == before

@@ -178,6 +178,19 @@ def is_unmanaged_eval_dir(path: Path) -> bool:
     )
 
 
+# files another command may add to an artifact of a stage, left out of its content hash (the
+# Makefile's KITTI-protocol eval writes metrics_kitti.json into an eval artifact)
+DERIVED_FILES: dict[str, tuple[str, ...]] = {"eval": ("metrics_kitti.json",)}
+
+
+def is_derived_file(target: Path, artifact: Path) -> bool:
+    """`target` is a file DERIVED_FILES allows directly inside the artifact `artifact`."""
+    manifest = read_json_quietly(artifact / MANIFEST_NAME) or {}
+    stage = manifest.get("stage")
+    allowed = DERIVED_FILES.get(stage, ()) if isinstance(stage, str) else ()
+    return target.parent == artifact and target.name in allowed
+
+
 # the Software tag `dali view` writes into its PNGs (a tEXt chunk): how it knows a PNG is its own
 PNG_SOFTWARE = "dali view"
 REPORT_FILES = ("report.md", "report.json", "plots")
@@ -201,11 +214,11 @@ def is_dali_report_dir(path: Path) -> bool:
     except OSError:
         return False
     document = read_json_quietly(path / "report.json")
-    return (
-        names <= set(REPORT_FILES)
-        and isinstance(document, dict)
-        and document.get(REPORT_MARKER) == "dali report"
-    )
+    if not names <= set(REPORT_FILES) or not isinstance(document, dict):
+        return False
+    # reports written before the marker: the report's own schema (a run or runs, and rows)
+    older = "target" in document and ("run" in document or "runs" in document)
+    return document.get(REPORT_MARKER) == "dali report" or older
 
 
 def check_file_output(
@@ -223,7 +236,7 @@ def check_file_output(
         kind = "a symbolic link" if target.is_symlink() else "a directory"
         raise OutputPathError(f"{option} {out} is {kind}; give the file to write")
     inside = artifact_around(target.parent)
-    if inside is not None:
+    if inside is not None and not is_derived_file(target, inside):
         raise OutputPathError(
             f"{option} {out} lies inside the dali artifact {inside}: writing there would change "
             "it behind its manifest; choose a path outside it"
