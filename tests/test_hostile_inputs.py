@@ -20,17 +20,13 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from test_retrain import SMALL as SMALL_DETECTOR
-from test_retrain import TOY as RETRAIN_TOY
-from toy_scenes import write_toy_dataset
+from test_malformed_inputs import make_world
 
 from dali_cli.cli import main
-from dali_cli.sensors import get_profile
 from dali_cli.store.artifacts import BoxTable, read_boxes, write_boxes
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures" / "real"
 KITTI_ROOT = FIXTURES / "kitti"
-TOY = {**RETRAIN_TOY, "frames": 2, "cars_per_frame": 2, "beams": 16, "points_per_beam": 200}
 
 # hostile spellings of a number, by what the option accepts (every one must be refused)
 POSITIVE_BAD = ("nan", "inf", "-inf", "-1", "0", "1e999", "x", "")
@@ -49,19 +45,8 @@ def invoke(*args):
 
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
-    """Valid inputs: source, target (frames 000000, 000001 with labels), a one-epoch detector,
-    a procedural library, a KITTI root."""
-    root = tmp_path_factory.mktemp("hostile")
-    write_toy_dataset(root / "source", get_profile("waymo"), seed=1, **TOY)
-    write_toy_dataset(root / "target", get_profile("kitti"), seed=2, **TOY)
-    (root / "detector.json").write_text(json.dumps(SMALL_DETECTOR))
-    for args in (
-        ["pretrain", "--source", root / "source", "--out", root / "model", "--epochs", "1",
-         "--detector-config", root / "detector.json", "--quiet"],
-        ["library", "build", "--procedural", "2", "--out", root / "library"],
-    ):  # fmt: skip
-        result = invoke(*args)
-        assert result.exit_code == 0, result.output
+    """Valid inputs (test_malformed_inputs.make_world) and a KITTI root."""
+    root = make_world(tmp_path_factory.mktemp("hostile"))
     shutil.copytree(KITTI_ROOT, root / "kitti")
     return root
 
@@ -78,6 +63,14 @@ def tree_hashes(root: Path) -> dict[str, str]:
         else:
             hashes[key] = "dir"
     return hashes
+
+
+def write_or_mkdir(path: Path, content: bytes | None) -> None:
+    """`content` into the file `path`; None: a directory where the file should be."""
+    if content is None:
+        path.mkdir()
+    else:
+        path.write_bytes(content)
 
 
 def expect_refused(root: Path, args: list, out: Path | None = None, *needles: str) -> str:
@@ -288,11 +281,7 @@ MANIFESTS = {
 @pytest.mark.parametrize("how", [*MANIFESTS, "directory"])
 def test_a_hostile_input_manifest_is_refused_naming_it(world, tmp_path, how):
     boxes = boxes_with(world, tmp_path, 0, float(read_boxes(world / "target").boxes[0, 0]))
-    manifest = boxes / "manifest.json"
-    if how == "directory":
-        manifest.mkdir()
-    else:
-        manifest.write_bytes(MANIFESTS[how])
+    write_or_mkdir(boxes / "manifest.json", MANIFESTS.get(how))
     out = tmp_path / "out"
     args = ["ppcg-rc", "--target", world / "target", "--boxes", boxes, "--library",
             world / "library", "--out", out, "--no-progress"]  # fmt: skip
@@ -439,10 +428,7 @@ SCALE_FILES = {
 def test_a_hostile_scale_file_is_refused_naming_it(world, tmp_path, how):
     sweep = tmp_path / "sweep"
     sweep.mkdir()
-    if how == "directory":
-        (sweep / "scale.json").mkdir()
-    else:
-        (sweep / "scale.json").write_bytes(SCALE_FILES[how])
+    write_or_mkdir(sweep / "scale.json", SCALE_FILES.get(how))
     args = ["eval", "--model", world / "model", "--data", world / "target", "--scale-from",
             sweep, "--out", tmp_path / "m.json", "--no-progress"]  # fmt: skip
     expect_refused(tmp_path, args, tmp_path / "m.json", "scale.json")

@@ -123,17 +123,24 @@ def recover_interrupted(out: Path, echo: Callable[[str], None] = console.echo) -
     return done
 
 
+def remove_own(path: Path, out: Path, kind: str) -> None:
+    """Clear `path` (this process's `kind` name beside `out`) for dali to create: removed when
+    it is dali's marked leftover, refused (OutputPathError) when it is anything else."""
+    if not (path.exists() or path.is_symlink()):
+        return
+    if not is_leftover(path, out, kind):
+        raise OutputPathError(
+            f"{path} exists and was not created by dali for {out.name}; move or delete it "
+            "yourself, then rerun"
+        )
+    shutil.rmtree(path)
+
+
 def make_temporary(out: Path) -> Path:
     """`<out>.tmp-<pid>`, new and marked as dali's; a directory of that name dali did not
     create is refused, not deleted."""
     temporary = out.parent / f"{out.name}.tmp-{os.getpid()}"
-    if temporary.exists() or temporary.is_symlink():
-        if not is_leftover(temporary, out, "tmp"):
-            raise OutputPathError(
-                f"{temporary} exists and was not created by dali for {out.name}; move or delete "
-                "it yourself, then rerun"
-            )
-        shutil.rmtree(temporary)
+    remove_own(temporary, out, "tmp")
     temporary.mkdir()
     mark_leftover(temporary, out, "tmp")
     return temporary
@@ -186,13 +193,7 @@ def replace_directory(new: Path, target: Path, exchange: bool = True) -> None:
             return
         unmark(target)
     retired = target.parent / f"{target.name}.old-{os.getpid()}"
-    if retired.exists() or retired.is_symlink():
-        if not is_leftover(retired, target, "old"):
-            raise OutputPathError(
-                f"{retired} exists and was not created by dali for {target.name}; move or "
-                "delete it yourself, then rerun"
-            )
-        shutil.rmtree(retired)
+    remove_own(retired, target, "old")
     mark_leftover(target, target, "old")
     os.rename(target, retired)
     after_step("retired")
