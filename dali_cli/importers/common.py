@@ -42,6 +42,17 @@ def read_float_records(path: str | Path, fields: int) -> np.ndarray:
     return points
 
 
+def check_point_files(paths: list[Path]) -> None:
+    """Every point file within the size limit (a stat each), before the stage hashes or reads
+    them: an oversized file fails at once instead of after hashing gigabytes."""
+    for path in paths:
+        try:
+            size = path.stat().st_size
+        except OSError:
+            continue  # missing files are named where they are read
+        check_limit("point_file_bytes", size, str(path))
+
+
 def check_finite_points(points: np.ndarray, path: str | Path) -> None:
     """Raise ImportFormatError naming the first point (0-based) with a NaN/inf value."""
     finite = np.isfinite(points).all(axis=1)
