@@ -288,6 +288,13 @@ def test_the_lock_file_never_follows_a_symbolic_link(tmp_path):
     with pytest.raises(OutputPathError, match="lock file"):
         run_stage("demo", tmp_path / "out", {}, {}, build_boxes(1.0), echo=quiet)
     assert victim.read_text() == "precious" and not (tmp_path / "out").exists()
+    (tmp_path / ".out.lock").unlink()
+    (tmp_path / ".out.lock").write_text("my notes")  # a user's file of that name
+    with pytest.raises(OutputPathError, match="lock file"):
+        run_stage("demo", tmp_path / "out", {}, {}, build_boxes(1.0), echo=quiet)
+    assert (tmp_path / ".out.lock").read_text() == "my notes"
+    (tmp_path / ".out.lock").write_text("12345\n")  # a dead run's lock: taken over
+    assert run_stage("demo", tmp_path / "out", {}, {}, build_boxes(1.0), echo=quiet).status == "ran"
 
 
 def test_a_directory_with_a_metrics_file_is_an_eval_output_only_for_eval(tmp_path):

@@ -234,11 +234,13 @@ class OutputLock:
                     "made (a symbolic link, a directory or a device); move or delete it "
                     "yourself, then rerun"
                 ) from None
-            if not stat.S_ISREG(os.fstat(fd).st_mode):
-                os.close(fd)
+            info = os.fstat(fd)
+            held = os.pread(fd, 64, 0) if stat.S_ISREG(info.st_mode) else b""
+            if not stat.S_ISREG(info.st_mode) or not (held == b"" or held.strip().isdigit()):
+                os.close(fd)  # a user's file of that name: dali writes only its own pid files
                 raise OutputPathError(
-                    f"{self.path}: the lock file of {self.out} is not a regular file; move or "
-                    "delete it yourself, then rerun"
+                    f"{self.path}: the lock file of {self.out} is not a lock dali made (a "
+                    "regular file holding a pid); move or delete it yourself, then rerun"
                 )
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
