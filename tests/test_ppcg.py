@@ -419,10 +419,9 @@ def test_stage_outputs_and_worker_independence(dataset):
 def test_implausible_boxes_are_refused_naming_row_frame_and_field(dataset, tmp_path, mode):
     """A pseudo box 1,000 km long once went through ppcg-rc and was re-cast; the same table is
     refused as pretrain refuses it (one plausibility rule), nothing written."""
+    from dali_cli.store.artifacts import ArtifactError
     from stages.ppcg_cf import ppcg_cf
     from stages.ppcg_rc import ppcg_rc
-
-    from dali_cli.store.artifacts import ArtifactError
 
     stage = {"rc": ppcg_rc, "cf": ppcg_cf}[mode]
     target, library = dataset / "target", dataset / "library"
