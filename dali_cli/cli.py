@@ -59,6 +59,17 @@ class LazyGroup(click.Group):
             raise as_click_error(
                 error, self.get_command(ctx, ctx.invoked_subcommand or "")
             ) from None
+        except OSError as error:  # outside a stage's commit: name the file, no traceback
+            where = f"{error.filename}: " if error.filename else ""
+            raise click.ClickException(
+                f"{where}{error.strerror or error}; no output was replaced (any previous output "
+                "is intact)"
+            ) from None
+        except MemoryError:
+            raise click.ClickException(
+                "out of memory; no output was replaced (any previous output is intact). Use "
+                "smaller inputs or options, or a machine with more memory"
+            ) from None
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         rows = [(name, help_text) for name, (_, help_text) in COMMANDS.items()]

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.runtime.errors import StageError
+from dali_cli.runtime.limits import check_limit
 
 DEFAULT_SENSORS_PATH = Path(__file__).resolve().parent.parent / "sensors.toml"
 
@@ -242,6 +243,11 @@ def parse_profile(name: str, table: dict, source: str = "<sensors>") -> SensorPr
             raise _fail(source, name, key, "missing")
     beams = _positive_int(table, "beams", source, name)
     points_per_beam = _positive_int(table, "points_per_beam", source, name)
+    check_limit(
+        "rays_per_frame",
+        beams * points_per_beam,
+        f"{source}: profile [{name}] keys 'beams' x 'points_per_beam'",
+    )
     elevations = _elevations(table, beams, source, name)
     az_min = _number(table, "azimuth_min_deg", source, name, -180.0)
     az_max = _number(table, "azimuth_max_deg", source, name, 180.0)

@@ -27,14 +27,16 @@ import numpy as np
 
 from dali_cli.evaluation.evaluate import check_ious
 from dali_cli.evaluation.kitti_label import read_box_source
+from dali_cli.labels import plausibility
 from dali_cli.runtime import console
 from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.store.artifacts import BOX_FIELDS, BoxTable, FrameSet
 from dali_cli.store.atomic_file import write_atomically, write_text_atomically
+from dali_cli.store.output_paths import DERIVED_FILES
 
 PREDICTIONS_NAME = "predictions.parquet"
 METRICS_NAME = "metrics.json"
-KITTI_METRICS_NAME = "metrics_kitti.json"  # written beside metrics.json by a second eval
+KITTI_METRICS_NAME = DERIVED_FILES["eval"][0]  # written beside metrics.json by a second eval
 
 
 @dataclass
@@ -357,7 +359,8 @@ def run_eval(
     if out is not None:  # before any work: an output dali must not write fails at once
         from dali_cli.store.output_paths import check_metrics_output
 
-        check_metrics_output(out, inputs)
+        keep = keeps_predictions(save_predictions, model, size_correction)
+        check_metrics_output(out, inputs, beside=(PREDICTIONS_NAME,) if keep else ())
     if dry_run:  # a metrics file (or the terminal) is not a stage artifact: it is always rerun
         where = out if out is not None else "the terminal"
         console.echo(f"eval: would run -> {where} (a metrics file is always recomputed)")
@@ -381,6 +384,9 @@ def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
     from dali_cli.evaluation.evaluate import EvaluationError, evaluate
 
     pred, gt, frame_ids, source, gt_path, runtime = predictions_and_truth(**routes)
+    for table, where in ((pred, routes["pred_path"] or "the predictions"), (gt, gt_path)):
+        positive = (table.boxes[:, 3:6] > 0).all(axis=1)
+        plausibility.refuse_implausible(table.boxes, positive, str(where), table.frame_id)
     correction = source.pop("size_correction", None)
     class_name = options["class_name"]
     metrics: dict = {}

@@ -23,12 +23,13 @@ def import_kitti(
     dry_run: bool = False,
 ) -> StageOutcome:
     """Import ROOT[/split] (every scan, or the ids of `ids_path`) into `out`."""
-    from dali_cli.importers.common import read_id_list
+    from dali_cli.importers.common import check_point_files, read_id_list
     from dali_cli.importers.kitti import KittiLayout, build_import
 
     get_profile(sensor, sensors_path)  # an unknown profile fails before any work
     layout = KittiLayout.of(root, split, label_dir)
     frame_ids = layout.frame_ids(read_id_list(ids_path) if ids_path else None)
+    check_point_files([layout.velodyne_dir / f"{frame_id}.bin" for frame_id in frame_ids])
     inputs = {"velodyne": layout.velodyne_dir, "ids": ids_path}
     for name, path in (("labels", layout.label_dir), ("calib", layout.calib_dir)):
         if path.is_dir():

@@ -31,9 +31,11 @@ def synth(
     `workers`, `ray_address`: dali_cli.executors) and `threads`."""
     from dali_cli.executors import make_executor, run_on
     from dali_cli.runtime.cores import available_cores
+    from dali_cli.runtime.limits import check_limit
     from dali_cli.sensors import get_profile
     from dali_cli.synth import build_synth
 
+    check_limit("frames", frames, "--frames")
     sensor_profile = get_profile(sensor, sensors_path)
     cars = get_profile(cars_profile or sensor, sensors_path)
     engine = make_executor(

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -17,7 +18,12 @@ from click.testing import CliRunner
 
 from dali_cli.cli import main
 from dali_cli.store.artifacts import BoxTable, write_boxes, write_frameset
-from dali_cli.store.atomic_dir import OutputBusyError, OutputLock, recover_interrupted
+from dali_cli.store.atomic_dir import (
+    OutputBusyError,
+    OutputLock,
+    mark_leftover,
+    recover_interrupted,
+)
 from dali_cli.store.manifest import BuildResult, content_hash, read_manifest, run_stage
 from dali_cli.store.output_paths import OutputPathError
 
@@ -230,19 +236,80 @@ def test_recovery_restores_the_newest_complete_retired_artifact_only_when_out_is
     out = tmp_path / "out"
     run_stage("demo", out, {}, {}, build_boxes(1.0), echo=quiet)
     dead = _dead_pid()
+    mark_leftover(out, out, "old")  # what replace_directory does before retiring it
     os.rename(out, tmp_path / f"out.old-{dead}")
-    (tmp_path / f"out.tmp-{dead}").mkdir()  # a half-built directory of the same dead run
+    half_built = tmp_path / f"out.tmp-{dead}"  # a half-built directory of the same dead run
+    half_built.mkdir()
+    mark_leftover(half_built, out, "tmp")
     done = recover_interrupted(out, quiet)
     assert _value_at(out) == 1.0 and len(done) == 2
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    assert run_stage("demo", out, {}, {}, build_boxes(1.0), echo=quiet).status == "skipped"
 
 
-def test_a_live_process_leftovers_are_left_alone(tmp_path):
+def test_recovery_never_adopts_a_directory_by_its_name(tmp_path):
+    """A user's `out.old-2023` backup and `out.tmp-1999` scratch directory, named like dali's
+    leftovers but not created by dali, are neither restored nor deleted, whether `out` exists
+    or not; a leftover whose pid now names a live process is still dali's to clean."""
     out = tmp_path / "out"
-    live = tmp_path / f"out.tmp-{os.getppid()}"
-    live.mkdir()
     run_stage("demo", out, {}, {}, build_boxes(1.0), echo=quiet)
-    assert live.is_dir()
+    backup = tmp_path / "out.old-2023"
+    shutil.copytree(out, backup)  # a complete dali artifact, copied by the user
+    scratch = tmp_path / "out.tmp-1999"
+    scratch.mkdir()
+    (scratch / "notes.txt").write_text("mine")
+    reused = tmp_path / f"out.tmp-{os.getppid()}"  # dali's, its pid now a live process
+    reused.mkdir()
+    mark_leftover(reused, out, "tmp")
+    before = {p: snapshot(p) for p in (backup, scratch)}
+    messages: list[str] = []
+    run_stage("demo", out, {}, {}, build_boxes(2.0), force=True, echo=messages.append)
+    assert {p: snapshot(p) for p in (backup, scratch)} == before
+    assert not reused.exists() and not any("out.old-2023" in m for m in messages)
+    shutil.rmtree(out)
+    run_stage("demo", out, {}, {}, build_boxes(3.0), echo=quiet)
+    assert _value_at(out) == 3.0 and {p: snapshot(p) for p in (backup, scratch)} == before
+
+
+def test_a_directory_dali_did_not_create_under_its_temporary_name_is_refused(tmp_path):
+    out = tmp_path / "out"
+    mine = tmp_path / f"out.tmp-{os.getpid()}"
+    mine.mkdir()
+    (mine / "keep.txt").write_text("mine")
+    with pytest.raises(OutputPathError, match="not created by dali"):
+        run_stage("demo", out, {}, {}, build_boxes(1.0), echo=quiet)
+    assert (mine / "keep.txt").read_text() == "mine" and not out.exists()
+
+
+def test_the_lock_file_never_follows_a_symbolic_link(tmp_path):
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious")
+    (tmp_path / ".out.lock").symlink_to(victim)
+    with pytest.raises(OutputPathError, match="lock file"):
+        run_stage("demo", tmp_path / "out", {}, {}, build_boxes(1.0), echo=quiet)
+    assert victim.read_text() == "precious" and not (tmp_path / "out").exists()
+    (tmp_path / ".out.lock").unlink()
+    (tmp_path / ".out.lock").write_text("my notes")  # a user's file of that name
+    with pytest.raises(OutputPathError, match="lock file"):
+        run_stage("demo", tmp_path / "out", {}, {}, build_boxes(1.0), echo=quiet)
+    assert (tmp_path / ".out.lock").read_text() == "my notes"
+    (tmp_path / ".out.lock").write_text("12345\n")  # a dead run's lock: taken over
+    assert run_stage("demo", tmp_path / "out", {}, {}, build_boxes(1.0), echo=quiet).status == "ran"
+
+
+def test_a_directory_with_a_metrics_file_is_an_eval_output_only_for_eval(tmp_path):
+    """`{"sizes": 1, "mine": "precious"}` is not dali's metrics file; and even a real eval
+    directory is only eval's to replace, never another stage's."""
+    evald = tmp_path / "evald"
+    evald.mkdir()
+    (evald / "metrics.json").write_text('{"sizes": 1, "mine": "precious"}')
+    for stage in ("synth", "eval"):
+        with pytest.raises(OutputPathError, match="without a dali manifest"):
+            run_stage(stage, evald, {}, {}, build_boxes(1.0), echo=quiet)
+    (evald / "metrics.json").write_text('{"Car": {"bev": {}}, "sizes": {"pred": [4, 2, 1.5]}}')
+    with pytest.raises(OutputPathError, match="without a dali manifest"):
+        run_stage("synth", evald, {}, {}, build_boxes(1.0), echo=quiet)
+    assert run_stage("eval", evald, {}, {}, build_boxes(1.0), echo=quiet).status == "ran"
 
 
 # --- one writer per output -------------------------------------------------------------------
@@ -384,3 +451,21 @@ def test_eval_dry_run_to_a_metrics_file_writes_nothing(tmp_path):
     assert again.exit_code == 0 and metrics.read_bytes() == before
     terminal = CliRunner().invoke(main, [*base, "--dry-run"])
     assert terminal.exit_code == 0 and "AP_3D" not in terminal.output
+
+
+def test_a_file_output_inside_an_artifact_only_where_the_artifact_allows_it(tmp_path):
+    """metrics_kitti.json may be added to an eval artifact (the Makefile's KITTI-protocol eval),
+    nothing may be written into another stage's artifact behind its manifest."""
+    target = make_target(tmp_path / "T")
+    base = ["eval", "--pred", str(target), "--gt", str(target)]
+    for stage in ("eval", "pseudo-label"):
+        run_stage(stage, tmp_path / stage, {}, {}, build_boxes(1.0), echo=quiet)
+    added = CliRunner().invoke(
+        main, [*base, "--out", str(tmp_path / "eval" / "metrics_kitti.json")]
+    )
+    assert added.exit_code == 0, added.output
+    before = snapshot(tmp_path / "pseudo-label")
+    for name in ("metrics_kitti.json", "metrics.json"):
+        refused = CliRunner().invoke(main, [*base, "--out", str(tmp_path / "pseudo-label" / name)])
+        assert refused.exit_code == 1 and "inside the dali artifact" in refused.output
+    assert snapshot(tmp_path / "pseudo-label") == before

@@ -852,7 +852,7 @@ def test_eval_directory_is_a_manifest_tracked_artifact(tmp_path):
     # an evaluation directory of an older run (no manifest) is replaced; a user's is refused
     legacy = tmp_path / "old" / "eval"
     legacy.mkdir(parents=True)
-    (legacy / "metrics.json").write_text(json.dumps({"Car": {}, "sizes": {}}))
+    (legacy / "metrics.json").write_text(json.dumps({"Car": {"bev": {}}, "sizes": {}}))
     replaced = runner.invoke(main, [*args[:-1], str(legacy)])
     assert replaced.exit_code == 0, replaced.output
     assert read_manifest(legacy)["stage"] == "eval"

@@ -51,9 +51,13 @@ def invoke(*args):
 
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
-    """Valid inputs every case starts from: source, target (frames 000000, 000001, labels), a
-    one-epoch detector and a procedural library."""
-    root = tmp_path_factory.mktemp("world")
+    """Valid inputs every case starts from (make_world)."""
+    return make_world(tmp_path_factory.mktemp("world"))
+
+
+def make_world(root: Path) -> Path:
+    """Source, target (frames 000000, 000001, labels), a one-epoch detector (`root/model`,
+    configured by `root/detector.json`) and a procedural library, under `root`."""
     write_toy_dataset(root / "source", get_profile("waymo"), seed=1, **TOY)
     write_toy_dataset(root / "target", get_profile("kitti"), seed=2, **TOY)
     (root / "detector.json").write_text(json.dumps(SMALL_DETECTOR))

@@ -194,18 +194,21 @@ def test_check_made_from_refuses_an_artifact_of_another_input(tmp_path):
     check_made_from(target, "target", other)  # no manifest (hand-made table): unchecked
 
 
-def test_stale_temporaries_of_dead_runs_are_removed(tmp_path):
+def test_stale_temporaries_dali_marked_are_removed_and_others_kept(tmp_path):
     import os
+
+    from dali_cli.store.atomic_dir import mark_leftover
 
     source = make_input(tmp_path / "in")
     out = tmp_path / "out"
     dead = _dead_pid()
     stale = tmp_path / f"out.tmp-{dead}"
     (stale / "frames.zarr").mkdir(parents=True)
-    live = tmp_path / f"out.tmp-{os.getppid()}"  # a live process: a concurrent run, kept
-    live.mkdir()
+    mark_leftover(stale, out, "tmp")  # what the stage runner writes when it creates one
+    unmarked = tmp_path / f"out.tmp-{os.getppid()}"  # named like one, not created by dali: kept
+    unmarked.mkdir()
     run_stage("demo", out, {"source": source}, {}, CountingBuild(), echo=no_echo)
-    assert not stale.exists() and live.is_dir() and (out / "manifest.json").is_file()
+    assert not stale.exists() and unmarked.is_dir() and (out / "manifest.json").is_file()
 
 
 def _dead_pid() -> int:

@@ -416,38 +416,29 @@ def test_stage_outputs_and_worker_independence(dataset):
 
 
 @pytest.mark.parametrize("mode", ["rc", "cf"])
-def test_implausible_boxes_are_dropped_and_counted(dataset, tmp_path, mode):
-    # a pseudo box 1,000 km long must not reach ppcg-rc's ray casting
+def test_implausible_boxes_are_refused_naming_row_frame_and_field(dataset, tmp_path, mode):
+    """A pseudo box 1,000 km long once went through ppcg-rc and was re-cast; the same table is
+    refused as pretrain refuses it (one plausibility rule), nothing written."""
+    from dali_cli.store.artifacts import ArtifactError
     from stages.ppcg_cf import ppcg_cf
     from stages.ppcg_rc import ppcg_rc
 
     stage = {"rc": ppcg_rc, "cf": ppcg_cf}[mode]
     target, library = dataset / "target", dataset / "library"
     given = read_boxes(target)
-    huge, far = given.boxes[:1].copy(), given.boxes[:1].copy()
-    huge[:, 3] = 1e6  # over the first car: re-casting it would replace that car's points
-    far[:, :2] = [3e5, 4e5]  # 500 km away
-    noisy = BoxTable.concat(
-        [BoxTable.from_arrays(["000000", "000002"], np.r_[huge, far], label="Car"), given]
-    )
-    (tmp_path / "boxes").mkdir()
-    write_boxes(tmp_path / "boxes", noisy)
     options = {"max_points": 10**5} if mode == "rc" else {"seed": 3}
-    stage(target, target, library, tmp_path / "clean", progress=False, **options)
-    stage(target, tmp_path / "boxes", library, tmp_path / "noisy", progress=False, **options)
-    clean, kept = read_boxes(tmp_path / "clean"), read_boxes(tmp_path / "noisy")
-    assert len(kept) == len(given)
-    np.testing.assert_array_equal(kept.boxes, clean.boxes)
-    assert list(kept["ppcg"]) == list(clean["ppcg"])
-    for index in range(3):
-        np.testing.assert_array_equal(
-            FrameSet(tmp_path / "noisy").frame(index), FrameSet(tmp_path / "clean").frame(index)
-        )
-    manifest = read_manifest(tmp_path / "noisy")
-    assert manifest["outputs"]["counts"]["dropped_implausible"] == 2
-    assert read_manifest(tmp_path / "clean")["outputs"]["counts"]["dropped_implausible"] == 0
-    note = next(n for n in manifest["notes"] if "implausible" in n)
-    assert "row 0" in note and "000000" in note and "'l' = 1e+06 m" in note
+    for field, value, needle in ((3, 1e6, "'l' = 1e+06 m"), (0, 1e6, "centre (x, y, z)")):
+        bad = given.boxes[:1].copy()
+        bad[:, field] = value
+        noisy = BoxTable.concat([BoxTable.from_arrays(["000000"], bad, label="Car"), given])
+        boxes = tmp_path / f"boxes{field}"
+        boxes.mkdir()
+        write_boxes(boxes, noisy)
+        with pytest.raises(ArtifactError) as error:
+            stage(target, boxes, library, tmp_path / "noisy", progress=False, **options)
+        assert "row 0" in str(error.value) and "000000" in str(error.value)
+        assert needle in str(error.value)
+        assert not (tmp_path / "noisy").exists()
 
 
 def test_cli_errors_name_the_file_frame_and_field(dataset, tmp_path):

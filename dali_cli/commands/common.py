@@ -5,6 +5,8 @@ the common option kinds (an existing input directory, a choice with a shown defa
 
 from __future__ import annotations
 
+import math
+
 import click
 
 INPUT_DIR = click.Path(exists=True, file_okay=False)
@@ -28,23 +30,80 @@ def choice_option(*decls: str, choices: list[str], default: str | None, help: st
     )
 
 
-def parse_floats(count: int):
-    """A click callback turning 'a,b,c' into a tuple of `count` floats (None stays None)."""
+class FiniteFloat(click.FloatRange):
+    """A finite float (NaN and ±inf refused), optionally within a range: click's FloatRange
+    lets NaN through every bound (NaN compares false) and accepts inf."""
 
-    def callback(ctx, param, value):
-        if value is None:
-            return None
-        try:
-            numbers = tuple(float(v) for v in value.split(","))
-        except ValueError:
-            raise click.BadParameter(
-                f"expected {count} comma-separated numbers, got '{value}'"
-            ) from None
-        if len(numbers) != count:
-            raise click.BadParameter(f"expected {count} comma-separated numbers, got '{value}'")
-        return numbers
+    name = "float"
 
-    return callback
+    def convert(self, value, param, ctx):
+        number = click.FLOAT.convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        return super().convert(number, param, ctx)
+
+
+FINITE = FiniteFloat()
+"""Any finite float."""
+POSITIVE = FiniteFloat(min=0, min_open=True)
+"""A finite float > 0."""
+NON_NEGATIVE = FiniteFloat(min=0)
+"""A finite float >= 0."""
+FRACTION = FiniteFloat(0, 1)
+"""A finite float in [0, 1]."""
+
+
+def finite_range(
+    min: float | None = None,
+    max: float | None = None,
+    *,
+    min_open: bool = False,
+    max_open: bool = False,
+) -> FiniteFloat:
+    """A finite float within [min, max] (open ends as told)."""
+    return FiniteFloat(min, max, min_open=min_open, max_open=max_open)
+
+
+class FloatTuple(click.ParamType):
+    """'a,b,c': `count` comma-separated numbers, each converted by `each` (finite by default);
+    `increasing` asks for a strictly increasing sequence (a 'lo,hi' range)."""
+
+    def __init__(self, count: int, each: click.ParamType = FINITE, increasing: bool = False):
+        self.count = count
+        self.each = each
+        self.increasing = increasing
+        self.name = f"{count} numbers"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, tuple):
+            return value
+        parts = str(value).split(",")
+        if len(parts) != self.count:
+            self.fail(f"expected {self.count} comma-separated numbers, got '{value}'", param, ctx)
+        numbers = []
+        for part in parts:
+            try:
+                numbers.append(self.each.convert(part.strip(), param, ctx))
+            except click.BadParameter as error:
+                self.fail(f"'{value}': {error.message}", param, ctx)
+        if self.increasing and any(b <= a for a, b in zip(numbers, numbers[1:], strict=False)):
+            self.fail(f"'{value}': expected increasing numbers (lo < hi)", param, ctx)
+        return tuple(numbers)
+
+
+SEED = click.IntRange(0, 2**32 - 1)
+"""A random seed: what numpy and torch both accept."""
+COUNT_LIMIT = 4096
+BATCH = click.IntRange(1, COUNT_LIMIT)
+"""Frames per batch, workers, threads: at least 1, at most COUNT_LIMIT (more would only
+exhaust memory or processes before the first step)."""
+
+POSITIVE_TRIPLE = FloatTuple(3, POSITIVE)
+"""'l,w,h': three finite numbers > 0 (a box size in metres)."""
+FINITE_TRIPLE = FloatTuple(3)
+"""'a,b,c': three finite numbers (a size delta in metres)."""
+POSITIVE_RANGE = FloatTuple(2, POSITIVE, increasing=True)
+"""'lo,hi': two finite numbers 0 < lo < hi."""
 
 
 def target_size_options(profile_help: str, size_help: str):
@@ -53,7 +112,7 @@ def target_size_options(profile_help: str, size_help: str):
 
     def decorate(function):
         function = click.option(
-            "--target-size", default=None, callback=parse_floats(3), help=size_help
+            "--target-size", type=POSITIVE_TRIPLE, default=None, help=size_help
         )(function)
         return click.option("--target-profile", default=None, help=profile_help)(function)
 
@@ -166,7 +225,7 @@ def workers_option(local_default: str):
     """--workers N: processes (local) or actors (ray) that run the stage's frames."""
     return click.option(
         "--workers",
-        type=click.IntRange(min=1),
+        type=BATCH,
         default=None,
         help=f"Workers: processes of this machine (--executor local; default {local_default}) or "
         "Ray actors (--executor ray; default one per CPU of the cluster). The output does not "
@@ -202,29 +261,29 @@ def training_options(function):
     options = [
         click.option(
             "--epochs",
-            type=click.FloatRange(min=0, min_open=True),
+            type=POSITIVE,
             default=10.0,
             show_default=True,
             help="Passes over the (source) training frames.",
         ),
         click.option(
             "--minutes",
-            type=click.FloatRange(min=0, min_open=True),
+            type=POSITIVE,
             default=None,
             help="Wall-clock training budget instead of --epochs; the learning-rate "
             "schedule follows the elapsed fraction of the budget.",
         ),
         click.option(
             "--seed",
-            type=int,
+            type=SEED,
             default=0,
             show_default=True,
             help="Seed of initialization, sampling and augmentation.",
         ),
-        click.option("--batch-size", type=click.IntRange(min=1), default=1, show_default=True),
+        click.option("--batch-size", type=BATCH, default=1, show_default=True),
         click.option(
             "--lr",
-            type=click.FloatRange(min=0, min_open=True),
+            type=POSITIVE,
             default=5e-3,
             show_default=True,
             help="Peak learning rate of the one-cycle schedule (AdamW).",
@@ -239,7 +298,7 @@ def training_options(function):
         ),
         click.option(
             "--threads",
-            type=click.IntRange(min=1),
+            type=BATCH,
             default=None,
             help="torch threads per process (default: every core this process may use, divided "
             "by the processes torchrun starts on this machine; recorded in the manifest).",
@@ -262,7 +321,7 @@ def no_progress_option(function):
 def score_min_option(function):
     return click.option(
         "--score-min",
-        type=click.FloatRange(0, 1),
+        type=FRACTION,
         default=0.3,
         show_default=True,
         help="Box score cut.",
@@ -282,11 +341,11 @@ def target_scaling_options(function):
     options = [
         click.option(
             "--mount-height-m",
-            type=float,
+            type=POSITIVE,
             default=None,
             help="Target sensor height above ground for scaling (default: the target profile's).",
         ),
-        click.option("--batch-size", type=click.IntRange(min=1), default=8, show_default=True),
+        click.option("--batch-size", type=BATCH, default=8, show_default=True),
         no_progress_option,
         device_options,
         sensors_option,

@@ -6,7 +6,13 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import PROTOCOLS_HELP, no_progress_option, protocol_options
+from dali_cli.commands.common import (
+    FRACTION,
+    PROTOCOLS_HELP,
+    SEED,
+    no_progress_option,
+    protocol_options,
+)
 
 EPILOG = (
     """\b
@@ -42,12 +48,12 @@ the row does not beat the reference. --out FILE.json writes it ({"bootstrap": {"
                    "reference). The name ends at the first '=', so it cannot hold one.")  # fmt: skip
 @click.option("--gt", "gt_path", required=True, type=click.Path(exists=True, path_type=Path),
               help="Ground truth (box table or label_2 dir) of the frames.")  # fmt: skip
-@click.option("--iou", type=float, default=0.7, show_default=True,
+@click.option("--iou", type=FRACTION, default=0.7, show_default=True,
               help="IoU threshold (a match needs IoU > this).")  # fmt: skip
 @protocol_options
 @click.option("--samples", type=click.IntRange(min=2), default=1000, show_default=True,
               help="Bootstrap draws (about 0.1 s each per row on 200 frames).")  # fmt: skip
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the draws.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the draws.")
 @click.option("--out", type=click.Path(path_type=Path),
               help="Also write the comparison to this .json file (atomically).")  # fmt: skip
 @no_progress_option

@@ -7,10 +7,13 @@ from pathlib import Path
 import click
 
 from dali_cli.commands.common import (
+    FRACTION,
+    POSITIVE,
     PROTOCOLS_HELP,
     choice_option,
     device_options,
     executor_options,
+    finite_range,
     no_progress_option,
     protocol_options,
     stage_options,
@@ -63,14 +66,14 @@ correction "size_correction" (factors, E_est, E_pred and the scale.json they cam
               help="Detector checkpoint dir: predict first.")  # fmt: skip
 @click.option("--data", type=click.Path(exists=True, file_okay=False),
               help="Frame set to run --model on (its boxes.parquet is the default --gt).")  # fmt: skip
-@click.option("--scale", type=float, default=None,
+@click.option("--scale", type=POSITIVE, default=None,
               help="PTSN scale for --model inference (default 1).")  # fmt: skip
 @click.option("--scale-from", type=click.Path(exists=True, file_okay=False),
               help="Read the scale from PTSN_DIR/scale.json.")  # fmt: skip
-@click.option("--iou", "ious", type=float, multiple=True, default=(0.7,), show_default=True,
+@click.option("--iou", "ious", type=FRACTION, multiple=True, default=(0.7,), show_default=True,
               help="IoU threshold (a match needs IoU > this); repeat for several (--iou 0.7 "
                    "--iou 0.5).")  # fmt: skip
-@click.option("--size-score-min", type=click.FloatRange(0.0, 1.0), default=0.3, show_default=True,
+@click.option("--size-score-min", type=finite_range(0.0, 1.0), default=0.3, show_default=True,
               help="Predictions with at least this score enter the mean predicted size in "
                    "metrics.json.")  # fmt: skip
 @protocol_options

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import choice_option, out_dir_option, stage_options
+from dali_cli.commands.common import FRACTION, choice_option, out_dir_option, stage_options
 
 
 @click.group(name="export")
@@ -41,7 +41,9 @@ def _parse_image_size(_ctx, _param, value: str | None) -> tuple[int, int] | None
 @click.option("--image-size", default=None, callback=_parse_image_size,
               help="WIDTHxHEIGHT for clipping 2D boxes. Default: each frame's image_2 PNG, else "
                    "1242x375.")  # fmt: skip
-@click.option("--score-min", type=float, default=None, help="Export only boxes with score >= this.")
+@click.option(
+    "--score-min", type=FRACTION, default=None, help="Export only boxes with score >= this."
+)
 @click.option("--keep-outside", is_flag=True,
               help="Also write boxes behind the camera or outside the image (default: left out, "
                    "counted).")  # fmt: skip
@@ -97,7 +99,9 @@ def kitti_command(
 @click.option("--boxes", "boxes_dir", type=click.Path(exists=True), default=None,
               help="Box table to write as labels. Default: DATA_DIR/boxes.parquet when present.")  # fmt: skip
 @click.option("--split", default=None, help="Also write ImageSets/SPLIT.txt listing the frames.")
-@click.option("--score-min", type=float, default=None, help="Write only boxes with score >= this.")
+@click.option(
+    "--score-min", type=FRACTION, default=None, help="Write only boxes with score >= this."
+)
 @out_dir_option()
 @stage_options
 def openpcdet_command(data_dir, boxes_dir, split, score_min, out, force, dry_run):

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import choice_option, import_options
+from dali_cli.commands.common import choice_option, finite_range, import_options
 
 
 @click.group(name="import")
@@ -139,7 +139,7 @@ def nuscenes_command(
                    "points/*.npy.")  # fmt: skip
 @click.option("--car-class", "car_classes", multiple=True,
               help="Class name mapped to label 'Car' (repeatable). Default: Car and Vehicle.")  # fmt: skip
-@click.option("--intensity-max", type=click.FloatRange(min=0, min_open=True), default=1.0,
+@click.option("--intensity-max", type=finite_range(min=0, min_open=True), default=1.0,
               show_default=True,
               help="Intensities are divided by this (255 for 8-bit intensities).")  # fmt: skip
 @import_options(None)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import out_dir_option, stage_options
+from dali_cli.commands.common import SEED, out_dir_option, stage_options
 
 
 @click.group(name="library")
@@ -38,10 +38,12 @@ def _parse_range(_ctx, _param, value: str | None) -> tuple[float, float] | None:
 @click.option("--skip-bad", is_flag=True,
               help="Skip unreadable, degenerate or mis-oriented CAD files (listed in the "
                    "manifest) instead of failing.")  # fmt: skip
-@click.option("--procedural", "procedural_count", type=click.IntRange(min=0), default=0,
+@click.option("--procedural", "procedural_count", type=click.IntRange(0, 100_000), default=0,
               show_default=True,
               help="Number of procedural cars to generate (sedan, hatchback, SUV, van, pickup).")  # fmt: skip
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the procedural cars.")
+@click.option(
+    "--seed", type=SEED, default=0, show_default=True, help="Seed of the procedural cars."
+)
 @click.option("--lod", type=click.IntRange(1000, 200000), default=20000, show_default=True,
               help="Approximate triangles per procedural car (5,000-70,000 is the useful range).")  # fmt: skip
 @click.option("--points", "points_dir", type=click.Path(exists=True, file_okay=False),

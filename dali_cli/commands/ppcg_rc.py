@@ -5,8 +5,10 @@ from __future__ import annotations
 import click
 
 from dali_cli.commands.common import (
+    SEED,
     apply_options,
     executor_options,
+    finite_range,
     input_dir_option,
     no_progress_option,
     out_dir_option,
@@ -32,8 +34,8 @@ def ppcg_options(function):
                      help="Model kind to fit  [default: cad if the library has meshes, else points]"),
         click.option("--top-k", type=click.IntRange(min=1), default=1, show_default=True,
                      help="Pick at random among the K best models (per-box seed); 1 = the best."),
-        click.option("--seed", type=int, default=0, show_default=True, help="Run seed."),
-        click.option("--ground-margin-m", type=click.FloatRange(min=0), default=0.1,
+        click.option("--seed", type=SEED, default=0, show_default=True, help="Run seed."),
+        click.option("--ground-margin-m", type=finite_range(min=0), default=0.1,
                      show_default=True,
                      help="Points of a box below max(box bottom, -mount height) + this are "
                           "ground: kept."),
@@ -42,7 +44,7 @@ def ppcg_options(function):
                           "facing the other way (the detector's headings are right only up to "
                           "a half turn; dali_cli.ppcg.orient). Mesh models only  [default: on "
                           "with mesh models, off with point models]"),
-        click.option("--point-margin-m", type=click.FloatRange(min=0),
+        click.option("--point-margin-m", type=finite_range(min=0),
                      default=DEFAULT_POINT_MARGIN_M, show_default=True,
                      help="A box's points are those in the box grown by this on every side: "
                           "LiDAR points lie on a car's surface, so a pseudo box a little off "

@@ -5,7 +5,9 @@ from __future__ import annotations
 import click
 
 from dali_cli.commands.common import (
+    SEED,
     choice_option,
+    finite_range,
     model_target_out_options,
     score_min_option,
     target_profile_option,
@@ -43,7 +45,7 @@ SCALE_RANGE = ScaleRangeType()
                help="bracket: secant on a frame subsample, confirmed on all frames; grid: every "
                     "scale.")  # fmt: skip
 @click.option("--frames", type=click.IntRange(min=1), default=None, help="Use N seeded frames.")
-@click.option("--frame-fraction", type=click.FloatRange(0, 1, min_open=True), default=None,
+@click.option("--frame-fraction", type=finite_range(0, 1, min_open=True), default=None,
               help="Use this fraction of the frames (seeded).")  # fmt: skip
 @score_min_option
 @choice_option("--no-detections", choices=["identity", "error"], default="identity",
@@ -55,18 +57,18 @@ SCALE_RANGE = ScaleRangeType()
                     "boxes.")  # fmt: skip
 @choice_option("--match", choices=["volume", "lwh"], default="volume",
                help="Match mean volume (a 1-D root) or l, w, h in the least-squares sense.")  # fmt: skip
-@click.option("--seed", type=int, default=0, show_default=True,
+@click.option("--seed", type=SEED, default=0, show_default=True,
               help="Seed of the frame subsamples.")  # fmt: skip
-@click.option("--subsample-fraction", type=click.FloatRange(0, 1, min_open=True), default=0.25,
+@click.option("--subsample-fraction", type=finite_range(0, 1, min_open=True), default=0.25,
               show_default=True, help="bracket: fraction of the frames used for the secant phase.")  # fmt: skip
 @click.option("--subsample-min", type=click.IntRange(min=1), default=16, show_default=True,
               help="bracket: at least this many frames in the secant phase.")  # fmt: skip
-@click.option("--noise", type=click.FloatRange(min=0), default=0.02, show_default=True,
+@click.option("--noise", type=finite_range(min=0), default=0.02, show_default=True,
               help="How far the criterion may rise with s and still count as monotone (volume: "
                    "log ratio).")  # fmt: skip
 @target_profile_option
 @click.option("--source-profile", default=None, help="Source profile for --expected-size ros.")
-@click.option("--ros-factor", type=click.FloatRange(0, min_open=True), default=None,
+@click.option("--ros-factor", type=finite_range(0, min_open=True), default=None,
               help="Mean ROS factor for --expected-size ros (default: model.json, else 0.875).")  # fmt: skip
 @click.option("--plot", is_flag=True, help="Also write sweep.png (mean volume vs scale).")
 @target_scaling_options

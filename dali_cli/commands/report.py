@@ -10,6 +10,7 @@ import click
 
 from dali_cli.reporting.report import build_report
 from dali_cli.store.atomic_file import write_text_atomically
+from dali_cli.store.output_paths import REPORT_MARKER, check_report_dir
 
 
 @click.command(name="report")
@@ -39,11 +40,12 @@ def command(runs: tuple[Path, ...], out_dir: Path | None, plots: bool) -> None:
                 "*/eval/metrics.json): is it a RUN directory of the Makefile (make iter1 RUN=...)?"
             )
         out_dir = out_dir or Path(os.path.commonpath([r.resolve() for r in found])) / "report"
+        out_dir = check_report_dir(out_dir)
         text, document = aggregate_runs(found)
         write_report(out_dir, text, document)
         return
     run = runs[0]
-    out_dir = out_dir or run / "report"
+    out_dir = check_report_dir(out_dir or run / "report")
     text, document = build_report(run)
     out_dir.mkdir(parents=True, exist_ok=True)
     if plots:
@@ -62,7 +64,10 @@ def write_report(out_dir: Path, text: str, document: dict) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
     for name, content in (
         ("report.md", text),
-        ("report.json", json.dumps(document, indent=2, default=str)),
+        (
+            "report.json",
+            json.dumps({REPORT_MARKER: "dali report", **document}, indent=2, default=str),
+        ),
     ):
         write_text_atomically(out_dir / name, content)
     click.echo(text)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import click
 
 from dali_cli.commands.common import (
+    BATCH,
+    SEED,
     executor_options,
     out_dir_option,
     sensors_option,
@@ -21,11 +23,11 @@ from dali_cli.commands.common import (
               help="Profile whose car_mean_lwh_m / car_std_lwh_m size the cars. Default: "
                    "--sensor.")  # fmt: skip
 @click.option("--frames", type=click.IntRange(min=1), required=True, help="Number of frames.")
-@click.option("--seed", type=int, default=0, show_default=True,
+@click.option("--seed", type=SEED, default=0, show_default=True,
               help="Run seed; frame k depends only on (seed, k).")  # fmt: skip
 @workers_option("the cores available")
 @executor_options
-@click.option("--threads", type=click.IntRange(min=1), default=1, show_default=True,
+@click.option("--threads", type=BATCH, default=1, show_default=True,
               help="Ray casting threads per worker (embreex releases the GIL). The output does "
                    "not depend on it.")  # fmt: skip
 @out_dir_option()

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import choice_option
+from dali_cli.commands.common import FRACTION, choice_option, finite_range
 
 
 def _parse_boxes(value: str) -> tuple[str, Path]:
@@ -27,9 +27,11 @@ def _parse_boxes(value: str) -> tuple[str, Path]:
               help="Box table to draw, DIR or NAME=DIR (repeatable; each gets its own colour). "
                    "DATA_DIR's own boxes.parquet is drawn first unless --no-own-boxes.")  # fmt: skip
 @click.option("--no-own-boxes", is_flag=True, help="Do not draw DATA_DIR/boxes.parquet.")
-@click.option("--score-min", type=float, default=None, help="Draw only boxes with score >= this.")
+@click.option(
+    "--score-min", type=FRACTION, default=None, help="Draw only boxes with score >= this."
+)
 @click.option("--side", is_flag=True, help="Add a side view (x-z) under the bird's-eye view.")
-@click.option("--range-m", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--range-m", type=finite_range(min=0, min_open=True), default=None,
               help="Show x, y in [-R, R]. Default: fitted to the points and boxes.")  # fmt: skip
 @choice_option("--colour-by", choices=["z", "intensity"], default="z", help="Point colour.")  # fmt: skip
 @click.option("--annotate", is_flag=True, help="Write each box's score (or label) at its centre.")
@@ -61,7 +63,12 @@ def command(
     except ImportError:
         raise click.ClickException("dali view needs matplotlib: pip install matplotlib") from None
     from dali_cli.reporting.view import BoxSet, render_frame
+    from dali_cli.store.output_paths import check_file_output, is_dali_png
 
+    box_inputs = [_parse_boxes(value)[1] for value in boxes]
+    check_file_output(
+        out, {"data": data_dir, "boxes": box_inputs}, is_dali_png, "a PNG dali view wrote"
+    )
     frames = FrameSet(data_dir)
     frame_id = frame
     if frame not in frames.frame_ids:

@@ -98,4 +98,99 @@ class DetectorConfig:
         if unknown:
             raise ValueError(f"unknown detector config keys: {', '.join(unknown)}")
         converted = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
-        return cls(**converted)
+        for name, value in converted.items():
+            check_field(name, value, cls.__dataclass_fields__[name].default)
+        config = cls(**converted)
+        config.check_geometry()
+        return config
+
+    def check_geometry(self) -> None:
+        """Ranges increasing, the grid and the widths within LIMITS (memory); ValueError."""
+        for name in ("x_range_m", "y_range_m", "z_range_m"):
+            low, high = getattr(self, name)
+            if not low < high:
+                raise ValueError(f"{name}: expected [low, high] with low < high, got {low}, {high}")
+        rows, cols = self.grid_size
+        if rows * cols > MAX_GRID_CELLS:
+            raise ValueError(
+                f"pillar_m {self.pillar_m:g} over x_range_m {list(self.x_range_m)} and y_range_m "
+                f"{list(self.y_range_m)} makes a {rows} x {cols} pillar grid, more than "
+                f"{MAX_GRID_CELLS} cells"
+            )
+        widths = {
+            "pfn_channels": self.pfn_channels,
+            "block_channels": max(self.block_channels),
+            "up_channels": 3 * self.up_channels,
+            "head_channels": self.head_channels,
+        }
+        widest = max(widths, key=widths.get)
+        feature_bytes = rows * cols * widths[widest] * 4
+        if feature_bytes > MAX_FEATURE_BYTES:
+            raise ValueError(
+                f"pillar_m and {widest}: a {rows} x {cols} pillar grid with {widths[widest]} "
+                f"channels needs {feature_bytes / 2**30:.0f} GiB for one feature map, more than "
+                f"{MAX_FEATURE_BYTES / 2**30:.0f} GiB: use a larger pillar_m or narrower layers"
+            )
+
+
+# bounds of every numeric field (inclusive; None: unbounded), checked by from_dict so a
+# hand-edited model.json or --detector-config fails with the field's name, not inside torch
+MAX_CHANNELS = 4096
+MAX_GRID_CELLS = 4096 * 4096
+MAX_FEATURE_BYTES = 16 * 2**30  # one float32 BEV feature map of one frame
+BOUNDS: dict[str, tuple[float | None, float | None]] = {
+    "pillar_m": (1e-3, 100.0),
+    "mount_height_m": (0.0, 100.0),
+    "pfn_channels": (1, MAX_CHANNELS),
+    "block_channels": (1, MAX_CHANNELS),
+    "block_layers": (0, 64),
+    "up_channels": (1, MAX_CHANNELS),
+    "head_channels": (1, MAX_CHANNELS),
+    "min_radius_cells": (0, 1000),
+    "min_gaussian_overlap": (0.0, 1.0),
+    "max_objects": (1, 100_000),
+    "regression_radius_cells": (0, 100),
+    "iou_peak_cells": (0, 100_000),
+    "refine_points": (1, 100_000),
+    "refine_margin_m": (0.0, 100.0),
+    "refine_channels": (1, MAX_CHANNELS),
+    "refine_train_peaks": (0, 100_000),
+    "refine_passes": (0, 100),
+    "refine_alpha": (0.0, 1.0),
+    "top_k": (1, 100_000),
+    "score_threshold": (0.0, 1.0),
+    "nms_iou": (0.0, 1.0),
+    "iou_alpha": (0.0, 1.0),
+    "loss_weights": (0.0, 1e6),
+    "regression_weights": (0.0, 1e6),
+    "refine_weights": (0.0, 1e6),
+    "x_range_m": (-1e4, 1e4),
+    "y_range_m": (-1e4, 1e4),
+    "z_range_m": (-1e4, 1e4),
+}
+
+
+def check_field(name: str, value, default) -> None:
+    """`value` has the kind of `default` (bool, str, int, finite float, a tuple of as many of
+    them) and lies within BOUNDS[name]; ValueError naming the field otherwise."""
+    if isinstance(default, tuple):
+        if not isinstance(value, tuple) or len(value) != len(default):
+            shown = repr(value)[:80]
+            raise ValueError(f"{name}: expected a list of {len(default)} numbers, got {shown}")
+        for item in value:
+            check_field(name, item, default[0])
+        return
+    if isinstance(default, bool) or isinstance(default, str):
+        if type(value) is not type(default):
+            raise ValueError(f"{name}: expected a {type(default).__name__}, got {value!r}")
+        return
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ValueError(f"{name}: expected a number, got {value!r}"[:200])
+    if isinstance(default, int) and not isinstance(value, int):
+        raise ValueError(f"{name}: expected an integer, got {value!r}")
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ValueError(f"{name}: expected a finite number, got {value!r}")
+    low, high = BOUNDS.get(name, (None, None))
+    if (low is not None and value < low) or (high is not None and value > high):
+        shown = f"{value:g}" if isinstance(value, float) or abs(value) < 10**15 else "a huge number"
+        raise ValueError(f"{name}: {shown} is outside [{low:g}, {high:g}]")

@@ -95,15 +95,13 @@ def load_labeled(
             f"{Path(boxes_dir or data_dir) / 'boxes.parquet'}: frame_id '{unknown[0]}' is not in {frames.path}"
         )
     targets = np.isin(table["label"].astype(str), labels)
-    bad = np.flatnonzero(targets & ~plausibility.plausible(table.boxes, profile.max_range_m))
-    if len(bad):
-        row = int(bad[0])
-        raise ArtifactError(
-            f"{Path(boxes_dir or data_dir) / 'boxes.parquet'}: row {row} (frame "
-            f"'{table.frame_id[row]}'): "
-            f"{plausibility.problem(table.boxes[row], profile.max_range_m)} ({len(bad)} such "
-            "rows; are the boxes in metres, in the sensor frame?)"
-        )
+    plausibility.refuse_implausible(
+        table.boxes,
+        targets,
+        str(Path(boxes_dir or data_dir) / "boxes.parquet"),
+        table.frame_id,
+        profile.max_range_m,
+    )
     ignored = ignore_table(table, ignore_labels)
     ignore_rows = ignored.rows_by_frame() if ignored is not None else {}
     table = table.select(targets)

@@ -113,16 +113,17 @@ def ground_boxes_to_sensor(
     return ground_to_sensor(unscale_ground_boxes(boxes, scale), mount_height_m)
 
 
-def load_weights_only(path: Path, what: str):
+def load_weights_only(path: Path, what: str, advice: str = ""):
     """torch.load of a file dali wrote, with the weights_only unpickler (tensors, numbers,
-    strings, lists, dicts: no code can run); ArtifactError naming the file otherwise."""
+    strings, lists, dicts: no code can run); ArtifactError naming the file (and `advice`)
+    otherwise."""
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # UnpicklingError, RuntimeError, IndexError on garbage, ...
         first = str(error).splitlines()[0] if str(error) else type(error).__name__
         raise ArtifactError(
             f"{path}: not {what} (refused to load it: {first}); dali loads only plain weights "
-            "it wrote itself"
+            "it wrote itself" + (f"; {advice}" if advice else "")
         ) from None
 
 

@@ -28,6 +28,7 @@ from dali_cli.detector.model import PillarCenterNet
 from dali_cli.detector.refine import refine_loss
 from dali_cli.detector.targets import build_targets, detection_loss, peak_boxes
 from dali_cli.runtime.machine import runtime_info, training_threads
+from dali_cli.store.artifacts import ArtifactError
 
 REFINE_STREAM = 7_919  # random stream of the refiner's jittered boxes, apart from the samples'
 
@@ -259,14 +260,27 @@ def resume_training(
     if world.is_main and resume_path and resume_path.is_file():
         from dali_cli.detector.infer import load_weights_only
 
-        state = load_weights_only(resume_path, "a dali training state")
+        state = load_weights_only(resume_path, "a dali training state", RESUME_ADVICE)
+        if not isinstance(state, dict) or not RESUME_FIELDS <= set(state):
+            raise ArtifactError(f"{resume_path}: not a dali training state; {RESUME_ADVICE}")
         state = state if state.get("key") == resume_key else None
     state = broadcast_object(state, world)  # the other ranks resume from rank 0's file
     if state is None:
         return 0, 0.0, []
-    net.load_state_dict(state["net"])
-    optimizer.load_state_dict(state["optimizer"])
-    return state["step"], state["elapsed_s"], state["log"]
+    try:
+        net.load_state_dict(state["net"])
+        optimizer.load_state_dict(state["optimizer"])
+        step, elapsed, log = int(state["step"]), float(state["elapsed_s"]), list(state["log"])
+    except (RuntimeError, TypeError, ValueError, KeyError, AttributeError) as error:
+        first = str(error).splitlines()[0] if str(error) else type(error).__name__
+        raise ArtifactError(
+            f"{resume_path}: does not fit this training ({first}); {RESUME_ADVICE}"
+        ) from None
+    return step, elapsed, log
+
+
+RESUME_FIELDS = {"key", "net", "optimizer", "step", "elapsed_s", "log"}
+RESUME_ADVICE = "delete that file's directory (OUT.resume) to train from the start"
 
 
 def step_samples(

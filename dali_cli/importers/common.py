@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.runtime.errors import StageError
+from dali_cli.runtime.limits import check_limit
 from dali_cli.store.frame_ids import name_problem
 
 
@@ -22,6 +23,9 @@ def read_float_records(path: str | Path, fields: int) -> np.ndarray:
     """
     path = Path(path)
     try:
+        if path.is_dir():
+            raise ImportFormatError(f"{path}: a directory, not a point file")
+        check_limit("point_file_bytes", path.stat().st_size, str(path))
         raw = path.read_bytes()
     except FileNotFoundError:
         raise ImportFormatError(f"{path}: point file not found") from None
@@ -36,6 +40,17 @@ def read_float_records(path: str | Path, fields: int) -> np.ndarray:
     points = np.frombuffer(raw, dtype="<f4").reshape(-1, fields).astype(np.float32)
     check_finite_points(points, path)
     return points
+
+
+def check_point_files(paths: list[Path]) -> None:
+    """Every point file within the size limit (a stat each), before the stage hashes or reads
+    them: an oversized file fails at once instead of after hashing gigabytes."""
+    for path in paths:
+        try:
+            size = path.stat().st_size
+        except OSError:
+            continue  # missing files are named where they are read
+        check_limit("point_file_bytes", size, str(path))
 
 
 def check_finite_points(points: np.ndarray, path: str | Path) -> None:

@@ -27,6 +27,7 @@ from dali_cli.importers.common import (
     read_text_lines,
     write_imported,
 )
+from dali_cli.labels import plausibility
 from dali_cli.store.artifacts import BoxTable
 from dali_cli.store.manifest import BuildResult
 
@@ -395,6 +396,8 @@ def load_frame(layout: KittiLayout, frame_id: str, crop_fov: bool = False):
     points = read_velodyne(layout.velodyne_dir / f"{frame_id}.bin")
     label_path = layout.label_dir / f"{frame_id}.txt"
     has_labels = label_path.is_file()
+    if not has_labels and (label_path.exists() or label_path.is_symlink()):
+        raise ImportFormatError(f"{label_path}: not a label file (a directory or a broken link)")
     calib = None
     if has_labels or crop_fov:
         calib_path = layout.calib_dir / f"{frame_id}.txt"
@@ -408,6 +411,8 @@ def load_frame(layout: KittiLayout, frame_id: str, crop_fov: bool = False):
     objects = parse_label_file(label_path)
     boxes, extra = objects_to_lidar_columns(objects, calib)
     counts = count_points_in_boxes(points, boxes) if len(boxes) else np.zeros(0, np.int32)
+    real = objects.type.astype(str) != "DontCare"
+    plausibility.refuse_implausible(boxes, real, str(label_path), [frame_id] * len(boxes))
     table = BoxTable.from_arrays(
         np.full(len(boxes), frame_id, dtype=object),
         boxes,

@@ -61,3 +61,27 @@ def problem(box: np.ndarray, max_range_m: float | None = None) -> str | None:
             f"({RANGE_FACTOR:g} x the sensor's max range)"
         )
     return None
+
+
+def refuse_implausible(
+    boxes: np.ndarray,
+    checked: np.ndarray,
+    where: str,
+    frame_ids,
+    max_range_m: float | None = None,
+) -> None:
+    """The one rule for boxes read from a file (training labels, PPCG input, eval predictions and
+    ground truth, imported labels): any `checked` row `(N,)` bool of `boxes` `(N, 7)` outside
+    these limits is an ArtifactError naming `where` (the file), the row, its frame and the field,
+    exit 1 and nothing written: corrupt values or values not in metres, never a real object."""
+    from dali_cli.store.artifacts import ArtifactError
+
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    bad = np.flatnonzero(np.asarray(checked, bool) & ~plausible(boxes, max_range_m))
+    if len(bad):
+        row = int(bad[0])
+        raise ArtifactError(
+            f"{where}: row {row} (frame '{frame_ids[row]}'): "
+            f"{problem(boxes[row], max_range_m)} ({len(bad)} such rows; are the boxes in "
+            "metres, in the sensor frame?)"
+        )

@@ -88,30 +88,6 @@ def boxes_by_frame(
     return rows, frame_boxes
 
 
-def drop_implausible(
-    table: BoxTable, label: str | None, max_range_m: float, boxes_path: Path
-) -> tuple[BoxTable, int, str | None]:
-    """The rows of `table` to keep: those of the processed `label` (all when None) with positive
-    sizes but outside dali_cli.labels.plausibility's limits are dropped (non-positive sizes stay an
-    error of boxes_by_frame). Returns (kept table, dropped count, a note naming the first)."""
-    boxes = table.boxes
-    selected = np.ones(len(table), bool)
-    if label is not None and len(table):
-        selected = np.asarray(table["label"]).astype(str) == label
-    positive = (boxes[:, 3:6] > 0).all(axis=1)
-    dropped = np.flatnonzero(selected & positive & ~plausibility.plausible(boxes, max_range_m))
-    if not len(dropped):
-        return table, 0, None
-    row = int(dropped[0])
-    note = (
-        f"dropped {len(dropped)} implausible boxes (first: {boxes_path} row {row}, frame "
-        f"'{table.frame_id[row]}': {plausibility.problem(boxes[row], max_range_m)})"
-    )
-    keep = np.ones(len(table), bool)
-    keep[dropped] = False
-    return table.select(keep), len(dropped), note
-
-
 def library_mesh_count(library_dir: Path) -> int:
     """Number of meshes of a library, from its index alone (no mesh is loaded)."""
     import pyarrow.parquet as pq
@@ -270,14 +246,21 @@ def load_bank(library_dir: Path, models: str) -> ModelBank:
 
 
 def read_ppcg_boxes(boxes_dir: Path, label: str | None, max_range_m: float):
-    """The box table to process, implausible boxes of `label` dropped with a warning; returns
-    (table, the note naming the first dropped box or None, the dropped count)."""
+    """The box table to process; a row of `label` (all rows when None) with positive sizes but
+    outside dali_cli.labels.plausibility's limits is an error naming the file, row, frame and
+    field (non-positive sizes stay an error of boxes_by_frame). Returns (table, None, 0): no
+    row is ever dropped silently."""
     table = read_boxes(boxes_dir)
     boxes_path = boxes_dir / "boxes.parquet" if boxes_dir.is_dir() else boxes_dir
-    table, implausible, implausible_note = drop_implausible(table, label, max_range_m, boxes_path)
-    if implausible_note:
-        console.warn(implausible_note)
-    return table, implausible_note, implausible
+    boxes = table.boxes
+    selected = np.ones(len(table), bool)
+    if label is not None and len(table):
+        selected = np.asarray(table["label"]).astype(str) == label
+    positive = (boxes[:, 3:6] > 0).all(axis=1)
+    plausibility.refuse_implausible(
+        boxes, selected & positive, str(boxes_path), table.frame_id, max_range_m
+    )
+    return table, None, 0
 
 
 @dataclasses.dataclass

@@ -102,10 +102,14 @@ def render_frame(
     axes[-1, 0].set_xlabel("x (m)")
     figure.tight_layout()
     from dali_cli.store.atomic_file import write_atomically
+    from dali_cli.store.output_paths import PNG_SOFTWARE
 
     try:
         write_atomically(
-            out_path, lambda temporary: figure.savefig(temporary, dpi=dpi, format="png")
+            out_path,
+            lambda temporary: figure.savefig(
+                temporary, dpi=dpi, format="png", metadata={"Software": PNG_SOFTWARE}
+            ),
         )
     finally:
         plt.close(figure)

@@ -31,6 +31,20 @@ class StageError(Exception):
         return self.message
 
 
+class WriteError(StageError):
+    """Writing an output failed (disk full, permissions, an I/O error): nothing was committed,
+    so the previous output at that path, if any, is intact."""
+
+    def __init__(self, out, error: OSError):
+        reason = error.strerror or str(error) or type(error).__name__
+        where = f" ({error.filename})" if error.filename and str(error.filename) != str(out) else ""
+        super().__init__(
+            f"{out}: writing failed: {reason}{where}; nothing was replaced (the previous output, "
+            "if any, is intact)",
+            path=str(out),
+        )
+
+
 class ParameterError(StageError):
     """A parameter value a stage cannot run with. `fields` are the stage's argument names
     (snake_case, as in its signature); the CLI renders them as its flags."""

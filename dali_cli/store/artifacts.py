@@ -49,9 +49,10 @@ def read_json(path: Path, missing: str, invalid: str):
     if not path.is_file():
         raise ArtifactError(f"{path}: {missing}")
     try:
-        return json.loads(path.read_text())
-    except (UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise ArtifactError(f"{path}: {invalid} ({error})") from None
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as error:  # not UTF-8, not JSON, an integer of 5,000 digits
+        reason = error.strerror if isinstance(error, OSError) else str(error)[:160]
+        raise ArtifactError(f"{path}: {invalid} ({reason})") from None
 
 
 class TableValueError(ArtifactError, ValueError):

@@ -14,14 +14,16 @@ from __future__ import annotations
 import ctypes
 import errno
 import fcntl
+import json
 import os
 import shutil
+import stat
 from collections.abc import Callable
 from pathlib import Path
 
 from dali_cli.runtime import console
 from dali_cli.runtime.errors import StageError
-from dali_cli.store.output_paths import is_dali_artifact
+from dali_cli.store.output_paths import OutputPathError, is_dali_artifact
 
 RENAME_EXCHANGE = 2
 AT_FDCWD = -100
@@ -35,29 +37,50 @@ def after_step(name: str) -> None:
     """Called between the steps of a replacement; crash-injection tests replace it."""
 
 
-def process_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
+# A directory dali creates beside an output (`<out>.tmp-<pid>` while building, `<out>.old-<pid>`
+# while replacing) holds this file, written when dali creates or retires it. Recovery touches
+# only directories holding it, naming that very output and kind: never a directory by its name
+# alone (a user's `out.old-2023` backup is not dali's).
+LEFTOVER_MARKER = ".dali-leftover.json"
+
+
+def mark_leftover(directory: Path, out: Path, kind: str) -> None:
+    """Record in `directory` that dali created it as the `kind` ("tmp" or "old") of `out`."""
+    document = {"dali": "leftover", "kind": kind, "out": out.name, "pid": os.getpid()}
+    (directory / LEFTOVER_MARKER).write_text(json.dumps(document) + "\n")
+
+
+def unmark(directory: Path) -> None:
+    (directory / LEFTOVER_MARKER).unlink(missing_ok=True)
+
+
+def is_leftover(directory: Path, out: Path, kind: str) -> bool:
+    """`directory` is a `kind` leftover dali created for `out` (its marker says so)."""
+    if directory.is_symlink() or not directory.is_dir():
         return False
-    except PermissionError:  # exists, owned by someone else
-        return True
-    return True
+    marker = directory / LEFTOVER_MARKER
+    try:
+        document = json.loads(marker.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return (
+        isinstance(document, dict)
+        and document.get("dali") == "leftover"
+        and document.get("kind") == kind
+        and document.get("out") == out.name
+    )
 
 
-def _pid_of(path: Path, marker: str) -> int | None:
-    """pid in a `<name>.<marker>-<pid>` leftover's name, None if it is not one."""
-    head, _, pid = path.name.rpartition(f".{marker}-")
-    return int(pid) if head and pid.isdigit() else None
-
-
-def leftovers(out: Path, marker: str) -> list[tuple[Path, int]]:
-    """`<out>.<marker>-<pid>` directories of processes that are gone, with their pids."""
+def leftovers(out: Path, kind: str) -> list[Path]:
+    """`<out>.<kind>-<pid>` directories dali created for `out` (marked), other than this
+    process's. Called with the output lock held, so no live dali process is using them: the
+    lock, not the pid (which the system may have given to another process since), proves the
+    writer that left them is gone."""
     found = []
-    for path in out.parent.glob(f"{glob_escape(out.name)}.{marker}-*"):
-        pid = _pid_of(path, marker)
-        if pid is not None and path.is_dir() and pid != os.getpid() and not process_alive(pid):
-            found.append((path, pid))
+    for path in out.parent.glob(f"{glob_escape(out.name)}.{kind}-*"):
+        _, _, pid = path.name.rpartition(f".{kind}-")
+        if pid.isdigit() and int(pid) != os.getpid() and is_leftover(path, out, kind):
+            found.append(path)
     return found
 
 
@@ -68,32 +91,59 @@ def glob_escape(name: str) -> str:
 def recover_interrupted(out: Path, echo: Callable[[str], None] = console.echo) -> list[str]:
     """Restore or clean what an interrupted run on `out` left; returns what was done.
 
-    - `<out>` missing and a complete artifact in `<out>.old-<pid>` of a dead process (a crash
-      between the two renames of a replacement): renamed back to `<out>` (the newest if several).
-    - `<out>.old-<pid>` of dead processes when `<out>` is complete: deleted.
-    - `<out>.tmp-<pid>` of dead processes (killed builds, or the old artifact after an exchange):
-      deleted.
+    Only directories dali marked as its own leftovers of `out` are touched (LEFTOVER_MARKER):
+    - `<out>` missing and a complete artifact in a retired `<out>.old-<pid>` (a crash between
+      the two renames of a replacement): renamed back to `<out>` (the newest if several).
+    - retired `<out>.old-<pid>` when `<out>` is complete: deleted.
+    - `<out>.tmp-<pid>` (killed builds, or the old artifact after an exchange): deleted.
+    - a marker left in `<out>` itself (killed while retiring it): removed.
     Call it with the output lock held.
     """
     done = []
     retired = leftovers(out, "old")
     if not out.exists():
-        complete = [(p, pid) for p, pid in retired if is_dali_artifact(p)]
+        complete = [p for p in retired if is_dali_artifact(p)]
         if complete:
-            newest = max(complete, key=lambda item: item[0].stat().st_mtime_ns)[0]
+            newest = max(complete, key=lambda path: path.stat().st_mtime_ns)
             os.rename(newest, out)
+            unmark(out)
             done.append(f"restored {out} from {newest.name} (a replacement was interrupted)")
-            retired = [item for item in retired if item[0] != newest]
+            retired = [path for path in retired if path != newest]
+    elif out.is_dir() and not out.is_symlink():
+        unmark(out)
     if out.exists():
-        for path, _ in retired:
+        for path in retired:
             shutil.rmtree(path, ignore_errors=True)
             done.append(f"removed {path.name} (left by an interrupted replacement)")
-    for path, _ in leftovers(out, "tmp"):
+    for path in leftovers(out, "tmp"):
         shutil.rmtree(path, ignore_errors=True)
         done.append(f"removed {path.name} (left by a run that was killed)")
     for line in done:
         echo(f"recovery: {line}")
     return done
+
+
+def remove_own(path: Path, out: Path, kind: str) -> None:
+    """Clear `path` (this process's `kind` name beside `out`) for dali to create: removed when
+    it is dali's marked leftover, refused (OutputPathError) when it is anything else."""
+    if not (path.exists() or path.is_symlink()):
+        return
+    if not is_leftover(path, out, kind):
+        raise OutputPathError(
+            f"{path} exists and was not created by dali for {out.name}; move or delete it "
+            "yourself, then rerun"
+        )
+    shutil.rmtree(path)
+
+
+def make_temporary(out: Path) -> Path:
+    """`<out>.tmp-<pid>`, new and marked as dali's; a directory of that name dali did not
+    create is refused, not deleted."""
+    temporary = out.parent / f"{out.name}.tmp-{os.getpid()}"
+    remove_own(temporary, out, "tmp")
+    temporary.mkdir()
+    mark_leftover(temporary, out, "tmp")
+    return temporary
 
 
 def _exchange(a: Path, b: Path) -> bool:
@@ -126,22 +176,34 @@ def replace_directory(new: Path, target: Path, exchange: bool = True) -> None:
     """
     if not target.exists():
         os.rename(new, target)
+        unmark(target)
         after_step("renamed")
         return
-    if exchange and _exchange(new, target):
-        after_step("exchanged")
-        shutil.rmtree(new, ignore_errors=True)  # now the old artifact; a crash leaves a .tmp-*
-        return
+    if exchange:
+        mark_leftover(target, target, "tmp")  # once exchanged, the old artifact is a marked .tmp-*
+        try:
+            exchanged = _exchange(new, target)
+        except BaseException:
+            unmark(target)
+            raise
+        if exchanged:
+            unmark(target)
+            after_step("exchanged")
+            shutil.rmtree(new, ignore_errors=True)
+            return
+        unmark(target)
     retired = target.parent / f"{target.name}.old-{os.getpid()}"
-    if retired.exists():
-        shutil.rmtree(retired)
+    remove_own(retired, target, "old")
+    mark_leftover(target, target, "old")
     os.rename(target, retired)
     after_step("retired")
     try:
         os.rename(new, target)
     except BaseException:
         os.rename(retired, target)
+        unmark(target)
         raise
+    unmark(target)
     after_step("renamed")
     shutil.rmtree(retired, ignore_errors=True)
 
@@ -162,7 +224,24 @@ class OutputLock:
     def __enter__(self) -> OutputLock:
         self.out.parent.mkdir(parents=True, exist_ok=True)
         while True:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:  # never through a symbolic link: it would write our pid into its target
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+            except OSError as error:
+                if error.errno not in (errno.ELOOP, errno.EISDIR, errno.ENXIO):
+                    raise
+                raise OutputPathError(
+                    f"{self.path}: the lock file of {self.out} is not a regular file dali "
+                    "made (a symbolic link, a directory or a device); move or delete it "
+                    "yourself, then rerun"
+                ) from None
+            info = os.fstat(fd)
+            held = os.pread(fd, 64, 0) if stat.S_ISREG(info.st_mode) else b""
+            if not stat.S_ISREG(info.st_mode) or not (held == b"" or held.strip().isdigit()):
+                os.close(fd)  # a user's file of that name: dali writes only its own pid files
+                raise OutputPathError(
+                    f"{self.path}: the lock file of {self.out} is not a lock dali made (a "
+                    "regular file holding a pid); move or delete it yourself, then rerun"
+                )
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:

@@ -7,6 +7,8 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
+from dali_cli.runtime.errors import WriteError
+
 
 def write_atomically(path: str | Path, write: Callable[[Path], None]) -> Path:
     """`write(temporary)`, then rename the temporary onto `path` (parents created). The
@@ -18,6 +20,8 @@ def write_atomically(path: str | Path, write: Callable[[Path], None]) -> Path:
     try:
         write(temporary)
         os.replace(temporary, path)
+    except OSError as error:
+        raise WriteError(path, error) from None
     finally:
         temporary.unlink(missing_ok=True)
     return path

@@ -12,7 +12,6 @@ is skipped. docs/data-safety.md says what this guarantees.
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import time
 from collections.abc import Callable, Mapping
@@ -22,8 +21,14 @@ from pathlib import Path
 
 from dali_cli import __version__
 from dali_cli.runtime import console
-from dali_cli.runtime.errors import StageError
-from dali_cli.store.atomic_dir import OutputLock, recover_interrupted, replace_directory
+from dali_cli.runtime.errors import StageError, WriteError
+from dali_cli.store.atomic_dir import (
+    LEFTOVER_MARKER,
+    OutputLock,
+    make_temporary,
+    recover_interrupted,
+    replace_directory,
+)
 from dali_cli.store.atomic_file import write_text_atomically
 from dali_cli.store.file_hashes import hash_tree as _hash_files
 from dali_cli.store.output_paths import check_output_path
@@ -34,8 +39,9 @@ HASH_METHOD = "blake2b-128 of names and per-file blake2b-128 digests"
 
 
 def hash_tree(path: str | Path, exclude: tuple[str, ...] = (MANIFEST_NAME,)) -> str:
-    """Content hash of an artifact directory (every file but its manifest) or of one file."""
-    return _hash_files(path, exclude)
+    """Content hash of an artifact directory (every file but its manifest and a leftover marker
+    a crash may have left in it) or of one file."""
+    return _hash_files(path, (*exclude, LEFTOVER_MARKER))
 
 
 def content_hash(path: str | Path) -> str:
@@ -54,10 +60,16 @@ def check_made_from(artifact: str | Path, role: str, expected_input: str | Path)
     share frame ids. Artifacts without a manifest (imported or hand-made tables) pass unchecked.
     """
     artifact = Path(artifact)
-    manifest = read_manifest(artifact) if artifact.is_dir() else None
-    records = (manifest or {}).get("inputs", {}).get(role)
+    manifest = read_input_manifest(artifact) if artifact.is_dir() else None
+    inputs = (manifest or {}).get("inputs", {})
+    records = inputs.get(role) if isinstance(inputs, dict) else None
     if not records:
         return
+    if not isinstance(records, list) or not all(isinstance(r, dict) for r in records):
+        raise StageError(
+            f"{artifact / MANIFEST_NAME}: inputs.{role} is not a list of input records; "
+            "the manifest is damaged (rebuild the artifact)"
+        )
     expected = content_hash(expected_input)
     if expected not in {record.get("hash") for record in records}:
         made_from = ", ".join(str(record.get("path")) for record in records)
@@ -68,12 +80,30 @@ def check_made_from(artifact: str | Path, role: str, expected_input: str | Path)
 
 
 def read_manifest(directory: str | Path) -> dict | None:
-    """The manifest of an artifact directory, or None when absent or unreadable."""
+    """The manifest of an artifact directory, or None when absent or unreadable (not a file,
+    not UTF-8, not JSON, not a JSON object): an output with such a manifest is rebuilt."""
     path = Path(directory) / MANIFEST_NAME
     try:
-        return json.loads(path.read_text())
-    except (FileNotFoundError, NotADirectoryError, json.JSONDecodeError):
+        document = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
         return None
+    return document if isinstance(document, dict) else None
+
+
+def read_input_manifest(directory: str | Path) -> dict | None:
+    """The manifest of an input artifact: None when it has none; a StageError naming the file
+    when it is there but unreadable (not a file, not UTF-8, not JSON, not a JSON object)."""
+    path = Path(directory) / MANIFEST_NAME
+    if not path.exists() and not path.is_symlink():
+        return None
+    try:
+        document = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as error:
+        reason = error.strerror if isinstance(error, OSError) else str(error)[:120]
+        raise StageError(f"{path}: not a dali manifest ({reason})", path=path) from None
+    if not isinstance(document, dict):
+        raise StageError(f"{path}: not a dali manifest (not a JSON object)", path=path)
+    return document
 
 
 def _normalized(value):
@@ -165,7 +195,7 @@ def run_stage(
     metrics_kitti.json): not part of its content hash, gone when the stage rebuilds it.
     """
     given = Path(out)
-    out = check_output_path(given, inputs)
+    out = check_output_path(given, inputs, stage=stage)
     params = _normalized(params)
     if dry_run:
         reason = why_stale(out, stage, _input_records(inputs), params, derived)
@@ -198,10 +228,7 @@ def _build_and_commit(
 ) -> tuple[dict, float]:
     """Build into `<out>.tmp-<pid>`, write the manifest last, commit atomically; on any error
     (or Ctrl-C) remove the temporary directory and leave `out` as it was."""
-    temporary = out.parent / f"{out.name}.tmp-{os.getpid()}"
-    if temporary.exists():
-        shutil.rmtree(temporary)
-    temporary.mkdir()
+    temporary = make_temporary(out)
     started = time.perf_counter()
     try:
         result = build(temporary)
@@ -210,7 +237,7 @@ def _build_and_commit(
         elif isinstance(result, dict):
             result = BuildResult(counts=result)
         wall = time.perf_counter() - started
-        files = sorted(p for p in temporary.rglob("*") if p.is_file())
+        files = sorted(p for p in temporary.rglob("*") if p.is_file() and p.name != LEFTOVER_MARKER)
         manifest = {
             "stage": stage,
             "dali_version": __version__,
@@ -231,6 +258,9 @@ def _build_and_commit(
         }
         _write_json_atomic(temporary / MANIFEST_NAME, manifest)
         replace_directory(temporary, out)
+    except OSError as error:
+        shutil.rmtree(temporary, ignore_errors=True)
+        raise WriteError(out, error) from None
     except BaseException:
         shutil.rmtree(temporary, ignore_errors=True)
         raise

@@ -12,31 +12,26 @@ checkpoint's ROS range and source mean).
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
 from dali_cli.store.artifacts import ArtifactError, read_json
+from dali_cli.store.json_numbers import finite_number, finite_numbers
 
 META_NAME = "model.json"
 SIZE_NORMS = ("none", "sn", "ros")
 
 
 def _size(value) -> tuple[float, float, float] | None:
-    """(l, w, h) in metres from a JSON list of three positive numbers, else None."""
-    if isinstance(value, list | tuple) and len(value) == 3:
-        if all(isinstance(v, int | float) and not isinstance(v, bool) for v in value):
-            values = tuple(float(v) for v in value)
-            if all(math.isfinite(v) for v in values):
-                return values
-    return None
+    """(l, w, h) in metres from a JSON list of three finite numbers (an SN delta may be
+    negative), else None."""
+    return finite_numbers(value, 3)
 
 
 def _pair(value) -> tuple[float, float] | None:
-    if isinstance(value, list | tuple) and len(value) == 2:
-        if all(isinstance(v, int | float) and not isinstance(v, bool) for v in value):
-            return (float(value[0]), float(value[1]))
-    return None
+    """(lo, hi) from a JSON list of two finite numbers 0 < lo <= hi, else None."""
+    pair = finite_numbers(value, 2, positive=True)
+    return pair if pair is not None and pair[0] <= pair[1] else None
 
 
 def _text(value) -> str | None:
@@ -113,8 +108,8 @@ class ModelCard:
             detector=_text(card.get("detector")),
             stage=_text(card.get("stage")),
             source_sensor=_text(card.get("source_sensor")),
-            mount_height_m=float(mount)
-            if isinstance(mount, int | float) and not isinstance(mount, bool)
+            mount_height_m=mount
+            if (mount := finite_number(mount)) is not None and mount >= 0
             else None,
             source_mean_lwh_m=_size(card.get("source_mean_lwh_m")),
             size_norm=size_norm if size_norm in SIZE_NORMS else "none",

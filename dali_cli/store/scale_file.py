@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from dali_cli.store.artifacts import ArtifactError, read_json
+from dali_cli.store.json_numbers import finite_number, finite_numbers
 
 SCALE_NAME = "scale.json"
 
@@ -39,7 +40,15 @@ class ScaleResult:
 
 
 def _triple(value) -> tuple | None:
-    return tuple(value) if isinstance(value, list) and len(value) == 3 else None
+    """(l, w, h) from a JSON list of three positive finite numbers, else None (not recorded)."""
+    return finite_numbers(value, 3, positive=True)
+
+
+def _measured(value) -> tuple | None:
+    """(l, w, h) a sweep measured, an element None where it had no box to measure."""
+    if not isinstance(value, list) or len(value) != 3:
+        return None
+    return tuple(finite_number(v) for v in value)
 
 
 def read_scale(scale_from: str | Path) -> ScaleResult:
@@ -49,19 +58,17 @@ def read_scale(scale_from: str | Path) -> ScaleResult:
     document = read_json(
         path, f"scale file not found (is {scale_from} a ptsn-sweep output?)", "invalid JSON"
     )
-    scale = document.get("scale") if isinstance(document, dict) else None
-    if (
-        isinstance(scale, bool)
-        or not isinstance(scale, int | float)
-        or not (math.isfinite(scale) and scale > 0)
-    ):
-        raise ArtifactError(f"{path}: field 'scale' must be a positive number, got {scale!r}")
-    pivot = document.get("mount_height_m")
+    given = document.get("scale") if isinstance(document, dict) else None
+    scale = finite_number(given)
+    if scale is None or scale <= 0:
+        shown = repr(given) if len(repr(given)) < 40 else repr(given)[:40] + "..."
+        raise ArtifactError(f"{path}: field 'scale' must be a positive number, got {shown}")
+    pivot = finite_number(document.get("mount_height_m"))
     return ScaleResult(
         scale=float(scale),
         e_est=_triple(document.get("E_est")),
-        e_pred=_triple(document.get("E_pred_at_scale")),
-        pivot_m=float(pivot) if isinstance(pivot, int | float) and math.isfinite(pivot) else None,
+        e_pred=_measured(document.get("E_pred_at_scale")),
+        pivot_m=pivot if pivot is not None and pivot >= 0 else None,
         record=document,
     )
 
