@@ -20,6 +20,7 @@ from dali_cli.runtime import console
 from dali_cli.runtime.device import InferenceOptions, inference_runtime, inference_setup, place
 from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.sensors import get_profile
+from dali_cli.store import SCORE_MIN
 from dali_cli.store.artifacts import FrameSet
 from dali_cli.store.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.store.model_card import ModelCard, read_card
@@ -131,7 +132,7 @@ def ptsn_sweep(
     search: str = "bracket",
     frames: int | None = None,
     frame_fraction: float | None = None,
-    score_min: float = 0.3,
+    score_min: float = SCORE_MIN,
     mean: str = "per-frame",
     match: str = "volume",
     seed: int = 0,
