@@ -73,8 +73,9 @@ def resolve_e_est(
         profile = source_profile or card.source_sensor
         if not profile:
             raise ParameterError(
-                ("expected_size", "source_profile"),
-                "E_est ros needs the source's sensor profile (model.json names none)",
+                "expected_size",
+                "E_est ros needs the source's sensor profile (model.json names none): give E_est "
+                "as L,W,H",
             )
         source_lwh = get_profile(profile, sensors_path).car_mean_lwh_m
         lwh = ptsn.ros_expected_size(source_lwh, factor)
@@ -268,8 +269,7 @@ def profile_mount_height(target_profile: str | None, target_dir: Path, sensors_p
     """The target profile's mount height (m): the pivot the frames are scaled about."""
     if not target_profile:
         raise ParameterError(
-            ("target_profile", "mount_height_m"),
-            f"{target_dir}: the frame set names no sensor; name its profile or mount height",
+            "target_profile", f"{target_dir}: the frame set names no sensor; name its profile"
         )
     return get_profile(target_profile, sensors_path).mount_height_m
 
