@@ -1,4 +1,4 @@
-"""The per-frame stages on the executors (issue 19.3): a local Ray instance (started once for this
+"""The per-frame stages on the executors: a local Ray instance (started once for this
 module) and the local process pool give the serial run's artifact byte for byte; workers load
 their models once; shards are written by the workers into the artifact's temporary directory and
 merged one by one; a failing frame leaves no artifact and the error names it."""
@@ -154,7 +154,7 @@ def test_pseudo_label_on_ray_equals_serial_at_the_same_torch_threads(data, ray_s
 
 
 def test_eval_on_ray_equals_serial(data, ray_session, tmp_path, monkeypatch):
-    import dali_cli.detector.runtime as runtime
+    import dali_cli.runtime.machine as runtime
 
     monkeypatch.setattr(runtime, "available_cores", lambda: 1)  # the workers' one torch thread
     args = ["eval", "--model", data / "model", "--data", data / "target", "--scale", "1.0"]

@@ -1,4 +1,4 @@
-"""Training threads and the machine record of training manifests (issue 18, item 6): a stage that
+"""Training threads and the machine record of training manifests: a stage that
 runs alone uses every available core whatever the load average says; `--threads` overrides; the
 manifest and model.json record threads, device, CPU model and torch version."""
 
@@ -13,8 +13,8 @@ from test_retrain import SMALL  # the tiny detector config of the training tests
 from toy_scenes import write_toy_dataset
 
 from dali_cli.cli import main
-from dali_cli.detector import runtime
 from dali_cli.runtime import cores
+from dali_cli.runtime import machine as runtime
 from dali_cli.sensors import get_profile
 from dali_cli.store.manifest import read_manifest
 

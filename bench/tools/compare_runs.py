@@ -17,8 +17,7 @@ a field records time, the machine or the run's own path rather than the result:
 
 Other files must be byte-identical; where a JSON file is not, the line says which fields
 differ. Prints one line per difference (and per file only one side has) and a summary; exits 1 when
-anything differs, so it is usable as a check: the refactor of issue 23 was verified with it
-(docs/INTERFACES.md, "Behaviour unchanged").
+anything differs, so it is usable as a check that a refactor leaves a run's artifacts unchanged.
 """
 
 from __future__ import annotations

@@ -25,8 +25,8 @@ from dali_cli.detector.distributed import (
 )
 from dali_cli.detector.model import PillarCenterNet
 from dali_cli.detector.refine import refine_loss
-from dali_cli.detector.runtime import runtime_info, training_threads
 from dali_cli.detector.targets import build_targets, detection_loss, peak_boxes
+from dali_cli.runtime.machine import runtime_info, training_threads
 
 REFINE_STREAM = 7_919  # random stream of the refiner's jittered boxes, apart from the samples'
 
