@@ -119,19 +119,17 @@ EXEC_FLAGS      = --executor $(EXECUTOR)$(if $(WORKERS), --workers $(WORKERS))$(
 SYNTH_FLAGS     = --executor $(EXECUTOR) --workers $(or $(WORKERS),$(SYNTH_WORKERS))$(if $(RAY_ADDRESS), --ray-address $(RAY_ADDRESS))
 VAL_FRAMES     ?= $(FRAMES)
 SCORE_MIN      ?= 0.3
-# pseudo-label options, e.g. PSEUDO_FLAGS=--tta (labels fused from ten views instead of one
-# detector pass at ŝ: the session-12 ablation in docs/RESULTS.md) or --no-fit-points (the
-# paper's boxes, not moved onto their points)
+# pseudo-label options, e.g. PSEUDO_FLAGS=--no-fit-points (the paper's boxes, not moved onto
+# their points)
 PSEUDO_FLAGS   ?=
 # options of both ppcg-rc and ppcg-cf, e.g. PPCG_FLAGS="--no-orient-models --point-margin-m 0"
 # (the paper's PPCG: car models as the detector's heading has them, the points in the box only)
 PPCG_FLAGS     ?=
-# retrain options (iterations and x1 long), e.g. RETRAIN_FLAGS="--ignore-label DontCare" with
-# PSEUDO_FLAGS="--score-min 0.6 --ignore-min 0.3": the boxes scored 0.3-0.6 as ignore regions
+# retrain options (iterations and x1 long), e.g. RETRAIN_FLAGS="--mix 1:7"
 RETRAIN_FLAGS  ?=
 # evaluation: all boxes and range bands of the front region (90 deg FOV, detection range, as ST3D
 # evaluates KITTI), AP at IoU 0.7 and 0.5
-EVAL_FLAGS     ?= --protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
+EVAL_FLAGS     ?= --protocol range --front-only --iou 0.7 --iou 0.5 --score-min $(SCORE_MIN)
 
 $(RUN)/data/source/manifest.json: | install
 	$(DALI) synth --sensor $(SOURCE_SENSOR) --cars $(SOURCE_SENSOR) --frames $(FRAMES) --seed $(SEED) $(SYNTH_FLAGS) --out $(@D)
@@ -170,9 +168,9 @@ define ITER
 $(RUN)/iter$(1)/pseudo/manifest.json: $(RUN)/iter$(1)/ptsn/manifest.json
 	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(RUN)/iter$(2)/model --target $(TARGET) --scale-from $(RUN)/iter$(1)/ptsn --score-min $(SCORE_MIN) $(PSEUDO_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/rc/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
-	$(DALI) ppcg-rc --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) $(PPCG_FLAGS) $(EXEC_FLAGS) --out $$(@D)
+	$(DALI) ppcg-rc --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --target-profile $(SENSOR) --seed $(SEED) $(PPCG_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/cf/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
-	$(DALI) ppcg-cf --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --sensor $(SENSOR) --seed $(SEED) $(PPCG_FLAGS) $(EXEC_FLAGS) --out $$(@D)
+	$(DALI) ppcg-cf --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --target-profile $(SENSOR) --seed $(SEED) $(PPCG_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/model/manifest.json: $(RUN)/iter$(1)/rc/manifest.json $(RUN)/iter$(1)/cf/manifest.json $(SOURCE)/manifest.json
 	$(TRAIN_DALI) retrain --init $(RUN)/iter$(2)/model --source $(SOURCE) --ppcg $(RUN)/iter$(1)/rc $(RUN)/iter$(1)/cf $(call SOURCE_SIZE_FLAGS,$(1)) --seed $(SEED) $(call RETRAIN_BUDGET,$(1)) $(RETRAIN_FLAGS) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $$(@D)
 $(RUN)/iter$(1)/eval/manifest.json: $(RUN)/iter$(3)/ptsn/manifest.json $(TARGET_VAL)/manifest.json
@@ -240,7 +238,7 @@ $(RUN)/iter2_st/model/manifest.json: $(RUN)/iter3/pseudo/manifest.json $(TARGET)
 $(RUN)/iter2_st/eval/manifest.json: $(RUN)/iter2_st/model/manifest.json $(TARGET_VAL)/manifest.json
 	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter2_st/model --data $(TARGET_VAL) --scale-from $(RUN)/iter3/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 # KITTI easy / moderate / hard of the same predictions (synthetic labels carry KITTI's columns)
-KITTI_EVAL_FLAGS ?= --protocol kitti --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
+KITTI_EVAL_FLAGS ?= --protocol kitti --iou 0.7 --iou 0.5 --score-min $(SCORE_MIN)
 $(RUN)/%/metrics_kitti.json: $(RUN)/%/manifest.json
 	$(DALI) eval --pred $(RUN)/$*/predictions.parquet --gt $(TARGET_VAL) $(KITTI_EVAL_FLAGS) --out $@
 # cross-domain check: every model on the source validation set at s = 1

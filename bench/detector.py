@@ -198,7 +198,7 @@ def unlabeled_detections(pred: BoxTable, gt: BoxTable) -> int:
 
 
 def bench_decode(args) -> dict:
-    """One checkpoint scored with several decoding settings (e.g. iou_alpha, flip_test)."""
+    """One checkpoint scored with several decoding settings (e.g. iou_alpha)."""
     import dataclasses
 
     torch.set_num_threads(args.threads)
@@ -446,7 +446,7 @@ def main() -> None:
     decode.add_argument("--val", required=True, help="labeled KITTI-like FrameSet")
     decode.add_argument(
         "--variants",
-        default='[{}, {"iou_alpha": 0.8}, {"flip_test": true}]',
+        default='[{}, {"iou_alpha": 0.8}]',
         help="JSON list of DetectorConfig overrides, one evaluation each",
     )
     decode.add_argument("--threads", type=int, default=2)

@@ -7,7 +7,7 @@ says how each is measured):
     ppcg      mesh detail, library size -> surface / box-fit / size-fit error vs ms/frame;
               CF angular window on/off (identical points, rays saved); skips
     ptsn      grid step, bracket vs grid, frame subsample -> |ŝ - ŝ_ref| vs passes and seconds
-    detector  second stage, test-time flip, bf16, threads -> AP_3D@0.7 vs inference s/frame
+    detector  second stage, bf16, threads -> AP_3D@0.7 vs inference s/frame
     pillar    pillar size (a model trained per value, equal frames and equal time) -> AP_3D@0.7
               vs training seconds (training frames/s and inference s/frame in the table)
 
@@ -69,7 +69,7 @@ def ensure_model(args) -> tuple[Path, Path, Path, list[str]]:
     model = run / "model"
     epochs = 2 if args.quick else 6
     command = ["pretrain", "--source", run / "source", "--seed", 0, "--epochs", epochs]
-    command += ["--threads", 1, "--quiet", "--out", model]
+    command += ["--threads", 1, "--no-progress", "--out", model]
     commands.append("dali " + " ".join(map(str, command)))
     if not (model / "manifest.json").is_file():
         dali(*command)
@@ -180,10 +180,7 @@ def plot(results: dict) -> None:
             points,
             "seconds_per_frame",
             "ap_loss",
-            lambda p: (
-                f"{'ref' if p['refine'] else 'no-ref'} {'flip' if p['flip_test'] else 'noflip'} "
-                f"{p['precision']} {p['threads']}t"
-            ),
+            lambda p: f"{'ref' if p['refine'] else 'no-ref'} {p['precision']} {p['threads']}t",
             "inference seconds per frame",
             "100 - AP_3D@0.7 (all boxes)",
             note,

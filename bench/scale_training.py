@@ -48,7 +48,7 @@ def run(command: list[str], env: dict) -> float:
 def pretrain_args(data: Path, out: Path, epochs: float, batch: int, extra: list[str]) -> list[str]:
     return [
         "pretrain", "--source", str(data), "--out", str(out), "--epochs", str(epochs),
-        "--batch-size", str(batch), "--device", "cpu", "--quiet", "--force", *extra,
+        "--batch-size", str(batch), "--device", "cpu", "--no-progress", "--force", *extra,
     ]  # fmt: skip
 
 

@@ -11,8 +11,7 @@ loop (`dali_cli.detector.predict_frameset`). Output, either:
 With `size_correction="per-dim"` the Car predictions are resized per dimension before they are
 evaluated (and saved) by the factors E_est / E_pred(ŝ) of the `scale_from` sweep
 (`dali_cli.labels.size_correction.factors_from_sweep`: label-free, from the unlabeled target training
-frames; with `size_factor_score_min`, E_pred over the sweep's boxes with at least that score,
-from its detections.parquet), bottom face kept; metrics.json records them under
+frames), bottom face kept; metrics.json records them under
 "size_correction". It works on both routes: a model run at ŝ, or a prediction table (then
 `scale_from` gives only the factors).
 Returns the metrics for the command to print."""
@@ -30,6 +29,7 @@ from dali_cli.evaluation.kitti_label import read_box_source
 from dali_cli.labels import plausibility
 from dali_cli.runtime import console
 from dali_cli.runtime.errors import ParameterError, StageError
+from dali_cli.store import SCORE_MIN
 from dali_cli.store.artifacts import BOX_FIELDS, BoxTable, FrameSet
 from dali_cli.store.atomic_file import write_atomically, write_text_atomically
 from dali_cli.store.output_paths import DERIVED_FILES
@@ -111,21 +111,13 @@ def mean_box_size(table: BoxTable, class_name: str, score_min: float | None = No
     return [round(float(v), 4) for v in lwh.mean(axis=0)]
 
 
-def check_size_correction(
-    method: str, scale: float | None, scale_from, factor_score_min: float | None = None
-) -> None:
-    """ParameterError for an unknown method, a correction without a sweep to read it from, or a
-    factor score cut without a correction."""
+def check_size_correction(method: str, scale: float | None, scale_from) -> None:
+    """ParameterError for an unknown method or a correction without a sweep to read it from."""
     from dali_cli.labels.size_correction import METHODS
 
     if method not in METHODS:
         raise ParameterError(
             "size_correction", f"must be one of {', '.join(METHODS)}, got '{method}'"
-        )
-    if factor_score_min is not None and method == "none":
-        raise ParameterError(
-            ("size_factor_score_min", "size_correction"),
-            "a score cut for the size factors needs --size-correction per-dim",
         )
     if method != "none" and scale_from is None:
         given = "--scale gives no sizes; " if scale is not None else ""
@@ -136,14 +128,11 @@ def check_size_correction(
         )
 
 
-def sweep_size_correction(
-    method: str, scale_from, factor_score_min: float | None = None
-) -> tuple[np.ndarray, dict, float] | None:
+def sweep_size_correction(method: str, scale_from) -> tuple[np.ndarray, dict, float] | None:
     """None for method "none"; else the per-dimension factors (3,) of the sweep `scale_from`,
     the record written to metrics.json and the sweep's ŝ, read once, before any prediction is
-    made. E_pred is the sweep's E_pred_at_scale, or with `factor_score_min` the mean of its
-    boxes with at least that score (`confident_e_pred`). ArtifactError naming scale.json when it
-    lacks E_est or E_pred_at_scale."""
+    made. E_pred is the sweep's E_pred_at_scale. ArtifactError naming scale.json when it lacks
+    E_est or E_pred_at_scale."""
     if method == "none":
         return None
     from dali_cli.labels.size_correction import factors_from_sweep
@@ -151,10 +140,7 @@ def sweep_size_correction(
     from dali_cli.store.scale_file import read_scale, scale_path
 
     sweep = read_scale(scale_from)
-    e_pred, cut = sweep.e_pred, {}
-    if factor_score_min is not None:
-        e_pred, boxes = confident_e_pred(sweep, scale_from, factor_score_min)
-        cut = {"factor_score_min": factor_score_min, "factor_boxes": boxes}
+    e_pred = sweep.e_pred
     try:
         factors = factors_from_sweep(sweep.e_est, e_pred, str(scale_path(scale_from)))
     except ValueError as error:
@@ -164,51 +150,10 @@ def sweep_size_correction(
         "factors_lwh": [round(float(f), 6) for f in factors],
         "E_est": list(sweep.e_est),
         "E_pred_at_scale": list(e_pred),
-        **cut,
         "from": str(scale_path(scale_from)),
         "anchor": "bottom face (z moves by half the change of h)",
     }
     return factors, record, sweep.scale
-
-
-def confident_e_pred(sweep, scale_from, score_min: float) -> tuple[tuple[float, ...], int]:
-    """E_pred (l, w, h) at the sweep's ŝ over its boxes with score >= `score_min`, from its
-    detections.parquet (`dali_cli.ptsn.detections.e_pred_at`, the sweep's own mean), and the
-    number of boxes behind it. ArtifactError naming the file when the sweep has none (written
-    since session 20) or no box reaches the cut; ParameterError for a cut below the sweep's own
-    (boxes under it were not kept)."""
-    import pyarrow.parquet as pq
-
-    from dali_cli.ptsn.detections import COLUMNS, DETECTIONS_NAME, e_pred_at
-    from dali_cli.store.artifacts import ArtifactError
-    from dali_cli.store.scale_file import scale_path
-
-    sweep_cut = sweep.record.get("score_min")
-    if isinstance(sweep_cut, int | float) and score_min < sweep_cut:
-        raise ParameterError(
-            "size_factor_score_min",
-            f"{score_min:g} is below the score cut {sweep_cut:g} of {scale_path(scale_from)}: "
-            "the sweep kept no box under it",
-        )
-    path = scale_path(scale_from).parent / DETECTIONS_NAME
-    if not path.is_file():
-        raise ArtifactError(
-            f"{path}: not found; the sweep predates it (re-run `dali ptsn-sweep` with --force to "
-            "keep its boxes) or drop --size-factor-score-min"
-        )
-    try:
-        table = pq.read_table(path, columns=list(COLUMNS))
-    except (OSError, ValueError, KeyError) as error:
-        raise ArtifactError(f"{path}: unreadable detections table ({error})") from None
-    columns = {name: table[name].to_numpy() for name in COLUMNS}
-    e_pred, boxes = e_pred_at(
-        columns, sweep.scale, score_min, sweep.record.get("mean", "per-frame")
-    )
-    if not np.isfinite(e_pred).all():
-        raise ArtifactError(
-            f"{path}: no box with score >= {score_min:g}; lower --size-factor-score-min"
-        )
-    return tuple(float(v) for v in e_pred), boxes
 
 
 def resized(pred: BoxTable, factors: np.ndarray, class_name: str) -> BoxTable:
@@ -253,14 +198,13 @@ def warn_if_made_at_another_scale(
 def predictions_and_truth(
     pred_path, gt_path, model, data, scale, scale_from, device="auto", precision="fp32",
     engine=None, near=None, progress=True, size_correction="none", class_name="Car",
-    size_factor_score_min=None,
 ):  # fmt: skip
     """(pred, gt, frame ids evaluated or None, source record, gt path, runtime or None) from
     either the model route (`model` on `data`) or the table route (`pred_path` vs `gt_path`),
     the predictions size-corrected when `size_correction` says so (record: source's
     "size_correction"; `run_eval` has checked the method)."""
     # before the detector runs
-    correction = sweep_size_correction(size_correction, scale_from, size_factor_score_min)
+    correction = sweep_size_correction(size_correction, scale_from)
     frame_ids = runtime = None
     made_at = None  # the table route's scale, from the saving eval's metrics.json
     if model is not None or data is not None:
@@ -311,7 +255,7 @@ def run_eval(
     scale: float | None = None,
     scale_from: str | Path | None = None,
     ious: tuple[float, ...] = (0.7,),
-    size_score_min: float = 0.3,
+    size_score_min: float = SCORE_MIN,
     recall_positions: int = 40,
     protocol: str = "auto",
     front_only: bool = False,
@@ -328,7 +272,6 @@ def run_eval(
     dry_run: bool = False,
     progress: bool = True,
     size_correction: str = "none",
-    size_factor_score_min: float | None = None,
 ) -> EvalResult:
     """Evaluate (see the module docstring). `out`: None (print only), a metrics file (.json) or
     an artifact directory; `force` applies to the directory, `dry_run` to both (a metrics file
@@ -336,7 +279,7 @@ def run_eval(
     detector's progress bar (with --model)."""
     check_ious(tuple(ious))
     # before any work or output
-    check_size_correction(size_correction, scale, scale_from, size_factor_score_min)
+    check_size_correction(size_correction, scale, scale_from)
     options = dict(
         ious=tuple(ious), size_score_min=size_score_min, recall_positions=int(recall_positions),
         protocol=protocol, front_only=front_only, class_name=class_name,
@@ -350,7 +293,6 @@ def run_eval(
         engine=make_executor(executor, workers, ray_address),
         near=Path(out).parent if out is not None else None, progress=progress,
         size_correction=size_correction, class_name=class_name,
-        size_factor_score_min=size_factor_score_min,
     )  # fmt: skip
     inputs = {"model": model, "data": data, "pred": pred_path, "gt": gt_path, "scale": scale_from}
     if out is not None and Path(out).suffix != ".json":
@@ -455,8 +397,6 @@ def eval_artifact(out, inputs, routes, options, save_predictions, force, dry_run
     }
     if routes["size_correction"] != "none":  # absent when off: older artifacts stay up to date
         params["size_correction"] = routes["size_correction"]
-    if routes["size_factor_score_min"] is not None:  # likewise
-        params["size_factor_score_min"] = routes["size_factor_score_min"]
     outcome = run_stage(
         "eval", out, inputs, params, build, force=force, dry_run=dry_run,
         derived=(KITTI_METRICS_NAME,),

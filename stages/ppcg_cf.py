@@ -28,11 +28,10 @@ def ppcg_cf(
     ground_margin_m: float = 0.1,
     orient_models: bool | None = None,
     point_margin_m: float = DEFAULT_POINT_MARGIN_M,
-    occlusion: bool = False,
     **options: Unpack[PpcgOptions],
 ) -> StageOutcome:
     """CF pseudo point clouds (see dali_cli.ppcg.cf); `orient_models`, `point_margin_m` and
-    `options` as ppcg_rc's; `occlusion`: drop the other points a model hides."""
+    `options` as ppcg_rc's."""
     low, high = (float(v) for v in range_m)
     if not 0 < low <= high:
         raise ParameterError("range_m", f"need 0 < LOW <= HIGH, got {low}:{high}")
@@ -48,7 +47,6 @@ def ppcg_cf(
         range_m=(low, high),
         orient=orient_models,
         point_margin_m=float(point_margin_m),
-        occlusion=bool(occlusion),
         **shared,
     )
     stage_params = {"range_m": [low, high], **shared}

@@ -29,13 +29,11 @@ def ppcg_rc(
     ground_margin_m: float = 0.1,
     orient_models: bool | None = None,
     point_margin_m: float = DEFAULT_POINT_MARGIN_M,
-    occlusion: bool = False,
     **options: Unpack[PpcgOptions],
 ) -> StageOutcome:
     """RC pseudo point clouds (see dali_cli.ppcg.rc); `orient_models`: turn a box round when its
     model fits its points better that way (dali_cli.ppcg.orient; None, the default: with mesh
     models only); `point_margin_m`: a box's points are those in the box grown by this (m);
-    `occlusion`: re-cast the other points a model hides onto it (dali_cli.ppcg.occlusion);
     `options`: sensor, models, label, engine
     and stage switches (dali_cli.ppcg.run.PpcgOptions; `bank` replaces the library in tests)."""
     if min_points < 1 or max_points <= min_points:
@@ -56,7 +54,6 @@ def ppcg_rc(
         min_points=min_points,
         orient=orient_models,
         point_margin_m=float(point_margin_m),
-        occlusion=bool(occlusion),
         **shared,
     )
     stage_params = {"max_points": max_points, "min_points": min_points, **shared}

@@ -4,7 +4,6 @@ The training body it shares with retrain and self-train is dali_cli.runtime.trai
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -37,18 +36,14 @@ def run_pretrain(
     features: str = "xyz",
     labels: tuple[str, ...] = ("Car",),
     config_overrides: dict | None = None,
-    schedule_epochs: float | None = None,
     sensors_path: str | Path | None = None,
     force: bool = False,
     dry_run: bool = False,
 ) -> StageOutcome:
     """Train on `source` (FrameSet + boxes.parquet) with `training` (budget, optimizer,
     device) and write the checkpoint to `out` (under torchrun with DDP, see
-    run_training_stage). `schedule_epochs` > training.epochs: the one-cycle learning-rate
-    schedule spans that many epochs and this run trains its first training.epochs of them
-    (recorded in the card; `retrain --continue-schedule` runs the rest)."""
+    run_training_stage)."""
     source, out = Path(source), Path(out)
-    training = partial_schedule(training, schedule_epochs)
     if size_norm not in SIZE_NORMS:
         raise ParameterError(
             "size_norm", f"must be one of {', '.join(SIZE_NORMS)}, got '{size_norm}'"
@@ -93,7 +88,7 @@ def run_pretrain(
         net = seeded_network(config, training.seed)
         meta = pretrain_meta(
             config, data, source, source_mean, delta, size_norm, ros_range, target_profile,
-            training.seed, schedule_stop=training.schedule[1],
+            training.seed,
         )  # fmt: skip
         return PreparedTraining(
             net, [data], [augmentation], training.settings(),
@@ -108,11 +103,9 @@ def run_pretrain(
 def pretrain_meta(
     config, data, source: Path, source_mean: np.ndarray, delta: np.ndarray | None,
     size_norm: str, ros_range: tuple[float, float], target_profile: str | None, seed: int,
-    schedule_stop: float = 1.0,
 ) -> dict:  # fmt: skip
     """model.json's card, provenance and metrics of a pretrained model (`data`: the training
-    set after size normalization; `delta` the SN shift of l, w, h in m, or None;
-    `schedule_stop` where its learning-rate schedule stopped, 1 at the end)."""
+    set after size normalization; `delta` the SN shift of l, w, h in m, or None)."""
     card = ModelCard(
         detector=config.name,
         stage="pretrain",
@@ -123,7 +116,6 @@ def pretrain_meta(
         sn_delta_lwh_m=None if delta is None else tuple(float(v) for v in delta),
         ros_range=tuple(ros_range) if size_norm == "ros" else None,
         target_profile=target_profile,
-        schedule_stop=schedule_stop if schedule_stop < 1.0 else None,
     )
     provenance = {
         "stage": "pretrain",
@@ -144,23 +136,6 @@ def pretrain_meta(
         "database_instances": 0 if data.database is None else len(data.database),
     }
     return {"card": card.to_dict(), "provenance": provenance, "metrics": metrics}
-
-
-def partial_schedule(training: TrainingOptions, schedule_epochs: float | None) -> TrainingOptions:
-    """`training` covering the first training.epochs of a one-cycle schedule of
-    `schedule_epochs` epochs (None or equal: the whole schedule, unchanged); ParameterError for
-    fewer schedule epochs than trained ones or a wall-clock budget."""
-    if schedule_epochs is None or (schedule_epochs == training.epochs and not training.minutes):
-        return training
-    if training.minutes:
-        raise ParameterError("schedule_epochs", "needs an epoch budget (--epochs), not --minutes")
-    if schedule_epochs < training.epochs:
-        raise ParameterError(
-            "schedule_epochs",
-            f"{schedule_epochs:g} is fewer than the {training.epochs:g} epochs trained: the "
-            "schedule must span at least the training",
-        )
-    return dataclasses.replace(training, schedule=(0.0, training.epochs / schedule_epochs))
 
 
 def check_config_overrides(config_overrides: dict | None) -> None:

@@ -1,6 +1,4 @@
-"""Stage pseudo_label: run the detector on the target at the PTSN scale ŝ (with test-time
-augmentation: in ten views, ŝ x 0.9..1.1 each also mirrored, fused box by box, dali_cli.labels.tta),
-de-scale, drop
+"""Stage pseudo_label: run the detector on the target at the PTSN scale ŝ, de-scale, drop
 implausible boxes (dali_cli.labels.plausibility, counted), keep score >= score_min, BEV NMS, remove the
 remaining per-dimension size bias against E_est (`dali_cli.labels.size_correction`, on by default),
 move each box onto its points (`dali_cli.labels.box_fit`, on by default), count the
@@ -21,13 +19,13 @@ import numpy as np
 
 from dali_cli import ptsn
 from dali_cli.executors import make_executor, run_on
-from dali_cli.labels import box_fit, size_correction, tta
-from dali_cli.labels.ground_fit import GroundFit, fit_heights
+from dali_cli.labels import box_fit, size_correction
 from dali_cli.labels.pseudo_labeler import FrameLabeler, label_frame  # noqa: F401 (public here)
 from dali_cli.runtime import console
 from dali_cli.runtime.device import InferenceOptions, inference_runtime, inference_setup
 from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.sensors import get_profile
+from dali_cli.store import SCORE_MIN
 from dali_cli.store.artifacts import BOX_FIELDS, BoxTable, FrameSet, write_boxes
 from dali_cli.store.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.store.scale_file import ScaleResult, read_scale, write_scale
@@ -84,16 +82,13 @@ def pseudo_label(
     *,
     scale: float | None = None,
     scale_from: str | Path | None = None,
-    score_min: float = 0.3,
+    score_min: float = SCORE_MIN,
     nms_iou: float = 0.1,
     target_profile: str | None = None,
     mount_height_m: float | None = None,
     sensors_path: str | None = None,
     size_correction_method: str = "per-dim",
-    views: tta.Views | None = None,
     point_fit: box_fit.PointFit | None = box_fit.PointFit(),
-    ground_fit: GroundFit | None = None,
-    ignore_min: float | None = None,
     force: bool = False,
     dry_run: bool = False,
     workers: int | None = None,
@@ -101,20 +96,12 @@ def pseudo_label(
     ray_address: str | None = None,
     **inference: Unpack[InferenceOptions],
 ) -> StageOutcome:
-    """Run the pseudo-label stage (see the module docstring). `views`: the test-time
-    augmentation (None or a single view: the detector once at ŝ). `point_fit`: move each box
+    """Run the pseudo-label stage (see the module docstring). `point_fit`: move each box
     onto its points after the size correction (default: the standard fit; None: off).
-    `ground_fit`: then put each box's bottom on the ground around it (dali_cli.labels.ground_fit;
-    default None: off). `ignore_min`: boxes scored in [ignore_min, score_min) are written too,
-    as they are, labelled DontCare: ignore regions for `retrain --ignore-label DontCare`
-    (default None: none). `executor`, `workers`,
+    `executor`, `workers`,
     `ray_address`: the engine of the detector runs (dali_cli.executors); `inference`: device,
     precision, batch size, progress and (tests) the detector loader (InferenceOptions)."""
     model_dir, target_dir = Path(model_dir), Path(target_dir)
-    if ignore_min is not None and not 0 <= ignore_min < score_min:
-        raise ParameterError(
-            "ignore_min", f"must be at least 0 and below --score-min {score_min}, got {ignore_min}"
-        )
     torch_device, precision = inference_setup(inference, "pseudo_label")
     used, scale_source = used_scale(model_dir, scale, scale_from)
     scale = used.scale  # ŝ exactly as the sweep found it (or the option's)
@@ -132,11 +119,7 @@ def pseudo_label(
         "size_correction": method,
         # recorded only when not the default: earlier runs stay up to date
         **({"precision": precision} if precision != "fp32" else {}),
-        # recorded only when on: labels made before test-time augmentation stay up to date
-        **({"tta": views.record()} if views is not None and not views.single else {}),
         **({"fit_points": point_fit.record()} if point_fit is not None else {}),
-        **({"fit_ground": ground_fit.record()} if ground_fit is not None else {}),
-        **({"ignore_min": ignore_min} if ignore_min is not None else {}),
     }  # fmt: skip
     inputs = {"model": model_dir, "target": target_dir}
     inputs.update({"scale_from": scale_from} if scale_from is not None else {})
@@ -144,9 +127,9 @@ def pseudo_label(
     engine = make_executor(executor, workers, ray_address)
     labeler = FrameLabeler(
         str(model_dir), str(target_dir), scale, mount_height_m, max_range_m,
-        score_min if ignore_min is None else ignore_min, nms_iou,
+        score_min, nms_iou,
         inference.get("batch_size", 8), inference.get("detector_loader") or load_detector,
-        device=torch_device, precision=precision, views=views,
+        device=torch_device, precision=precision,
     )  # fmt: skip
 
     def build(directory: Path) -> BuildResult:
@@ -156,23 +139,18 @@ def pseudo_label(
         table, implausible, seconds = label_frames(
             labeler, pool, directory, target, inference.get("progress", True)
         )
-        table, ignored = split_ignore_band(table, score_min)
-        correction = fitted = grounded = None
+        correction = fitted = None
         if method != "none" and len(table):
             table, correction = correct_table(table, e_est, score_min)
-        if correction is not None or point_fit is not None or ground_fit is not None:
+        if correction is not None or point_fit is not None:
             # boxes changed: one more pass
-            table, fitted, grounded = place_on_points(table, target, point_fit, ground_fit)
-        fits = {
-            **({"point_fit": fitted} if fitted is not None else {}),
-            **({"ground_fit": grounded} if grounded is not None else {}),
-        }
-        band = {} if ignore_min is None else {"boxes_ignore": len(ignored)}
+            table, fitted = place_on_points(table, target, point_fit)
+        fits = {"point_fit": fitted} if fitted is not None else {}
         write_outputs(
-            directory, with_ignore_band(table, ignored),
+            directory, table,
             scale_record(used, scale_source, mount_height_m),
             summarize(table, len(target), e_est),
-            {"boxes_implausible": implausible, **band, "size_correction": correction, **fits},
+            {"boxes_implausible": implausible, "size_correction": correction, **fits},
         )  # fmt: skip
         skipped_correction = method != size_correction_method
         return BuildResult(
@@ -180,7 +158,6 @@ def pseudo_label(
                 "frames": len(target),
                 "boxes": len(table),
                 "boxes_implausible": implausible,
-                **band,
             },  # fmt: skip
             timings={"detector_seconds": round(seconds, 3)},
             notes=pseudo_label_notes(implausible, skipped_correction, len(table), score_min),
@@ -296,30 +273,6 @@ def label_frames(
     return table, implausible, seconds
 
 
-def split_ignore_band(table: BoxTable, score_min: float) -> tuple[BoxTable, BoxTable]:
-    """(the pseudo boxes: score >= score_min, the rest relabelled IGNORE_LABEL as they are)."""
-    from dali_cli.detector.ignore import IGNORE_LABEL
-
-    scores = np.asarray(table["score"])
-    band = table.select(np.flatnonzero(scores < score_min))
-    band = band.with_columns(label=np.full(len(band), IGNORE_LABEL, dtype=object))
-    return table.select(np.flatnonzero(scores >= score_min)), band
-
-
-def with_ignore_band(table: BoxTable, band: BoxTable) -> BoxTable:
-    """The pseudo boxes followed by the ignore band's rows, which keep their detected boxes (the
-    size correction's factors 1: not corrected)."""
-    if len(band) == 0:
-        return table
-    extra = {
-        name: np.ones(len(band), np.float64)
-        for name in table.columns
-        if name not in band.columns and name.startswith("size_factor_")
-    }
-    band = band.with_columns(**extra)
-    return BoxTable.concat([table, BoxTable({n: band.columns[n] for n in table.columns})])
-
-
 def pseudo_label_notes(
     implausible: int, skipped_correction: bool, boxes: int, score_min: float
 ) -> list[str]:
@@ -360,44 +313,27 @@ def correct_table(table: BoxTable, e_est: list, score_min: float) -> tuple[BoxTa
 
 
 def place_on_points(
-    table: BoxTable,
-    target: FrameSet,
-    fit: box_fit.PointFit | None,
-    ground: GroundFit | None = None,
-) -> tuple[BoxTable, dict | None, dict | None]:
+    table: BoxTable, target: FrameSet, fit: box_fit.PointFit | None
+) -> tuple[BoxTable, dict | None]:
     """One pass over the target frames: every box moved onto its frame's points when `fit` is
-    given (dali_cli.labels.box_fit; sizes, z, scores and the other columns kept), then its bottom put
-    on the ground around it when `ground` is given (dali_cli.labels.ground_fit: z only), and
-    num_points recounted on the original points. Returns the table, the point fit's record
-    (None without it: boxes fitted (enough points), mean shift (m) and turn (deg) over them)
-    and the ground fit's (None without it: boxes moved, mean and mean |shift| of z over them)."""
+    given (dali_cli.labels.box_fit; sizes, z, scores and the other columns kept), and
+    num_points recounted on the original points. Returns the table and the point fit's record
+    (None without it: boxes fitted (enough points), mean shift (m) and turn (deg) over them)."""
     from dali_cli.geometry import count_points_in_boxes
 
     boxes, counts = table.boxes.copy(), np.asarray(table["num_points"]).copy()
     used = np.zeros(len(table), np.int64)
-    grounded = np.zeros(len(table), bool)
     rows = table.rows_by_frame()
     for frame_id, points in target.iter_frames():
         if frame_id in rows:
             r = rows[frame_id]
             if fit is not None:
                 boxes[r], used[r] = box_fit.fit_boxes(table.boxes[r], points, fit)
-            if ground is not None:
-                boxes[r], grounded[r] = fit_heights(boxes[r], points, ground)
             counts[r] = count_points_in_boxes(points, boxes[r])
     moved = table.with_columns(
         **{name: boxes[:, i] for i, name in enumerate(BOX_FIELDS)}, num_points=counts
     )
-    ground_record = None
-    if ground is not None:
-        lift = boxes[grounded, 2] - table.boxes[grounded, 2]  # the point fit keeps z
-        ground_record = {
-            "boxes_moved": int(grounded.sum()),
-            "boxes_kept": int((~grounded).sum()),
-            "mean_shift_m": round(float(lift.mean()), 4) if grounded.any() else 0.0,
-            "mean_abs_shift_m": round(float(np.abs(lift).mean()), 4) if grounded.any() else 0.0,
-        }
-    return moved, point_fit_record(table, boxes, used, fit), ground_record
+    return moved, point_fit_record(table, boxes, used, fit)
 
 
 def point_fit_record(
@@ -444,11 +380,4 @@ def print_summary(summary: dict, scale: float) -> None:
             f"point fit: {fitted['boxes_fitted']} boxes fitted to their points (mean shift "
             f"{fitted['mean_shift_m']:.2f} m, turn {fitted['mean_turn_deg']:.1f} deg); "
             f"{fitted['boxes_too_few_points']} with too few points kept"
-        )
-    grounded = summary.get("ground_fit")
-    if grounded:
-        console.echo(
-            f"ground fit: {grounded['boxes_moved']} boxes put on the ground around them (mean "
-            f"|shift| {grounded['mean_abs_shift_m']:.3f} m, mean {grounded['mean_shift_m']:+.3f} "
-            f"m); {grounded['boxes_kept']} kept (too little ground, or too far from it)"
         )

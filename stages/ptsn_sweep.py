@@ -20,6 +20,7 @@ from dali_cli.runtime import console
 from dali_cli.runtime.device import InferenceOptions, inference_runtime, inference_setup, place
 from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.sensors import get_profile
+from dali_cli.store import SCORE_MIN
 from dali_cli.store.artifacts import FrameSet
 from dali_cli.store.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.store.model_card import ModelCard, read_card
@@ -72,8 +73,9 @@ def resolve_e_est(
         profile = source_profile or card.source_sensor
         if not profile:
             raise ParameterError(
-                ("expected_size", "source_profile"),
-                "E_est ros needs the source's sensor profile (model.json names none)",
+                "expected_size",
+                "E_est ros needs the source's sensor profile (model.json names none): give E_est "
+                "as L,W,H",
             )
         source_lwh = get_profile(profile, sensors_path).car_mean_lwh_m
         lwh = ptsn.ros_expected_size(source_lwh, factor)
@@ -131,7 +133,7 @@ def ptsn_sweep(
     search: str = "bracket",
     frames: int | None = None,
     frame_fraction: float | None = None,
-    score_min: float = 0.3,
+    score_min: float = SCORE_MIN,
     mean: str = "per-frame",
     match: str = "volume",
     seed: int = 0,
@@ -267,8 +269,7 @@ def profile_mount_height(target_profile: str | None, target_dir: Path, sensors_p
     """The target profile's mount height (m): the pivot the frames are scaled about."""
     if not target_profile:
         raise ParameterError(
-            ("target_profile", "mount_height_m"),
-            f"{target_dir}: the frame set names no sensor; name its profile or mount height",
+            "target_profile", f"{target_dir}: the frame set names no sensor; name its profile"
         )
     return get_profile(target_profile, sensors_path).mount_height_m
 

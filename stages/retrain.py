@@ -77,9 +77,6 @@ def pool(sets: list, name: str):
         frame_ids=[f"{i}/{f}" for i, s in enumerate(sets) for f in s.frame_ids],
         points=[p for s in sets for p in s.points],
         boxes=[b for s in sets for b in s.boxes],
-        ignore=None
-        if all(s.ignore is None for s in sets)
-        else [r for s in sets for r in (s.ignore or [np.zeros((0, 7))] * len(s))],
     )
 
 
@@ -97,8 +94,6 @@ def run_retrain(
     target_size: tuple[float, float, float] | None = None,
     target_size_from: str | Path | None = None,
     labels: tuple[str, ...] = ("Car",),
-    ignore_labels: tuple[str, ...] = (),
-    continue_schedule: bool = False,
     sensors_path: str | Path | None = None,
     force: bool = False,
     dry_run: bool = False,
@@ -111,18 +106,10 @@ def run_retrain(
     target's expected mean size `target_size` (or the E_est of the ptsn-sweep `target_size_from`,
     or `target_profile`'s car_mean_lwh_m: label-free statistics), in-box points scaled with
     them, so source and PPCG labels agree on the target's car size (metres).
-
-    `ignore_labels`: PPCG boxes of these labels (`pseudo-label --ignore-min` writes DontCare)
-    are ignore regions, neither car nor background in the losses (dali_cli.detector.ignore).
-
-    `continue_schedule`: instead of a fresh one-cycle learning-rate schedule, run the rest of the
-    one `init` stopped in (`pretrain --schedule-epochs`), over this run's budget.
     """
     init, source, out = Path(init), Path(source), Path(out)
     ppcg = [Path(p) for p in ppcg]
     weights = checked_mix(ppcg, init_from, mix)
-    if continue_schedule:
-        training = continued_schedule(training, init, init_from)
     target_size = shift_size(
         source_size, target_profile, target_size, target_size_from, sensors_path
     )
@@ -132,8 +119,6 @@ def run_retrain(
         "source_size": source_size,
         "target_size": list(target_size) if source_size == "sn" else None,
         "labels": list(labels),
-        # recorded only when given: models retrained before ignore regions stay up to date
-        **({"ignore_labels": list(ignore_labels)} if ignore_labels else {}),
     }
     inputs = {"init": init, "source": source, "ppcg": ppcg}
 
@@ -146,9 +131,7 @@ def run_retrain(
         source_data, source_augmentation, card = load_source(
             source, previous.card, load, training, shift
         )
-        pseudo_sets, mix, skipped = load_ppcg_sets(
-            ppcg, weights, {**load, "ignore_labels": ignore_labels}
-        )
+        pseudo_sets, mix, skipped = load_ppcg_sets(ppcg, weights, load)
         pooled = len(weights) == 2 and pseudo_sets
         datasets = [source_data, *([pool(pseudo_sets, "ppcg")] if pooled else pseudo_sets)]
         for data in datasets:
@@ -163,7 +146,6 @@ def run_retrain(
             counts={
                 "source_frames": len(source_data),
                 "ppcg_frames": int(sum(len(d) for d in pseudo_sets)),
-                **({"ppcg_ignore_regions": ignore_count(pseudo_sets)} if ignore_labels else {}),
             },
             notes=[
                 f"detector: {net.config.name} (not the paper's SECOND-IoU)",
@@ -175,11 +157,6 @@ def run_retrain(
     return training_stage.run_training_stage(
         "retrain", out, inputs, params, prepare, force, dry_run, training
     )
-
-
-def ignore_count(sets: list) -> int:
-    """Ignore regions over the PPCG sets (LabeledFrames.ignore)."""
-    return int(sum(len(r) for s in sets for r in (s.ignore or [])))
 
 
 def retrain_meta(
@@ -213,26 +190,6 @@ def retrain_meta(
         "provenance": provenance,
         "metrics": metrics,
     }
-
-
-def continued_schedule(training: TrainingOptions, init: Path, init_from: str) -> TrainingOptions:
-    """`training` covering the rest of the learning-rate schedule `init` stopped in (its card's
-    schedule_stop); ParameterError when init ran its schedule to the end or the weights are not
-    taken from it."""
-    from dali_cli.store.model_card import read_card
-
-    if init_from != "previous":
-        raise ParameterError(
-            "continue_schedule", "continues INIT's schedule, so needs --init-from previous"
-        )
-    stop = read_card(init).schedule_stop
-    if stop is None:
-        raise ParameterError(
-            "continue_schedule",
-            f"{init}: its learning-rate schedule ran to the end, nothing to continue (train it "
-            "with `dali pretrain --schedule-epochs`)",
-        )
-    return dataclasses.replace(training, schedule=(stop, 1.0))
 
 
 def checked_mix(ppcg: list[Path], init_from: str, mix: str) -> tuple[int, ...]:

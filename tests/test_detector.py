@@ -3,7 +3,6 @@ overfit, checkpoint round trip, resume, augmentations and SN/ROS consistency, th
 
 from __future__ import annotations
 
-import dataclasses
 import json
 
 import numpy as np
@@ -27,7 +26,7 @@ from dali_cli.detector import (
     size_normalize,
     train,
 )
-from dali_cli.detector.infer import average_mirrored, decode, inference_config, run_network
+from dali_cli.detector.infer import decode, inference_config
 from dali_cli.detector.targets import (
     REGRESSION,
     build_targets,
@@ -360,7 +359,7 @@ def test_pretrain_cli(toy_dir, tmp_path):
         str(out),
         "--epochs",
         "1",
-        "--quiet",
+        "--no-progress",
         "--batch-size",
         "4",
     ]
@@ -384,84 +383,15 @@ def test_pretrain_cli(toy_dir, tmp_path):
     assert missing.exit_code == 1 and "frames.zarr" in missing.output
 
 
-def test_compiled_forward_matches_eager():
-    """--compile: the compiled backbone + heads give the eager network's maps, and the network
-    itself stays eager (same parameters, same state-dict keys)."""
-    from dali_cli.detector.train import compiled_forward
-
-    config = DetectorConfig(**SMALL)
-    torch.manual_seed(0)
-    net = PillarCenterNet(config).eval()
-    keys = set(net.state_dict())
-    points = torch.rand(800, 4) * torch.tensor([25.6, 25.6, 3.0, 1.0]) - torch.tensor(
-        [0, 12.8, 1.0, 0]
-    )
-    batch_index = torch.arange(2).repeat_interleave(400)
-    with torch.no_grad():
-        eager = net(points, batch_index, 2)
-        compiled = compiled_forward(net)(points, batch_index, 2)
-    for name, value in eager.items():
-        assert torch.allclose(compiled[name], value, atol=1e-4), name
-    assert set(net.state_dict()) == keys
-
-
-def mirror_boxes(boxes: np.ndarray, middle_y: float) -> np.ndarray:
-    """Boxes (M, 7) mirrored about the plane y = middle_y: y -> 2 middle - y, yaw -> -yaw."""
-    mirrored = boxes.copy()
-    mirrored[:, 1] = 2 * middle_y - mirrored[:, 1]
-    mirrored[:, 6] = -mirrored[:, 6]
-    return mirrored
-
-
-def test_flip_test_averaging_recovers_boxes_from_mirrored_maps(kitti):
-    """Maps of a scene and (exact) maps of its mirror image average back to the scene's boxes:
-    un-mirroring must reverse the rows, turn the y offset o into 1 - o and negate sin 2yaw."""
-    config = DetectorConfig(**SMALL, flip_test=True)
-    rows = config.grid_size[0]
-    padded = dataclasses.replace(
-        config, y_range_m=(config.y_range_m[0], config.y_range_m[0] + rows * config.pillar_m)
-    )
-    middle = config.y_range_m[0] + rows * config.pillar_m / 2
-    rng = np.random.default_rng(5)
-    boxes = toy_place(rng, kitti, 5) + [0, 0, kitti.mount_height_m, 0, 0, 0, 0]
-    boxes[:, 6] = rng.uniform(-1.4, 1.4, len(boxes))  # headings that sin 2yaw tells apart
-    direct = perfect_maps([boxes], padded)
-    mirrored = perfect_maps([mirror_boxes(boxes, middle)], padded)
-    averaged = {
-        name: average_mirrored(name, torch.cat([direct[name], mirrored[name]]), 1)
-        for name in direct
-    }
-    (found, scores), = decode(averaged, padded)  # fmt: skip
-    assert len(found) == len(boxes) and (scores > 0.99).all()
-    assert np.allclose(iou_3d(boxes, found).max(axis=1), 1.0, atol=1e-5)
-
-
-def test_flip_test_predictions_are_mirror_equivariant(kitti):
-    """With flip_test the detector's output on a mirrored cloud is the mirror of its output."""
-    config = DetectorConfig(**SMALL, flip_test=True, score_threshold=0.0, nms_iou=0.5)
-    torch.manual_seed(0)
-    net = PillarCenterNet(config).eval()
-    rows = config.grid_size[0]
-    middle = config.y_range_m[0] + rows * config.pillar_m / 2
-    rng = np.random.default_rng(6)
-    cars = toy_place(rng, kitti, 4)
-    points = scan(cars, kitti, **SCAN)
-    points[:, 2] += kitti.mount_height_m  # ground frame
-    points = points[(points[:, 1] > -12.0) & (points[:, 1] < 12.0)]  # inside both grids
-    mirrored = points.copy()
-    mirrored[:, 1] = 2 * middle - mirrored[:, 1]
-    batch_index = torch.zeros(len(points), dtype=torch.long)
-    with torch.no_grad():
-        maps = run_network(net, torch.from_numpy(points), batch_index, 1, config)
-        maps_mirrored = run_network(net, torch.from_numpy(mirrored), batch_index, 1, config)
-    (found, scores), = decode(maps, config)  # fmt: skip
-    (found_m, scores_m), = decode(maps_mirrored, config)  # fmt: skip
-    assert len(found) > 0
-    order, order_m = np.argsort(-scores, kind="stable"), np.argsort(-scores_m, kind="stable")
-    assert np.allclose(scores[order], scores_m[order_m], atol=1e-4)
-    expected = mirror_boxes(found[order], middle)
-    assert np.allclose(found_m[order_m][:, :6], expected[:, :6], atol=1e-3)
-    assert np.allclose(np.sin(2 * found_m[order_m][:, 6]), np.sin(2 * expected[:, 6]), atol=1e-3)
+def test_retired_config_keys_load_at_their_value_only():
+    """model.json files of earlier models carry refine_passes 1 and flip_test false: they load;
+    any other value is refused with the key named, and the written config no longer has them."""
+    old = {**DetectorConfig(**SMALL).to_dict(), "refine_passes": 1, "flip_test": False}
+    assert DetectorConfig.from_dict(old) == DetectorConfig(**SMALL)
+    assert not {"refine_passes", "flip_test"} & set(DetectorConfig().to_dict())
+    for key, value in (("refine_passes", 2), ("flip_test", True)):
+        with pytest.raises(ValueError, match=key):
+            DetectorConfig.from_dict({**old, key: value})
 
 
 def test_peak_iou_loss_teaches_background_peaks_a_low_iou(kitti):

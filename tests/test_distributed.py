@@ -220,7 +220,7 @@ def test_torchrun_pretrain_writes_one_model_that_eval_reads(toy_dir, tmp_path):
     out = tmp_path / "model"
     run = subprocess.run(
         [*TORCHRUN, *DALI, "pretrain", "--source", str(toy_dir), "--out", str(out), "--epochs",
-         "1", "--batch-size", "1", "--device", "cpu", "--no-augment", "--quiet",
+         "1", "--batch-size", "1", "--device", "cpu", "--no-augment", "--no-progress",
          "--detector-config", str(small_config(tmp_path))],
         capture_output=True, text=True, env=torchrun_env(), timeout=600,
     )  # fmt: skip
@@ -258,7 +258,7 @@ def test_a_failing_rank_fails_the_stage_with_no_artifact(toy_dir, tmp_path):
     out = tmp_path / "model"
     run = subprocess.run(
         [*TORCHRUN, str(script), "pretrain", "--source", str(toy_dir), "--out", str(out),
-         "--epochs", "1", "--batch-size", "1", "--device", "cpu", "--quiet",
+         "--epochs", "1", "--batch-size", "1", "--device", "cpu", "--no-progress",
          "--detector-config", str(small_config(tmp_path))],
         capture_output=True, text=True, env=torchrun_env(), timeout=600,
     )  # fmt: skip

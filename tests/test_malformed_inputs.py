@@ -63,7 +63,7 @@ def make_world(root: Path) -> Path:
     (root / "detector.json").write_text(json.dumps(SMALL_DETECTOR))
     for args in (
         ["pretrain", "--source", root / "source", "--out", root / "model", "--epochs", "1",
-         "--detector-config", root / "detector.json", "--quiet"],
+         "--detector-config", root / "detector.json", "--no-progress"],
         ["library", "build", "--procedural", "2", "--out", root / "library"],
     ):  # fmt: skip
         result = invoke(*args)
@@ -255,7 +255,7 @@ FRAME_STAGES: dict[str, Callable[[Path, Path, Path], list]] = {
     "export-openpcdet": lambda w, c, t: ["export", "openpcdet", t, "--out", out_of(c)],
     "retrain": lambda w, c, t: [
         "retrain", "--init", w / "model", "--source", w / "source", "--ppcg", t,
-        "--epochs", "0.5", "--out", out_of(c), "--quiet"],
+        "--epochs", "0.5", "--out", out_of(c), "--no-progress"],
 }  # fmt: skip
 BOX_STAGES: dict[str, Callable[[Path, Path, Path], list]] = {
     "ppcg-rc": lambda w, c, b: [
@@ -276,7 +276,7 @@ BOX_STAGES: dict[str, Callable[[Path, Path, Path], list]] = {
         "export", "openpcdet", w / "target", "--boxes", b, "--out", out_of(c)],
     "retrain": lambda w, c, b: [
         "retrain", "--init", w / "model", "--source", w / "source", "--ppcg",
-        ppcg_with_boxes(w, c, b), "--epochs", "0.5", "--out", out_of(c), "--quiet"],
+        ppcg_with_boxes(w, c, b), "--epochs", "0.5", "--out", out_of(c), "--no-progress"],
 }  # fmt: skip
 
 
@@ -332,7 +332,7 @@ def test_empty_pseudo_labels_flow_through_ppcg_view_and_retrain(world, tmp_path)
         ["view", rc, "--frame", "000000", "--out", tmp_path / "v.png"],
         ["eval", "--pred", rc, "--gt", world / "target", "--out", tmp_path / "m.json"],
         ["retrain", "--init", world / "model", "--source", world / "source", "--ppcg", rc,
-         "--epochs", "0.5", "--out", tmp_path / "model", "--quiet"],
+         "--epochs", "0.5", "--out", tmp_path / "model", "--no-progress"],
     ]  # fmt: skip
     for step in steps:
         result = invoke(*step)
@@ -351,7 +351,7 @@ def test_pretrain_refuses_an_absurd_box(world, tmp_path):
     expect_refused(
         tmp_path,
         ["pretrain", "--source", source, "--out", out_of(tmp_path), "--epochs", "1",
-         "--detector-config", world / "detector.json", "--quiet"],
+         "--detector-config", world / "detector.json", "--no-progress"],
         "boxes.parquet", "row 0",
     )  # fmt: skip
 

@@ -27,7 +27,7 @@ def ros_world(tmp_path_factory):
     """A real (tiny) checkpoint pretrained with ROS, and one retrained from it."""
     root = write_toy_world(tmp_path_factory.mktemp("card"), "target")
     runner = CliRunner()
-    common = ["--epochs", "1", "--detector-config", str(root / "config.json"), "--quiet"]
+    common = ["--epochs", "1", "--detector-config", str(root / "config.json"), "--no-progress"]
     result = runner.invoke(
         main,
         ["pretrain", "--source", str(root / "source"), "--out", str(root / "iter0"),
@@ -37,7 +37,7 @@ def ros_world(tmp_path_factory):
     result = runner.invoke(
         main,
         ["retrain", "--init", str(root / "iter0"), "--source", str(root / "source"), "--ppcg",
-         str(root / "target"), "--out", str(root / "iter1"), "--epochs", "1", "--quiet"],
+         str(root / "target"), "--out", str(root / "iter1"), "--epochs", "1", "--no-progress"],
     )  # fmt: skip
     assert result.exit_code == 0, result.output
     return root
@@ -127,7 +127,7 @@ def test_a_malicious_model_or_training_state_is_refused_and_runs_nothing(ros_wor
     result = CliRunner().invoke(
         main,
         ["pretrain", "--source", str(ros_world / "source"), "--out", str(out), "--epochs", "1",
-         "--detector-config", str(ros_world / "config.json"), "--quiet"],
+         "--detector-config", str(ros_world / "config.json"), "--no-progress"],
     )  # fmt: skip
     assert result.exit_code == 1 and "state.pt" in result.output
     assert not marker.exists() and not out.exists()
@@ -152,7 +152,7 @@ def test_a_foreign_model_file_is_a_clear_error(ros_world, tmp_path, damage):
         ["pseudo-label", "--model", str(model), "--target", str(ros_world / "target"),
          "--scale", "1", "--out", str(tmp_path / "pseudo")],
         ["retrain", "--init", str(model), "--source", str(ros_world / "source"), "--ppcg",
-         str(ros_world / "target"), "--out", str(tmp_path / "re"), "--epochs", "1", "--quiet"],
+         str(ros_world / "target"), "--out", str(tmp_path / "re"), "--epochs", "1", "--no-progress"],
     ):  # fmt: skip
         result = CliRunner().invoke(main, command)
         assert result.exit_code == 1, (command[0], result.output)

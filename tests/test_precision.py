@@ -55,7 +55,7 @@ def test_training_step_runs_both_stages_at_the_precision(precision):
     seen = dtypes_seen(net)
     optimizer = torch.optim.AdamW(net.parameters(), lr=1e-3)
     settings = TrainSettings(epochs=1, batch_size=1, threads=1, precision=precision)
-    sample = Sample(*toy_frame(0), np.zeros((0, 7)))  # no ignore regions
+    sample = Sample(*toy_frame(0))
     terms = optimize_step(net, net, optimizer, [sample], settings, torch.device("cpu"), 0, [0])
     expected = torch.bfloat16 if precision == "bf16" else torch.float32
     assert seen["conv"] == [expected]

@@ -18,7 +18,6 @@ from dali_cli.geometry import (
     scale_boxes_about_ground,
     scale_points_about_ground,
 )
-from dali_cli.labels.tta import DEFAULT_SCALE_FACTORS, mirror_boxes
 from dali_cli.store.artifacts import read_boxes
 from dali_cli.store.scale_file import read_scale
 
@@ -63,9 +62,7 @@ def frame_points(frame: int) -> np.ndarray:
 class SizeLawDetector:
     """In the s-scaled cloud it finds each car at its scaled centre but with size `scaled_lwh`
     (its training bias), standing on the ground; boxes come back de-scaled, so their size is
-    scaled_lwh / s. Per frame it adds a near-duplicate (score 0.5) and a faint box (score 0.1).
-    A cloud mirrored left-right (test-time augmentation) gets the mirrored boxes: the first point
-    lies in the first car, which stands at y = +3 m."""
+    scaled_lwh / s. Per frame it adds a near-duplicate (score 0.5) and a faint box (score 0.1)."""
 
     def __init__(self, scaled_lwh=KITTI_LWH):
         self.scaled_lwh = np.asarray(scaled_lwh, np.float64)
@@ -77,8 +74,6 @@ class SizeLawDetector:
         for points in points_list:
             frame = int(round(float(points[0, 3]) * 100))
             cars = car_boxes(frame)
-            if points[0, 1] < 0:  # mirrored
-                cars = mirror_boxes(cars)
             scaled = scale_boxes_about_ground(cars, scale, mount_height_m)
             scaled[:, 3:6] = self.scaled_lwh
             scaled[:, 2] = -mount_height_m + self.scaled_lwh[2] / 2
@@ -132,7 +127,7 @@ def test_pseudo_labels_at_the_swept_scale_match_e_est(setup):
         "--no-progress",
     )
     assert result.exit_code == 0, result.output
-    assert set(detector.scales) == {scale}  # one pass (no --tta)
+    assert set(detector.scales) == {scale}  # one pass
     table = read_boxes(out)
     expected_boxes = sum(len(car_boxes(i)) for i in range(6))
     assert len(table) == expected_boxes  # the duplicate (NMS) and the faint box (score) are gone
@@ -242,9 +237,8 @@ class AbsurdBoxDetector(SizeLawDetector):
         return results
 
 
-@pytest.mark.parametrize("tta", [[], ["--tta"]])
-def test_implausible_detections_are_dropped_before_nms_and_counted(setup, monkeypatch, tta):
-    """Dropped before NMS and before the views are fused, counted once per view."""
+def test_implausible_detections_are_dropped_before_nms_and_counted(setup, monkeypatch):
+    """Dropped before NMS, counted."""
     tmp_path, target, model, _ = setup
     import stages.pseudo_label
 
@@ -252,11 +246,10 @@ def test_implausible_detections_are_dropped_before_nms_and_counted(setup, monkey
     out = tmp_path / "pseudo"
     result = run(
         "pseudo-label", "--model", model, "--target", target, "--scale", "1.0", "--out", out,
-        "--no-progress", *tta,
+        "--no-progress",
     )  # fmt: skip
     assert result.exit_code == 0, result.output
-    views = 2 * len(DEFAULT_SCALE_FACTORS) if tta else 1
-    implausible = 12 * views  # two per frame and view
+    implausible = 12  # two per frame
     assert "WARNING" in result.output and f"{implausible} implausible" in result.output
     table = read_boxes(out)
     # every car survives: the 1,000 km box (score 0.99) did not suppress the first one in NMS

@@ -63,7 +63,7 @@ def world(tmp_path_factory):
         main,
         ["pretrain", "--source", str(root / "source"), "--out", str(root / "iter0"), "--epochs", "1",
          "--size-norm", "sn", "--target-profile", "kitti", "--detector-config", str(root / "config.json"),
-         "--quiet"],
+         "--no-progress"],
     )  # fmt: skip
     assert result.exit_code == 0, result.output
     return root
@@ -96,7 +96,7 @@ def conv_weights(model_dir):
 def test_retrain_cli_from_previous_and_scratch(world):
     runner = CliRunner()
     base = ["retrain", "--init", str(world / "iter0"), "--source", str(world / "source"),
-            "--ppcg", str(world / "rc"), str(world / "cf"), "--epochs", "1", "--quiet"]  # fmt: skip
+            "--ppcg", str(world / "rc"), str(world / "cf"), "--epochs", "1", "--no-progress"]  # fmt: skip
     out = world / "iter1"
     result = runner.invoke(main, [*base, "--out", str(out), "--lr", "1e-12"])
     assert result.exit_code == 0, result.output
@@ -168,7 +168,7 @@ def test_ppcg_sets_without_boxes_are_left_out_not_trained_as_background(world, t
     write_boxes(empty, BoxTable.empty())
     runner = CliRunner()
     base = ["retrain", "--init", str(world / "iter0"), "--source", str(world / "source"),
-            "--epochs", "1", "--quiet", "--lr", "1e-12"]  # fmt: skip
+            "--epochs", "1", "--no-progress", "--lr", "1e-12"]  # fmt: skip
     mixed = runner.invoke(
         main, [*base, "--ppcg", str(empty), str(world / "rc"), "--out", str(tmp_path / "a")]
     )
@@ -196,7 +196,7 @@ def test_source_size_sn_shifts_the_source_to_the_given_target_size(world, tmp_pa
     mean (not INIT's kitti SN), the card records the new delta, and without a size it fails."""
     runner = CliRunner()
     base = ["retrain", "--init", str(world / "iter0"), "--source", str(world / "source"),
-            "--ppcg", str(world / "rc"), "--epochs", "1", "--lr", "1e-12", "--quiet"]  # fmt: skip
+            "--ppcg", str(world / "rc"), "--epochs", "1", "--lr", "1e-12", "--no-progress"]  # fmt: skip
     target = (4.5, 1.9, 1.7)
     out = tmp_path / "sn"
     result = runner.invoke(
@@ -225,7 +225,7 @@ def test_source_size_sn_reads_e_est_from_a_ptsn_sweep(world, tmp_path):
     write_scale(sweep, {"scale": 1.1, "E_est": [4.1, 1.75, 1.6]})
     runner = CliRunner()
     base = ["retrain", "--init", str(world / "iter0"), "--source", str(world / "source"),
-            "--ppcg", str(world / "rc"), "--epochs", "1", "--lr", "1e-12", "--quiet",
+            "--ppcg", str(world / "rc"), "--epochs", "1", "--lr", "1e-12", "--no-progress",
             "--source-size", "sn"]  # fmt: skip
     out = tmp_path / "from-sweep"
     result = runner.invoke(main, [*base, "--target-size-from", str(sweep), "--out", str(out)])
@@ -241,44 +241,3 @@ def test_source_size_sn_reads_e_est_from_a_ptsn_sweep(world, tmp_path):
     )
     assert failed.exit_code != 0 and "E_est" in failed.output
     assert not (tmp_path / "x").exists()
-
-
-def test_ignore_label_makes_ppcg_boxes_ignore_regions_and_is_recorded(world, tmp_path):
-    """--ignore-label DontCare: those PPCG rows are neither targets nor dropped, but the
-    training's ignore regions, counted in the manifest; pooled sets keep each frame's regions."""
-    import shutil
-
-    from dali_cli.store.artifacts import read_boxes, write_boxes
-    from stages.retrain import pool
-
-    marked = tmp_path / "marked"
-    shutil.copytree(world / "rc", marked)
-    table = read_boxes(marked)
-    labels = np.asarray(table["label"]).astype(object)
-    labels[::3] = "DontCare"
-    write_boxes(marked, table.with_columns(label=labels))
-    regions = int((labels == "DontCare").sum())
-    runner = CliRunner()
-    base = ["retrain", "--init", str(world / "iter0"), "--source", str(world / "source"),
-            "--epochs", "1", "--quiet", "--lr", "1e-12", "--ppcg", str(marked)]  # fmt: skip
-    result = runner.invoke(
-        main, [*base, "--ignore-label", "DontCare", "--out", str(tmp_path / "a")]
-    )
-    assert result.exit_code == 0, result.output
-    manifest = read_manifest(tmp_path / "a")
-    assert manifest["params"]["ignore_labels"] == ["DontCare"]
-    assert manifest["outputs"]["counts"]["ppcg_ignore_regions"] == regions > 0
-    plain = runner.invoke(main, [*base, "--out", str(tmp_path / "b")])
-    assert plain.exit_code == 0, plain.output
-    manifest = read_manifest(tmp_path / "b")
-    assert "ignore_labels" not in manifest["params"]  # earlier retrainings stay up to date
-    assert "ppcg_ignore_regions" not in manifest["outputs"]["counts"]
-
-    config = DetectorConfig.from_dict(SMALL)
-    with_regions = load_labeled(marked, config, ignore_labels=("DontCare",))
-    without = load_labeled(world / "cf", config)
-    pooled = pool([without, with_regions], "ppcg")
-    assert [len(r) for r in pooled.ignore] == [0] * len(without) + [
-        len(r) for r in with_regions.ignore
-    ]
-    assert pool([without], "ppcg").ignore is None

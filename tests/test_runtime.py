@@ -56,7 +56,7 @@ def test_training_threads_default_to_every_core_whatever_the_load(monkeypatch):
 
 def pretrain(source, out, *extra):
     args = ["pretrain", "--source", str(source / "source"), "--out", str(out), "--epochs", "1",
-            "--detector-config", str(source / "config.json"), "--quiet", *extra]  # fmt: skip
+            "--detector-config", str(source / "config.json"), "--no-progress", *extra]  # fmt: skip
     result = CliRunner().invoke(main, args)
     assert result.exit_code == 0, result.output
     return read_manifest(out), json.loads((out / "model.json").read_text())

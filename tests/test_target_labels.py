@@ -75,7 +75,7 @@ def world(tmp_path_factory):
     result = CliRunner().invoke(
         main,
         ["pretrain", "--source", str(root / "source"), "--out", str(root / "iter0"), "--epochs",
-         "1", "--detector-config", str(root / "config.json"), "--quiet"],
+         "1", "--detector-config", str(root / "config.json"), "--no-progress"],
     )  # fmt: skip
     assert result.exit_code == 0, result.output
     return root, BiasedOracle(cars_by_key, np.asarray(kitti.car_mean_lwh_m)), labels
@@ -108,11 +108,11 @@ def test_no_stage_reads_the_target_labels(world, monkeypatch):
            it / "ptsn", "--out", it / "pseudo", "--no-progress")  # fmt: skip
     for stage in ("ppcg-rc", "ppcg-cf"):
         invoke(stage, "--target", target, "--boxes", it / "pseudo", "--library", root / "library",
-               "--sensor", "kitti", "--out", it / stage[-2:])  # fmt: skip
+               "--target-profile", "kitti", "--out", it / stage[-2:])  # fmt: skip
     invoke("retrain", "--init", root / "iter0", "--source", root / "source", "--ppcg", it / "rc",
-           it / "cf", "--epochs", "1", "--quiet", "--out", it / "model")  # fmt: skip
+           it / "cf", "--epochs", "1", "--no-progress", "--out", it / "model")  # fmt: skip
     invoke("self-train", "--init", it / "model", "--target", target, "--pseudo", it / "pseudo",
-           "--epochs", "1", "--quiet", "--out", it / "st")  # fmt: skip
+           "--epochs", "1", "--no-progress", "--out", it / "st")  # fmt: skip
     poisoned = (target / "boxes.parquet").resolve()
     assert opened and poisoned not in opened
     assert (target / "boxes.parquet").read_bytes() == POISON
@@ -132,7 +132,7 @@ def test_self_train_learns_in_the_ptsn_scaled_frame(world):
     pseudo.mkdir()
     write_boxes(pseudo, table)
     base = ["self-train", "--init", root / "iter0", "--target", root / "target", "--pseudo",
-            pseudo, "--epochs", "1", "--quiet"]  # fmt: skip
+            pseudo, "--epochs", "1", "--no-progress"]  # fmt: skip
     invoke(*base, "--out", root / "st-still", "--lr", "1e-12")
     meta = json.loads((root / "st-still" / "model.json").read_text())
     assert meta["provenance"]["stage"] == "self_train"

@@ -1,5 +1,5 @@
 """Detector front, inference-only knobs on one trained checkpoint: second stage (refiner) on/off,
-test-time flip on/off, bf16 autocast vs fp32, torch threads -> AP_3D@0.7 (all boxes of the range
+bf16 autocast vs fp32, torch threads -> AP_3D@0.7 (all boxes of the range
 protocol, and KITTI moderate) vs inference seconds per frame.
 
 Knobs that need a model trained for each value (pillar size; training frames/s) are the pillar
@@ -40,19 +40,17 @@ def measure(
     default_threads = torch.get_num_threads()
     defaults = {
         "refine": bool(base.refine),
-        "flip_test": bool(base.flip_test),
         "precision": "fp32",
         "threads": default_threads,
     }
     variants = [dict(defaults)]
     for knob, values in (
         ("refine", [not defaults["refine"]]),
-        ("flip_test", [not defaults["flip_test"]]),
         ("precision", ["bf16"]),
         ("threads", [t for t in (1, 2) if t != default_threads]),
     ):
         variants += [{**defaults, knob: value} for value in values]
-    variants.append({**defaults, "refine": False, "flip_test": False, "threads": 1})
+    variants.append({**defaults, "refine": False, "threads": 1})
     if quick:
         variants = variants[:2]
     seconds: dict[int, list[float]] = {index: [] for index in range(len(variants))}
@@ -62,9 +60,7 @@ def measure(
             for index, variant in enumerate(variants):
                 if index in first and "error" in first[index]:
                     continue
-                detector.config = dataclasses.replace(
-                    base, refine=variant["refine"], flip_test=variant["flip_test"]
-                )
+                detector.config = dataclasses.replace(base, refine=variant["refine"])
                 torch.set_num_threads(variant["threads"])
                 try:
                     took, results = _timed_predict(detector, frames, variant["precision"], mount)

@@ -57,8 +57,8 @@ def load_frames(model_dir, target_dir, scale_low: float, scale_high: float, limi
 def measure(
     model_dir, target_dir, sensor: str, quick: bool = False, frames=None, first_stage_only=True
 ) -> dict:
-    """The front; `first_stage_only`: run the detector without its second stage and test-time
-    flip (about 4x cheaper frame passes; the search strategies compare the same either way)."""
+    """The front; `first_stage_only`: run the detector without its second stage (cheaper frame
+    passes; the search strategies compare the same either way)."""
     import dataclasses
     import time
 
@@ -68,7 +68,7 @@ def measure(
     low, high = 0.8, 1.4
     detector, frames = load_frames(model_dir, target_dir, low, high, frames)
     if first_stage_only:
-        detector.config = dataclasses.replace(detector.config, refine=False, flip_test=False)
+        detector.config = dataclasses.replace(detector.config, refine=False)
     profile = get_profile(sensor)
     target_lwh = np.asarray(profile.car_mean_lwh_m, np.float64)
     shared = ptsn.DetectionCache(detector, frames, score_min=0.3, mount_height_m=None)

@@ -160,7 +160,6 @@ def markdown(results: dict) -> str:
             [p for p in r["points"] if "error" not in p],
             [
                 ("second stage", lambda p: "on" if p["refine"] else "off"),
-                ("flip test", lambda p: "on" if p["flip_test"] else "off"),
                 ("precision", lambda p: p["precision"]),
                 ("threads", lambda p: str(p["threads"])),
                 ("s/frame", lambda p: f"{p['seconds_per_frame']:.3f}"),
@@ -172,8 +171,8 @@ def markdown(results: dict) -> str:
         )
         for p in failed:
             out.append(
-                f"\nFailed: second stage {'on' if p['refine'] else 'off'}, flip "
-                f"{'on' if p['flip_test'] else 'off'}, {p['precision']}, {p['threads']} threads: "
+                f"\nFailed: second stage {'on' if p['refine'] else 'off'}, "
+                f"{p['precision']}, {p['threads']} threads: "
                 f"`{p['error']}`"
             )
         out.append("")

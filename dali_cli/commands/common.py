@@ -255,6 +255,11 @@ def executor_options(function):
     )(function)
 
 
+def no_progress_option(function):
+    """--no-progress, the one switch of every command that draws a progress bar."""
+    return click.option("--no-progress", is_flag=True, help="No progress bar.")(function)
+
+
 def training_options(function):
     """Budget, optimizer and input options shared by pretrain, retrain and self-train, with
     --device/--precision, --sensors and the stage switches."""
@@ -289,14 +294,6 @@ def training_options(function):
             help="Peak learning rate of the one-cycle schedule (AdamW).",
         ),
         click.option(
-            "--compile",
-            "compile_net",
-            is_flag=True,
-            help="torch.compile the backbone and heads for training (~1 min cold start; "
-            "pays off only where inductor beats eager convolutions, not on this project's "
-            "AVX2 test machine).",
-        ),
-        click.option(
             "--threads",
             type=BATCH,
             default=None,
@@ -309,42 +306,41 @@ def training_options(function):
             is_flag=True,
             help="Disable gt-sampling, flip, rotation, scaling, object noise.",
         ),
-        click.option("--quiet", is_flag=True, help="No progress bar."),
+        no_progress_option,
     ]
     return apply_options(function, [device_options, *options, sensors_option, stage_options])
 
 
-def no_progress_option(function):
-    return click.option("--no-progress", is_flag=True, help="No progress bar.")(function)
+def score_min_option(dest: str = "score_min", help: str = "Box score cut."):
+    """--score-min: the score from which a box counts as a car (default SCORE_MIN)."""
+    from dali_cli.store import SCORE_MIN
 
-
-def score_min_option(function):
     return click.option(
         "--score-min",
+        dest,
         type=FRACTION,
-        default=0.3,
+        default=SCORE_MIN,
         show_default=True,
-        help="Box score cut.",
-    )(function)
+        help=help,
+    )
 
 
-def target_profile_option(function):
+def target_profile_option(dest: str = "target_profile"):
+    """--target-profile: the sensor profile (a sensors.toml name) of the target frame set a
+    stage reads (default: the one recorded with the frames)."""
     return click.option(
-        "--target-profile", default=None, help="Target sensor profile (default: the frame set's)."
-    )(function)
+        "--target-profile",
+        dest,
+        default=None,
+        help="Target sensor profile (default: the frame set's).",
+    )
 
 
 def target_scaling_options(function):
-    """--mount-height-m, --batch-size and --no-progress of the commands that run the model on
-    the target scaled about the ground (ptsn-sweep, pseudo-label), with --device/--precision,
-    --sensors and the stage switches."""
+    """--batch-size and --no-progress of the commands that run the model on the target scaled
+    about the ground (ptsn-sweep, pseudo-label; the pivot is the target profile's mount height),
+    with --device/--precision, --sensors and the stage switches."""
     options = [
-        click.option(
-            "--mount-height-m",
-            type=POSITIVE,
-            default=None,
-            help="Target sensor height above ground for scaling (default: the target profile's).",
-        ),
         click.option("--batch-size", type=BATCH, default=8, show_default=True),
         no_progress_option,
         device_options,
@@ -366,11 +362,10 @@ def pop_training(options: dict):
         batch_size=options.pop("batch_size"),
         lr=options.pop("lr"),
         precision=options.pop("precision"),
-        compile_net=options.pop("compile_net"),
         threads=options.pop("threads"),
         augment=not options.pop("no_augment"),
         device=options.pop("device"),
-        progress=not options.pop("quiet"),
+        progress=not options.pop("no_progress"),
     )
 
 
@@ -410,7 +405,7 @@ def protocol_options(function):
                            "computation without R40's 2-point steps (not a KITTI metric)."),
         choice_option("--protocol", choices=["auto", "kitti", "range", "st3d"], default="auto",
                       help="Difficulty filters (see below)."),
-        click.option("--front-only", "--crop-predictions", "front_only", is_flag=True,
+        click.option("--front-only", "front_only", is_flag=True,
                      help="Keep only ground truth and predictions centred in the front 90 deg "
                           "FOV and the detection range (x 0..70.4, |y| <= 40 m), as on KITTI's "
                           "FOV-cropped clouds; for 360-degree frames such as dali synth's."),

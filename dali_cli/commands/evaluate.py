@@ -13,9 +13,9 @@ from dali_cli.commands.common import (
     choice_option,
     device_options,
     executor_options,
-    finite_range,
     no_progress_option,
     protocol_options,
+    score_min_option,
     stage_options,
     workers_option,
 )
@@ -41,16 +41,13 @@ instead of --model, --scale-from gives only these factors (correcting saved pred
 E_pred is the mean of every prediction above the sweep's --score-min, false ones included: where
 that mean is already close to E_est the factors can move true boxes off (600 frames: +2.0
 AP_3D@0.7 on the Waymo-like task, three seeds; -1.7 on the nuScenes-like task, one seed;
-docs/RESULTS.md). --size-factor-score-min 0.7 takes E_pred from the sweep's confident boxes
-only (its detections.parquet; sweeps before session 20 must be re-run): measured +0.1 to +0.5
-AP_3D@0.7 against all boxes on three controls, too little to be the default, and the
-nuScenes-like loss stays (-1.4 instead of -1.7).
+docs/RESULTS.md).
 
 \b
 Output: the AP table on stdout; --out FILE writes metrics.json
 ({"Car": {"iou", "recall_positions", "bev": {...}, "3d": {...}, "counts": {...}, "curves"}},
 one more block "Car@<iou>" per further --iou, "sizes": {"pred", "gt"} mean l/w/h in metres of
-the class (predictions: score >= --size-score-min), "scale" (with --model; with --pred the
+the class (predictions: score >= --score-min), "scale" (with --model; with --pred the
 scale of the eval that saved them, when its metrics.json says), with a size
 correction "size_correction" (factors, E_est, E_pred and the scale.json they came from).
 """
@@ -73,18 +70,14 @@ correction "size_correction" (factors, E_est, E_pred and the scale.json they cam
 @click.option("--iou", "ious", type=FRACTION, multiple=True, default=(0.7,), show_default=True,
               help="IoU threshold (a match needs IoU > this); repeat for several (--iou 0.7 "
                    "--iou 0.5).")  # fmt: skip
-@click.option("--size-score-min", type=finite_range(0.0, 1.0), default=0.3, show_default=True,
-              help="Predictions with at least this score enter the mean predicted size in "
-                   "metrics.json.")  # fmt: skip
+@score_min_option("size_score_min", "Predictions with at least this score enter the mean "
+                                    "predicted size in metrics.json (AP counts every "
+                                    "prediction).")  # fmt: skip
 @protocol_options
 @choice_option("--size-correction", choices=["none", "per-dim"], default="none",
                help="per-dim: resize the predicted cars per dimension (bottom face kept) by "
                     "E_est / E_pred(ŝ) of --scale-from's sweep before evaluating: the test-time "
                     "half of PTSN's size bias, label-free (see below).")  # fmt: skip
-@click.option("--size-factor-score-min", type=click.FloatRange(0.0, 1.0), default=None,
-              help="With --size-correction: E_pred of the factors is the mean of the sweep's "
-                   "boxes with at least this score (its detections.parquet) instead of all its "
-                   "boxes (default: the sweep's E_pred_at_scale, its own --score-min).")  # fmt: skip
 @click.option("--out", type=click.Path(path_type=Path),
               help="A metrics file (FILE.json), or an artifact directory (any other path): "
                    "DIR/metrics.json, DIR/predictions.parquet and DIR/manifest.json, skipped "
@@ -113,7 +106,6 @@ def command(
     class_name,
     min_gt_points,
     size_correction,
-    size_factor_score_min,
     out,
     save_predictions,
     device,
@@ -138,7 +130,6 @@ def command(
         save_predictions=save_predictions, device=device, precision=precision, executor=executor,
         workers=workers, ray_address=ray_address, force=force, dry_run=dry_run,
         progress=not no_progress, size_correction=size_correction,
-        size_factor_score_min=size_factor_score_min,
     )  # fmt: skip
     if result.status == "dry-run":
         return

@@ -14,6 +14,7 @@ from dali_cli.commands.common import (
     out_dir_option,
     sensors_option,
     stage_options,
+    target_profile_option,
     workers_option,
 )
 from dali_cli.ppcg.frame import DEFAULT_POINT_MARGIN_M
@@ -28,8 +29,7 @@ def ppcg_options(function):
                           "controlled runs."),
         input_dir_option("--library", "library_dir", help="Model library of `dali library build`."),
         out_dir_option(),
-        click.option("--sensor", default=None,
-                     help="Target sensor profile (default: the frame set's 'sensor' attribute)."),
+        target_profile_option("sensor"),
         click.option("--models", type=click.Choice(["cad", "points"]), default=None,
                      help="Model kind to fit  [default: cad if the library has meshes, else points]"),
         click.option("--top-k", type=click.IntRange(min=1), default=1, show_default=True,
@@ -50,13 +50,6 @@ def ppcg_options(function):
                           "LiDAR points lie on a car's surface, so a pseudo box a little off "
                           "leaves part of the car outside it as raw points beside the model "
                           "(0: the points in the box, as the paper)."),
-        click.option("--occlusion/--no-occlusion", default=False, show_default=True,
-                     help="The fitted model hides what lies behind it: the frame's other points "
-                          "whose rays meet a box's model before they reach the point are re-cast "
-                          "onto it (RC) or dropped (CF), so no scene shows through a model car "
-                          "placed where the pseudo box, not the real car, is "
-                          "(dali_cli.ppcg.occlusion). Off by default: level with it off on the "
-                          "12,000-step benchmark, seed 0 (docs/RESULTS.md, session 29)."),
         click.option("--label", default="Car", show_default=True,
                      help="Process boxes of this label; other rows pass through as 'raw'."),
         workers_option("1"),

@@ -50,12 +50,6 @@ def read_json_option(path: str | None) -> dict | None:
                    "see docs/detector.md).")  # fmt: skip
 @click.option("--label", "labels", multiple=True, default=("Car",), show_default=True,
               help="Box labels to train on (repeatable).")  # fmt: skip
-@click.option("--schedule-epochs", type=click.FloatRange(min=0, min_open=True), default=None,
-              help="Let the one-cycle learning-rate schedule span this many epochs and train "
-                   "only the first --epochs of it (default: --epochs, a whole schedule); "
-                   "`dali retrain --continue-schedule` then runs the rest instead of warming up "
-                   "again (docs/RESULTS.md, session 23: a restarted schedule loses the steps "
-                   "before it).")  # fmt: skip
 @training_options
 def command(source, out, labels, **options):
     """Train the CPU detector (pillars + CenterPoint heads + IoU score) on a labeled source.

@@ -38,7 +38,7 @@ SCALE_RANGE = ScaleRangeType()
 @click.option("--scales", "scale_range", type=SCALE_RANGE, default="0.8:1.4", show_default=True,
               help="Swept scales LOW:HIGH[:STEP] (STEP default 0.01; the grid and the confirm "
                    "resolution).")  # fmt: skip
-@click.option("--expected-size", "--target-size", "expected_size", default="sn", show_default=True,
+@click.option("--expected-size", "expected_size", default="sn", show_default=True,
               help="E_est: 'sn' (target profile's mean car size, sensors.toml), 'ros' (source "
                    "mean x mean ROS factor) or explicit L,W,H in metres.")  # fmt: skip
 @choice_option("--search", choices=["bracket", "grid"], default="bracket",
@@ -47,7 +47,7 @@ SCALE_RANGE = ScaleRangeType()
 @click.option("--frames", type=click.IntRange(min=1), default=None, help="Use N seeded frames.")
 @click.option("--frame-fraction", type=finite_range(0, 1, min_open=True), default=None,
               help="Use this fraction of the frames (seeded).")  # fmt: skip
-@score_min_option
+@score_min_option()
 @choice_option("--no-detections", choices=["identity", "error"], default="identity",
                help="When no box reaches --score-min at any tried scale: identity = write ŝ = 1 "
                     "(no size normalization) with a warning recorded in scale.json and the "
@@ -66,10 +66,7 @@ SCALE_RANGE = ScaleRangeType()
 @click.option("--noise", type=finite_range(min=0), default=0.02, show_default=True,
               help="How far the criterion may rise with s and still count as monotone (volume: "
                    "log ratio).")  # fmt: skip
-@target_profile_option
-@click.option("--source-profile", default=None, help="Source profile for --expected-size ros.")
-@click.option("--ros-factor", type=finite_range(0, min_open=True), default=None,
-              help="Mean ROS factor for --expected-size ros (default: model.json, else 0.875).")  # fmt: skip
+@target_profile_option()
 @click.option("--plot", is_flag=True, help="Also write sweep.png (mean volume vs scale).")
 @target_scaling_options
 def command(model_dir, target_dir, out, scale_range, sensors_path, no_progress, **options):
@@ -80,8 +77,7 @@ def command(model_dir, target_dir, out, scale_range, sensors_path, no_progress, 
     Writes OUT/scale.json ("scale": ŝ, E_est, E_pred at ŝ, per-dimension bias, passes, detector
     frames, strategy, clipping), OUT/sweep.parquet (one row per evaluated scale and frame set:
     frames, boxes, mean l/w/h, mean volume, seconds), OUT/detections.parquet (every box at the
-    scales evaluated on all frames: scale, frame, l, w, h, score; read by `dali eval
-    --size-factor-score-min`), OUT/sweep.png with --plot, and manifest.json.
+    scales evaluated on all frames: scale, frame, l, w, h, score), OUT/sweep.png with --plot, and manifest.json.
     When E_est lies outside --scales, ŝ is clipped to the bound and a warning says so. When the
     model finds no box with score >= --score-min at any tried scale (an undertrained model),
     ŝ = 1 with fallback "no-detections" and a warning (or exit 1 with --no-detections error).

@@ -65,19 +65,8 @@ class GreedyOption(click.Option):
                    "--source-size sn (what `make iter2` passes).")  # fmt: skip
 @click.option("--label", "labels", multiple=True, default=("Car",), show_default=True,
               help="Box labels to train on.")  # fmt: skip
-@click.option("--ignore-label", "ignore_labels", multiple=True, default=(),
-              help="PPCG boxes of this label are ignore regions: the detector is taught neither "
-                   "car nor background there (no heatmap negatives, no IoU-head or refiner "
-                   "samples). `dali pseudo-label --ignore-min` writes the boxes scored between "
-                   "it and --score-min as DontCare: pass --ignore-label DontCare. Off by "
-                   "default (docs/RESULTS.md, session 30: at --mix 1:7 the regions over the 0.3-0.6 "
-                   "boxes add +0.03 +- 0.28 AP_3D to a 0.6 cut; level at 1:1; one seed).")  # fmt: skip
-@click.option("--continue-schedule", is_flag=True,
-              help="Run the rest of the one-cycle learning-rate schedule INIT stopped in "
-                   "(`dali pretrain --schedule-epochs`) over this run's budget, instead of a "
-                   "fresh schedule that warms up again.")  # fmt: skip
 @training_options
-def command(init, source, ppcg, out, labels, ignore_labels, **options):
+def command(init, source, ppcg, out, labels, **options):
     """Retrain on the labeled source plus PPCG frame sets, alternating source and PPCG batches.
 
     Reads INIT/model.pt + model.json, SOURCE (frames.zarr + boxes.parquet) and each PPCG directory
@@ -89,6 +78,5 @@ def command(init, source, ppcg, out, labels, ignore_labels, **options):
     from stages.retrain import run_retrain
 
     run_training_command(
-        "retrain", run_retrain, init, source, list(ppcg), out, labels=tuple(labels),
-        ignore_labels=tuple(ignore_labels), **options,
+        "retrain", run_retrain, init, source, list(ppcg), out, labels=tuple(labels), **options,
     )  # fmt: skip

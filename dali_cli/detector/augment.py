@@ -166,12 +166,11 @@ def sample_ground_truth(
     database: ObjectDatabase,
     rng: np.random.Generator,
     target_count: int = 15,
-    blocked: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Paste database instances (at their recorded positions) until the frame has about
     `target_count` boxes (in the database's region, if it has one); candidates overlapping any
-    box or any `blocked` box (k, 7) (ignore regions: not counted) in BEV are dropped, and scene
-    points inside a pasted box are removed (the pasted car replaces whatever was there)."""
+    box in BEV are dropped, and scene points inside a pasted box are removed (the pasted car
+    replaces whatever was there)."""
     present = (
         len(boxes) if database.region is None else int(in_region(boxes, database.region).sum())
     )
@@ -181,10 +180,9 @@ def sample_ground_truth(
     candidates = rng.choice(len(database), size=min(wanted, len(database)), replace=False)
     candidate_boxes = database.boxes[candidates]  # (c, 7)
     accepted = np.zeros(len(candidates), bool)
-    occupied = boxes if blocked is None else np.concatenate([boxes, blocked])
     existing_overlap = (
-        (bev_iou(candidate_boxes, occupied) > 0).any(axis=1)
-        if len(occupied)
+        (bev_iou(candidate_boxes, boxes) > 0).any(axis=1)
+        if len(boxes)
         else np.zeros(len(candidates), bool)
     )
     mutual = bev_iou(candidate_boxes, candidate_boxes) > 0  # (c, c)

@@ -5,6 +5,10 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, fields
 
+# fields earlier models' model.json carry, with the one value still read: a second refinement
+# pass at inference and test-time flip, both measured to be no gain (docs/detector.md)
+RETIRED = {"refine_passes": 1, "flip_test": False}
+
 
 @dataclass
 class DetectorConfig:
@@ -47,7 +51,6 @@ class DetectorConfig:
     refine_channels: int = 128  # point MLP widths c/2, c, 2c; box MLP 2c
     refine_train_peaks: int = 64  # first-stage peaks per frame the refiner trains on (docs: 32)
     refine_weights: tuple[float, float] = (1.0, 1.0)  # residual, IoU
-    refine_passes: int = 1  # at inference: refine the refined boxes again (the last IoU scores)
     # refined score = first-stage score^(1 - a) * refined IoU^a; with the refiner trained on 64
     # peaks, a = 0.5 beat 0.3 in AP and in boxes on no car at score 0.3 (docs/detector.md)
     refine_alpha: float = 0.5
@@ -55,7 +58,6 @@ class DetectorConfig:
     top_k: int = 100
     score_threshold: float = 0.05
     nms_iou: float = 0.1
-    flip_test: bool = False  # average the maps of each cloud and its y-mirror (2x inference)
     iou_alpha: float = 0.5  # score = heat^(1 - alpha) * iou^alpha (SECOND-IoU / CIA-SSD style)
 
     @property
@@ -93,6 +95,15 @@ class DetectorConfig:
 
     @classmethod
     def from_dict(cls, values: dict) -> DetectorConfig:
+        """The config of a model.json's `config` block (or of --detector-config overrides);
+        unknown keys are a ValueError. RETIRED keys are read at their one value and dropped."""
+        values = dict(values)
+        for key, only in RETIRED.items():
+            if key in values and (value := values.pop(key)) != only:
+                raise ValueError(
+                    f"detector config key {key} = {value!r} is no longer supported "
+                    f"(only {only!r}: an option measured to be no gain)"
+                )
         known = {f.name: f for f in fields(cls)}
         unknown = sorted(set(values) - set(known))
         if unknown:

@@ -34,8 +34,7 @@ class Augmentation:
 @dataclass
 class LabeledFrames:
     """A labeled training set in memory. points[i]: (n_i, 4) float32 and boxes[i]: (m_i, 7)
-    float64, both in the ground frame (sensor z + mount_height_m). ignore[i]: (k_i, 7) float64
-    ignore regions of frame i (dali_cli.detector.ignore), or None for a set without any."""
+    float64, both in the ground frame (sensor z + mount_height_m)."""
 
     name: str
     sensor: str
@@ -44,7 +43,6 @@ class LabeledFrames:
     points: list[np.ndarray]
     boxes: list[np.ndarray]
     database: augment.ObjectDatabase | None = field(default=None, repr=False)
-    ignore: list[np.ndarray] | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -66,11 +64,8 @@ def load_labeled(
     labels: tuple[str, ...] = ("Car",),
     min_points: int = 1,
     sensors_path: str | Path | None = None,
-    ignore_labels: tuple[str, ...] = (),
 ) -> LabeledFrames:
     """Read a FrameSet and its boxes.parquet (same directory unless `boxes_dir`) into memory.
-    Boxes of `ignore_labels` (with a positive size) become the frames' ignore regions
-    (LabeledFrames.ignore; None when `ignore_labels` is empty).
 
     Points and boxes that global rotation (<= 45 deg) cannot bring into the detection range are
     dropped (beyond its far corner + 10 m, or more than 135 deg off +x for a front range); boxes
@@ -102,15 +97,13 @@ def load_labeled(
         table.frame_id,
         profile.max_range_m,
     )
-    ignored = ignore_table(table, ignore_labels)
-    ignore_rows = ignored.rows_by_frame() if ignored is not None else {}
     table = table.select(targets)
     rows = table.rows_by_frame()
     far = (
         np.hypot(max(abs(v) for v in config.x_range_m), max(abs(v) for v in config.y_range_m)) + 10
     )
     reach = np.radians(135.0) if config.x_range_m[0] >= 0 else np.pi + 1e-9
-    all_points, all_boxes, all_ignore = [], [], []
+    all_points, all_boxes = [], []
     for frame_id, points in frames.iter_frames():
         # only what global rotation (<= 45 deg) can bring into the range: radius and azimuth
         keep = (np.hypot(points[:, 0], points[:, 1]) < far) & (
@@ -125,24 +118,9 @@ def load_labeled(
             boxes = boxes[visible & (count_points_in_boxes(points, boxes) >= min_points)]
         all_points.append(points)
         all_boxes.append(boxes)
-        if ignored is not None:
-            regions = ignored.select(ignore_rows.get(frame_id, np.zeros(0, np.int64))).boxes
-            regions[:, 2] += mount
-            all_ignore.append(regions)
     return LabeledFrames(
-        str(data_dir), frames.sensor, mount, list(frames.frame_ids), all_points, all_boxes,
-        ignore=all_ignore if ignored is not None else None,
-    )  # fmt: skip
-
-
-def ignore_table(table, ignore_labels: tuple[str, ...]):
-    """The rows of `table` (BoxTable) with a label of `ignore_labels` and a positive size (a
-    placeholder row without one, like KITTI's DontCare, covers nothing); None without labels."""
-    if not ignore_labels:
-        return None
-    boxes = table.boxes
-    keep = np.isin(table["label"].astype(str), ignore_labels) & (boxes[:, 3:6] > 0).all(axis=1)
-    return table.select(np.flatnonzero(keep))
+        str(data_dir), frames.sensor, mount, list(frames.frame_ids), all_points, all_boxes
+    )
 
 
 def size_normalize(frames: LabeledFrames, delta_lwh: np.ndarray) -> LabeledFrames:
@@ -156,9 +134,8 @@ def size_normalize(frames: LabeledFrames, delta_lwh: np.ndarray) -> LabeledFrame
         points.append(new_points)
         boxes.append(new_boxes)
     return LabeledFrames(
-        frames.name, frames.sensor, frames.mount_height_m, frames.frame_ids, points, boxes,
-        ignore=frames.ignore,
-    )  # fmt: skip
+        frames.name, frames.sensor, frames.mount_height_m, frames.frame_ids, points, boxes
+    )
 
 
 def scale_about_ground(frames: LabeledFrames, scale: float) -> LabeledFrames:
@@ -169,13 +146,9 @@ def scale_about_ground(frames: LabeledFrames, scale: float) -> LabeledFrames:
 
     points = [scale_ground_points(p, scale) for p in frames.points]  # (n, 4): intensity kept
     boxes = [scale_ground_boxes(b, scale) for b in frames.boxes]  # (m, 7): yaw kept
-    ignore = (
-        None if frames.ignore is None else [scale_ground_boxes(b, scale) for b in frames.ignore]
-    )
     return LabeledFrames(
-        frames.name, frames.sensor, frames.mount_height_m, frames.frame_ids, points, boxes,
-        ignore=ignore,
-    )  # fmt: skip
+        frames.name, frames.sensor, frames.mount_height_m, frames.frame_ids, points, boxes
+    )
 
 
 def detection_region(config: DetectorConfig) -> tuple[float, float, float, float]:
@@ -184,39 +157,33 @@ def detection_region(config: DetectorConfig) -> tuple[float, float, float, float
 
 class Sample(NamedTuple):
     """One augmented training frame, ground frame: points (n, 4) float32, boxes (m, 7) float64
-    (the targets) and ignore (k, 7) float64 (its ignore regions; (0, 7) for none)."""
+    (the targets)."""
 
     points: np.ndarray
     boxes: np.ndarray
-    ignore: np.ndarray
 
 
 def augmented_sample(
     frames: LabeledFrames, index: int, rng: np.random.Generator, settings: Augmentation
 ) -> Sample:
-    """One augmented frame. Ignore regions block ground-truth sampling, follow the frame's flip,
-    rotation and scaling and are otherwise left alone (no object noise or scaling: no points of
-    theirs are moved)."""
+    """One augmented frame: ground-truth sampling, object scaling and noise, then the frame's
+    flip, rotation and scaling, each drawn from `rng` in that order."""
     points, boxes = frames.points[index], frames.boxes[index]
-    ignore = np.zeros((0, 7)) if frames.ignore is None else frames.ignore[index]
     if settings.gt_sampling and frames.database is not None:
         points, boxes = augment.sample_ground_truth(
-            points, boxes, frames.database, rng, settings.gt_sample_count,
-            blocked=ignore if len(ignore) else None,
-        )  # fmt: skip
+            points, boxes, frames.database, rng, settings.gt_sample_count
+        )
     if settings.object_scale is not None and len(boxes):
         factor = rng.uniform(*settings.object_scale, size=len(boxes))
         points, boxes = augment.scale_objects(points, boxes, np.repeat(factor[:, None], 3, axis=1))
     if settings.object_noise:
         points, boxes = augment.object_noise(points, boxes, rng)
-    count = len(boxes)  # the frame's own transforms move the ignore regions with it
-    both = np.concatenate([boxes, ignore]) if len(ignore) else boxes
     if settings.flip and rng.random() < 0.5:
-        points, both = augment.flip_y(points, both)
+        points, boxes = augment.flip_y(points, boxes)
     if settings.rotation_rad > 0:
-        points, both = augment.rotate_scene(
-            points, both, rng.uniform(-settings.rotation_rad, settings.rotation_rad)
+        points, boxes = augment.rotate_scene(
+            points, boxes, rng.uniform(-settings.rotation_rad, settings.rotation_rad)
         )
     if settings.scaling != (1.0, 1.0):
-        points, both = augment.scale_scene(points, both, rng.uniform(*settings.scaling))
-    return Sample(points, both[:count], both[count:])
+        points, boxes = augment.scale_scene(points, boxes, rng.uniform(*settings.scaling))
+    return Sample(points, boxes)

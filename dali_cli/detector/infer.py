@@ -81,8 +81,6 @@ def rescore_refined(
     from dali_cli.geometry import nms_bev
 
     refined, iou = refine_boxes(refiner, points, boxes, config)
-    for _ in range(config.refine_passes - 1):  # further passes refine the refined boxes
-        refined, iou = refine_boxes(refiner, points, refined, config)
     alpha = config.refine_alpha
     rescored = (scores ** (1 - alpha) * iou**alpha).astype(np.float32)
     keep = np.flatnonzero(rescored >= config.score_threshold)
@@ -233,54 +231,11 @@ class Detector:
             )
             points, batch_index = points.to(self.device), batch_index.to(self.device)
             with autocast(self.device, self.precision):  # the second stage's MLP too
-                maps = run_network(self.net, points, batch_index, len(chunk), config)
+                maps = self.net(points, batch_index, len(chunk), grid=config)
                 decoded = decode(maps, config, refiner, frames_points)
             for boxes, scores in decoded:
                 results.append((ground_boxes_to_sensor(boxes, mount, scale), scores))
         return results
-
-
-def run_network(
-    net: PillarCenterNet,
-    points: torch.Tensor,
-    batch_index: torch.Tensor,
-    batch_size: int,
-    grid: DetectorConfig,
-) -> dict[str, torch.Tensor]:
-    """Head maps for ground-frame points (P, 4) on `grid`; with `grid.flip_test` the average of the
-    maps of the cloud and of its mirror image (y -> 2c - y about the grid's middle row, so the
-    mirrored cloud fills the same cells), un-mirrored: test-time flip augmentation."""
-    if not grid.flip_test:
-        return net(points, batch_index, batch_size, grid=grid)
-    rows = grid.grid_size[0]
-    y0 = grid.y_range_m[0]
-    padded = dataclasses.replace(grid, y_range_m=(y0, y0 + rows * grid.pillar_m))
-    middle = y0 + rows * grid.pillar_m / 2
-    mirrored = points.clone()
-    mirrored[:, 1] = 2 * middle - mirrored[:, 1]
-    both = net(
-        torch.cat([points, mirrored]),
-        torch.cat([batch_index, batch_index + batch_size]),
-        2 * batch_size,
-        grid=padded,
-    )
-    return {name: average_mirrored(name, value, batch_size) for name, value in both.items()}
-
-
-def average_mirrored(name: str, maps: torch.Tensor, batch_size: int) -> torch.Tensor:
-    """(2B, C, h, w) maps of B clouds then their mirror images -> (B, C, h, w) averages.
-
-    Un-mirroring reverses the rows, turns the cell's y offset o into 1 - o and sin 2yaw into
-    -sin 2yaw; heatmap and IoU logits are averaged as probabilities."""
-    direct, mirrored = maps[:batch_size], maps[batch_size:].flip(dims=[2]).clone()
-    if name == "offset":
-        mirrored[:, 1] = 1 - mirrored[:, 1]
-    elif name == "rot":
-        mirrored[:, 0] = -mirrored[:, 0]
-    if name in ("heatmap", "iou"):
-        mean = (torch.sigmoid(direct) + torch.sigmoid(mirrored)) / 2
-        return torch.logit(mean, eps=1e-6)
-    return (direct + mirrored) / 2
 
 
 def visible_range(config: DetectorConfig, scale: float) -> tuple[float, float, float, float]:

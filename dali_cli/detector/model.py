@@ -174,10 +174,6 @@ class PillarCenterNet(nn.Module):
         grid: DetectorConfig | None = None,
     ):
         """`grid`: a config with other x/y ranges (same pillar size) to run on, e.g. a larger area."""
-        return self.forward_with(self.backbone, self.head, points, batch_index, batch_size, grid)
-
-    def forward_with(self, backbone, head, points, batch_index, batch_size: int, grid=None):
-        """forward() with other callables in place of the backbone and heads (e.g. compiled ones)."""
         canvas = self.encoder(points, batch_index, batch_size, grid)  # (B, C, H, W)
-        maps = head(backbone(canvas))
+        maps = self.head(self.backbone(canvas))
         return {name: value.float() for name, value in maps.items()}

@@ -20,7 +20,6 @@ import torch.nn.functional as F
 from torch import nn
 
 from dali_cli.detector.config import DetectorConfig
-from dali_cli.detector.ignore import ignored_centres
 from dali_cli.geometry import bev_iou, iou_3d, point_box_pairs, wrap_angle
 
 POINT_FEATURES = 9
@@ -224,7 +223,6 @@ def refine_loss(
     objects_list: list[np.ndarray],
     config: DetectorConfig,
     rng: np.random.Generator | list[np.random.Generator],
-    ignore_list: list[np.ndarray] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Residual (L1, on proposals with BEV IoU >= 0.4 with a target box) and IoU (BCE against
     the refined box's best 3D IoU with any target box) losses over a batch of frames, each a
@@ -232,9 +230,7 @@ def refine_loss(
 
     points_list[b] (P_b, >=3), proposals_list[b] (K_b, 7) (detached first-stage boxes) and
     objects_list[b] (M_b, 7) target boxes, all in the ground frame. `rng`: one generator for
-    the whole batch, or one per frame (what distributed training needs). ignore_list[b] (k_b, 7):
-    the frame's ignore regions; a proposal centred in one that overlaps no target box in BEV is
-    left out."""
+    the whole batch, or one per frame (what distributed training needs)."""
     from dali_cli.detector.distributed import global_normalizer
 
     rngs = rng if isinstance(rng, list) else [rng] * len(points_list)
@@ -245,13 +241,6 @@ def refine_loss(
     ):
         rng = rngs[b]
         found = clip_proposals(found)
-        if ignore_list is not None and len(found):
-            touches = (
-                (bev_iou(found, objects) > 0).any(axis=1)
-                if len(objects)
-                else np.zeros(len(found), bool)
-            )
-            found = found[~(ignored_centres(found, ignore_list[b]) & ~touches)]
         boxes = np.concatenate([found, jitter_boxes(objects, rng)]) if len(objects) else found
         if len(boxes) == 0:
             continue

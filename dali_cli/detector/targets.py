@@ -15,7 +15,6 @@ import torch.nn.functional as F
 
 from dali_cli.detector.config import DetectorConfig
 from dali_cli.detector.distributed import global_normalizer
-from dali_cli.detector.ignore import ignored_cells, ignored_centres
 from dali_cli.geometry import iou_3d, iou_3d_pairs
 
 REGRESSION = ("offset", "z", "size", "rot")  # head maps concatenated in this order -> 8 channels
@@ -38,10 +37,6 @@ class Targets:
     boxes: np.ndarray
     weight: torch.Tensor
     objects: list[np.ndarray] | None = None  # per frame (M_b, 7) float64: every target box
-    # ignore regions (dali_cli.detector.ignore), None when the batch has none: per frame
-    # (k_b, 7) float64 boxes, and (B, 1, h, w) float32 = 1 in the head cells they cover
-    ignore_boxes: list[np.ndarray] | None = None
-    ignore_cells: torch.Tensor | None = None
 
     def to(self, device: torch.device) -> Targets:
         """The tensors on `device` (boxes and objects stay numpy: they feed the IoU targets)."""
@@ -53,8 +48,6 @@ class Targets:
             self.boxes,
             self.weight.to(device),
             self.objects,
-            self.ignore_boxes,
-            None if self.ignore_cells is None else self.ignore_cells.to(device),
         )
 
 
@@ -118,13 +111,8 @@ def regression_cells(
     return obj[keep], cell_col[keep], cell_row[keep], weight[keep]
 
 
-def build_targets(
-    boxes_list: list[np.ndarray],
-    config: DetectorConfig,
-    ignore_list: list[np.ndarray] | None = None,
-) -> Targets:
-    """Targets for B frames; boxes_list[b] is (M_b, 7) float64 in the ground frame, ignore_list[b]
-    (k_b, 7) the frame's ignore regions (None or all empty: the batch has none)."""
+def build_targets(boxes_list: list[np.ndarray], config: DetectorConfig) -> Targets:
+    """Targets for B frames; boxes_list[b] is (M_b, 7) float64 in the ground frame."""
     h, w = config.head_size
     batch = len(boxes_list)
     k = config.max_objects * (2 * config.regression_radius_cells + 1) ** 2
@@ -177,11 +165,6 @@ def build_targets(
             axis=1,
         )
         gt[b, :n] = chosen
-    ignore_boxes = ignore_cells = None
-    if ignore_list is not None and any(len(b) for b in ignore_list):
-        ignore_boxes = [np.asarray(b, np.float64).reshape(-1, 7) for b in ignore_list]
-        cells = np.stack([ignored_cells(b, config) for b in ignore_boxes])[:, None]  # (B,1,h,w)
-        ignore_cells = torch.from_numpy(cells.astype(np.float32))
     return Targets(
         torch.from_numpy(heatmap),
         torch.from_numpy(index),
@@ -190,8 +173,6 @@ def build_targets(
         gt,
         torch.from_numpy(weight),
         objects,
-        ignore_boxes,
-        ignore_cells,
     )
 
 
@@ -211,17 +192,12 @@ def regression_to_boxes(
     )
 
 
-def focal_loss(
-    logits: torch.Tensor, target: torch.Tensor, ignore: torch.Tensor | None = None
-) -> torch.Tensor:
+def focal_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """CenterNet's penalty-reduced focal loss on (B, 1, h, w) logits vs Gaussian targets, over
-    the number of positive cells of the (global, under DDP) batch. `ignore` (B, 1, h, w), 1 in
-    ignore regions: their cells add no negative term (a positive cell keeps its term)."""
+    the number of positive cells of the (global, under DDP) batch."""
     prob = torch.sigmoid(logits).clamp(1e-4, 1 - 1e-4)
     positive = target.eq(1).float()
     negative_weight = (1 - target).pow(4)
-    if ignore is not None:
-        negative_weight = negative_weight * (1 - ignore)
     positive_loss = torch.log(prob) * (1 - prob).pow(2) * positive
     negative_loss = torch.log(1 - prob) * prob.pow(2) * negative_weight * (1 - positive)
     count = global_normalizer(positive.sum(), 1.0)
@@ -265,27 +241,20 @@ def peak_iou_loss(
     """BCE of the IoU head at the `config.iou_peak_cells` strongest heatmap peaks of each frame
     (what decoding will score), against the best 3D IoU of the box decoded there with any target
     box (0 on background). Without it the IoU head is trained only at object centres and says
-    anything elsewhere, so a score that leans on it (iou_alpha) lifts background peaks. A peak
-    centred in an ignore region that overlaps no target box is left out."""
+    anything elsewhere, so a score that leans on it (iou_alpha) lifts background peaks."""
     index, boxes = peak_boxes(maps, config, config.iou_peak_cells)
     batch, k = index.shape
     boxes = boxes.cpu().numpy()  # (B, k, 7): the exact IoU targets are numpy geometry
     target = np.zeros((batch, k), np.float32)
-    counted = np.ones((batch, k), np.float32)
     for b in range(batch):  # frames: one or a few per batch
         objects = targets.objects[b] if targets.objects is not None else np.zeros((0, 7))
         if len(objects):
             target[b] = iou_3d(boxes[b], objects).max(axis=1)
-        if targets.ignore_boxes is not None:
-            counted[b] = ~(ignored_centres(boxes[b], targets.ignore_boxes[b]) & (target[b] == 0))
     logits = gather_cells(maps["iou"], index)[..., 0]  # (B, k)
     losses = F.binary_cross_entropy_with_logits(
         logits, torch.from_numpy(target).to(logits.device), reduction="none"
     )
-    if targets.ignore_boxes is None:
-        return losses.sum() / global_normalizer(logits.new_tensor(float(losses.numel())), 1.0)
-    weight = torch.from_numpy(counted).to(logits.device)
-    return (losses * weight).sum() / global_normalizer(weight.sum(), 1.0)
+    return losses.sum() / global_normalizer(logits.new_tensor(float(losses.numel())), 1.0)
 
 
 def detection_loss(
@@ -296,7 +265,7 @@ def detection_loss(
     """Total loss and its terms (detached () tensors, for the log: no host copy per step).
     Every term is a mean over the global batch (see distributed.global_normalizer). The IoU head learns the 3D IoU of the box
     decoded at each regressing cell with its object (a soft BCE target), weighted like the box loss."""
-    heat = focal_loss(maps["heatmap"], targets.heatmap, targets.ignore_cells)
+    heat = focal_loss(maps["heatmap"], targets.heatmap)
     regression_maps = torch.cat([maps[name] for name in REGRESSION], dim=1)  # (B, 8, h, w)
     predicted = gather_cells(regression_maps, targets.index)  # (B, K, 8)
     mask = targets.mask  # (B, K)

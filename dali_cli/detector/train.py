@@ -4,7 +4,6 @@ a resumable state file, and a log row per logged step."""
 
 from __future__ import annotations
 
-import functools
 import math
 import time
 from collections.abc import Callable
@@ -52,12 +51,7 @@ class TrainSettings:
     precision: str = "fp32"  # "bf16" autocast: on CUDA, or on CPUs with AMX / AVX512-BF16
     threads: int | None = None  # None: this process's share of the cores (runtime.training_threads)
     device: str = "auto"  # auto | cpu | cuda | cuda:N (dali_cli.runtime.device.resolve_device)
-    compile: bool = False  # torch.compile the backbone and heads (~1 min cold start)
     mix: tuple[int, ...] = (1,)
-    # the part (start, stop) of the one-cycle learning-rate schedule this run covers: (0, 1) a
-    # whole schedule; pretrain --schedule-epochs runs its first part, retrain
-    # --continue-schedule the rest, so the two trainings make one schedule
-    schedule: tuple[float, float] = (0.0, 1.0)
     log_every: int = 5
     checkpoint_every_s: float = 120.0
 
@@ -85,10 +79,8 @@ def one_cycle(
 
 
 def schedule_lr(fraction: float, settings: TrainSettings) -> float:
-    """Learning rate when `fraction` in [0, 1] of this run's budget is spent: the one-cycle
-    schedule at the matching point of the part settings.schedule = (start, stop) it covers."""
-    start, stop = settings.schedule
-    return one_cycle(start + (stop - start) * fraction, settings.lr, settings.pct_start)
+    """Learning rate when `fraction` in [0, 1] of this run's budget is spent (one-cycle)."""
+    return one_cycle(fraction, settings.lr, settings.pct_start)
 
 
 def interleave(mix: tuple[int, ...]) -> list[int]:
@@ -161,7 +153,7 @@ def train(
     step, elapsed, log = resume_training(resume_path, resume_key, net, optimizer, world)
     resumed_from = step
     net.train()
-    forward = compiled_forward(net) if settings.compile else model
+    forward = model
     bar = progress_bar(steps, budget_s, step, elapsed, world, progress)
     mine = rank_slice(world, settings.batch_size)  # this rank's positions in the global batch
     global_batch = settings.batch_size * world.size
@@ -239,15 +231,12 @@ def progress_bar(
 def check_training_inputs(
     datasets: list[LabeledFrames], augmentations: list, settings: TrainSettings, world: World
 ) -> None:
-    """One mix weight and one augmentation per data set, no empty set, no --compile under
-    torchrun (ValueError otherwise)."""
+    """One mix weight and one augmentation per data set, no empty set (ValueError otherwise)."""
     if len(datasets) != len(settings.mix) or len(augmentations) != len(datasets):
         raise ValueError("need one mix weight and one augmentation setting per data set")
     for d in datasets:
         if len(d) == 0:
             raise ValueError(f"training set {d.name} has no frames")
-    if settings.compile and world.distributed:
-        raise ValueError("--compile is not supported with torchrun (distributed) training")
 
 
 def resume_training(
@@ -293,8 +282,8 @@ def step_samples(
     mine,
 ) -> tuple[int, list]:
     """The data set of optimizer step `step` (the mix's interleaving) and this rank's augmented
-    samples (data.Sample: points (n, 4), boxes (k, 7), ignore regions (k', 7)) of its batch: frame j of the global batch is drawn
-    from (seed, step, j), whatever the rank."""
+    samples (data.Sample: points (n, 4), boxes (k, 7)) of its batch: frame j of the global batch
+    is drawn from (seed, step, j), whatever the rank."""
     d = pattern[step % len(pattern)]
     cycles, within = divmod(step, len(pattern))
     batch_number = cycles * pattern.count(d) + pattern[:within].count(d)
@@ -324,9 +313,7 @@ def optimize_step(
     batch_index = torch.from_numpy(
         np.repeat(np.arange(len(samples)), [len(s.points) for s in samples])
     ).to(device)
-    targets = build_targets([s.boxes for s in samples], config, [s.ignore for s in samples]).to(
-        device
-    )
+    targets = build_targets([s.boxes for s in samples], config).to(device)
     with autocast(device, settings.precision):  # bf16: the networks' matrix products
         maps = forward(points, batch_index, len(samples))  # float32 maps
         loss, terms = detection_loss(maps, targets, config)
@@ -367,9 +354,8 @@ def add_refine_loss(
     positions = range(len(points_list)) if positions is None else positions
     rngs = [np.random.default_rng([seed, step, REFINE_STREAM, j]) for j in positions]
     box, iou = refine_loss(
-        net.refiner, points_list, list(boxes.cpu().numpy()), targets.objects, config, rngs,
-        targets.ignore_boxes,
-    )  # fmt: skip
+        net.refiner, points_list, list(boxes.cpu().numpy()), targets.objects, config, rngs
+    )
     w_box, w_iou = config.refine_weights
     total = loss + w_box * box + w_iou * iou
     return total, {
@@ -378,14 +364,6 @@ def add_refine_loss(
         "refine_box": box.detach(),
         "refine_iou": iou.detach(),
     }
-
-
-def compiled_forward(net: PillarCenterNet) -> Callable:
-    """`net`'s forward with the backbone and heads under torch.compile (their shapes are fixed;
-    the pillar encoder's vary with the point count and stay eager). The compiled modules share
-    `net`'s parameters, so `net` itself stays eager for inference after training.
-    Measured on this 2-core AVX2 VM: 8.0 vs 8.2 frames/s eager, after a 36 s compile (no gain)."""
-    return functools.partial(net.forward_with, torch.compile(net.backbone), torch.compile(net.head))
 
 
 def save_resume_state(

@@ -1,6 +1,5 @@
 """The per-frame part of pseudo-labelling (stages.pseudo_label): run the detector on batches of
-target frames at the PTSN scale (in several views fused into one set of boxes when test-time
-augmentation is on, dali_cli.labels.tta), drop implausible boxes, cut scores, BEV NMS, count the
+target frames at the PTSN scale, drop implausible boxes, cut scores, BEV NMS, count the
 original points in each box. In this process, or as shards on an executor's workers (dali_cli.executors),
 each loading the detector once; the batches are the same either way (shards are whole batches),
 so the labels are too."""
@@ -14,15 +13,14 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.labels import plausibility, tta
+from dali_cli.labels import plausibility
 from dali_cli.runtime.errors import StageError
 
 
 @dataclass
 class FrameLabels:
     """One frame's pseudo labels: boxes (K, 7) float64, scores (K,) float32, original points in
-    each box (K,) int32; boxes above the score cut dropped as implausible (summed over the
-    views); detector seconds (a batch's time is carried by its first frame)."""
+    each box (K,) int32; boxes above the score cut dropped as implausible; detector seconds (a batch's time is carried by its first frame)."""
 
     frame_id: str
     boxes: np.ndarray
@@ -54,9 +52,7 @@ def label_frame(
 class FrameLabeler:
     """What labelling a frame needs (picklable: it is also the executors' worker factory);
     `loader(model_dir)` returns the detector (an object with `predict`). `raw`: the detector's
-    predictions as they are (dali eval): only the score cut, no plausibility check, no NMS.
-    `views`: test-time augmentation (dali_cli.labels.tta); None or a single view: the detector once at
-    ŝ (always so when `raw`)."""
+    predictions as they are (dali eval): only the score cut, no plausibility check, no NMS."""
 
     model_dir: str
     target_dir: str
@@ -72,7 +68,6 @@ class FrameLabeler:
         None  # a --device spec (str, resolved where the detector loads) or a torch.device
     )
     precision: str = "fp32"
-    views: tta.Views | None = None
 
     def load(self):
         """The detector, loaded and placed on this process's device (dali_cli.runtime.device)."""
@@ -88,41 +83,30 @@ class FrameLabeler:
         from dali_cli.geometry import count_points_in_boxes
 
         started = time.perf_counter()
-        points_list = [points for _, points in batch]
-        if self.raw or self.views is None or self.views.single:
-            per_view = [self.predict(detector, points_list, 1.0, False)]
-        else:
-            per_view = [
-                self.predict(detector, points_list, factor, mirrored)
-                for factor, mirrored in self.views.each()
-            ]
+        predictions = self.predict(detector, [points for _, points in batch])
         seconds = time.perf_counter() - started
         labels = []
-        for i, (frame_id, points) in enumerate(batch):
-            views = [predictions[i] for predictions in per_view]
+        for (frame_id, points), (boxes, scores) in zip(batch, predictions, strict=True):
             if self.raw:
-                boxes, scores = views[0]
                 keep = scores >= self.score_min
                 boxes, scores = boxes[keep], scores[keep]
                 counts = count_points_in_boxes(points, boxes)
                 labels.append(FrameLabels(frame_id, boxes, scores, counts, 0, seconds))
                 seconds = 0.0
                 continue
-            boxes, scores, implausible = self.fused(views)
+            boxes, scores, implausible = self.plausible(boxes, scores)
             boxes, scores, counts = label_frame(boxes, scores, points, self.score_min, self.nms_iou)
             labels.append(FrameLabels(frame_id, boxes, scores, counts, implausible, seconds))
             seconds = 0.0
         return labels
 
     def predict(
-        self, detector, points_list: list[np.ndarray], factor: float, mirrored: bool
+        self, detector, points_list: list[np.ndarray]
     ) -> list[tuple[np.ndarray, np.ndarray]]:
-        """One view of every frame: [(boxes (M, 7) in the original frame, scores (M,))], the
-        detector run at ŝ * factor on the points, mirrored left-right when `mirrored`."""
-        if mirrored:
-            points_list = [tta.mirror_points(points) for points in points_list]
+        """Every frame's [(boxes (M, 7) in the original frame, scores (M,))]: the detector run at
+        ŝ on the points."""
         predictions = detector.predict(
-            points_list, scale=self.scale * factor, mount_height_m=self.mount_height_m
+            points_list, scale=self.scale, mount_height_m=self.mount_height_m
         )
         if len(predictions) != len(points_list):
             raise StageError(
@@ -130,34 +114,19 @@ class FrameLabeler:
                 f"{len(points_list)} frames"
             )
         return [
-            (
-                tta.mirror_boxes(boxes) if mirrored else np.asarray(boxes).reshape(-1, 7),
-                np.asarray(scores).reshape(-1),
-            )
+            (np.asarray(boxes).reshape(-1, 7), np.asarray(scores).reshape(-1))
             for boxes, scores in predictions
         ]
 
-    def fused(
-        self, views: list[tuple[np.ndarray, np.ndarray]]
+    def plausible(
+        self, boxes: np.ndarray, scores: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, int]:
-        """One frame's boxes (K, 7) and scores (K,) from its views, implausible boxes dropped
-        first (before NMS or fusion: one absurd box with a high score would suppress or pull
-        the others), and how many of those had a score above the cut (summed over views)."""
-        kept, implausible = [], 0
-        for boxes, scores in views:
-            sane = plausibility.plausible(boxes, self.max_range_m)
-            implausible += int(np.count_nonzero(~sane & (scores >= self.score_min)))
-            kept.append((boxes[sane], scores[sane]))
-        if len(kept) == 1:
-            return (*kept[0], implausible)
-        boxes, scores, _ = tta.fuse_boxes(
-            np.concatenate([boxes for boxes, _ in kept]),
-            np.concatenate([scores for _, scores in kept]),
-            np.repeat(np.arange(len(kept)), [len(boxes) for boxes, _ in kept]),
-            len(kept),
-            self.views.cluster_iou,
-        )
-        return boxes, scores, implausible
+        """One frame's boxes (K, 7) and scores (K,), implausible boxes dropped first (before
+        NMS: one absurd box with a high score would suppress the others), and how many of those
+        had a score above the cut."""
+        sane = plausibility.plausible(boxes, self.max_range_m)
+        implausible = int(np.count_nonzero(~sane & (scores >= self.score_min)))
+        return boxes[sane], scores[sane], implausible
 
     def batches(self, frames: Iterator[tuple[str, np.ndarray]]) -> Iterator[list]:
         buffer = []

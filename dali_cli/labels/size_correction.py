@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dali_cli.ptsn.stats import expected_prediction_by_frame
+from dali_cli.store import SCORE_MIN
 
 METHODS = ("per-dim", "none")
 
@@ -79,7 +80,7 @@ def correct_sizes(
     frame_ids: np.ndarray,
     e_est: np.ndarray,
     *,
-    score_min: float = 0.3,
+    score_min: float = SCORE_MIN,
     mean: str = "per-frame",
     method: str = "per-dim",
 ) -> tuple[np.ndarray, SizeCorrection]:

@@ -5,9 +5,7 @@ its centre lies at a range drawn per box from `range_m`; the target sensor's ray
 box's angular window are cast against the fitted model; the first hits inside the sensor's range
 limits are moved back by the same translation and replace the box's car points (frame.py). A box
 with no hits keeps its raw points (`no_hits`). CF points get the median intensity of the box's raw
-car points (the profile's car intensity when it has none). Occlusion between objects is ignored,
-except with `occlusion`: the frame's other points whose rays meet a box's model (in the box) before
-they reach the point are dropped (dali_cli.ppcg.occlusion).
+car points (the profile's car intensity when it has none). Occlusion between objects is ignored.
 With `orient`, a box whose model fits its points better turned round is turned round first
 (dali_cli.ppcg.orient).
 """
@@ -21,7 +19,6 @@ import numpy as np
 from dali_cli.ppcg.fitting import box_rng, box_uniform
 from dali_cli.ppcg.frame import CF, BoxRecords, assemble, car_points, ground_heights
 from dali_cli.ppcg.models import ModelBank
-from dali_cli.ppcg.occlusion import hidden_points
 from dali_cli.ppcg.orient import flips, turned
 from dali_cli.ppcg.window import box_windows, windows_directions
 from dali_cli.sensors import SensorProfile
@@ -29,8 +26,8 @@ from dali_cli.sensors import SensorProfile
 
 @dataclass(frozen=True)
 class CfParams:
-    """CF settings. range_m: (low, high) centre range in metres; theta_rad, orient,
-    point_margin_m and occlusion (here: drop the hidden points) as in RcParams."""
+    """CF settings. range_m: (low, high) centre range in metres; theta_rad, orient and
+    point_margin_m as in RcParams."""
 
     theta_rad: float
     range_m: tuple[float, float] = (20.0, 50.0)
@@ -39,7 +36,6 @@ class CfParams:
     ground_margin_m: float = 0.1
     orient: bool | None = False
     point_margin_m: float = 0.0
-    occlusion: bool = False
 
 
 def move_radially(boxes: np.ndarray, ranges_m: np.ndarray) -> np.ndarray:
@@ -122,13 +118,4 @@ def cf_frame(
     records.model_id[done] = np.asarray(bank.model_ids, dtype=object)[models[done]]
     added = np.concatenate([xyz, intensity[box_of_ray, None]], axis=1)
     removed = [members[i] for i in done]
-    if params.occlusion and len(done):
-        candidate = np.ones(len(points), dtype=bool)
-        for i in done:
-            candidate[members[i]] = False
-        hidden, box, _ = hidden_points(
-            points, boxes[done], models[done], bank, candidate, params.theta_rad
-        )
-        records.hidden[done] = np.bincount(box, minlength=len(done))
-        removed.append(hidden)
     return assemble(points, removed, [], [added]), records

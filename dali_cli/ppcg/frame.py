@@ -49,9 +49,7 @@ class BoxRecords:
     """Per-box outcome of one frame, all `(k,)`: ppcg (rc|cf|raw), reason (REASONS),
     points_before / points_after (car points in the box before/after), ground_points (points
     in the box below its ground height, kept), model_id ("" if none), flipped (the model was
-    fitted turned round: the box's heading was turned by pi, dali_cli.ppcg.orient), hidden
-    (other points of the frame behind the box's model: moved onto it by RC, dropped by CF;
-    dali_cli.ppcg.occlusion, 0 without it)."""
+    fitted turned round: the box's heading was turned by pi, dali_cli.ppcg.orient)."""
 
     ppcg: np.ndarray
     reason: np.ndarray
@@ -60,7 +58,6 @@ class BoxRecords:
     ground_points: np.ndarray
     model_id: np.ndarray
     flipped: np.ndarray
-    hidden: np.ndarray
 
     @classmethod
     def raw(cls, points_before: np.ndarray, ground_points: np.ndarray | None = None) -> BoxRecords:
@@ -75,7 +72,6 @@ class BoxRecords:
             ground_points=np.asarray(ground, dtype=np.int32),
             model_id=np.full(count, "", dtype=object),
             flipped=np.zeros(count, dtype=bool),
-            hidden=np.zeros(count, dtype=np.int32),
         )
 
 

@@ -8,9 +8,6 @@ height are dropped (METHOD: misses are dropped); a box left with fewer than `min
 its raw points and is recorded as `no_hits`. Dense boxes are skipped. RC never adds points.
 With `orient`, a box whose model fits its points better turned round is turned round first
 (dali_cli.ppcg.orient; the boxes RC processes only: dense and sparse ones keep their heading).
-With `occlusion`, the frame's other points whose rays meet a processed box's model before they
-reach the point are re-cast onto it too, with the box's median car intensity (hits below the box's
-ground height dropped; dali_cli.ppcg.occlusion).
 """
 
 from __future__ import annotations
@@ -22,7 +19,6 @@ import numpy as np
 from dali_cli.ppcg.fitting import box_rng
 from dali_cli.ppcg.frame import RC, BoxRecords, assemble, car_points, ground_heights
 from dali_cli.ppcg.models import ModelBank
-from dali_cli.ppcg.occlusion import hidden_points
 from dali_cli.ppcg.orient import flips, turned
 
 
@@ -31,8 +27,7 @@ class RcParams:
     """RC settings. theta_rad: point-model angular threshold (point_models.angular_threshold_rad);
     orient: turn boxes whose model fits better the other way round (mesh models only; None:
     with mesh models, decided by the stage, run.resolve_orient);
-    point_margin_m: a box's points are those in the box grown by this (frame.car_points);
-    occlusion: re-cast the other points the processed boxes' models hide (module docstring)."""
+    point_margin_m: a box's points are those in the box grown by this (frame.car_points)."""
 
     mount_height_m: float
     theta_rad: float
@@ -43,7 +38,6 @@ class RcParams:
     ground_margin_m: float = 0.1
     orient: bool | None = False
     point_margin_m: float = 0.0
-    occlusion: bool = False
 
 
 def rc_frame(
@@ -84,20 +78,5 @@ def rc_frame(
     used = np.repeat(enough, np.diff(bounds))  # (N,) rays of boxes that get their RC points
     replace, remove = used & keep, used & ~keep
     removed, replaced = [index[remove]], [(index[replace], xyz[replace])]
-    if params.occlusion and len(done):
-        candidate = np.ones(len(points), dtype=bool)
-        candidate[index[used]] = False
-        hidden, box, hit_xyz = hidden_points(
-            points, boxes[done], models[enough], bank, candidate, params.theta_rad
-        )
-        above = hit_xyz[:, 2] >= ground_z[done[box]]
-        records.hidden[done] = np.bincount(box, minlength=len(done))
-        intensity = np.array(  # (len(done),) each box's median car intensity
-            [np.median(points[index[bounds[b] : bounds[b + 1]], 3]) for b in np.flatnonzero(enough)]
-        )
-        points = np.array(points, dtype=np.float32, copy=True)
-        points[hidden[above], 3] = intensity[box[above]]
-        removed.append(hidden[~above])
-        replaced.append((hidden[above], hit_xyz[above]))
     new = assemble(points, removed, replaced, [])
     return new, records

@@ -158,7 +158,6 @@ def run_ppcg(
         # recorded only when used: outputs made without them stay up to date
         **({"orient": True} if params.orient else {}),
         **({"point_margin_m": params.point_margin_m} if params.point_margin_m else {}),
-        **({"occlusion": True} if params.occlusion else {}),
         "sensor": sensor,
         "models": models,
         "label": label,
@@ -188,7 +187,7 @@ def run_ppcg(
             lambda: run_frames(job, frame_boxes, pool, local_bank, directory),
             outcomes, mode, options.get("progress", True),
         )  # fmt: skip
-        write_boxes(directory, outcomes.table(table, params.orient, params.occlusion))
+        write_boxes(directory, outcomes.table(table, params.orient))
         counts = ppcg_counts(mode, frames, rows, outcomes, implausible, tally)
         timings = ppcg_timings(frames, rows, tally)
         echo_summary(mode, counts, tally.wall)
@@ -275,7 +274,6 @@ class BoxOutcomes:
     model_id: np.ndarray
     num_points: np.ndarray
     flipped: np.ndarray
-    hidden: np.ndarray
 
     @classmethod
     def start(cls, table: BoxTable) -> BoxOutcomes:
@@ -289,7 +287,6 @@ class BoxOutcomes:
             model_id=np.full(count, "", dtype=object),
             num_points=np.asarray(table["num_points"], np.int32).copy(),
             flipped=np.zeros(count, bool),
-            hidden=np.zeros(count, np.int32),
         )
 
     def record(self, frame_rows: np.ndarray, records) -> None:
@@ -301,18 +298,14 @@ class BoxOutcomes:
         self.model_id[frame_rows] = records.model_id
         self.num_points[frame_rows] = records.ground_points + records.points_after
         self.flipped[frame_rows] = records.flipped
-        self.hidden[frame_rows] = records.hidden
 
-    def table(self, table: BoxTable, orient: bool = False, occlusion: bool = False) -> BoxTable:
+    def table(self, table: BoxTable, orient: bool = False) -> BoxTable:
         """`table` with the outcome columns (boxes.parquet of the output); with `orient`, the
-        turned boxes' yaw and a heading_flipped column; with `occlusion`, points_hidden (the
-        frame's other points behind the box's model, dali_cli.ppcg.occlusion)."""
+        turned boxes' yaw and a heading_flipped column."""
         if orient:
             table = table.with_columns(
                 yaw=turned(table.boxes, self.flipped)[:, 6], heading_flipped=self.flipped
             )
-        if occlusion:
-            table = table.with_columns(points_hidden=self.hidden)
         return table.with_columns(
             ppcg=self.ppcg,
             ppcg_reason=self.reason,
@@ -407,9 +400,6 @@ def ppcg_counts(
         "dropped_implausible": implausible,
         "points_in": tally.points_in,
         "points_out": tally.points_out,
-        # the frame's other points behind the boxes' models (re-cast by RC, dropped by CF; 0
-        # without --occlusion)
-        "points_hidden": int(outcomes.hidden.sum()),
     }
 
 

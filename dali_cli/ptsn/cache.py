@@ -8,6 +8,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from dali_cli.ptsn.spec import SCALE_DECIMALS, Predictor, PTSNError
+from dali_cli.store import SCORE_MIN
 
 
 class DetectionCache:
@@ -21,7 +22,7 @@ class DetectionCache:
         self,
         detector: Predictor,
         frames,
-        score_min: float = 0.3,
+        score_min: float = SCORE_MIN,
         mount_height_m: float | None = None,
         batch_size: int = 8,
         progress: Callable[[int], None] | None = None,

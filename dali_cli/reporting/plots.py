@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dali_cli.store import SCORE_MIN
 from dali_cli.store.scale_file import read_scale
 
 
@@ -147,7 +148,6 @@ SIZE_ROWS = (
     ("DALI x1", "iter1/eval"),
     ("DALI x2", "iter2/eval"),
 )
-SIZE_SCORE_MIN = 0.3
 
 
 def _evaluation(run: Path, relative: str):
@@ -199,15 +199,13 @@ def plot_method_sizes(run: Path, out: Path, found: list | None = None) -> Path |
             values = truth.boxes[:, 3 + index]
             axis.hist(values, bins=edges, density=True, alpha=0.3, color="k", label="ground truth")
         for row, (pred, _) in found:
-            keep = np.asarray(pred["score"]) >= SIZE_SCORE_MIN
+            keep = np.asarray(pred["score"]) >= SCORE_MIN
             if keep.any():
                 values = pred.boxes[keep, 3 + index]
                 axis.hist(values, bins=edges, density=True, histtype="step", lw=1.4, label=row)
         axis.set_xlabel(name)
     axes[0].legend(fontsize=7)
-    figure.suptitle(
-        f"Predicted car sizes on the target (score >= {SIZE_SCORE_MIN}) vs ground truth"
-    )
+    figure.suptitle(f"Predicted car sizes on the target (score >= {SCORE_MIN}) vs ground truth")
     return _save(plt, figure, out, dpi=120)
 
 
@@ -240,7 +238,7 @@ def plot_bev_views(run: Path, out: Path, frames: int = 2, found: list | None = N
             for corners in bev_corners(gt_boxes) if len(gt_boxes) else []:
                 axis.fill(corners[:, 0], corners[:, 1], fill=False, ec="g", lw=1.2)
             mine = (np.asarray(pred.frame_id) == frame_id) & (
-                np.asarray(pred["score"]) >= SIZE_SCORE_MIN
+                np.asarray(pred["score"]) >= SCORE_MIN
             )
             for corners in bev_corners(pred.boxes[mine]) if mine.any() else []:
                 axis.fill(corners[:, 0], corners[:, 1], fill=False, ec="r", lw=0.9)

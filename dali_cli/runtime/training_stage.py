@@ -30,12 +30,10 @@ class TrainingOptions:
     batch_size: int = 1
     lr: float = 5e-3
     precision: str = "fp32"
-    compile_net: bool = False
     threads: int | None = None  # None: this process's share of the cores
     augment: bool = True
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     progress: bool = True
-    schedule: tuple[float, float] = (0.0, 1.0)  # part of the one-cycle schedule (TrainSettings)
 
     def params(self) -> dict:
         """The manifest parameters they set (threads, device and progress do not change the
@@ -47,11 +45,9 @@ class TrainingOptions:
             "batch_size": self.batch_size,
             "lr": self.lr,
             "precision": self.precision,
-            "compile": self.compile_net,
+            "compile": False,  # a retired option, recorded so earlier manifests stay up to date
             "augment": self.augment,
         }
-        if self.schedule != (0.0, 1.0):  # recorded only when set: earlier manifests stay valid
-            params["schedule"] = list(self.schedule)
         return params
 
     def settings(self, **extra):
@@ -60,8 +56,8 @@ class TrainingOptions:
 
         return TrainSettings(
             epochs=self.epochs, minutes=self.minutes, batch_size=self.batch_size, lr=self.lr,
-            seed=self.seed, precision=self.precision, compile=self.compile_net,
-            threads=self.threads, device=self.device, schedule=self.schedule, **extra,
+            seed=self.seed, precision=self.precision,
+            threads=self.threads, device=self.device, **extra,
         )  # fmt: skip
 
     def augmentation(self):

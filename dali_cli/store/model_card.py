@@ -51,9 +51,6 @@ class ModelCard:
     sn_delta_lwh_m: tuple[float, float, float] | None = None  # SN: size offset added to labels
     ros_range: tuple[float, float] | None = None  # ROS: object scale factors trained with
     target_profile: str | None = None  # SN: the target profile whose mean size was used
-    # where the model's one-cycle learning-rate schedule stopped (pretrain --schedule-epochs),
-    # in (0, 1); None when it ran to its end. retrain --continue-schedule goes on from here.
-    schedule_stop: float | None = None
 
     @property
     def ros_factor(self) -> float | None:
@@ -68,9 +65,8 @@ class ModelCard:
         return document
 
     def carried_forward(self, stage: str) -> ModelCard:
-        """The card of a model trained from this one (retrain, self-train): same source facts,
-        its schedule run to the end."""
-        return dataclasses.replace(self, stage=stage, schedule_stop=None)
+        """The card of a model trained from this one (retrain, self-train): same source facts."""
+        return dataclasses.replace(self, stage=stage)
 
     @classmethod
     def from_meta(cls, meta: dict) -> ModelCard:
@@ -103,7 +99,6 @@ class ModelCard:
         """A card from a JSON block, every field type-checked (a bad value reads as unknown)."""
         mount = card.get("mount_height_m")
         size_norm = card.get("size_norm")
-        stop = card.get("schedule_stop")
         return cls(
             detector=_text(card.get("detector")),
             stage=_text(card.get("stage")),
@@ -116,9 +111,6 @@ class ModelCard:
             sn_delta_lwh_m=_size(card.get("sn_delta_lwh_m")),
             ros_range=_pair(card.get("ros_range")),
             target_profile=_text(card.get("target_profile")),
-            schedule_stop=float(stop)
-            if isinstance(stop, int | float) and not isinstance(stop, bool) and 0 < stop < 1
-            else None,
         )
 
 

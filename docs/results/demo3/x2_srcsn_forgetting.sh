@@ -4,6 +4,6 @@
 set -e
 s=$1
 D=.venv/bin/dali; R=runs/demo3-s$s; A=$R/ablations/x2_srcsn
-E="--protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min 0.3"
+E="--protocol range --front-only --iou 0.7 --iou 0.5 --score-min 0.3"
 $D size-norm --data $R/data/source_val --like-model $A/model --out $A/source_val_sized
 $D eval --model $A/model --data $A/source_val_sized --scale 1.0 $E --out $A/eval_source_sized

@@ -12,7 +12,7 @@ link() {  # $1 RUN, then the subpaths of R to link
 }
 # CF moving each box to 40-80 m (default 20-50 m) before its scan: sparser, far-range-like cars
 C=runs/d5cf80-s$s; link $C data library iter0/model iter1/ptsn iter1/pseudo iter1/rc
-[ -f $C/iter1/cf/manifest.json ] || .venv/bin/dali ppcg-cf --target $R/data/target --boxes $R/iter1/pseudo --library $R/library --sensor kitti --seed $s --range-m 40:80 --out $C/iter1/cf
+[ -f $C/iter1/cf/manifest.json ] || .venv/bin/dali ppcg-cf --target $R/data/target --boxes $R/iter1/pseudo --library $R/library --target-profile kitti --seed $s --range-m 40:80 --out $C/iter1/cf
 make --no-print-directory $C/iter1/eval/manifest.json RUN=$C RETRAIN_EPOCHS=6 TRAIN_FLAGS=--threads=1 $COMMON
 # point models from the dense source instances instead of procedural meshes
 P=runs/d5pts-s$s; link $P data iter0/model iter1/ptsn iter1/pseudo

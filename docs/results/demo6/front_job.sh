@@ -10,7 +10,7 @@ s=$1; R=runs/d5-s$s; D=.venv/bin/dali
 COMMON="SEED=$s FRAMES=48 VAL_FRAMES=48 TRAIN_FLAGS=--threads=1 SYNTH_WORKERS=1 WORKERS=1"
 kitti() {  # $1: eval directory
   [ -e $1/metrics_kitti.json ] || $D eval --pred $1/predictions.parquet --gt $R/data/target_val \
-    --protocol kitti --iou 0.7 --iou 0.5 --size-score-min 0.3 --out $1/metrics_kitti.json
+    --protocol kitti --iou 0.7 --iou 0.5 --score-min 0.3 --out $1/metrics_kitti.json
 }
 for variant in front front24; do
   Q=runs/d5$variant-s$s; mkdir -p $Q

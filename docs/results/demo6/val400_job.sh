@@ -37,7 +37,7 @@ declare -A ROWS=(  # row -> "model_dir ptsn_dir"
 for row in ${*:-control x2 late tta ttalate x1long truebox rawtrue front front24 x1}; do
   set -- ${ROWS[$row]}; E=runs/val400-s$s/$row
   [ -e $1/manifest.json ] && [ -e $2/manifest.json ] || { echo "skip $row: $1 or $2 missing"; continue; }
-  $D eval --model $1 --data $V --scale-from $2 --protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min 0.3 --workers 1 --out $E
-  [ -e $E/metrics_kitti.json ] || $D eval --pred $E/predictions.parquet --gt $V --protocol kitti --iou 0.7 --iou 0.5 --size-score-min 0.3 --out $E/metrics_kitti.json > /dev/null
+  $D eval --model $1 --data $V --scale-from $2 --protocol range --front-only --iou 0.7 --iou 0.5 --score-min 0.3 --workers 1 --out $E
+  [ -e $E/metrics_kitti.json ] || $D eval --pred $E/predictions.parquet --gt $V --protocol kitti --iou 0.7 --iou 0.5 --score-min 0.3 --out $E/metrics_kitti.json > /dev/null
 done
 echo "DONE val400 $s $(date)"

@@ -9,7 +9,7 @@ cd "$(dirname "$0")/../../.."
 s=$1; row=$2; R=runs/d5-s$s; P=runs/d5$row-s$s/iter1; A=runs/d5${row}long-s$s; D=.venv/bin/dali
 until [ -e $P/cf/manifest.json ] && [ -e $P/rc/manifest.json ]; do sleep 30; done
 $D retrain --init $R/iter0/model --source $R/data/source --ppcg $P/rc $P/cf --source-size sn \
-  --target-size-from $R/iter1/ptsn --seed $s --epochs 12 --threads 1 --quiet --out $A/model
+  --target-size-from $R/iter1/ptsn --seed $s --epochs 12 --threads 1 --no-progress --out $A/model
 $D ptsn-sweep --model $A/model --target $R/data/target --expected-size sn --score-min 0.3 --seed $s --out $A/ptsn
 docs/results/demo6/val400_job.sh $s ${row}long
 echo "DONE ${row}long $s $(date)"

@@ -8,7 +8,7 @@
 set -e
 cd "$(dirname "$0")/../../.."
 s=$1; R=runs/d5-s$s; A=${2:-runs/d5fitomlate-s$s/iter2}; D=.venv/bin/dali; V=$R/data/source_val
-E="--protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min 0.3 --workers 1"
+E="--protocol range --front-only --iou 0.7 --iou 0.5 --score-min 0.3 --workers 1"
 [ -e $V/manifest.json ] || $D synth --sensor waymo --cars waymo --frames 48 --seed $((s + 3000)) --executor local --workers 1 --out $V
 $D eval --model $R/iter0/model --data $V --scale 1.0 $E --out $R/iter0/eval_source
 $D size-norm --data $V --like-model $A/model --out $A/source_val_sized

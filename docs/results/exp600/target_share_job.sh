@@ -22,20 +22,10 @@
 # (which of the retraining's source share, initialisation and restarted schedule caps it), then
 # SET=ppcg MIX=1:7 EPOCHS=2 and SET=ppcg MIX=1:3 EPOCHS=4 (the label-free retraining, less source).
 # Session 28: SET=rawpseudo MIX=1:7 EPOCHS=2 (does PPCG beat the same pseudo boxes on the raw
-# frames?) beside session 27's truth-matched / pseudo-matched 1:7 rows; and LABELS=tta SET=ppcg
-# MIX=1:7 EPOCHS=2: PPCG from `pseudo-label --tta` boxes (ten fused views, label-free; the make
-# chain in variants/labels-tta, which links the seed's data, library, iter0 and first sweep).
-# Session 29: PPCG=occ SET=ppcg: PPCG with `ppcg-rc/ppcg-cf --occlusion` (the model car hides the
-# scene behind it; label-free; the make chain in variants/ppcg-occ, which links the seed's data,
-# library, iter0 and first sweep and pseudo labels), at MIX=1:7 EPOCHS=2 and MIX=1:1 EPOCHS=8.
-# LABELS=ground SET=ppcg: PPCG from `pseudo-label --fit-ground` boxes (each bottom on the ground
-# around it; variants/labels-ground), alone or with PPCG=occ (variants/labels-ground-ppcg-occ);
-# LABELS=tta-ground: both label options (variants/labels-tta-ground[-ppcg-occ]).
-# Session 30: LABELS=ignore SET=ppcg: `pseudo-label --score-min 0.6 --ignore-min 0.3` (boxes
-# scored 0.3-0.6 are 63 % false on seed 0: ignore regions, DontCare, instead of cars) and
-# `retrain --ignore-label DontCare` (variants/labels-ignore), at MIX=1:7 EPOCHS=2 and MIX=1:1
-# EPOCHS=8; LABELS=cut06: the same 0.6 cut without ignore regions (the 0.3-0.6 boxes' cars left
-# as background), which separates the regions from the cut.
+# frames?) beside session 27's truth-matched / pseudo-matched 1:7 rows.
+# Session 30: LABELS=cut06 SET=ppcg: `pseudo-label --score-min 0.6` (boxes scored 0.3-0.6 are 63 %
+# false on seed 0; their cars left as background; the make chain in variants/labels-cut06, which
+# links the seed's data, library, iter0 and first sweep).
 # The boxes' quality is worth little at 1:1 and much at 1:7 (true boxes of the found cars against
 # the pseudo ones, 800 frames: 85.81 / 85.58 at 1:1, 87.72 / 85.00 at 1:7).
 # Each row is evaluated like x1 long (its own sweep, 200 validation frames, range + KITTI) and on
@@ -43,34 +33,25 @@
 #   SET=ppcg bash docs/results/exp600/target_share_job.sh      # from the directory holding runs/
 set -euo pipefail
 SEED=${SEED:-0}; SET=${SET:-ppcg}; MIX=${MIX:-1:7}; EPOCHS=${EPOCHS:-1}; INIT_FROM=${INIT_FROM:-previous}
-LABELS=${LABELS:-}; PPCG=${PPCG:-}
+LABELS=${LABELS:-}
 D=${DALI:-.venv/bin/dali}
 R=runs/experiment-s$SEED
-NAME=x1long-$SET${LABELS:+-$LABELS}${PPCG:+-$PPCG}-mix${MIX//:/}$([ $INIT_FROM = previous ] || echo -$INIT_FROM)$([ $EPOCHS = 1 ] || echo -ep$EPOCHS)
+NAME=x1long-$SET${LABELS:+-$LABELS}-mix${MIX//:/}$([ $INIT_FROM = previous ] || echo -$INIT_FROM)$([ $EPOCHS = 1 ] || echo -ep$EPOCHS)
 V=$R/variants/$NAME
-RETRAIN_FLAGS=
-case $LABELS in tta) PSEUDO_FLAGS=--tta ;; ground) PSEUDO_FLAGS=--fit-ground ;;
-  tta-ground) PSEUDO_FLAGS="--tta --fit-ground" ;; "") PSEUDO_FLAGS= ;;
-  ignore) PSEUDO_FLAGS="--score-min 0.6 --ignore-min 0.3"; RETRAIN_FLAGS="--ignore-label DontCare" ;;
-  cut06) PSEUDO_FLAGS="--score-min 0.6" ;;
-  *) echo "LABELS must be tta, ground, tta-ground, ignore or cut06, got '$LABELS'" >&2; exit 2 ;; esac
-case $PPCG in occ) PPCG_FLAGS=--occlusion ;; "") PPCG_FLAGS= ;;
-  *) echo "PPCG must be occ, got '$PPCG'" >&2; exit 2 ;; esac
-if [ -n "$LABELS$PPCG" ] && [ $SET != ppcg ]; then
-  echo "LABELS and PPCG go with SET=ppcg only, got SET='$SET'" >&2; exit 2
+case $LABELS in "") PSEUDO_FLAGS= ;; cut06) PSEUDO_FLAGS="--score-min 0.6" ;;
+  *) echo "LABELS must be cut06, got '$LABELS'" >&2; exit 2 ;; esac
+if [ -n "$LABELS" ] && [ $SET != ppcg ]; then
+  echo "LABELS goes with SET=ppcg only, got SET='$SET'" >&2; exit 2
 fi
 case $SET in
-  ppcg) if [ -z "$LABELS$PPCG" ]; then TARGET_SIDE="$R/iter1/rc $R/iter1/cf"; else
-      # the make chain in a variant: labels-<LABELS>, ppcg-<PPCG> or labels-<LABELS>-ppcg-<PPCG>
-      L=$R/variants/$(echo ${LABELS:+labels-$LABELS}${LABELS:+${PPCG:+-}}${PPCG:+ppcg-$PPCG})
+  ppcg) if [ -z "$LABELS" ]; then TARGET_SIDE="$R/iter1/rc $R/iter1/cf"; else
+      # the make chain in the variant labels-<LABELS>
+      L=$R/variants/labels-$LABELS
       TARGET_SIDE="$L/iter1/rc $L/iter1/cf"
-      source "$(dirname "$0")/variant_links.sh"; link_variant $L ptsn $([ -n "$LABELS" ] || echo pseudo)
-      # both: the labels-<LABELS> variant's pseudo labels when made (the same stage, same inputs)
-      [ -z "$LABELS" ] || [ -z "$PPCG" ] || [ ! -f $R/variants/labels-$LABELS/iter1/pseudo/manifest.json ] \
-          || ln -sfn ../../labels-$LABELS/iter1/pseudo $L/iter1/pseudo
+      source "$(dirname "$0")/variant_links.sh"; link_variant $L ptsn
       make -f "${MAKEFILE:-$(dirname "$0")/../../../Makefile}" $L/iter1/rc/manifest.json \
           $L/iter1/cf/manifest.json RUN=$L SEED=$SEED SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAMES=200 \
-          EPOCHS=4 RETRAIN_EPOCHS=2 PSEUDO_FLAGS="$PSEUDO_FLAGS" PPCG_FLAGS="$PPCG_FLAGS"
+          EPOCHS=4 RETRAIN_EPOCHS=2 PSEUDO_FLAGS="$PSEUDO_FLAGS"
     fi ;;
   truth-matched|pseudo-matched) P=$R/variants/${TRUTH_VARIANT:-x1long-$SET}; TARGET_SIDE="$P/iter1/rc $P/iter1/cf" ;;
   rawtrue) TARGET_SIDE=$R/data/target ;;
@@ -88,7 +69,7 @@ if [ $SET = rawpseudo ] && [ ! -e $TARGET_SIDE/manifest.json ]; then  # written 
 fi
 $D retrain --init $R/iter0/model --source $R/data/source --ppcg $TARGET_SIDE --source-size sn \
     --target-size-from $R/iter1/ptsn --seed $SEED --epochs $EPOCHS --mix $MIX \
-    --init-from $INIT_FROM --threads 1 $RETRAIN_FLAGS \
+    --init-from $INIT_FROM --threads 1 \
     --out $V/model
 $D ptsn-sweep --model $V/model --target $R/data/target --expected-size sn --score-min 0.3 \
     --seed $SEED --no-progress --out $V/ptsn

@@ -1,6 +1,6 @@
 # Sourced by the job scripts that run the Makefile's chain in a variant RUN V =
 # runs/experiment-s<SEED>/variants/<NAME> beside the seed's RUN (budget_job.sh, long_retrain_job.sh,
-# score_job.sh, truth_job.sh, x2_long_job.sh, target_share_job.sh LABELS=tta).
+# score_job.sh, truth_job.sh, x2_long_job.sh, target_share_job.sh LABELS=cut06).
 #   link_variant V [PART ...]: V/data, V/library and V/iter0 link the seed's; V/iter1/PART links
 #     the seed's iter1/PART (e.g. ptsn pseudo rc cf), so make finds them up to date
 link_variant() {
