@@ -17,14 +17,6 @@ DOC = Path(__file__).resolve().parents[1] / "docs" / "INTERFACES.md"
 OPTION = re.compile(r"`(--[a-z0-9][a-z0-9-]*)`")
 COMMAND = re.compile(r"`dali ([a-z0-9 -]+)`")
 
-# options measured to gain nothing and leaving the product (docs/RESULTS.md, "Measured and
-# removed"): the table must not name them; the code may still have them until they are gone
-LEAVING = {
-    "--tta", "--tta-scales", "--tta-mirror", "--fit-ground", "--ignore-min", "--ignore-label",
-    "--continue-schedule", "--schedule-epochs", "--occlusion", "--size-factor-score-min",
-    "--compile",
-}  # fmt: skip
-
 
 def section(text: str, heading: str) -> str:
     """The body of the markdown section `heading` (up to the next heading of its level or above)."""
@@ -102,9 +94,8 @@ def test_row_names_exactly_the_commands_options(command):
     row = ROWS[command]
     documented = row["inputs"] | row["parameters"]
     actual = options_of(COMMANDS[command])
-    assert not documented & LEAVING, f"{command}: documents {sorted(documented & LEAVING)}"
     assert not row["inputs"] & row["parameters"], f"{command}: an option in both columns"
-    missing = actual - documented - SHARED - LEAVING
+    missing = actual - documented - SHARED
     unknown = documented - actual
     assert not missing, f"dali {command}: options not in docs/INTERFACES.md: {sorted(missing)}"
     assert not unknown, f"dali {command}: documented options it lacks: {sorted(unknown)}"

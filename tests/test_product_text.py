@@ -20,15 +20,6 @@ HISTORY = re.compile(
     r"|\.\./shared/"  # a path outside the repository
 )
 
-# options measured to gain nothing and leaving the product (docs/RESULTS.md, "Measured and
-# removed"): their own text goes with them, so a hit next to one of their names is not counted
-LEAVING = re.compile(
-    r"(?<![\w-])-*(tta|fit[-_]ground|ground_fit|ignore[-_]min|ignore[-_]label|ignore regions"
-    r"|continue[-_]schedule|schedule[-_]epochs|occlusion|size[-_]factor[-_]score[-_]min"
-    r"|confident_e_pred|refine_passes|flip_test|--compile|compile_net)(?![\w-])"
-)
-WINDOW = 8  # lines above a hit that may name the leaving option it belongs to
-
 
 def scanned_files() -> list[Path]:
     files = []
@@ -46,14 +37,10 @@ def scanned_files() -> list[Path]:
 
 def history_lines(path: Path, root: Path = ROOT) -> list[str]:
     """'path:line: text' of every line of `path` that cites development history."""
-    if LEAVING.fullmatch(path.stem):  # a leaving option's own module
-        return []
     lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
     found = []
     for number, line in enumerate(lines, 1):
         if not HISTORY.search(line):
-            continue
-        if any(LEAVING.search(above) for above in lines[max(0, number - 1 - WINDOW) : number]):
             continue
         found.append(f"{path.relative_to(root)}:{number}: {line.strip()}")
     return found
@@ -75,9 +62,5 @@ def test_the_pattern_catches_what_it_must(tmp_path):
     assert not any(HISTORY.search(text) for text in clean)
     session = "sess" + "ion"
     sample = tmp_path / "sample.py"
-    sample.write_text(
-        f"x = 1\n# measured in {session} 3\n" + "y = 2\n" * WINDOW
-        + f"# --tta: off, level in {session} 4\n",
-        encoding="utf-8",
-    )  # fmt: skip
+    sample.write_text(f"x = 1\n# measured in {session} 3\ny = 2\n", encoding="utf-8")
     assert history_lines(sample, tmp_path) == [f"sample.py:2: # measured in {session} 3"]
