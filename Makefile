@@ -294,6 +294,63 @@ compare: $(RUN)/compare_r40.json $(RUN)/compare_r400.json
 .PHONY: baseline-sn baseline-ros baseline-oracle ablation-rc ablation-cf baselines cross-domain controls \
     controls-x1 controls-x2 iter2-st kitti-protocol compare
 
+# ---------------------------------------------------------------------------------------------
+# The real target: a KITTI raw drive (make real-kitti). The demo's source model (DEMO_FRAMES
+# synthetic Waymo-like frames, DEMO_EPOCHS epochs) adapted to the drive's scans as the unlabeled
+# target (imported without its tracklets; camera field of view); every row is evaluated with KITTI's
+# protocol on the drive's tracklets (transductive, TARGET_VAL) and on the labelled KITTI object
+# frames of REAL_OBJECTS (inductive, $(RUN)/objects/<row>, at the scale the row's drive evaluation
+# used). Rows: source only, PTSN only, x1, x2, x2 + ST, the x2-budget control (source only + test-time
+# PTSN) and the sim oracle (labelled synthetic KITTI-like frames, x2's budget). Nothing is fetched:
+# REAL_DRIVE is a synced drive, its date folder above it holding the calib files (README, "A real
+# target"). Only `dali eval` and bench/pseudo_labels.py read the tracklets.
+REAL_DRIVE   ?= data/kitti_raw/2011_09_26/2011_09_26_drive_0001_sync
+REAL_OBJECTS ?= tests/fixtures/real/kitti/training
+REAL_RUN     ?= runs/real-kitti
+REAL_EVAL_FLAGS = --protocol kitti --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
+REAL_VARS = RUN=$(REAL_RUN) FRAMES=$(DEMO_FRAMES) EPOCHS=$(DEMO_EPOCHS) EVAL_FLAGS="$(REAL_EVAL_FLAGS)" \
+    TARGET=$(REAL_RUN)/data/drive TARGET_VAL=$(REAL_RUN)/data/drive_labels
+OBJECTS ?= $(RUN)/data/objects
+# the sim oracle: the oracle of the x2 budget trained on the synthetic KITTI-like frames
+$(RUN)/baselines/sim_oracle_x2_budget/model/manifest.json: $(RUN)/data/target/manifest.json
+	$(TRAIN_DALI) pretrain --source $(RUN)/data/target --seed $(SEED) $(X2_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
+$(RUN)/data/drive/manifest.json: | install
+	$(DALI) import kitti-raw $(REAL_DRIVE) --no-labels --crop-fov --out $(@D)
+$(RUN)/data/drive_labels/manifest.json: | install
+	$(DALI) import kitti-raw $(REAL_DRIVE) --crop-fov --out $(@D)
+$(RUN)/data/objects/manifest.json: | install
+	$(DALI) import kitti $(REAL_OBJECTS) --crop-fov --out $(@D)
+# a row on the object frames: name, model, its drive evaluation, the scale flag that evaluation used
+define OBJECTS_ROW
+$(RUN)/objects/$(1)/manifest.json: $(RUN)/$(3)/manifest.json $(OBJECTS)/manifest.json
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/$(2) --data $(OBJECTS) $(4) $(EVAL_FLAGS) $(EXEC_FLAGS) --out $$(@D)
+endef
+$(eval $(call OBJECTS_ROW,source,iter0/model,iter0/eval,--scale 1.0))
+$(eval $(call OBJECTS_ROW,ptsn,iter0/model,iter0/eval_ptsn,--scale-from $(RUN)/iter1/ptsn))
+$(eval $(call OBJECTS_ROW,x1,iter1/model,iter1/eval,--scale-from $(RUN)/iter2/ptsn))
+$(eval $(call OBJECTS_ROW,x2,iter2/model,iter2/eval,--scale-from $(RUN)/iter3/ptsn))
+$(eval $(call OBJECTS_ROW,x2_st,iter2_st/model,iter2_st/eval,--scale-from $(RUN)/iter3/ptsn))
+$(eval $(call OBJECTS_ROW,control,baselines/source_x2_budget/model,baselines/source_x2_budget/eval_ptsn,--scale-from $(RUN)/baselines/source_x2_budget/ptsn))
+$(eval $(call OBJECTS_ROW,oracle,baselines/sim_oracle_x2_budget/model,baselines/sim_oracle_x2_budget/eval,--scale 1.0))
+REAL_ROWS = source ptsn x1 x2 x2_st control oracle
+real-kitti-data: $(RUN)/data/drive/manifest.json $(RUN)/data/drive_labels/manifest.json \
+    $(RUN)/data/objects/manifest.json
+real-kitti-dali: iter2-st
+real-kitti-control: $(RUN)/baselines/source_x2_budget/eval_ptsn/manifest.json
+real-kitti-oracle: $(RUN)/baselines/sim_oracle_x2_budget/eval/manifest.json
+real-kitti-objects: $(foreach row,$(REAL_ROWS),$(RUN)/objects/$(row)/manifest.json)
+# pseudo-label quality on the drive (cars with >= 5 points, BEV IoU >= 0.5), then the table
+real-kitti-report:
+	$(BIN)/python bench/pseudo_labels.py --target $(RUN)/data/drive_labels --pseudo $(RUN)/iter1/pseudo \
+	    $(RUN)/iter2/pseudo $(RUN)/iter3/pseudo --iou 0.5 --min-points 5 --out $(RUN)/pseudo_labels.json
+	$(BIN)/python bench/real_kitti_table.py $(RUN) --out $(RUN)/real-kitti.md
+real-kitti: install
+	$(MAKE) $(SUBMAKE_FLAGS) real-kitti-data real-kitti-dali real-kitti-control real-kitti-oracle \
+	    real-kitti-objects $(REAL_VARS)
+	$(MAKE) $(SUBMAKE_FLAGS) real-kitti-report $(REAL_VARS)
+.PHONY: real-kitti real-kitti-data real-kitti-dali real-kitti-control real-kitti-oracle real-kitti-objects \
+    real-kitti-report
+
 report: | install
 	$(DALI) report $(RUN)
 

@@ -130,7 +130,13 @@ def test_every_parameter_error_names_a_flag_of_its_command():
         ROOT / "stages" / f"{stage}.py": (stage_commands.get(stage, stage),)
         for stage in (p.stem for p in (ROOT / "stages").glob("*.py"))
     }
-    for stage in ("import_kitti", "import_nuscenes", "import_openpcdet", "import_waymo"):
+    for stage in (
+        "import_kitti",
+        "import_kitti_raw",
+        "import_nuscenes",
+        "import_openpcdet",
+        "import_waymo",
+    ):
         sources[ROOT / "stages" / f"{stage}.py"] = ("importers",)
     for relative, stages in SHARED_BODIES.items():
         sources[ROOT / relative] = stages

@@ -1,4 +1,4 @@
-"""`dali import kitti|nuscenes|openpcdet|waymo`: other datasets' files -> a FrameSet + boxes.parquet."""
+"""`dali import kitti|kitti-raw|nuscenes|openpcdet|waymo`: other datasets' files -> a FrameSet + boxes.parquet."""
 
 from __future__ import annotations
 
@@ -69,6 +69,40 @@ def kitti_command(
 
 
 # ---------------------------------------------------------------------------------------------
+
+
+@command.command(name="kitti-raw", short_help="KITTI raw synced drive + tracklet_labels.xml.")
+@click.argument("drive_dir", type=click.Path(exists=True, file_okay=False))
+@click.option("--calib-dir", type=click.Path(exists=True, file_okay=False), default=None,
+              help="Folder of calib_cam_to_cam.txt and calib_velo_to_cam.txt. Default: "
+                   "DRIVE_DIR/.. (the date folder).")  # fmt: skip
+@click.option("--tracklets", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="Tracklet file. Default: DRIVE_DIR/tracklet_labels.xml when present.")  # fmt: skip
+@click.option("--no-labels", is_flag=True,
+              help="Import the scans only, without boxes (an unlabeled target).")  # fmt: skip
+@click.option("--crop-fov", is_flag=True,
+              help="Keep only points that project into the left colour camera's image.")  # fmt: skip
+@import_options("kitti")
+def kitti_raw_command(
+    drive_dir, calib_dir, tracklets, no_labels, crop_fov, sensor, out, sensors_path, force, dry_run
+):
+    """Import a KITTI raw synced drive DRIVE_DIR (YYYY_MM_DD_drive_NNNN_sync).
+
+    Reads velodyne_points/data/*.bin (float32 x, y, z, reflectance; frame ids are the file
+    names' frame indices), the date folder's calib_cam_to_cam.txt (R_rect_00, P_rect_02,
+    S_rect_02) and calib_velo_to_cam.txt (R, T), and tracklet_labels.xml when present: each
+    tracklet pose (Velodyne frame, bottom centre, rz) on a frame of the drive becomes a box
+    (label = objectType) with KITTI's label columns (2D box projected through P_rect_02 and
+    R_rect_00, truncation, occlusion, alpha) and its in-box point count. Writes OUT/frames.zarr
+    and OUT/boxes.parquet.
+    """
+    from stages.import_kitti_raw import import_kitti_raw
+
+    outcome = import_kitti_raw(
+        drive_dir, out, calib_dir=calib_dir, tracklets=tracklets, labels=not no_labels,
+        crop_fov=crop_fov, sensor=sensor, sensors_path=sensors_path, force=force, dry_run=dry_run,
+    )  # fmt: skip
+    _summary(outcome)
 
 
 @command.command(name="nuscenes", short_help="nuScenes LIDAR_TOP, JSON tables or LiDAR-frame CSV.")

@@ -1,0 +1,353 @@
+"""KITTI raw data: a synced drive's velodyne scans, the day's calib files, and its tracklets
+turned into per-frame boxes in the LiDAR frame with KITTI's label columns.
+
+A drive directory `YYYY_MM_DD_drive_NNNN_sync` holds `velodyne_points/data/<index>.bin`
+(float32 x, y, z, reflectance, 10-digit frame index) and, when labelled, `tracklet_labels.xml`;
+its parent (the date folder) holds `calib_cam_to_cam.txt` (R_rect_00, P_rect_02, S_rect_02) and
+`calib_velo_to_cam.txt` (R, T).
+
+Tracklets (the raw devkit's `cpp/tracklets.h`, `matlab/run_demoTracklets.m`) are in the Velodyne
+frame: a box of size h, w, l per object, and per frame from `first_frame` on a pose tx, ty, tz
+(the centre of the box's bottom face), rz (rotation about z of the object's x axis, which runs
+along its length), a truncation state (-1 unset, 0 in the image, 1 truncated, 2 out of the
+image, 99 behind it) and an occlusion state (-1 unset, 0 visible, 1 partly, 2 fully). A dali box
+is then (tx, ty, tz + h/2, l, w, h, rz). KITTI's label columns come from the box projected with
+the drive's P_rect_02 and R_rect_00 (`dali_cli.evaluation.camera.kitti_label_columns`): the
+clipped 2D box, alpha and the truncated share of the 2D box; a pose marked out of or behind the
+image gets truncation 1 (KITTI's evaluation then ignores it at every difficulty), and the
+occlusion state is KITTI's occluded level (unset -> 3, unknown).
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ElementTree
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dali_cli.evaluation.camera import kitti_label_columns
+from dali_cli.geometry import count_points_in_boxes, wrap_angle
+from dali_cli.importers.common import (
+    ImportFormatError,
+    check_id,
+    read_text_lines,
+    write_imported,
+)
+from dali_cli.importers.kitti import (
+    DEFAULT_IMAGE_SIZE,
+    Calibration,
+    camera_fov_mask,
+    read_velodyne,
+)
+from dali_cli.store.artifacts import BoxTable
+from dali_cli.store.manifest import BuildResult
+
+TRACKLET_FILE = "tracklet_labels.xml"
+MAX_TRACKLET_BYTES = 256 * 1024 * 1024  # the largest raw drive's tracklets are ~30 MB
+TRUNCATION_OUT_OF_IMAGE = (2, 99)  # OUT_IMAGE, BEHIND_IMAGE
+OCCLUSION_UNKNOWN = 3  # KITTI label_2's "unknown" occlusion level
+_POSE_FIELDS = ("tx", "ty", "tz", "rz", "occlusion", "truncation")
+
+
+# ---------------------------------------------------------------------------------------------
+# Calibration
+
+
+def _read_keyed(path: Path) -> dict[str, tuple[int, str]]:
+    """`KEY: values` lines of a raw calib file -> {key: (line number, value text)}."""
+    values = {}
+    for number, line in enumerate(read_text_lines(path, "calib file"), start=1):
+        if not line.strip():
+            continue
+        key, sep, rest = line.partition(":")
+        if not sep:
+            raise ImportFormatError(f"{path}, line {number}: expected 'KEY: values', got {line!r}")
+        values[key.strip()] = (number, rest)
+    return values
+
+
+def _matrix(path: Path, values: dict, key: str, shape: tuple[int, int]) -> np.ndarray:
+    """The `shape` float64 matrix of `key`; errors name the file, line and key."""
+    if key not in values:
+        raise ImportFormatError(f"{path}: calib key '{key}' missing")
+    number, text = values[key]
+    try:
+        numbers = np.array([float(v) for v in text.split()], dtype=np.float64)
+    except ValueError:
+        raise ImportFormatError(f"{path}, line {number}: '{key}' has a non-numeric value") from None
+    size = shape[0] * shape[1]
+    if numbers.size != size:
+        raise ImportFormatError(
+            f"{path}, line {number}: '{key}' has {numbers.size} values, expected {size}"
+        )
+    if not np.isfinite(numbers).all():
+        raise ImportFormatError(f"{path}, line {number}: '{key}' has NaN/inf values")
+    return numbers.reshape(shape)
+
+
+def read_raw_calib(calib_dir: str | Path) -> tuple[Calibration, tuple[int, int]]:
+    """The day's calibration of camera 2 from `calib_cam_to_cam.txt` and `calib_velo_to_cam.txt`.
+
+    Returns the Calibration (P2 = P_rect_02, R0_rect = R_rect_00, Tr_velo_to_cam = [R | T]) and
+    the rectified image size (width, height) from S_rect_02 (KITTI's 1242 x 375 when absent).
+    """
+    calib_dir = Path(calib_dir)
+    cam_path, velo_path = calib_dir / "calib_cam_to_cam.txt", calib_dir / "calib_velo_to_cam.txt"
+    cam, velo = _read_keyed(cam_path), _read_keyed(velo_path)
+    p2 = _matrix(cam_path, cam, "P_rect_02", (3, 4))
+    r0 = _matrix(cam_path, cam, "R_rect_00", (3, 3))
+    rotation = _matrix(velo_path, velo, "R", (3, 3))
+    translation = _matrix(velo_path, velo, "T", (3, 1))
+    if abs(np.linalg.det(r0)) < 1e-6 or abs(np.linalg.det(rotation)) < 1e-6:
+        raise ImportFormatError(f"{calib_dir}: R_rect_00 or the velodyne R is singular")
+    size = DEFAULT_IMAGE_SIZE
+    if "S_rect_02" in cam:
+        width, height = _matrix(cam_path, cam, "S_rect_02", (1, 2))[0]
+        if width < 1 or height < 1:
+            raise ImportFormatError(f"{cam_path}, line {cam['S_rect_02'][0]}: 'S_rect_02' <= 0")
+        size = (int(round(width)), int(round(height)))
+    calib = Calibration(P2=p2, R0_rect=r0, Tr_velo_to_cam=np.c_[rotation, translation])
+    return calib, size
+
+
+# ---------------------------------------------------------------------------------------------
+# Tracklets
+
+
+@dataclass
+class TrackletPoses:
+    """Every pose of a tracklet file, one row per (object, frame) (N rows).
+
+    frame : (N,) int64 frame index; label : (N,) object str (objectType); hwl : (N, 3) float64
+    metres; pose : (N, 4) float64 tx, ty, tz (bottom centre, Velodyne frame, metres), rz (rad);
+    occlusion : (N,) int32 state; truncation : (N,) int32 state; track : (N,) int32 tracklet index.
+    """
+
+    frame: np.ndarray
+    label: np.ndarray
+    hwl: np.ndarray
+    pose: np.ndarray
+    occlusion: np.ndarray
+    truncation: np.ndarray
+    track: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    def boxes(self) -> np.ndarray:
+        """`(N, 7)` float64 dali boxes: x, y, z (geometric centre), l, w, h, yaw."""
+        h, w, l = self.hwl[:, 0], self.hwl[:, 1], self.hwl[:, 2]  # noqa: E741
+        x, y, z, rz = self.pose.T
+        return np.c_[x, y, z + h / 2, l, w, h, wrap_angle(rz)]
+
+    def select(self, mask: np.ndarray) -> TrackletPoses:
+        return TrackletPoses(*(getattr(self, name)[mask] for name in self.__dataclass_fields__))
+
+
+def _text(element, tag: str, path: Path, where: str) -> str:
+    child = element.find(tag)
+    if child is None or child.text is None or not child.text.strip():
+        raise ImportFormatError(f"{path}: {where}: field '{tag}' missing or empty")
+    return child.text.strip()
+
+
+def _number(element, tag: str, path: Path, where: str, kind=float):
+    text = _text(element, tag, path, where)
+    try:
+        value = kind(text)
+    except ValueError:
+        raise ImportFormatError(
+            f"{path}: {where}: field '{tag}' is not a number ({text!r})"
+        ) from None
+    if kind is float and not np.isfinite(value):
+        raise ImportFormatError(f"{path}: {where}: field '{tag}' is NaN/inf")
+    return value
+
+
+def _parse_xml(path: Path):
+    try:
+        size = path.stat().st_size
+    except OSError as error:
+        raise ImportFormatError(f"{path}: cannot read tracklet file ({error.strerror})") from None
+    if size > MAX_TRACKLET_BYTES:
+        raise ImportFormatError(
+            f"{path}: tracklet file is {size} bytes, more than {MAX_TRACKLET_BYTES}"
+        )
+    raw = path.read_bytes()
+    if b"<!ENTITY" in raw:
+        raise ImportFormatError(f"{path}: tracklet file declares XML entities (refused)")
+    try:
+        return ElementTree.fromstring(raw)
+    except ElementTree.ParseError as error:
+        raise ImportFormatError(f"{path}: malformed XML ({error})") from None
+
+
+def read_tracklets(path: str | Path) -> TrackletPoses:
+    """Parse a KITTI raw `tracklet_labels.xml` into one row per annotated pose.
+
+    Errors (ImportFormatError) name the file, the tracklet (0-based), the pose and the field.
+    """
+    path = Path(path)
+    root = _parse_xml(path)
+    tracklets = root.find("tracklets") if root.tag != "tracklets" else root
+    if tracklets is None:
+        raise ImportFormatError(f"{path}: no <tracklets> element")
+    items = tracklets.findall("item")
+    declared = tracklets.find("count")
+    if declared is not None and declared.text and declared.text.strip() != str(len(items)):
+        raise ImportFormatError(
+            f"{path}: <count> says {declared.text.strip()} tracklets, the file has {len(items)}"
+        )
+    rows = {name: [] for name in ("frame", "label", "hwl", "pose", "occ", "trunc", "track")}
+    for index, item in enumerate(items):
+        where = f"tracklet {index}"
+        label = _text(item, "objectType", path, where)
+        hwl = [_number(item, tag, path, where) for tag in ("h", "w", "l")]
+        if min(hwl) <= 0:
+            raise ImportFormatError(f"{path}: {where}: size h, w, l must be > 0, got {hwl}")
+        first = _number(item, "first_frame", path, where, int)
+        if first < 0:
+            raise ImportFormatError(f"{path}: {where}: field 'first_frame' is negative ({first})")
+        poses = item.find("poses")
+        if poses is None:
+            raise ImportFormatError(f"{path}: {where}: field 'poses' missing")
+        for offset, pose in enumerate(poses.findall("item")):
+            at = f"{where}, pose {offset}"
+            values = [_number(pose, tag, path, at) for tag in _POSE_FIELDS[:4]]
+            states = [_number(pose, tag, path, at, int) for tag in _POSE_FIELDS[4:]]
+            rows["frame"].append(first + offset)
+            rows["label"].append(label)
+            rows["hwl"].append(hwl)
+            rows["pose"].append(values)
+            rows["occ"].append(states[0])
+            rows["trunc"].append(states[1])
+            rows["track"].append(index)
+    return TrackletPoses(
+        frame=np.asarray(rows["frame"], np.int64),
+        label=np.asarray(rows["label"], dtype=object),
+        hwl=np.asarray(rows["hwl"], np.float64).reshape(-1, 3),
+        pose=np.asarray(rows["pose"], np.float64).reshape(-1, 4),
+        occlusion=np.asarray(rows["occ"], np.int32),
+        truncation=np.asarray(rows["trunc"], np.int32),
+        track=np.asarray(rows["track"], np.int32),
+    )
+
+
+def tracklet_table(
+    frame_id: str,
+    poses: TrackletPoses,
+    points: np.ndarray,
+    calib: Calibration,
+    image_size: tuple[int, int] = DEFAULT_IMAGE_SIZE,
+) -> BoxTable:
+    """One frame's poses (already selected) -> a BoxTable with KITTI's label columns and the
+    in-box point counts of `points` `(n, 4)`."""
+    boxes = poses.boxes()
+    columns = kitti_label_columns(boxes, np.zeros(len(boxes)), calib, image_size)
+    out_of_image = np.isin(poses.truncation, TRUNCATION_OUT_OF_IMAGE)
+    columns["truncated"] = np.where(out_of_image, 1.0, columns["truncated"]).astype(np.float32)
+    columns["occluded"] = np.where(
+        poses.occlusion < 0, OCCLUSION_UNKNOWN, np.minimum(poses.occlusion, 2)
+    ).astype(np.int32)
+    counts = count_points_in_boxes(points, boxes) if len(boxes) else np.zeros(0, np.int32)
+    return BoxTable.from_arrays(
+        np.full(len(boxes), frame_id, dtype=object),
+        boxes,
+        score=np.ones(len(boxes), np.float32),
+        label=poses.label,
+        num_points=counts,
+        **columns,
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# The drive and the import stage
+
+
+@dataclass(frozen=True)
+class RawDrive:
+    """Where a synced drive's files live."""
+
+    velodyne_dir: Path
+    calib_dir: Path
+    tracklets: Path | None  # None: unlabeled
+
+    @classmethod
+    def of(
+        cls,
+        drive_dir: str | Path,
+        calib_dir: str | Path | None = None,
+        tracklets: str | Path | None = None,
+        labels: bool = True,
+    ) -> RawDrive:
+        """DRIVE_DIR holds velodyne_points/data; the calib files default to DRIVE_DIR/..; the
+        tracklets to DRIVE_DIR/tracklet_labels.xml when present (`labels=False`: none)."""
+        drive_dir = Path(drive_dir)
+        velodyne = drive_dir / "velodyne_points" / "data"
+        if not velodyne.is_dir():
+            raise ImportFormatError(f"{drive_dir}: no velodyne_points/data directory")
+        calib = Path(calib_dir) if calib_dir is not None else drive_dir.resolve().parent
+        for name in ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt"):
+            if not (calib / name).is_file():
+                raise ImportFormatError(f"{calib / name}: calib file missing (see --calib-dir)")
+        found = None
+        if labels:
+            found = Path(tracklets) if tracklets is not None else drive_dir / TRACKLET_FILE
+            if not found.is_file():
+                if tracklets is not None:
+                    raise ImportFormatError(f"{found}: tracklet file not found")
+                found = None
+        return cls(velodyne_dir=velodyne, calib_dir=calib, tracklets=found)
+
+    def frame_ids(self) -> list[str]:
+        """Every `velodyne_points/data/*.bin` stem (each a whole frame index), sorted."""
+        ids = []
+        for path in sorted(self.velodyne_dir.glob("*.bin")):
+            check_id(path.stem, f"{path}: file name")
+            if not path.stem.isdigit():
+                raise ImportFormatError(f"{path}: file name is not a frame index")
+            ids.append(path.stem)
+        if not ids:
+            raise ImportFormatError(f"{self.velodyne_dir}: no .bin scans")
+        return ids
+
+
+def build_import(
+    out: str | Path,
+    drive: RawDrive,
+    frame_ids: list[str],
+    crop_fov: bool = False,
+    sensor: str = "kitti",
+) -> BuildResult:
+    """Stage body of `dali import kitti-raw`: every scan, and its tracklet boxes when labelled."""
+    calib, image_size = read_raw_calib(drive.calib_dir)
+    poses = read_tracklets(drive.tracklets) if drive.tracklets is not None else None
+    notes = ["points: velodyne_points/data scans (LiDAR frame)"]
+    if poses is not None:
+        indices = np.array([int(frame_id) for frame_id in frame_ids], np.int64)
+        outside = int((~np.isin(poses.frame, indices)).sum())
+        notes += [
+            "boxes: tracklet poses (bottom centre, rz) -> geometric centre; KITTI columns by "
+            "projecting with P_rect_02 and R_rect_00",
+            f"{outside} tracklet poses fall on frames outside the drive's scans and are dropped",
+        ]
+
+    def frames():
+        for frame_id in frame_ids:
+            points = read_velodyne(drive.velodyne_dir / f"{frame_id}.bin")
+            if crop_fov:
+                points = points[camera_fov_mask(points, calib, image_size)]
+            table = None
+            if poses is not None:
+                table = tracklet_table(
+                    frame_id, poses.select(poses.frame == int(frame_id)), points, calib, image_size
+                )
+            yield frame_id, points, table
+
+    attrs = {"source_format": "kitti-raw", "crop_fov": bool(crop_fov)}
+    result = write_imported(
+        out, frames(), sensor, attrs, total=len(frame_ids), description="import kitti-raw"
+    )
+    result.notes.extend(notes)
+    return result

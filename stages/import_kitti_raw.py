@@ -1,0 +1,51 @@
+"""Stage import_kitti_raw: a KITTI raw synced drive (velodyne_points, the day's calib files,
+tracklet_labels.xml) -> a FrameSet with boxes (dali_cli.importers.kitti_raw)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from dali_cli.sensors import get_profile
+from dali_cli.store.manifest import StageOutcome, run_stage
+
+
+def import_kitti_raw(
+    drive_dir: str | Path,
+    out: str | Path,
+    *,
+    calib_dir: str | Path | None = None,
+    tracklets: str | Path | None = None,
+    labels: bool = True,
+    crop_fov: bool = False,
+    sensor: str = "kitti",
+    sensors_path: str | None = None,
+    force: bool = False,
+    dry_run: bool = False,
+) -> StageOutcome:
+    """Import the drive DRIVE_DIR into `out` (with its tracklets unless `labels` is False)."""
+    from dali_cli.importers.kitti_raw import RawDrive, build_import
+
+    get_profile(sensor, sensors_path)  # an unknown profile fails before any work
+    drive = RawDrive.of(drive_dir, calib_dir, tracklets, labels)
+    frame_ids = drive.frame_ids()
+    inputs = {
+        "velodyne": drive.velodyne_dir,
+        "calib_cam_to_cam": drive.calib_dir / "calib_cam_to_cam.txt",
+        "calib_velo_to_cam": drive.calib_dir / "calib_velo_to_cam.txt",
+        "tracklets": drive.tracklets,
+    }
+    params = {
+        "labels": drive.tracklets is not None,
+        "crop_fov": crop_fov,
+        "sensor": sensor,
+        "frames": len(frame_ids),
+    }
+    return run_stage(
+        "import-kitti-raw",
+        out,
+        inputs,
+        params,
+        lambda tmp: build_import(tmp, drive, frame_ids, crop_fov=crop_fov, sensor=sensor),
+        force=force,
+        dry_run=dry_run,
+    )
