@@ -11,7 +11,8 @@ a field records time, the machine or the run's own path rather than the result:
   directory (RUN_A / RUN_B replaced by one placeholder);
 - model.json: as JSON without train.seconds, train.frames_per_s, train.runtime and paths;
 - Parquet files that are not byte-identical: compared column by column (NaN equal to NaN),
-  without the timing columns frames_per_s, elapsed_s (train_log) and seconds (sweep.parquet);
+  without the timing columns frames_per_s, elapsed_s, data_wait_share (train_log) and seconds
+  (sweep.parquet), which one side may lack;
 - model.pt: the saved tensors (state dict) exactly, plus the non-tensor metadata as above
   (torch's zip container records file names that differ run to run, not the weights).
 
@@ -33,7 +34,7 @@ TIMING_KEYS = {
     "created", "timings", "runtime", "executor", "seconds", "frames_per_s", "detector_seconds",
     "per_frame_compute_seconds", "bytes",
 }  # fmt: skip
-TIMING_COLUMNS = {"frames_per_s", "elapsed_s", "seconds"}
+TIMING_COLUMNS = {"frames_per_s", "elapsed_s", "seconds", "data_wait_share"}
 
 
 def _strip(value, roots: tuple[str, ...]):
@@ -147,10 +148,14 @@ def _table_differences(a: Path, b: Path) -> list[str]:
 
     left, right = pq.read_table(a), pq.read_table(b)
     found = [
-        f"column '{c}' only in the first" for c in left.column_names if c not in right.column_names
+        f"column '{c}' only in the first"
+        for c in left.column_names
+        if c not in right.column_names and c not in TIMING_COLUMNS
     ]
     found += [
-        f"column '{c}' only in the second" for c in right.column_names if c not in left.column_names
+        f"column '{c}' only in the second"
+        for c in right.column_names
+        if c not in left.column_names and c not in TIMING_COLUMNS
     ]
     if left.num_rows != right.num_rows:
         return [*found, f"rows {left.num_rows} != {right.num_rows}"]
