@@ -63,3 +63,22 @@ def test_nms_keeps_what_the_numpy_nms_keeps():
             expected = geometry.nms_bev(boxes, scores, threshold)
             kept = box_ops.nms_bev(torch.from_numpy(boxes), torch.from_numpy(scores), threshold)
             assert kept.dtype == torch.int64 and np.array_equal(kept.numpy(), expected)
+
+
+def test_iou_head_targets_on_the_device_match_the_numpy_ones():
+    from dali_cli.detector.config import DetectorConfig
+    from dali_cli.detector.targets import build_targets, cell_iou_targets, device_peak_targets
+
+    rng = np.random.default_rng(2)
+    config = DetectorConfig()
+    objects = [random_boxes(rng, 6, 8.0, 30.0), random_boxes(rng, 3, 8.0, 30.0)]
+    targets = build_targets(objects, config)
+    noisy = torch.from_numpy(targets.boxes + rng.normal(0, 0.2, targets.boxes.shape))
+    host = cell_iou_targets(noisy, targets, targets.mask, on_device=False)
+    device = cell_iou_targets(noisy, targets, targets.mask, on_device=True)
+    assert host.dtype == device.dtype == torch.float32 and (host > 0.3).sum() > 5
+    assert (host - device).abs().max() < 1e-6
+    peaks = torch.from_numpy(random_boxes(rng, 2 * 20, 8.0, 30.0).reshape(2, 20, 7))
+    expected = [geometry.iou_3d(peaks[b].numpy(), objects[b]).max(axis=1) for b in range(2)]
+    found = device_peak_targets(peaks, objects, 2, 20).numpy()
+    assert np.abs(found - np.stack(expected)).max() < 1e-6

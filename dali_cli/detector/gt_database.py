@@ -52,8 +52,8 @@ def load_database(directory: str | Path) -> MappedDatabase:
 
 def cache_root(data_dir: str | Path) -> Path:
     """The cache directory for training data read from `data_dir`: $DALI_CACHE_DIR when set,
-    else `.dali-cache` in the directory holding `data_dir`, or the one holding the outermost
-artifact `data_dir` lies in."""
+        else `.dali-cache` in the directory holding `data_dir`, or the one holding the outermost
+    artifact `data_dir` lies in."""
     from dali_cli.store.output_paths import is_dali_artifact
 
     if os.environ.get(CACHE_ENV):
