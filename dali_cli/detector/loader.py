@@ -155,13 +155,25 @@ def worker_init(_worker_id: int) -> None:
     torch.set_num_threads(1)
 
 
+def start_loader(loader: DataLoader):
+    """An iterator over `loader`'s batches, made with the CPU as the default device (the loader
+    makes a CPU tensor for its seed, whatever device a caller made the default)."""
+    with torch.device("cpu"):
+        return iter(loader)
+
+
 def training_loader(
     samples: TrainingSamples, batches: StepBatches, config, workers: int, pin_memory: bool
 ) -> DataLoader:
     """The DataLoader of `batches`' steps: samples made and collated in `workers` processes (0:
-    in this one), each prefetching two steps ahead, in step order."""
+    in this one), each prefetching two steps ahead, in step order. Its own torch generator
+    (the samples draw from numpy Generators seeded per frame; the loader's seed for its workers
+    does not consume the global torch stream, so training draws the same with or without it)."""
+    generator = torch.Generator(device="cpu")
+    generator.manual_seed(samples.seed)
     return DataLoader(
         samples,
+        generator=generator,
         batch_sampler=batches,
         collate_fn=functools.partial(collate, config=config),
         num_workers=workers,

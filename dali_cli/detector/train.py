@@ -32,6 +32,7 @@ from dali_cli.detector.loader import (
     collate,
     default_loader_workers,
     interleave,
+    start_loader,
     step_frames,
     training_loader,
 )
@@ -165,7 +166,7 @@ def train(
                     start=step, stop=steps),
         net.config, workers, pin_memory=device.type == "cuda",
     )  # fmt: skip
-    batches = iter(loader)
+    batches = start_loader(loader)
     last_save = time.perf_counter()
     window_frames, window_time, window_wait = 0, 0.0, 0.0
     while (step < steps) if steps else (elapsed < budget_s):
