@@ -5,6 +5,7 @@ same boxes in the same order."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from dali_cli import geometry
@@ -37,23 +38,28 @@ def special_boxes() -> np.ndarray:
     return np.stack([base, base.copy(), shifted, nested, turned, flat, axis, corner])
 
 
-def test_bev_and_3d_iou_match_the_numpy_reference():
+DEVICES = ["cpu", *(["cuda"] if torch.cuda.is_available() else [])]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_bev_and_3d_iou_match_the_numpy_reference(device):
     rng = np.random.default_rng(0)
     for a, b in [
         (random_boxes(rng, 40), random_boxes(rng, 30)),
         (random_boxes(rng, 20, 2.0, 70.0), random_boxes(rng, 20, 2.0, 70.0)),  # far out
         (special_boxes(), special_boxes()),
     ]:
-        ta, tb = torch.from_numpy(a), torch.from_numpy(b)
-        bev = box_ops.bev_iou(ta, tb).numpy()
+        ta, tb = torch.from_numpy(a).to(device), torch.from_numpy(b).to(device)
+        bev = box_ops.bev_iou(ta, tb).cpu().numpy()
         assert np.abs(bev - geometry.bev_iou(a, b)).max() < 1e-6
-        assert np.abs(box_ops.iou_3d(ta, tb).numpy() - geometry.iou_3d(a, b)).max() < 1e-6
+        assert np.abs(box_ops.iou_3d(ta, tb).cpu().numpy() - geometry.iou_3d(a, b)).max() < 1e-6
         assert (bev > 0.05).any()  # the cases do overlap
     pairs = box_ops.bev_intersection_pairs(torch.from_numpy(a), torch.from_numpy(b)).numpy()
     assert np.abs(pairs - geometry.bev_intersection_pairs(a, b)).max() < 1e-6
 
 
-def test_nms_keeps_what_the_numpy_nms_keeps():
+@pytest.mark.parametrize("device", DEVICES)
+def test_nms_keeps_what_the_numpy_nms_keeps(device):
     rng = np.random.default_rng(1)
     for n in (0, 1, 60):
         boxes = random_boxes(rng, n, 5.0)
@@ -61,8 +67,10 @@ def test_nms_keeps_what_the_numpy_nms_keeps():
         scores[: n // 3] = 0.5  # ties keep the earlier index first
         for threshold in (0.01, 0.1, 0.5):
             expected = geometry.nms_bev(boxes, scores, threshold)
-            kept = box_ops.nms_bev(torch.from_numpy(boxes), torch.from_numpy(scores), threshold)
-            assert kept.dtype == torch.int64 and np.array_equal(kept.numpy(), expected)
+            kept = box_ops.nms_bev(
+                torch.from_numpy(boxes).to(device), torch.from_numpy(scores).to(device), threshold
+            )
+            assert kept.dtype == torch.int64 and np.array_equal(kept.cpu().numpy(), expected)
 
 
 def test_iou_head_targets_on_the_device_match_the_numpy_ones():
