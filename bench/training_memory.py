@@ -1,4 +1,4 @@
-"""Training memory benchmark (not a test): peak memory of `dali pretrain --epochs 1` through the
+"""Training memory benchmark (not a test): peak memory of `dali pretrain` (1 epoch) through the
 real CLI, the training process and its DataLoader workers together, for frame sets of
 different sizes: streamed training data must hold it independent of the frame count.
 
@@ -12,6 +12,7 @@ Usage:
   .venv/bin/python bench/training_memory.py --data 300=DIR_A --data 3000=DIR_B \
       [--loader-workers 2 (-1: a dali without the option)] [--detector-config FILE]
       [--batch-size 2] [--work DIR] [--label NAME] [--dali EXE --pythonpath PATH]
+      [--epochs NAME=EPOCHS]
       -> bench/results/training_memory.json (one row per data set, appended by --label)
 """
 
@@ -109,16 +110,22 @@ def main() -> None:
     parser.add_argument("--detector-config", type=Path, default=None)
     parser.add_argument("--dali", default=str(BIN / "dali"), help="the dali executable to run")
     parser.add_argument("--label", default="streaming")
+    parser.add_argument(
+        "--epochs", action="append", default=[], help="NAME=EPOCHS (default 1 for each set)"
+    )
     parser.add_argument("--pythonpath", default=None, help="PYTHONPATH of the dali run")
     parser.add_argument("--interval-s", type=float, default=0.2)
     args = parser.parse_args()
     rows = []
+    epochs = {name: 1.0 for name in (item.split("=", 1)[0] for item in args.data)}
+    epochs.update((k, float(v)) for k, v in (item.split("=", 1) for item in args.epochs))
     for item in args.data:
         name, directory = item.split("=", 1)
         frames = len(FrameSet(directory))
         out = args.work / f"{args.label}-{name}"
         command = [
-            args.dali, "pretrain", "--source", directory, "--out", str(out), "--epochs", "1",
+            args.dali, "pretrain", "--source", directory, "--out", str(out),
+            "--epochs", str(epochs[name]),
             "--batch-size", str(args.batch_size), "--device", "cpu", "--quiet", "--force",
         ]  # fmt: skip
         if args.loader_workers >= 0:  # < 0: a dali without the option (frames in memory)
@@ -126,7 +133,10 @@ def main() -> None:
         if args.detector_config:
             command += ["--detector-config", str(args.detector_config)]
         load = os.getloadavg()[0]
-        row = {"name": name, "frames": frames, "data": directory, "load_1m_before": load}
+        row = {
+            "name": name, "frames": frames, "epochs": epochs[name], "data": directory,
+            "load_1m_before": load,
+        }  # fmt: skip
         env = dict(os.environ)
         if args.pythonpath is not None:
             env["PYTHONPATH"] = args.pythonpath

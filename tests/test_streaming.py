@@ -91,6 +91,10 @@ def test_cached_database_equals_the_in_memory_one_and_is_reused(toy, config, tmp
     assert np.array_equal(database.offsets, expected.offsets)
     assert np.array_equal(np.asarray(database.points), expected.points)
     assert database.region == expected.region
+    abandoned = tmp_path / "gt_database" / "0123.tmp-999999999"  # a writer that died
+    abandoned.mkdir()
+    other_root = cached_database(streamed, region=region, root=tmp_path)
+    assert other_root.directory == database.directory and not abandoned.exists()
     entries = list((tmp_path / "gt_database").iterdir())
     assert len(entries) == 1 and not list(tmp_path.glob("gt_database/*.tmp-*"))
     stamp = (entries[0] / "points.f32").stat().st_mtime_ns

@@ -97,9 +97,10 @@ def cached_database(
     frame and the boxes)."""
     root = Path(root) if root is not None else cache_root(first_directory(frames.points))
     directory = root / "gt_database" / database_key(frames, region, min_points)
+    directory.parent.mkdir(parents=True, exist_ok=True)
+    remove_abandoned(directory.parent)
     if (directory / "database.json").is_file():
         return load_database(directory)
-    directory.parent.mkdir(parents=True, exist_ok=True)
     tmp = directory.with_name(f"{directory.name}.tmp-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
@@ -114,6 +115,16 @@ def cached_database(
         raise
     console.info(f"gt database: {directory}")
     return load_database(directory)
+
+
+def remove_abandoned(folder: Path) -> None:
+    """Remove the half-written entries (`*.tmp-<pid>`) of processes that died writing them."""
+    from dali_cli.store.atomic_dir import process_alive
+
+    for tmp in folder.glob("*.tmp-*"):
+        pid = tmp.name.rpartition(".tmp-")[2]
+        if pid.isdigit() and not process_alive(int(pid)):
+            shutil.rmtree(tmp, ignore_errors=True)
 
 
 def write_database(directory: Path, frames, region, min_points: int) -> None:
