@@ -14,7 +14,7 @@ the loader (its frames/s), on the same frames.
 
 Usage:
   .venv/bin/python bench/input_pipeline.py --data DIR [--frames 24] [--steps 12]
-      [--batch-size 2] [--workers 0,1,2 | none] [--label NAME]
+      [--batch-size 2] [--workers 0,1,2 | none] [--threads N] [--label NAME]
       -> bench/results/input_pipeline.json (one entry per label)
 """
 
@@ -63,13 +63,15 @@ def pipeline_ms_per_frame(data, config, frames: int, batch_size: int) -> float:
     return 1000 * (time.perf_counter() - started) / frames
 
 
-def training_rate(data, config, steps: int, batch_size: int, workers: int | None) -> dict:
+def training_rate(
+    data, config, steps: int, batch_size: int, workers: int | None, threads: int | None
+) -> dict:
     torch.manual_seed(0)
     net = PillarCenterNet(config)
     extra = {} if workers is None else {"loader_workers": workers}
     settings = TrainSettings(
         epochs=steps * batch_size / len(data), batch_size=batch_size, seed=0, log_every=2,
-        device="cpu", **extra,
+        device="cpu", threads=threads, **extra,
     )  # fmt: skip
     result = train(net, [data], [Augmentation()], settings, progress=False)
     later = result.log[1:]  # the first window holds the start-up
@@ -93,6 +95,7 @@ def main() -> None:
     parser.add_argument("--batch-size", type=int, default=2)
     parser.add_argument("--workers", default="0,1,2")
     parser.add_argument("--label", default="streaming")
+    parser.add_argument("--threads", type=int, default=None, help="the training's torch threads")
     args = parser.parse_args()
     config = DetectorConfig()
     data = streamed(args.data, config)
@@ -110,7 +113,9 @@ def main() -> None:
     counts = [None] if args.workers == "none" else [int(w) for w in args.workers.split(",")]
     entry["training"] = []
     for workers in counts:
-        entry["training"].append(training_rate(data, config, args.steps, args.batch_size, workers))
+        entry["training"].append(
+            training_rate(data, config, args.steps, args.batch_size, workers, args.threads)
+        )
         print(json.dumps(entry["training"][-1]), flush=True)
     entry["load_1m_after"] = os.getloadavg()[0]
     results = json.loads(RESULT.read_text()) if RESULT.is_file() else {"runs": {}}

@@ -11,7 +11,7 @@ gt-sampling database (file pages the kernel may drop and re-read). The peak of e
 Usage:
   .venv/bin/python bench/training_memory.py --data 300=DIR_A --data 3000=DIR_B \
       [--loader-workers 2 (-1: a dali without the option)] [--detector-config FILE]
-      [--batch-size 2] [--work DIR] [--label NAME] [--dali EXE --pythonpath PATH]
+      [--batch-size 2] [--threads N] [--work DIR] [--label NAME] [--dali EXE --pythonpath PATH]
       [--epochs NAME=EPOCHS]
       -> bench/results/training_memory.json (one row per data set, appended by --label)
 """
@@ -107,6 +107,7 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=Path("/tmp/dali-training-memory"))
     parser.add_argument("--loader-workers", type=int, default=2)
     parser.add_argument("--batch-size", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=None, help="torch threads (--threads)")
     parser.add_argument("--detector-config", type=Path, default=None)
     parser.add_argument("--dali", default=str(BIN / "dali"), help="the dali executable to run")
     parser.add_argument("--label", default="streaming")
@@ -130,6 +131,8 @@ def main() -> None:
         ]  # fmt: skip
         if args.loader_workers >= 0:  # < 0: a dali without the option (frames in memory)
             command += ["--loader-workers", str(args.loader_workers)]
+        if args.threads:
+            command += ["--threads", str(args.threads)]
         if args.detector_config:
             command += ["--detector-config", str(args.detector_config)]
         load = os.getloadavg()[0]
