@@ -38,7 +38,7 @@ from dali_cli.detector import (
 )
 from dali_cli.detector.augment import ObjectDatabase
 from dali_cli.detector.data import detection_region
-from dali_cli.detector.runtime import cpu_model
+from dali_cli.runtime.machine import cpu_model
 from dali_cli.sensors import get_profile
 from dali_cli.store.artifacts import BoxTable, FrameSet, read_boxes
 

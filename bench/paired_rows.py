@@ -36,7 +36,7 @@ def read_row(directory: Path) -> dict[str, float] | None:
 def paired_table(base: tuple[str, str], rows: list[tuple[str, str]], seeds: list[int]) -> str:
     """Markdown: per row and metric, the per-seed values, the differences to the base and their
     mean ± sample std."""
-    from dali_cli.reporting.aggregate import statistics
+    from dali_cli.reporting.columns import statistics
 
     lines = [
         f"| row | metric | per seed ({', '.join(map(str, seeds))}) | mean ± std "

@@ -31,8 +31,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from dali_cli.detector.runtime import cpu_model  # noqa: E402
 from dali_cli.geometry import bev_iou  # noqa: E402
+from dali_cli.runtime.machine import cpu_model  # noqa: E402
 from dali_cli.store.artifacts import read_boxes  # noqa: E402
 
 BANDS = ((0.0, 30.0), (30.0, 50.0), (50.0, 80.0))

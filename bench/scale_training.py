@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.detector.runtime import available_cores, cpu_model
+from dali_cli.runtime.machine import available_cores, cpu_model
 
 BIN = Path(sys.executable).parent
 DALI = str(BIN / "dali")

@@ -26,7 +26,10 @@ import sys
 import time
 from pathlib import Path
 
-from dali_cli.detector.runtime import available_cores, cpu_model
+try:
+    from dali_cli.runtime.machine import available_cores, cpu_model
+except ImportError:  # a checkout from before runtime.machine
+    from dali_cli.detector.runtime import available_cores, cpu_model
 from dali_cli.store.artifacts import FrameSet
 
 BIN = Path(sys.executable).parent

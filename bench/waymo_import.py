@@ -25,7 +25,7 @@ import tests.test_waymo as fixture  # noqa: E402  (the test's writers, at real s
 
 
 def cpu_model() -> str:
-    from dali_cli.detector.runtime import cpu_model as model
+    from dali_cli.runtime.machine import cpu_model as model
 
     return model()
 

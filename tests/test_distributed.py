@@ -30,9 +30,9 @@ from dali_cli.detector import (
     train,
 )
 from dali_cli.detector.distributed import World, join, launched, leave
-from dali_cli.detector.runtime import available_cores
 from dali_cli.runtime.device import DeviceError, parse_device_spec, resolve_device
 from dali_cli.runtime.errors import ParameterError, StageError
+from dali_cli.runtime.machine import available_cores
 from dali_cli.runtime.training_stage import attach_database
 from dali_cli.sensors import get_profile
 
@@ -90,8 +90,8 @@ def test_cuda_without_a_gpu_is_an_error_and_writes_nothing(no_cuda, toy_dir, tmp
 
 
 def test_threads_are_shared_by_the_local_ranks(monkeypatch):
-    from dali_cli.detector import runtime
     from dali_cli.runtime import cores
+    from dali_cli.runtime import machine as runtime
 
     monkeypatch.setattr(cores.os, "sched_getaffinity", lambda pid: set(range(8)), raising=False)
     assert runtime.training_threads(None) == 8

@@ -142,10 +142,10 @@ def test_model_route_corrects_the_detector_output(scene, tmp_path, monkeypatch):
 
     import importlib
 
-    runtime = importlib.import_module("dali_cli.detector.runtime")  # stays importable
+    runtime = importlib.import_module("dali_cli.runtime.machine")  # stays importable
     fake = types.ModuleType("dali_cli.detector")
     fake.predict_frameset = predict_frameset
-    monkeypatch.setitem(sys.modules, "dali_cli.detector.runtime", runtime)
+    monkeypatch.setitem(sys.modules, "dali_cli.runtime.machine", runtime)
     monkeypatch.setitem(sys.modules, "dali_cli.detector", fake)
     (tmp_path / "model").mkdir()
     out = tmp_path / "eval"

@@ -656,8 +656,8 @@ def test_cli_tables_labels_and_errors(tmp_path):
 def keep_runtime(monkeypatch):
     import importlib
 
-    module = importlib.import_module("dali_cli.detector.runtime")
-    monkeypatch.setitem(sys.modules, "dali_cli.detector.runtime", module)
+    module = importlib.import_module("dali_cli.runtime.machine")
+    monkeypatch.setitem(sys.modules, "dali_cli.runtime.machine", module)
 
 
 def test_cli_model_inference_uses_the_ptsn_scale(tmp_path, monkeypatch):

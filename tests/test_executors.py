@@ -154,7 +154,7 @@ def test_pseudo_label_on_ray_equals_serial_at_the_same_torch_threads(data, ray_s
 
 
 def test_eval_on_ray_equals_serial(data, ray_session, tmp_path, monkeypatch):
-    import dali_cli.detector.runtime as runtime
+    import dali_cli.runtime.machine as runtime
 
     monkeypatch.setattr(runtime, "available_cores", lambda: 1)  # the workers' one torch thread
     args = ["eval", "--model", data / "model", "--data", data / "target", "--scale", "1.0"]

@@ -13,8 +13,8 @@ from test_retrain import SMALL  # the tiny detector config of the training tests
 from toy_scenes import write_toy_dataset
 
 from dali_cli.cli import main
-from dali_cli.detector import runtime
 from dali_cli.runtime import cores
+from dali_cli.runtime import machine as runtime
 from dali_cli.sensors import get_profile
 from dali_cli.store.manifest import read_manifest
 

@@ -348,8 +348,8 @@ def predict_frameset(
     """
     from tqdm import tqdm
 
-    from dali_cli.detector.runtime import available_cores
     from dali_cli.labels.pseudo_labeler import FrameLabeler
+    from dali_cli.runtime.machine import available_cores
     from dali_cli.sensors import get_profile
 
     torch.set_num_threads(available_cores())

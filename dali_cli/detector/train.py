@@ -38,8 +38,8 @@ from dali_cli.detector.loader import (
 )
 from dali_cli.detector.model import PillarCenterNet
 from dali_cli.detector.refine import refine_loss
-from dali_cli.detector.runtime import runtime_info, training_threads
 from dali_cli.detector.targets import detection_loss, peak_boxes
+from dali_cli.runtime.machine import runtime_info, training_threads
 
 __all__ = ["batch_indices", "interleave"]  # the sampler's parts, where they always were
 

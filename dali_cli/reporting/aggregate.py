@@ -8,27 +8,13 @@ runs that have it, and the table says how many did (n). The standard deviation i
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
-import numpy as np
-
+from dali_cli.reporting import compare as report_compare
+from dali_cli.reporting import paired as report_paired
+from dali_cli.reporting.columns import COLUMNS, dig, statistics
 from dali_cli.reporting.report import BANDS, DIFFICULTIES, build_report
 
-# (column title, how to read it from a row of report.json)
-COLUMNS: tuple[tuple[str, tuple], ...] = (
-    ("BEV@0.7", ("ap", "0.7", "bev")),
-    ("3D@0.7", ("ap", "0.7", "3d")),
-    ("BEV@0.5", ("ap", "0.5", "bev")),
-    ("3D@0.5", ("ap", "0.5", "3d")),
-    *((f"KITTI 3D@0.7 {d}", ("kitti", "0.7", "3d", d)) for d in DIFFICULTIES),
-    ("KITTI BEV@0.7 moderate", ("kitti", "0.7", "bev", "moderate")),
-    ("pred l", ("sizes", "pred", 0)),
-    ("pred w", ("sizes", "pred", 1)),
-    ("pred h", ("sizes", "pred", 2)),
-    ("scale", ("scale",)),
-    *((f"3D@0.7 {band} m", ("bands", band, "3d")) for band in BANDS),
-)
 SCALARS = (
     "gap_closed_3d_0.7",
     "gap_closed_bev_0.7",
@@ -53,28 +39,6 @@ def find_runs(paths: list[Path]) -> list[Path]:
     for path in paths:
         runs += [path] if is_run(path) else sorted(p for p in path.iterdir() if is_run(p))
     return runs
-
-
-def dig(row: dict, keys: tuple) -> float | None:
-    """A number inside a row of report.json, or None when any level is missing."""
-    value = row
-    for key in keys:
-        if isinstance(value, dict):
-            value = value.get(key)
-        elif isinstance(value, list | tuple) and isinstance(key, int) and key < len(value):
-            value = value[key]
-        else:
-            return None
-    return float(value) if isinstance(value, int | float) and math.isfinite(value) else None
-
-
-def statistics(values: list[float]) -> dict:
-    """{"mean", "std" (sample, None if n < 2), "n", "values"} of the runs' values."""
-    if not values:
-        return {"mean": None, "std": None, "n": 0, "values": []}
-    array = np.asarray(values, np.float64)
-    std = float(array.std(ddof=1)) if len(array) > 1 else None
-    return {"mean": float(array.mean()), "std": std, "n": len(array), "values": list(values)}
 
 
 def aggregate_documents(documents: list[dict], section: str = "target") -> list[dict]:
@@ -114,9 +78,6 @@ def markdown(rows: list[dict], columns=TABLE_COLUMNS) -> str:
 def aggregate_runs(runs: list[Path]) -> tuple[str, dict]:
     """Markdown and a JSON-ready dict: mean ± std over `runs` of every row and gap figure, and
     the paired differences of the DALI rows against their equal-budget controls."""
-    from dali_cli.reporting import compare as report_compare
-    from dali_cli.reporting import paired as report_paired
-
     documents = [build_report(run)[1] for run in runs]
     paired = report_paired.paired_differences(documents, [str(r) for r in runs])
     target = aggregate_documents(documents, "target") + aggregate_documents(documents, "controls")

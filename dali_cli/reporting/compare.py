@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from dali_cli.reporting.aggregate import statistics
+from dali_cli.reporting.columns import statistics
 
 FILES = (("compare_r400.json", "R400, the fine recall grid"), ("compare_r40.json", "R40"))
 METRIC = "3d all"  # AP_3D@0.7 of the front region, all boxes (make compare's settings)

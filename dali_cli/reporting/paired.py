@@ -16,7 +16,7 @@ is left of the difference when that step is taken out.
 
 from __future__ import annotations
 
-from dali_cli.reporting.aggregate import COLUMNS, dig, statistics
+from dali_cli.reporting.columns import COLUMNS, dig, statistics
 from dali_cli.reporting.report import (
     SOURCE_X1_BUDGET,
     SOURCE_X1_BUDGET_SIZED,

@@ -13,6 +13,7 @@ from collections.abc import Callable
 from typing import TypedDict
 
 from dali_cli.runtime.errors import ParameterError, StageError
+from dali_cli.runtime.machine import runtime_info
 
 DEVICE_SPECS = "auto, cpu, cuda or cuda:N"
 PRECISIONS = ("fp32", "bf16")
@@ -127,8 +128,6 @@ def inference_runtime(device) -> dict:
     """The manifest's record of an inference stage's machine (threads, device, CPU/GPU, torch)."""
     import torch
 
-    from dali_cli.detector.runtime import runtime_info
-
     return runtime_info(torch.get_num_threads(), device)
 
 
@@ -139,20 +138,3 @@ def autocast(device, precision: str):
     if precision != "bf16":
         return contextlib.nullcontext()
     return torch.autocast(device.type, dtype=torch.bfloat16)
-
-
-def describe(device) -> dict:
-    """What a manifest records about the device: its name, and for CUDA the GPU model, its memory
-    and the number of GPUs this process sees."""
-    import torch
-
-    record = {"device": str(device)}
-    if device.type == "cuda":
-        properties = torch.cuda.get_device_properties(device)
-        record.update(
-            gpu_model=properties.name,
-            gpu_memory_gib=round(properties.total_memory / 2**30, 1),
-            gpu_count=torch.cuda.device_count(),
-            cuda_version=torch.version.cuda,
-        )
-    return record

@@ -20,8 +20,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[3]
 sys.path.insert(0, str(ROOT))
 
-from dali_cli.store.artifacts import BoxTable, FrameSet, read_boxes, write_boxes  # noqa: E402
 from dali_cli.geometry import count_points_in_boxes, wrap_angle  # noqa: E402
+from dali_cli.store.artifacts import BoxTable, FrameSet, read_boxes, write_boxes  # noqa: E402
 
 SHIFTS_ALONG = np.arange(-0.6, 0.601, 0.05)
 SHIFTS_ACROSS = np.arange(-0.2, 0.201, 0.025)

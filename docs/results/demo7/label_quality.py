@@ -22,8 +22,8 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from pseudo_labels import match  # noqa: E402
 
-from dali_cli.store.artifacts import read_boxes  # noqa: E402
 from dali_cli.geometry import iou_3d_pairs, wrap_angle  # noqa: E402
+from dali_cli.store.artifacts import read_boxes  # noqa: E402
 
 
 def matched_pairs(truth, boxes) -> tuple[np.ndarray, np.ndarray]:

@@ -16,7 +16,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dali_cli.store.artifacts import FrameSet
 from dali_cli.detector import (
     Augmentation,
     Detector,
@@ -27,8 +26,9 @@ from dali_cli.detector import (
 )
 from dali_cli.detector.augment import ObjectDatabase
 from dali_cli.detector.data import detection_region
-from dali_cli.detector.runtime import cpu_model
 from dali_cli.detector.train import interleave, optimize_step, step_samples
+from dali_cli.runtime.machine import cpu_model
+from dali_cli.store.artifacts import FrameSet
 
 
 def training_frames(run: Path, config: DetectorConfig):

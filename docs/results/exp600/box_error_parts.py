@@ -22,8 +22,8 @@ sys.path.insert(0, str(ROOT / "docs" / "results" / "demo7"))
 
 from label_quality import matched_pairs, truth_and_box_dirs  # noqa: E402
 
-from dali_cli.store.artifacts import read_boxes  # noqa: E402
 from dali_cli.geometry import iou_3d_pairs, wrap_angle  # noqa: E402
+from dali_cli.store.artifacts import read_boxes  # noqa: E402
 
 BANDS = ((0.0, 30.0), (30.0, 50.0), (50.0, 80.0))
 

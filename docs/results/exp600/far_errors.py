@@ -19,8 +19,8 @@ import argparse
 import numpy as np
 
 from dali_cli.evaluation.evaluate import in_st3d_region
-from dali_cli.geometry import bev_iou, iou_3d, wrap_angle
 from dali_cli.evaluation.kitti_label import read_box_source
+from dali_cli.geometry import bev_iou, iou_3d, wrap_angle
 
 BANDS = ((0, 30), (30, 50), (50, 80))
 

@@ -9,10 +9,13 @@ its bottom in z). The predictions need no label; the true cars only check the es
 """
 
 import sys
-import numpy as np
 from pathlib import Path
-from dali_cli.store.artifacts import FrameSet
+
+import numpy as np
+
 from dali_cli.evaluation.kitti_label import read_box_source as read_table
+from dali_cli.store.artifacts import FrameSet
+
 
 def offsets(boxes, points, ring=1.0, pct=20):
     out = []

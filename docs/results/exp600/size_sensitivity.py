@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.evaluation.evaluate import evaluate
-from dali_cli.geometry import iou_3d
 from dali_cli.evaluation.kitti_label import read_box_source
+from dali_cli.geometry import iou_3d
 from stages.eval import resized
 
 FACTORS = (0.99, 0.995, 0.998, 1.0, 1.002, 1.005, 1.01)

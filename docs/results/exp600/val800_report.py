@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from dali_cli.reporting import compare as report_compare
+
 root = Path(sys.argv[1] if len(sys.argv) > 1 else "runs/val800")
 for task, pattern in (("Waymo-like → KITTI-like", "experiment-s*"),
                       ("nuScenes-like → KITTI-like", "experiment-nuscenes-s*")):  # fmt: skip

@@ -1,5 +1,7 @@
 """Where a training or inference run executes: how many torch threads it uses and a record of
-the machine (CPU model, device, torch version) for every training manifest."""
+the machine (CPU model, device, torch version) for every training and inference manifest.
+
+Imports nothing of dali_cli but `runtime.cores`; torch is imported inside the functions."""
 
 from __future__ import annotations
 
@@ -40,8 +42,6 @@ def runtime_info(threads: int, device=None, world=None) -> dict:
     torchrun run the world size, the backend and the processes per machine."""
     import torch
 
-    from dali_cli.runtime.device import describe
-
     record = {
         "threads": int(threads),
         **describe(device if device is not None else torch.device("cpu")),
@@ -56,3 +56,20 @@ def runtime_info(threads: int, device=None, world=None) -> dict:
         "torch_version": torch.__version__,
         "python_version": platform.python_version(),
     }
+
+
+def describe(device) -> dict:
+    """What a manifest records about the device: its name, and for CUDA the GPU model, its memory
+    and the number of GPUs this process sees."""
+    import torch
+
+    record = {"device": str(device)}
+    if device.type == "cuda":
+        properties = torch.cuda.get_device_properties(device)
+        record.update(
+            gpu_model=properties.name,
+            gpu_memory_gib=round(properties.total_memory / 2**30, 1),
+            gpu_count=torch.cuda.device_count(),
+            cuda_version=torch.version.cuda,
+        )
+    return record

@@ -1,0 +1,144 @@
+"""The package's layering: which layer may import which, and no import cycles.
+
+Every `import` statement of dali_cli/ and stages/ counts, function-level ones included (they hide
+cycles from Python but not from a reader). A module is named by its dotted path; a package's
+layer is its first component below dali_cli (dali_cli.store.artifacts -> "store").
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# layer -> the dali_cli layers it may import (itself always allowed). Top-level modules
+# (geometry, sensors, raycast, ...) are layers of their own name.
+ALLOWED = {
+    "runtime": set(),  # where code runs: imports nothing above it
+    "store": {"runtime"},
+    "geometry": set(),
+    "evaluation": {"store", "runtime", "geometry", "importers"},
+    "reporting": {"store", "runtime", "geometry", "evaluation", "ppcg"},
+    "commands": None,  # the click layer: any library layer, and the stages it runs
+    "training_stage": None,  # the driver of pretrain / retrain / self-train: any library layer
+    "cli": {"runtime", "commands", "__init__"},
+}
+LEAVES = {f"dali_cli.runtime.{m}" for m in ("errors", "console", "cores", "workers")}
+
+
+def modules() -> dict[str, Path]:
+    found = {}
+    for package in ("dali_cli", "stages"):
+        for path in sorted((ROOT / package).rglob("*.py")):
+            parts = path.relative_to(ROOT).with_suffix("").parts
+            name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+            found[name] = path
+    return found
+
+
+def imports_of(path: Path, name: str, known: dict[str, Path]) -> set[str]:
+    """The project modules `path` imports (resolved to the longest known module name)."""
+    is_package = path.name == "__init__.py"
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        targets = []
+        if isinstance(node, ast.Import):
+            targets = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = name.split(".")
+                anchor = anchor if is_package else anchor[:-1]
+                anchor = anchor[: len(anchor) - node.level + 1]
+                base = ".".join(anchor + ([base] if base else []))
+            targets = [f"{base}.{alias.name}" for alias in node.names] + [base]
+        for target in targets:
+            parts = target.split(".")
+            while parts and ".".join(parts) not in known:
+                parts.pop()
+            if parts and ".".join(parts) != name:
+                out.add(".".join(parts))
+    return out
+
+
+def graph() -> dict[str, set[str]]:
+    known = modules()
+    return {name: imports_of(path, name, known) for name, path in known.items()}
+
+
+def layer(module: str) -> str:
+    if module == "dali_cli.runtime.training_stage":
+        return "training_stage"
+    parts = module.split(".")
+    return parts[0] if parts[0] == "stages" else (parts[1] if len(parts) > 1 else "__init__")
+
+
+def test_no_import_cycles():
+    edges = graph()
+    index, low, stack, on_stack, cycles = {}, {}, [], set(), []
+
+    def visit(node):  # Tarjan's strongly connected components
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        on_stack.add(node)
+        for nxt in edges.get(node, ()):
+            if nxt not in edges:
+                continue
+            # a package and its own modules are one unit for cycle purposes
+            if nxt.startswith(node + ".") or node.startswith(nxt + "."):
+                continue
+            if nxt not in index:
+                visit(nxt)
+                low[node] = min(low[node], low[nxt])
+            elif nxt in on_stack:
+                low[node] = min(low[node], index[nxt])
+        if low[node] == index[node]:
+            component = []
+            while True:
+                top = stack.pop()
+                on_stack.discard(top)
+                component.append(top)
+                if top == node:
+                    break
+            if len(component) > 1:
+                cycles.append(sorted(component))
+
+    for node in sorted(edges):
+        if node not in index:
+            visit(node)
+    assert not cycles, f"import cycles: {cycles}"
+
+
+def test_layers_import_only_what_they_may():
+    bad = []
+    for module, targets in graph().items():
+        own = layer(module)
+        if module.startswith("stages"):
+            bad += [(module, t) for t in targets if layer(t) in ("commands", "cli")]
+            continue
+        for target in targets:
+            other = layer(target)
+            if target.startswith("stages") and own != "commands":
+                bad.append((module, target))  # the library never imports a stage
+            elif other == "commands" and own not in ("commands", "cli"):
+                bad.append((module, target))  # nor the click layer
+            elif own in ALLOWED and ALLOWED[own] is not None:
+                if other not in ALLOWED[own] | {own, "__init__"}:
+                    bad.append((module, target))
+    assert not bad, "layering violations (module -> import):\n" + "\n".join(
+        f"  {m} -> {t}" for m, t in sorted(bad)
+    )
+
+
+def test_runtime_leaves_import_nothing_of_dali():
+    edges = graph()
+    for leaf in LEAVES:
+        assert not edges[leaf], f"{leaf} imports {edges[leaf]}"
+
+
+def test_the_graph_sees_function_level_imports():
+    """A property of the checker itself: an import inside a function is an edge."""
+    edges = graph()
+    assert "dali_cli.runtime.machine" in edges["dali_cli.runtime.device"]
+    assert any(t.startswith("dali_cli.store") for t in edges["dali_cli.evaluation.evaluate"])
