@@ -157,9 +157,24 @@ def worker_init(_worker_id: int) -> None:
 
 def start_loader(loader: DataLoader):
     """An iterator over `loader`'s batches, made with the CPU as the default device (the loader
-    makes a CPU tensor for its seed, whatever device a caller made the default)."""
+    makes a CPU tensor for its seed, whatever device a caller made the default). Before its
+    workers fork, the heap the loading passes freed goes back to the system, so that the workers
+    do not share (and count) it."""
+    if loader.num_workers:
+        release_free_heap()
     with torch.device("cpu"):
         return iter(loader)
+
+
+def release_free_heap() -> None:
+    """glibc's malloc_trim(0): return freed heap pages to the system (a no-op elsewhere)."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 def training_loader(
