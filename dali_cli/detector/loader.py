@@ -166,6 +166,14 @@ def start_loader(loader: DataLoader):
         return iter(loader)
 
 
+def stop_loader(batches) -> None:
+    """Stop the worker processes of a loader iterator now, not when it is collected (a
+    traceback that holds it would keep them alive)."""
+    shutdown = getattr(batches, "_shutdown_workers", None)
+    if shutdown is not None:
+        shutdown()
+
+
 def release_free_heap() -> None:
     """glibc's malloc_trim(0): return freed heap pages to the system (a no-op elsewhere)."""
     import ctypes

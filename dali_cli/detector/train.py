@@ -34,6 +34,7 @@ from dali_cli.detector.loader import (
     interleave,
     start_loader,
     step_frames,
+    stop_loader,
     training_loader,
 )
 from dali_cli.detector.model import PillarCenterNet
@@ -169,37 +170,39 @@ def train(
     batches = start_loader(loader)
     last_save = time.perf_counter()
     window_frames, window_time, window_wait = 0, 0.0, 0.0
-    while (step < steps) if steps else (elapsed < budget_s):
-        started = time.perf_counter()
-        fraction = step / steps if steps else elapsed / budget_s
-        lr = schedule_lr(fraction, settings)
-        for group in optimizer.param_groups:
-            group["lr"] = lr
-        batch = next(batches)  # the wait for the input pipeline
-        waited = time.perf_counter() - started
-        terms = optimize_step(net, forward, optimizer, batch, settings, device, step, mine)
-        step += 1
-        took = time.perf_counter() - started
-        elapsed = broadcast_float(elapsed + took, world) if budget_s else elapsed + took
-        window_frames, window_time = window_frames + global_batch, window_time + took
-        window_wait += waited
-        bar.update(1 if steps else min(round(elapsed), bar.total) - bar.n)
-        if step % settings.log_every == 0 or step == 1 or step == steps:
-            row = log_row(step, batch.dataset, terms, lr, window_frames / max(window_time, 1e-9),
-                          elapsed, window_wait / max(window_time, 1e-9))  # fmt: skip
-            log.append(row)
-            window_frames, window_time, window_wait = 0, 0.0, 0.0
-            bar.set_postfix(
-                loss=f"{row['loss']:.3f}", fps=f"{row['frames_per_s']:.1f}",
-                wait=f"{row['data_wait_share']:.0%}", lr=f"{lr:.1e}",
-            )  # fmt: skip
-            if on_log and world.is_main:
-                on_log(row)
-        due = time.perf_counter() - last_save > settings.checkpoint_every_s
-        if world.is_main and resume_path and due:
-            save_resume_state(resume_path, resume_key, net, optimizer, step, elapsed, log)
-            last_save = time.perf_counter()
-    del batches  # stops the loader's workers
+    try:
+        while (step < steps) if steps else (elapsed < budget_s):
+            started = time.perf_counter()
+            fraction = step / steps if steps else elapsed / budget_s
+            lr = schedule_lr(fraction, settings)
+            for group in optimizer.param_groups:
+                group["lr"] = lr
+            batch = next(batches)  # the wait for the input pipeline
+            waited = time.perf_counter() - started
+            terms = optimize_step(net, forward, optimizer, batch, settings, device, step, mine)
+            step += 1
+            took = time.perf_counter() - started
+            elapsed = broadcast_float(elapsed + took, world) if budget_s else elapsed + took
+            window_frames, window_time = window_frames + global_batch, window_time + took
+            window_wait += waited
+            bar.update(1 if steps else min(round(elapsed), bar.total) - bar.n)
+            if step % settings.log_every == 0 or step == 1 or step == steps:
+                row = log_row(step, batch.dataset, terms, lr, window_frames / max(window_time, 1e-9),
+                              elapsed, window_wait / max(window_time, 1e-9))  # fmt: skip
+                log.append(row)
+                window_frames, window_time, window_wait = 0, 0.0, 0.0
+                bar.set_postfix(
+                    loss=f"{row['loss']:.3f}", fps=f"{row['frames_per_s']:.1f}",
+                    wait=f"{row['data_wait_share']:.0%}", lr=f"{lr:.1e}",
+                )  # fmt: skip
+                if on_log and world.is_main:
+                    on_log(row)
+            due = time.perf_counter() - last_save > settings.checkpoint_every_s
+            if world.is_main and resume_path and due:
+                save_resume_state(resume_path, resume_key, net, optimizer, step, elapsed, log)
+                last_save = time.perf_counter()
+    finally:  # also when training fails or is interrupted
+        stop_loader(batches)
     bar.close()
     net.eval()
     return TrainResult(
