@@ -85,7 +85,7 @@ MINUTES        ?=
 RETRAIN_EPOCHS ?= $(EPOCHS)
 # per-iteration retraining budgets: 2 x RETRAIN_EPOCHS in all, a quarter in iteration 1 (half of
 # RETRAIN_EPOCHS, at least 1) and the rest in iteration 2, on iteration 2's better labels
-# (docs/RESULTS.md, session 14); e.g. RETRAIN_EPOCHS_1=6 RETRAIN_EPOCHS_2=6 for the paper's even split
+# (docs/results/history.md); e.g. RETRAIN_EPOCHS_1=6 RETRAIN_EPOCHS_2=6 for the paper's even split
 ifneq ($(shell echo '$(RETRAIN_EPOCHS)' | grep -Exc '[1-9][0-9]*'),1)
 $(error RETRAIN_EPOCHS must be a whole number of epochs >= 1, got '$(RETRAIN_EPOCHS)')
 endif
@@ -156,8 +156,8 @@ $(RUN)/iter0/eval_ptsn/manifest.json: $(RUN)/iter1/ptsn/manifest.json $(TARGET_V
 iter0: $(RUN)/iter0/eval/manifest.json $(RUN)/iter0/eval_ptsn/manifest.json
 
 # SOURCE_SIZE=sn (default): retraining shifts the source cars to the sweep's label-free E_est,
-# so source and PPCG labels agree on the target's size (docs/RESULTS.md, session 9: +3.8 ± 1.7
-# AP_3D@0.7 for x2 over 3 seeds); SOURCE_SIZE=init keeps the initial model's sizes (before).
+# so source and PPCG labels agree on the target's size (demo scale, docs/results/history.md:
+# +3.8 ± 1.7 AP_3D@0.7 for x2 over 3 seeds); SOURCE_SIZE=init keeps the initial model's sizes (the paper's).
 SOURCE_SIZE ?= sn
 SOURCE_SIZE_FLAGS = --source-size $(SOURCE_SIZE)$(if $(filter sn,$(SOURCE_SIZE)), --target-size-from $(RUN)/iter$(1)/ptsn)
 
@@ -185,7 +185,7 @@ $(foreach n,1 2 3 4 5,$(eval $(call ITER,$(n),$(shell echo $$(( $(n) - 1 ))),$(s
 
 # x1 long: one retraining of x2's retraining frames (RETRAIN_EPOCHS_1 + RETRAIN_EPOCHS_2 epochs)
 # on iteration 1's PPCG frames, then its own sweep; the same budget as x2 and its control. On an
-# equal budget the better use of the frames than a second iteration (docs/RESULTS.md, session 14:
+# equal budget the better use of the frames than a second iteration (demo scale, docs/results/history.md:
 # +3.8 ± 1.6 AP_3D@0.7 over the control on four seeds, x2 +1.6 ± 0.9)
 X1_LONG_BUDGET = $(if $(MINUTES),--minutes $$(( 2 * $(MINUTES) )),--epochs $$(( $(RETRAIN_EPOCHS_1) + $(RETRAIN_EPOCHS_2) )))
 $(RUN)/x1_long/model/manifest.json: $(RUN)/iter1/rc/manifest.json $(RUN)/iter1/cf/manifest.json $(SOURCE)/manifest.json
@@ -216,7 +216,7 @@ $(RUN)/baselines/%/eval_ptsn/manifest.json: $(RUN)/baselines/%/ptsn/manifest.jso
 	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale-from $(RUN)/baselines/$*/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 # the controls at their strongest: their own test-time PTSN predictions resized per dimension by
 # their sweep's E_est / E_pred(ŝ) (label-free; `dali eval --size-correction per-dim`), the bias one
-# isotropic scale leaves (docs/RESULTS.md, session 17: +2.0 ± 0.4 AP_3D@0.7 at 600 frames)
+# isotropic scale leaves (docs/RESULTS.md: +2.0 ± 0.4 AP_3D@0.7 at 600 frames)
 $(RUN)/baselines/%/eval_ptsn_sized/manifest.json: $(RUN)/baselines/%/eval_ptsn/manifest.json
 	$(DALI) eval --pred $(RUN)/baselines/$*/eval_ptsn/predictions.parquet --gt $(TARGET_VAL) --scale-from $(RUN)/baselines/$*/ptsn --size-correction per-dim $(EVAL_FLAGS) --out $(@D)
 # controls: as many training frames as DALI's models saw (pretrain E epochs, retrain N 2 x
@@ -265,7 +265,7 @@ cross-domain: $(RUN)/iter0/eval_source/manifest.json $(RUN)/iter2/eval_source/ma
 # equal-budget controls (standard rows of `make experiment`; "gap closed" is measured against
 # them): source only with x1's and with x2's training frames + test-time PTSN, each also with the
 # test-time size correction (eval_ptsn_sized), oracle with x2's frames (at demo scale x1 beats
-# its control, x2 is level with its own: docs/RESULTS.md, session 9)
+# its control, x2 is level with its own: docs/results/history.md)
 controls: controls-x1 controls-x2
 controls-x1: $(RUN)/baselines/source_x1_budget/eval_ptsn/manifest.json \
     $(RUN)/baselines/source_x1_budget/eval_ptsn_sized/manifest.json
@@ -284,7 +284,7 @@ kitti-protocol:
 	done
 # the main rows against the x2-budget control on the same validation frames: `dali compare` (a
 # paired bootstrap over the frames, COMPARE_SAMPLES draws) on KITTI's R40 and on the fine recall
-# grid R400, which has no R40 steps (docs/RESULTS.md, session 20); `dali report RUN1 RUN2 ...`
+# grid R400, which has no R40 steps (docs/evaluation.md); `dali report RUN1 RUN2 ...`
 # aggregates RUN/compare_r400.json and RUN/compare_r40.json over the runs. Builds every row it compares.
 COMPARE_SAMPLES ?= 400
 COMPARE_ROWS = control:baselines/source_x2_budget/eval_ptsn x2:iter2/eval x1-long:x1_long/eval \
@@ -303,7 +303,7 @@ DEMO_FRAMES ?= 48
 DEMO_EPOCHS ?= 6
 # the demo: two DALI iterations and the rows they are read against (source only, PTSN only); the
 # SN baseline (1.5 min more) is `make baseline-sn RUN=runs/demo FRAMES=48 EPOCHS=6`, left out to
-# keep the demo within 10 minutes on a 2-core VM (issue 18; docs/RESULTS.md, session 14)
+# keep the demo within 10 minutes on a 2-core VM (README.md)
 demo: install
 	$(MAKE) $(SUBMAKE_FLAGS) iter2 RUN=runs/demo FRAMES=$(DEMO_FRAMES) EPOCHS=$(DEMO_EPOCHS)
 	$(DALI) report runs/demo
@@ -317,7 +317,7 @@ demo: install
 # seed and the mean ± std over the seeds (runs/experiment-report), with x1, x2 and x1 long paired
 # against their equal-budget controls. EXPERIMENT_GOALS (every seed) adds e.g. iter2-st; the baselines and
 # ablations (SN, ROS, oracle on the pretraining budget, RC only, CF only) run on the first seed of
-# SEEDS only (EXPERIMENT_FIRST_SEED_GOALS), as issue 18 allows: that keeps a further seed at ~2 h.
+# SEEDS only (EXPERIMENT_FIRST_SEED_GOALS): that keeps a further seed at ~2 h.
 # SOURCE_SENSOR=nuscenes gives the paper's second task (runs/experiment-nuscenes-s<seed>), with
 # x2 + ST on every seed: the paper's self-training step (‡) belongs to that task.
 SEEDS ?= 0
@@ -334,7 +334,7 @@ EXPERIMENT_PREFIX = runs/experiment$(if $(filter-out waymo,$(SOURCE_SENSOR)),-$(
 # lane 1 the DALI chain and the rows built on it (and SN, ROS), lane 2 the controls and the
 # pretraining-budget oracle (no stage in both lanes, tests/test_makefile_lanes.py);
 # then the rest (forgetting, compare, KITTI protocol, reports) on every core. Needs Linux's taskset
-# and the whole machine. docs/RESULTS.md (session 22) has its time for one seed with every row.
+# and the whole machine. docs/RESULTS.md has its time for one seed with every row.
 EXPERIMENT_LANES ?= 1
 LANE_DATA_ONLY = controls controls-x1 controls-x2
 # (first seed, 600 frames: lane 1 19,200 training frames and most of the inference, lane 2 20,400)

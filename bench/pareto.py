@@ -1,4 +1,4 @@
-"""Benchmark: run time against error for every stage's speed knobs, defaults marked (issue 21).
+"""Benchmark: run time against error for every stage's speed knobs, defaults marked.
 
 Fronts (each point a measured (seconds, error) pair on the same data; bench/pareto/*_front.py
 says how each is measured):

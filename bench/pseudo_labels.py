@@ -1,4 +1,4 @@
-"""Benchmark: how good are a run's pseudo labels? (issue 18, diagnosis)
+"""Benchmark: how good are a run's pseudo labels? (a diagnosis)
 
 Reads pseudo-label directories (`dali pseudo-label` outputs) and the target's *held-back* labels
 (a bench may read them; no DALI stage does) and measures, per range band of the detection grid:

@@ -3,7 +3,7 @@
 Measures, for the same model and target frames: detector frame passes, seconds and ŝ of
 `--search bracket` and `--search grid` (0.8:1.4 step 0.01), |ŝ_bracket - ŝ_grid|; then the mean
 pseudo-label size at ŝ vs E_est per dimension, and (when `dali eval` works) target AP at s = 1
-(source only) and at ŝ. Targets (issue 6): bracket <= 1/4 of the grid's frame passes with
+(source only) and at ŝ. Targets: bracket <= 1/4 of the grid's frame passes with
 |Δŝ| <= 0.01; mean pseudo-label size within 0.1 m of E_est per dimension.
 
 Data and model: --model/--target/--target-val when given; else RUN/iter0/model and RUN/data/* of

@@ -1,7 +1,7 @@
 """Benchmark: frames/s of the per-frame stages (synth, ppcg-rc, ppcg-cf, pseudo-label) with 1 and
 2 workers on the local engine (1 = in this process, the serial reference; 2 = the process pool)
 and on Ray (actors on a local Ray instance, started once as a cluster would be), plus Ray's
-start-up and per-task overhead. Issue 19's goal: 2 workers >= 1.6 x one worker.
+start-up and per-task overhead. The goal: 2 workers >= 1.6 x one worker.
 
 Every run is a whole stage (`--force`), so frames/s include reading, the shard round trip
 (workers write shards, the driver merges them) and writing; each run records the 1-minute load

@@ -20,6 +20,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "library": ("library", "Build a 3D model library (CAD, procedural, point models)."),
     "eval": ("evaluate", "KITTI-protocol AP of predictions against labels."),
     "compare": ("compare", "AP of several prediction tables with a paired frame bootstrap."),
+    "compare-domains": (
+        "compare_domains",
+        "Point and car statistics of frame sets side by side (real vs synthetic).",
+    ),
     "import": ("importers", "Import KITTI, nuScenes or OpenPCDet data."),
     "export": ("export", "Export boxes to other formats (KITTI label_2)."),
     "view": ("view", "Draw a frame with boxes as a PNG."),

@@ -230,7 +230,7 @@ def _clip_half_plane(poly, count, bound, coordinate, sign, capacity):
     last = np.maximum(count - 1, 0)
     # the next vertex, cyclic over the valid ones; zeros (not np.empty) in the slots past a row's
     # last vertex: they are never emitted, but uninitialized memory there made `cut *= t` warn
-    # "invalid value" now and then (seen in a dali compare run, session 21)
+    # "invalid value" now and then (seen in a dali compare run)
     poly_next = np.zeros_like(poly)
     poly_next[:, :-1] = poly[:, 1:]
     poly_next[row_index, last] = poly[:, 0]

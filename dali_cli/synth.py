@@ -230,8 +230,9 @@ def build_synth(
     timings = {"frames_per_second": round(frames / max(elapsed, 1e-9), 2)}
     notes = [
         "synthetic street scenes: procedural cars (pool seeds disjoint from `dali library build`), "
-        "walls, poles, trees, bushes, curbs, containers; first-hit scan with range noise, dropout "
-        "and max range; labels for every car with >= 1 point",
+        "walls, sidewalks, fences, hedges, poles, trees, bushes, containers; first-hit scan with "
+        "range noise, dropout, weak far echoes lost and max range; labels for every car with >= 1 "
+        "point",
         "occlusion = share of a car's rays blocked by something nearer (0 = fully visible)",
         "KITTI label fields (truncated, occluded level, alpha, bbox_*) from a virtual KITTI left "
         "colour camera at the sensor (dali_cli.evaluation.camera), so `dali eval --protocol kitti` gives "

@@ -267,7 +267,7 @@ def test_read_reports_nulls_and_garbage(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------
-# reads verify the chunks they read (issue 22 items 5 and 9)
+# reads verify the chunks they read
 
 
 def chunked_frames(tmp_path, compress=True):
@@ -331,7 +331,7 @@ def test_flipped_bit_in_a_chunk_is_caught_by_its_checksum(tmp_path, compress):
 
 
 # ---------------------------------------------------------------------------------------------
-# empty tables keep their schema; int32 columns are range-checked (issue 22 items 7 and 8)
+# empty tables keep their schema; int32 columns are range-checked
 
 
 def ppcg_like(count: int) -> BoxTable:

@@ -1,8 +1,8 @@
 """The Pareto benchmark's fronts still run against the package's current interfaces.
 
 A benchmark is not a timed test, but its code calls the library (PTSN's search, the detector,
-ray casting) and nothing else exercises those calls: session 9 found the PTSN front crashing
-since an earlier refactor. These run each front on a few tiny inputs (an untrained small
+ray casting) and nothing else exercises those calls: a refactor of the library
+can break a front silently. These run each front on a few tiny inputs (an untrained small
 detector, toy scenes) and check properties of what comes back, not timings.
 """
 

@@ -1,4 +1,4 @@
-"""bench/pseudo_labels.py (issue 18's label diagnosis): precision / recall, and which false
+"""bench/pseudo_labels.py (the label diagnosis): precision / recall, and which false
 positives are clutter taken for a car and which are loose boxes near one."""
 
 from __future__ import annotations

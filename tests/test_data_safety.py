@@ -59,7 +59,7 @@ def snapshot(path: Path) -> dict[str, bytes]:
 
 
 def test_synth_refuses_an_existing_user_directory_and_keeps_its_contents(tmp_path):
-    """Issue 22.1: `dali synth --out mydir` wiped mydir/important.txt and mydir/sub/."""
+    """`dali synth --out mydir` must not wipe mydir/important.txt and mydir/sub/."""
     mydir = tmp_path / "mydir"
     (mydir / "sub").mkdir(parents=True)
     (mydir / "important.txt").write_text("precious")
@@ -76,7 +76,7 @@ def test_synth_refuses_an_existing_user_directory_and_keeps_its_contents(tmp_pat
 
 
 def test_pseudo_label_refuses_its_own_target_as_out(tmp_path):
-    """Issue 22.2: `dali pseudo-label ... --target T --out T` deleted T/frames.zarr."""
+    """`dali pseudo-label ... --target T --out T` must not delete T/frames.zarr."""
     target = make_target(tmp_path / "T")
     model = tmp_path / "model"  # never opened: the output check comes first
     model.mkdir()
@@ -101,7 +101,7 @@ def test_pseudo_label_refuses_its_own_target_as_out(tmp_path):
 
 
 def test_export_kitti_refuses_its_input_as_out(tmp_path):
-    """Issue 22.2: `dali export kitti T2 --calib-root K --out T2` deleted T2's frames and boxes."""
+    """`dali export kitti T2 --calib-root K --out T2` must not delete T2's frames and boxes."""
     target = make_target(tmp_path / "T2")
     calib = tmp_path / "K" / "training" / "calib"
     calib.mkdir(parents=True)
@@ -249,7 +249,7 @@ def test_a_live_process_leftovers_are_left_alone(tmp_path):
 
 
 def test_a_second_writer_of_the_same_output_is_refused(tmp_path):
-    """Issue 17.6: two identical commands on one --out both reported success."""
+    """Two identical commands on one --out must not both report success."""
     out = tmp_path / "out"
     build = build_boxes(1.0)
     with OutputLock(out.resolve()):  # another process is building `out`
@@ -297,7 +297,7 @@ def test_racing_processes_to_one_new_out_leave_one_complete_artifact(tmp_path):
 
 
 def test_an_input_edited_under_its_unchanged_manifest_makes_consumers_stale(tmp_path):
-    """Issue 22.6: editing T/boxes.parquet but keeping T's manifest made ppcg-rc 'up to date'."""
+    """Editing T/boxes.parquet but keeping T's manifest must not leave ppcg-rc 'up to date'."""
     source = tmp_path / "source"
     run_stage("demo", source, {}, {}, build_boxes(1.0), echo=quiet)
     out = tmp_path / "out"

@@ -106,7 +106,7 @@ def test_known_precision_recall_curve():
 
 
 def test_thresholds_with_more_than_41_ground_truths():
-    # issue 17's minimal case: 50 counted cars on a 10 x 5 grid, the first 9 found with scores
+    # the minimal case of more than 41 ground truths: 50 counted cars on a 10 x 5 grid, the first 9 found with scores
     # 0.9 .. 0.1. Recall reaches 9/50 = 0.18: R40 positions 1/40 .. 7/40 have precision 1, which
     # OpenPCDet's get_thresholds (next recall (i + 2) / num_gt) gives; (i + 3) / num_gt gave 20.0.
     x, y = np.meshgrid(5.0 + 5.0 * np.arange(10), -16.0 + 8.0 * np.arange(5))
@@ -471,7 +471,7 @@ def counted_ground_truth(gt_tables, flags, level) -> int:
     [(10, 24, 0.7), (11, 28, 0.5), (12, 32, 0.3), (13, 38, 0.7), (14, 44, 0.5), (15, 46, 0.7)],
 )
 def test_matches_reference_loop_with_42_to_200_counted_ground_truths(seed, frames, iou):
-    # above 41 counted ground truths the threshold sampling used to differ (issue 17): scenes
+    # above 41 counted ground truths the threshold sampling is easiest to get wrong: scenes
     # across that range, both protocols, every difficulty and band, R40 and R11
     gt_tables, pred_tables = random_scene(
         seed, frames=frames, crowded=seed % 3 == 0, max_boxes=14, easy_share=0.5

@@ -1,4 +1,4 @@
-"""The per-frame stages on the executors (issue 19.3): a local Ray instance (started once for this
+"""The per-frame stages on the executors: a local Ray instance (started once for this
 module) and the local process pool give the serial run's artifact byte for byte; workers load
 their models once; shards are written by the workers into the artifact's temporary directory and
 merged one by one; a failing frame leaves no artifact and the error names it."""

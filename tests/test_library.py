@@ -146,7 +146,7 @@ def test_odd_proportions_name_the_axes_that_make_a_car(tmp_path, up, forward):
 
 
 def test_mis_oriented_cad_is_refused_skipped_or_kept_on_request(tmp_path):
-    # issue 17: length along z with y up, read with the default --forward x --up z
+    # a model with its length along z and y up, read with the default --forward x --up z
     cad = tmp_path / "cad"
     cad.mkdir()
     _write_obj_y_up(cad / "y_up.obj")

@@ -1,6 +1,6 @@
 """The Makefile's recursive makes (kitti-protocol, demo, experiment) use the same Makefile as the
 top-level one: the job scripts under docs/results run `make -f PATH/Makefile` from the directory
-that holds their runs/ and a .venv, where there is no Makefile (session 26: kitti-protocol stopped
+that holds their runs/ and a .venv, where there is no Makefile (otherwise kitti-protocol stops
 there with "No rule to make target")."""
 
 from __future__ import annotations

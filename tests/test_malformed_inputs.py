@@ -2,7 +2,7 @@
 (NaN/inf, empty, wrong dtypes, hostile ids, missing and damaged Zarr chunks, malformed label lines,
 calib files missing a matrix). Each must exit non-zero with a clean message (no traceback) that
 names the file and the frame, row, line or field, and write nothing: no --out, no `.tmp-*`, no
-file anywhere else (issue 17, issue 22 items 4, 5, 7, 8, 9).
+file anywhere else.
 
 Inputs are tiny: two toy frames (tests/toy_scenes.py), a detector trained for one epoch on
 them, a two-car procedural library, and copies of the real KITTI / nuScenes test fixtures.
@@ -318,7 +318,7 @@ def test_stages_refuse_damaged_inputs(world, tmp_path, kind, stage, how):
 
 
 def test_empty_pseudo_labels_flow_through_ppcg_view_and_retrain(world, tmp_path):
-    """Issue 22 item 7: a run whose pseudo-label cut keeps no box still goes on."""
+    """A run whose pseudo-label cut keeps no box still goes on."""
     pseudo, rc = tmp_path / "pseudo", tmp_path / "rc"
     steps = [
         ["pseudo-label", "--model", world / "model", "--target", world / "target", "--scale",
@@ -439,7 +439,7 @@ def kitti_case(case: Path, how: str) -> tuple[list, tuple[str, ...]]:
     elif how.startswith("ids-"):
         frame_id = HOSTILE[how[4:]]
         frame_id = str(case / "abs") if frame_id == "ABS" else frame_id
-        if how == "ids-parent":  # issue 22's id that reached another dataset's velodyne folder
+        if how == "ids-parent":  # an id that would reach another dataset's velodyne folder
             other = case / "other" / "training" / "velodyne"
             other.mkdir(parents=True)
             shutil.copy(scan, other / "000009.bin")

@@ -1,5 +1,5 @@
 """The model card (one typed reader of what training recorded about a model) and safe loading
-of model files (issues 22.9, 22.11, 17.7)."""
+of model files."""
 
 from __future__ import annotations
 
@@ -119,7 +119,7 @@ def test_a_malicious_model_or_training_state_is_refused_and_runs_nothing(ros_wor
         result.exit_code == 1 and "model.pt" in result.output and "Traceback" not in result.output
     )
     assert not (tmp_path / "eval").exists()
-    # a resume state beside an output (issue 17.7: it was loaded with weights_only=False)
+    # a resume state beside an output (it must load with weights_only=True)
     out = tmp_path / "iter0b"
     resume = tmp_path / "iter0b.resume" / "state.pt"
     resume.parent.mkdir()

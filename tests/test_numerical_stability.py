@@ -1,4 +1,4 @@
-"""Numerical stability of the fast paths at the far end of their range (issue 21.4).
+"""Numerical stability of the fast paths at the far end of their range.
 
 Each fast path has a stated bound, checked where it is hardest to keep: 150 m from the sensor,
 grazing rays, tiny and huge boxes, PTSN scales 0.5-2.0. The bounds are the module constants below

@@ -417,7 +417,7 @@ def test_stage_outputs_and_worker_independence(dataset):
 
 @pytest.mark.parametrize("mode", ["rc", "cf"])
 def test_implausible_boxes_are_dropped_and_counted(dataset, tmp_path, mode):
-    # issue 17: a pseudo box 1,000 km long went through ppcg-rc and was re-cast
+    # a pseudo box 1,000 km long must not reach ppcg-rc's ray casting
     from stages.ppcg_cf import ppcg_cf
     from stages.ppcg_rc import ppcg_rc
 
@@ -500,7 +500,7 @@ def test_cli_errors_name_the_file_frame_and_field(dataset, tmp_path):
 
 def test_cf_with_the_calibrated_waymo_top_pattern_loses_no_ray():
     """CF-PPCG on sensors.toml's waymo_top (non-uniform calibrated beams): the angular window
-    keeps every ray of the full pattern that hits the moved model (issue 20, item 2)."""
+    keeps every ray of the full pattern that hits the moved model."""
     profile = get_profile("waymo_top")
     box = on_ground(6.0, 0.0, (4.5, 1.8, 1.5), np.pi / 2)
     box[2] = -profile.mount_height_m + box[5] / 2

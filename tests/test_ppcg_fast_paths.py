@@ -1,4 +1,4 @@
-"""PPCG's fast paths give the same bits as the reference paths they replace (issue 21.3).
+"""PPCG's fast paths give the same bits as the reference paths they replace.
 
 - raw chunk I/O (dali_cli.store.raw_chunks) writes the very files Zarr writes and reads the same points
 - CF's ray generation (window.windows_directions) equals window_rays box by box

@@ -206,8 +206,8 @@ def test_the_point_margin_is_recorded_only_when_used(dataset, tmp_path):  # noqa
 
 def test_the_report_figure_takes_rc_and_cf_boxes_turned_round_as_one_table():
     """RC turns only the boxes it re-casts, CF every car: their output tables differ by half
-    turns, and `dali report`'s PPCG figure must still see one box table (the make demo failure
-    of session 14), but not boxes moved, resized or turned by anything else."""
+    turns, and `dali report`'s PPCG figure must still see one box table (otherwise `make demo`'s
+    report fails), but not boxes moved, resized or turned by anything else."""
     from dali_cli.ppcg.figure import same_boxes
 
     rc = np.array(SCENES[0])

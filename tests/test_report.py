@@ -190,7 +190,7 @@ def test_report_aggregates_seeds_into_mean_and_std(tmp_path):
 
 
 def test_report_pairs_each_dali_row_with_its_control_per_seed(tmp_path):
-    """x2 - equal-budget control per seed, its mean ± sample std and issue 18's verdict; a seed
+    """x2 - equal-budget control per seed, its mean ± sample std and the target's verdict; a seed
     without the control enters neither the differences nor n."""
     import statistics
 

@@ -1,4 +1,4 @@
-"""Training threads and the machine record of training manifests (issue 18, item 6): a stage that
+"""Training threads and the machine record of training manifests: a stage that
 runs alone uses every available core whatever the load average says; `--threads` overrides; the
 manifest and model.json record threads, device, CPU model and torch version."""
 

@@ -1,4 +1,4 @@
-"""One PTSN scale contract (issue 23): scale.json is read by one reader with one set of rules,
+"""One PTSN scale contract: scale.json is read by one reader with one set of rules,
 and ŝ is used exactly as the sweep wrote it."""
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ from click.testing import CliRunner
 from dali_cli.cli import main
 from dali_cli.sensors import SensorConfigError, get_profile, load_profiles, parse_profile
 
-METHOD_TABLE = {  # ../shared/METHOD.md, dataset profiles
+METHOD_TABLE = {  # docs/method.md, dataset profiles
     "kitti": (64, -23.6, 3.2, 1843, (3.89, 1.62, 1.53)),
     "waymo": (64, -18.0, 2.0, 2500, (4.66, 2.08, 1.73)),
     "nuscenes": (32, -30.0, 10.0, 781, (4.63, 1.96, 1.73)),
@@ -166,7 +166,7 @@ def test_sensors_command_lists_profiles(tmp_path):
 
 
 def test_waymo_top_is_the_calibrated_non_uniform_pattern():
-    """sensors.toml's waymo_top: the TOP LiDAR's 64 calibrated beams (issue 20), not a uniform
+    """sensors.toml's waymo_top: the TOP LiDAR's 64 calibrated beams, not a uniform
     stand-in: about -17.6 .. +2.5 deg, ~0.6 deg apart at the bottom, ~0.16 deg near the horizon."""
     profile = get_profile("waymo_top")
     elevations = np.asarray(profile.elevations_deg)

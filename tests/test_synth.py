@@ -40,11 +40,11 @@ def _excess(frame: synth.SynthFrame) -> np.ndarray:
 def test_car_points_lie_in_their_label_boxes():
     kitti = get_profile("kitti")
     exact = dataclasses.replace(kitti, range_noise_sigma_m=0.0, ray_dropout=0.0)
-    frame = synth.synth_frame(5, 0, exact, kitti)
+    frame = synth.synth_frame(6, 0, exact, kitti)
     assert len(frame.boxes) >= 3
     assert _excess(frame).max() <= 1e-4
     np.testing.assert_array_equal(frame.num_points, np.bincount(frame.owner[frame.owner >= 0]))
-    noisy = synth.synth_frame(5, 0, kitti, kitti)
+    noisy = synth.synth_frame(6, 0, kitti, kitti)
     assert _excess(noisy).max() <= 5 * kitti.range_noise_sigma_m + 1e-4
     # labels: every car has points, centers 3-80 m away, yaw normalized, no two footprints overlap
     for f in (frame, noisy):
@@ -199,21 +199,26 @@ def test_domain_gap_car_sizes_and_sensor_density():
         sizes[cars.name] = np.concatenate([s.cars[:, 3:6] for s in scenes]).mean(axis=0)
     expected_gap = np.subtract(waymo.car_mean_lwh_m, kitti.car_mean_lwh_m)  # 0.77, 0.46, 0.20
     np.testing.assert_allclose(sizes["waymo"] - sizes["kitti"], expected_gap, atol=0.12)
-    # the same scene scanned by a 64-beam and a 32-beam sensor: denser points per car
-    scene = world_scene.generate_scene(synth.frame_rng(1, 0), kitti, kitti)
-    dense = world_scan.scan_scene(scene, kitti, np.random.default_rng(0))
-    sparse = world_scan.scan_scene(
-        scene,
-        dataclasses.replace(nuscenes, mount_height_m=kitti.mount_height_m),
-        np.random.default_rng(0),
-    )
-    per_car_dense = np.bincount(dense.owner[dense.owner >= 0], minlength=len(scene.cars))
-    per_car_sparse = np.bincount(sparse.owner[sparse.owner >= 0], minlength=len(scene.cars))
+    # the same scenes scanned by a 64-beam and a 32-beam sensor: denser points per car
+    per_car_dense, per_car_sparse, distance = [], [], []
+    for index in range(4):
+        scene = world_scene.generate_scene(synth.frame_rng(1, index), kitti, kitti)
+        dense = world_scan.scan_scene(scene, kitti, np.random.default_rng(0))
+        sparse = world_scan.scan_scene(
+            scene,
+            dataclasses.replace(nuscenes, mount_height_m=kitti.mount_height_m),
+            np.random.default_rng(0),
+        )
+        cars = len(scene.cars)
+        per_car_dense.append(np.bincount(dense.owner[dense.owner >= 0], minlength=cars))
+        per_car_sparse.append(np.bincount(sparse.owner[sparse.owner >= 0], minlength=cars))
+        distance.append(np.hypot(scene.cars[:, 0], scene.cars[:, 1]))
+    per_car_dense, per_car_sparse = np.concatenate(per_car_dense), np.concatenate(per_car_sparse)
+    distance = np.concatenate(distance)
     seen = per_car_sparse > 20
     assert seen.sum() >= 3
     assert np.median(per_car_dense[seen] / per_car_sparse[seen]) > 3.0
     # and points per car fall with range
-    distance = np.hypot(scene.cars[:, 0], scene.cars[:, 1])
     visible = per_car_dense > 0
     ranks = (
         np.argsort(np.argsort(distance[visible])),
@@ -252,3 +257,47 @@ def test_bad_input_gives_clear_errors_and_no_output(tmp_path):
     )
     assert result.exit_code == 2
     assert not (tmp_path / "x").exists()
+
+
+def test_returns_weaken_with_range_and_darkness_and_the_ego_body_blocks_steep_rays():
+    intensity = np.array([0.05, 0.05, 0.4, 0.4])
+    distance = np.array([10.0, 60.0, 10.0, 60.0])
+    p = world_scan.return_probability(intensity, distance)
+    assert ((p >= 0) & (p <= 1)).all()
+    assert p[1] < p[0] and p[3] < p[2] and p[1] < p[3]  # farther and darker: fewer returns
+    assert p[0] > 0.99  # a dark car 10 m away always returns
+    kitti = get_profile("kitti")
+    pattern = world_scan._pattern(kitti)
+    blocked = world_scan.ego_blocked(pattern.directions, kitti.mount_height_m)
+    elevation = np.degrees(np.arcsin(pattern.directions[:, 2]))
+    azimuth = np.degrees(np.arctan2(pattern.directions[:, 1], pattern.directions[:, 0]))
+    assert not blocked[elevation > -15.0].any()  # the body is below the sensor, near it
+    ahead_steep = (np.abs(azimuth) < 10) & (elevation < -23.0)
+    assert blocked[ahead_steep].all()
+    waymo = get_profile("waymo")  # mounted higher, beams no steeper than -18 deg: nothing hidden
+    assert not world_scan.ego_blocked(world_scan._pattern(waymo).directions, 2.0).any()
+
+
+def test_world_looks_like_real_kitti_scans_in_front():
+    """Against the real KITTI statistics (docs/synth.md: drive 0001 and the object frames, +-40
+    deg in front), with wide margins for 6 frames: intensity mostly 0.1-0.4 (not the ground's
+    near-zero grazing returns), a few cars in view, points above the ground, dark car returns."""
+    from dali_cli.reporting import domains
+
+    kitti = get_profile("kitti")
+    rng = np.random.default_rng(0)
+    frames = [synth.synth_frame(4, k, kitti, kitti) for k in range(6)]
+    stats = domains.summarize(
+        [domains.frame_stats(f.points, f.boxes, 80.0, rng) for f in frames]
+    ).values
+    assert 0.15 <= stats["intensity_median"] <= 0.35 and 0.3 <= stats["intensity_p90"] <= 0.5
+    assert 1.0 <= stats["cars_per_frame"] <= 5.0
+    assert 15_000 <= stats["points_per_frame"] <= 32_000
+    assert -1.73 < stats["height_median_m"] < -1.5  # sidewalks, walls, vegetation lift it
+    ground = np.concatenate([f.points[f.owner == -1] for f in frames])
+    near = np.hypot(ground[:, 0], ground[:, 1]) < 4.5
+    azimuth = np.degrees(np.abs(np.arctan2(ground[:, 1], ground[:, 0])))
+    ahead, aside = (near & (azimuth < 20)).sum(), (near & (np.abs(azimuth - 90) < 20)).sum()
+    assert ahead < 0.5 * aside  # the ego's hood hides most steep beams ahead, not beside it
+    car = np.concatenate([f.points[f.owner >= 0, 3] for f in frames])
+    assert np.median(car) < 0.12  # real car returns are dark (median 0.02-0.06)

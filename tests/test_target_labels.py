@@ -1,4 +1,4 @@
-"""No DALI stage reads the target's labels (issue 18), and `dali self-train` trains in the PTSN frame.
+"""No DALI stage reads the target's labels, and `dali self-train` trains in the PTSN frame.
 
 A tiny pipeline (ptsn-sweep, pseudo-label, ppcg-rc, ppcg-cf, retrain, self-train) runs on a target
 whose boxes.parquet is poisoned (not Parquet at all) while every Parquet read is recorded: the

@@ -1,6 +1,6 @@
 """Waymo import without TensorFlow: range images built from known points round-trip through v2
 Parquet components and v1 Frame records; malformed inputs fail cleanly; only needed columns are
-read (issue 20)."""
+read."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
-"""Spawned workers die with their parent (issue 22.10: `kill -9` of `dali synth --workers 2`
-left the workers and the resource tracker sleeping forever)."""
+"""Spawned workers die with their parent (a `kill -9` of `dali synth --workers 2`
+must not leave the workers and the resource tracker sleeping forever)."""
 
 from __future__ import annotations
 

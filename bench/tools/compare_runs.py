@@ -19,8 +19,8 @@ a field records time, the machine or the run's own path rather than the result:
 Files under `.dali-cache/` (training caches derived from the artifacts, e.g. the gt database)
 are not compared. Other files must be byte-identical; where a JSON file is not, the line says
 which fields differ. Prints one line per difference (and per file only one side has) and a
-summary; exits 1 when anything differs, so it is usable as a check: the refactor of issue 23 was verified with it
-(docs/INTERFACES.md, "Behaviour unchanged").
+summary; exits 1 when anything differs, so it is usable as a check that a refactor leaves a
+run's artifacts unchanged.
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ the unit drawn (its boxes are not independent); a frame drawn twice counts twice
 What it answers: how much of a row's AP, and of its difference to the reference, is the choice
 of evaluation frames. It does not see the training's chance (seeds): `dali report` over seeds
 gives that. At 200 validation frames AP_3D@0.7 moves in steps (a 3 mm change of every box's
-height moved one row by 1.4: docs/RESULTS.md, session 20).
+height moved one row by 1.4: docs/evaluation.md).
 
 """
     + PROTOCOLS_HELP

@@ -73,7 +73,7 @@ def views_of(on: bool, factors: tuple[float, ...], mirror: bool):
               help="Move and turn each pseudo box (its size kept) so its sides hug the target "
                    "points it holds: shifts up to 1 m along the car and 0.2 m across, turns "
                    "up to 8 degrees (dali_cli.labels.box_fit). Target points only, no label. Matched "
-                   "boxes at 3D IoU >= 0.7: 0.48-0.57 -> 0.67-0.71 (docs/RESULTS.md, session 13).")  # fmt: skip
+                   "boxes at 3D IoU >= 0.7: 0.48-0.57 -> 0.67-0.71 (docs/results/history.md).")  # fmt: skip
 @click.option("--fit-ground/--no-fit-ground", default=False, show_default=True,
               help="Then put each box's bottom on the ground the target points show around it "
                    "(a robust plane or level fit to the free points within 10 m of the box; "

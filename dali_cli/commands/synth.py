@@ -45,8 +45,9 @@ def command(
     force,
     dry_run,
 ):
-    """Synthesize a labeled LiDAR domain: street scenes of 5-30 procedural cars with clutter
-    (walls, poles, trees, bushes, curbs, containers), scanned with the full --sensor pattern.
+    """Synthesize a labeled LiDAR domain: street scenes of 2-15 procedural cars with clutter
+    (walls, sidewalks, fences, hedges, poles, trees, bushes, containers), scanned with the full
+    --sensor pattern.
 
     Cars are sized around the --cars profile's mean l/w/h with its spread, so `--cars waymo` and
     `--cars kitti` give the size gap of the DALI paper, and the sensor pattern gives the density

@@ -1,5 +1,5 @@
 """dali's CPU LiDAR car detector: pillars + a multi-scale BEV backbone + CenterPoint heads with an
-IoU-aware score (a documented stand-in for the paper's SECOND-IoU, see METHOD.md).
+IoU-aware score (a documented stand-in for the paper's SECOND-IoU, see docs/method.md).
 
 Public interface: `Detector.load(model_dir).predict(points_list, scale=1.0, mount_height_m=None)`,
 `predict_frameset(model_dir, data_dir, scale=1.0, score_min=0.0, progress=True) -> BoxTable`,

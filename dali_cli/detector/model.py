@@ -2,7 +2,7 @@
 
 Plain torch, no custom ops. Shapes: B frames, P points (all frames concatenated), V non-empty
 pillars, C channels, H x W the pillar grid (rows along y, columns along x), h x w the head grid
-(stride 2). A documented deviation from the paper's SECOND-IoU (see METHOD.md, "The detector").
+(stride 2). A documented deviation from the paper's SECOND-IoU (see docs/method.md).
 """
 
 from __future__ import annotations

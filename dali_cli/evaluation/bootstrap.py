@@ -3,8 +3,8 @@ the same frames comes from which frames were drawn.
 
 A difference between two rows of a benchmark has two sources of chance: the training (seeds,
 which `dali report` aggregates) and the validation frames. With 200 frames AP_3D@0.7 moves in
-steps: resizing every box by 3 mm in height moved one control by 1.4 AP_3D (docs/RESULTS.md,
-session 20), because a few near cars sit at IoU ≈ 0.7. The bootstrap draws the evaluation frames
+steps: resizing every box by 3 mm in height moved one control by 1.4 AP_3D (docs/evaluation.md),
+because a few near cars sit at IoU ≈ 0.7. The bootstrap draws the evaluation frames
 with replacement (the same draw for every row: paired), evaluates each row on the draw with the
 full KITTI-protocol code (`dali_cli.evaluation.evaluate.evaluate`, thresholds and all) and reports the spread
 of each row's AP and of its difference to the first row.

@@ -41,7 +41,7 @@ SIMILAR_CLASSES = {"car": ("van",), "pedestrian": ("person_sitting",)}
 NUM_SAMPLE_POINTS = 41  # the reference's score thresholds: R40 and R11 share them
 # recall grids: KITTI's R40 (the reported metric), R11 (KITTI before 2019) and a fine R400 (not a
 # KITTI metric): R40 steps by precision / 40 (about 2 points) when a maximum recall crosses a k/40
-# boundary, R400 by a tenth of that (docs/evaluation.md, session 20)
+# boundary, R400 by a tenth of that (docs/evaluation.md)
 RECALL_POSITIONS = (40, 11, 400)
 
 

@@ -1,4 +1,4 @@
-"""Per-dimension size correction of pseudo labels after PTSN (issue 18).
+"""Per-dimension size correction of pseudo labels after PTSN.
 
 PTSN scales the target cloud by one isotropic ŝ, chosen so that the *volume* of the mean predicted
 size matches E_est. When the source/target size ratios differ per dimension (Waymo/KITTI: l 1.20,

@@ -6,7 +6,7 @@ bootstrap over the frames (`dali_cli.evaluation.bootstrap`). Per row this module
 Δ to the reference row (AP points, on all frames) with the std of Δ over that run's draws (the
 frames' share of the chance), and the mean ± sample std of Δ over the runs (the seeds' share).
 R400 (the fine recall grid) has no R40 steps: the figure to read when differences are small
-(docs/RESULTS.md, session 20).
+(docs/evaluation.md, "How finely AP resolves a difference").
 """
 
 from __future__ import annotations

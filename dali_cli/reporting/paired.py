@@ -1,15 +1,15 @@
 """Paired differences of DALI rows against their equal-budget controls, over runs (seeds).
 
-Issue 18's question, "does the retraining beat training the source detector on as many frames
+The benchmark's question, "does the retraining beat training the source detector on as many frames
 and rescaling at test time?", is a paired one: each seed's DALI row and control share the data,
 the seed and the training frames, so their per-seed difference removes the seed's own level
 (data draw, initialization). `dali report RUN1 RUN2 ...` gives for each pair the per-seed
 differences (AP in percentage points), their mean and sample standard deviation, and whether
-issue 18's target holds: mean >= `MARGIN` and mean > 2 x std (std needs >= 2 seeds).
+the benchmark's target holds: mean >= `MARGIN` and mean > 2 x std (std needs >= 2 seeds).
 
 AP_R40 sums the precision at the recall positions k/40; a row that reaches one position more than
 its control (its maximum recall at the IoU crosses a k/40 boundary) gains that position's whole
-precision / 40, about 2 points at 200 validation frames (docs/RESULTS.md, session 20). The
+precision / 40, about 2 points at 200 validation frames (docs/evaluation.md). The
 diagnostic `SHARED_RECALL` is the AP_3D@0.7 difference over the positions both reach only: what
 is left of the difference when that step is taken out.
 """
@@ -44,7 +44,7 @@ METRICS: tuple[tuple[str, tuple], ...] = (
     ("AP_BEV@0.7", _KEYS["BEV@0.7"]),
     ("AP_3D@0.7 50-80 m", _KEYS["3D@0.7 50-80 m"]),  # where the paper expects PPCG to help
 )
-MARGIN = 3.0  # percentage points (issue 18, target 5)
+MARGIN = 3.0  # percentage points: the gain over the control the benchmark asks of x2
 SHARED_RECALL = "AP_3D@0.7 at the recall positions both reach"
 
 
@@ -71,7 +71,7 @@ def row_values(document: dict, name: str) -> dict | None:
 
 
 def verdict(stats: dict) -> str:
-    """'met', 'not met' or 'undecided' (fewer than 2 differences) for issue 18's target."""
+    """'met', 'not met' or 'undecided' (fewer than 2 differences) for the benchmark's target."""
     if stats["n"] < 2 or stats["std"] is None:
         return "undecided"
     return "met" if stats["mean"] >= MARGIN and stats["mean"] > 2 * stats["std"] else "not met"
@@ -118,7 +118,7 @@ def shared_recall_metric(pairs: list[tuple]) -> dict:
 def markdown(results: list[dict]) -> str:
     """A table: pair, metric, n, per-run differences, mean ± std, the target's verdict."""
     lines = [
-        f"Target: mean >= {MARGIN:g} and mean > 2 std (issue 18). {SHARED_RECALL}: the AP_3D "
+        f"Target: mean >= {MARGIN:g} and mean > 2 std (the benchmark's target). {SHARED_RECALL}: the AP_3D "
         "difference without the recall positions only one of the two reaches (in brackets: "
         "positions reached, row vs control; each is worth about 2 points).",
         "",

@@ -268,7 +268,7 @@ def gap_closed_equal_budget(
 ) -> float | None:  # fmt: skip
     """Share of the gap from the equal-budget control (source only with x2's training frames +
     test-time PTSN; `control_row`, e.g. the size-corrected one) to the equal-budget oracle that
-    `final` closes (issue 18's measure)."""
+    `final` closes (the benchmark's measure of adaptation)."""
     by_name = {row.name: row.ap.get(iou, {}).get(metric) for row in rows}
     control, oracle = by_name.get(control_row), by_name.get(ORACLE_X2_BUDGET)
     value = by_name.get(final)

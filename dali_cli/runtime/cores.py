@@ -11,7 +11,7 @@ def available_cores() -> int:
 
     A stage that runs alone uses every one of them. The 1-minute load average is not a guide: in
     a `make` chain it still counts the stage that just finished, so a load-based choice trained
-    `make demo` on 1 of 2 cores (1.7 vs 2.4 frames/s, issue 18). To share the machine, pass
+    `make demo` on 1 of 2 cores (1.7 vs 2.4 frames/s). To share the machine, pass
     `--threads` (e.g. `TRAIN_FLAGS="--threads 1"` for `make -j2` on two cores).
     """
     try:

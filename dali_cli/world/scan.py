@@ -1,7 +1,8 @@
 """Scanning a scene with a sensor profile's full ray pattern: the ground intersected analytically,
 clutter as one Embree scene per frame, each car traced in its cached model BVH for the rays of its
 angular window only; the first hit wins (cars occlude each other, clutter occludes cars); then
-range noise, ray dropout, min/max range and intensity from incidence and material."""
+range noise, ray dropout, weak far echoes lost, min/max range and intensity from incidence,
+material and surface texture."""
 
 from __future__ import annotations
 
@@ -14,7 +15,46 @@ from dali_cli.geometry import bev_corners, rotate_xy, wrap_angle
 from dali_cli.raycast import Scene, cast, cast_into_box
 from dali_cli.sensors import SensorProfile
 from dali_cli.world.cars import pool_car
-from dali_cli.world.scene import SynthScene
+from dali_cli.world.scene import EGO_FOOTPRINT, SynthScene
+
+# ---------------------------------------------------------------------------------------------
+# Intensity and returns
+#
+# Calibrated against real KITTI HDL-64E scans (docs/synth.md): their intensity depends little on
+# the angle of incidence (asphalt far ahead still returns ~0.25), varies from return to return on
+# one surface, and dark surfaces far away often return nothing.
+
+INCIDENCE_FLOOR = 0.6  # intensity at grazing incidence, as a share of the head-on one
+TEXTURE_SIGMA = 0.25  # log-normal spread of a surface's reflectance from return to return
+SIGNAL_REFERENCE_M = 10.0  # range at which the return probability depends on reflectance alone
+# echo strength (intensity / (range / reference)^2) that returns with probability 1 - 1/e
+SIGNAL_SCALE = 0.0015
+
+
+EGO_BODY_HEIGHT_M = 0.65  # the ego car's hood and boot line above the ground (the roof is under the
+# sensor): real KITTI scans lose most returns of the beams below about -20 deg in front to it
+
+
+def ego_blocked(directions: np.ndarray, mount_height_m: float) -> np.ndarray:
+    """`(N,)` bool: rays from the sensor `(N, 3)` that meet the ego car's body (EGO_FOOTPRINT up
+    to EGO_BODY_HEIGHT_M) before anything else; they return nothing. The sensor sits above the
+    footprint, so such a ray enters the body through its top face."""
+    drop = mount_height_m - EGO_BODY_HEIGHT_M  # the top face below the sensor (m)
+    down = directions[:, 2] < -1e-9
+    t = np.full(len(directions), np.inf)
+    t[down] = drop / -directions[down, 2]
+    with np.errstate(invalid="ignore"):
+        x, y = t * directions[:, 0], t * directions[:, 1]
+        return down & (np.abs(x) < EGO_FOOTPRINT[3] / 2) & (np.abs(y) < EGO_FOOTPRINT[4] / 2)
+
+
+def return_probability(intensity: np.ndarray, distance: np.ndarray) -> np.ndarray:
+    """Probability `(N,)` that a ray whose surface would give `intensity` `(N,)` at `distance`
+    `(N,)` m returns: the echo falls with the squared range, weak echoes get lost."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        echo = intensity * (SIGNAL_REFERENCE_M / np.maximum(distance, 1e-3)) ** 2
+        return 1.0 - np.exp(-np.nan_to_num(echo, nan=0.0) / SIGNAL_SCALE)
+
 
 # ---------------------------------------------------------------------------------------------
 # Scanning
@@ -153,12 +193,17 @@ def scan_scene(
             marking = near_line & ((along % 9.0) < 3.0)  # dashed lines
         reflect[ground] = sensor.intensity_ground * np.where(marking, 4.0, 1.0)
 
+    owner[ego_blocked(directions, sensor.mount_height_m)] = -3
     visible = np.bincount(owner[owner >= 0], minlength=len(scene.cars))
     returned = owner != -3
     noisy = distance + rng.normal(0.0, sensor.range_noise_sigma_m, count)
-    keep = returned & (rng.random(count) >= sensor.ray_dropout)
+    # a surface's own texture: each return's reflectance varies around its material's
+    texture = rng.lognormal(-0.5 * TEXTURE_SIGMA**2, TEXTURE_SIGMA, count)
+    intensity = reflect * texture * (INCIDENCE_FLOOR + (1.0 - INCIDENCE_FLOOR) * cosine)
+    keep = returned & (rng.random(count) < return_probability(intensity, distance))
+    keep &= rng.random(count) >= sensor.ray_dropout
     keep &= (noisy >= sensor.min_range_m) & (noisy <= sensor.max_range_m)
-    intensity = reflect * (0.25 + 0.75 * cosine) + rng.normal(0.0, 0.02, count)
+    intensity = intensity + rng.normal(0.0, 0.02, count)
     points = np.c_[noisy[keep, None] * directions[keep], np.clip(intensity[keep], 0.0, 1.0)]
     return Scan(
         points=points.astype(np.float32),

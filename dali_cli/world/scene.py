@@ -1,7 +1,7 @@
 """Scene layout: a street in a road frame (u along the road, v to the left) turned by the road
-heading: a road with lanes and curbs, sidewalks, building walls with gaps, poles, trees and
-bushes, car-sized containers, an optional cross street, and 5-30 cars (driving in lanes, parked
-along the curbs or in rows off the road) that never overlap each other or the clutter; a sloped,
+heading: a road with lanes, raised sidewalks, building walls with gaps, fences and hedges, poles,
+trees and bushes, car-sized containers, an optional cross street, and 2-13 cars (driving in
+lanes, parked along the curbs or in rows off the road, nearer ones more often) that never overlap each other or the clutter; a sloped,
 slightly rough ground through z = -mount_height under the sensor."""
 
 from __future__ import annotations
@@ -15,8 +15,9 @@ from dali_cli.geometry import bev_corners, footprints_overlap, rotate_xy, wrap_a
 from dali_cli.sensors import SensorProfile
 from dali_cli.world.cars import POOL_SIZE, sample_car_sizes
 
-MIN_CARS, MAX_CARS = 5, 30
+MIN_CARS, MAX_CARS = 2, 15
 MIN_RANGE_M, MAX_RANGE_M = 3.0, 80.0
+NEAR_BIAS = 2.3  # car positions along the road: |u| = max * U^NEAR_BIAS
 EGO_FOOTPRINT = np.array([0.0, 0.0, 0.0, 5.2, 2.6, 1.6, 0.0])  # the sensor's own car, with margin
 
 
@@ -202,17 +203,17 @@ def _ground_and_street(rng: np.random.Generator, sensor: SensorProfile) -> tuple
     """The scene's ground and road, drawn in this order from `rng`."""
     ground = Ground(
         mount_height_m=sensor.mount_height_m,
-        slope=rng.normal(0.0, 0.004, 2).clip(-0.012, 0.012),
+        slope=rng.normal(0.0, 0.01, 2).clip(-0.03, 0.03),
         wave_vectors=rng.normal(0.0, 1.0, (3, 2)) * (2 * np.pi / rng.uniform(3.0, 25.0, (3, 1))),
         amplitudes=rng.uniform(0.003, 0.012, 3),
         phases=rng.uniform(0, 2 * np.pi, 3),
     )
     heading = float(rng.normal(0.0, 0.06))
-    lanes_per_side = int(rng.integers(1, 3))
+    lanes_per_side = 1 if rng.random() < 0.7 else 2
     lane = rng.uniform(3.2, 3.7)
     road_half = lanes_per_side * lane + rng.uniform(0.0, 2.5)  # + parking strip
     ego_v = -rng.uniform(0.3, 0.7) * lane  # the ego drives in a right-hand lane
-    sidewalk = rng.uniform(2.0, 5.0)
+    sidewalk = rng.uniform(2.0, 4.0)
     cross = rng.random() < 0.45
     cross_u = float(rng.choice([-1, 1]) * rng.uniform(15.0, 50.0)) if cross else np.inf
     cross_half = rng.uniform(4.0, 8.0)
@@ -235,22 +236,24 @@ class _Clutter:
         self.meshes: list[tuple[np.ndarray, np.ndarray, float]] = []
 
 
-def _add_curbs(rng, street: _Street, clutter: _Clutter) -> None:
-    """Curbs along both road edges in short segments (they follow the sloped ground)."""
+def _add_sidewalks(rng, street: _Street, clutter: _Clutter) -> None:
+    """Raised sidewalks (curb height, from the road edge to the lots behind) along both road
+    edges in short segments that follow the sloped ground."""
     for side in (-1, 1):
-        height = rng.uniform(0.12, 0.18)
+        height = rng.uniform(0.1, 0.18)
         for u0 in np.arange(-street.reach, street.reach, 8.0):
             if not street.on_cross(np.array([u0, u0 + 8.0])) and not street.on_cross(u0 + 4.0, 4.0):
-                v = street.lateral(side * street.road_half)
-                clutter.boxes.append((np.array([u0 + 4.0, v, 0, 8.0, 0.25, height, 0]), 1.0))
+                v = street.lateral(side * (street.road_half + street.sidewalk / 2))
+                slab = np.array([u0 + 4.0, v, 0, 8.0, street.sidewalk, height, 0])
+                clutter.boxes.append((slab, 1.0))
 
 
 def _add_walls(rng, street: _Street, clutter: _Clutter) -> None:
     """Building walls behind the sidewalks, in segments with gaps."""
     for side in (-1, 1):
-        if rng.random() < 0.25:
+        if rng.random() < 0.05:
             continue
-        setback = street.road_half + street.sidewalk + rng.uniform(0.0, 6.0)
+        setback = street.road_half + street.sidewalk + rng.uniform(0.0, 4.0)
         u = -street.reach
         while u < street.reach:
             length = rng.uniform(8.0, 40.0)
@@ -261,7 +264,7 @@ def _add_walls(rng, street: _Street, clutter: _Clutter) -> None:
                 wall = np.array([center, v, 0, length, thickness, rng.uniform(3.0, 15.0), 0])
                 clutter.boxes.append((wall, rng.uniform(0.6, 1.4)))
                 clutter.layout.add(wall)
-            u += length + (rng.uniform(2.0, 12.0) if rng.random() < 0.5 else 0.3)
+            u += length + (rng.uniform(2.0, 12.0) if rng.random() < 0.3 else 0.3)
 
 
 def _add_pole(rng, u: float, v: float, clutter: _Clutter) -> None:
@@ -275,13 +278,52 @@ def _add_pole(rng, u: float, v: float, clutter: _Clutter) -> None:
 
 def _add_tree(rng, u: float, v: float, clutter: _Clutter) -> None:
     trunk = rng.uniform(0.12, 0.3)
-    crown = rng.uniform(1.2, 3.0, 3) * [1, 1, 0.8]
+    crown = rng.uniform(1.8, 3.8, 3) * [1, 1, 0.8]
     tree = np.array([u, v, 0, 2 * trunk, 2 * trunk, 5.0, 0])
     if clutter.layout.free(tree, 0.3):
-        top = rng.uniform(2.5, 4.0)
+        top = rng.uniform(2.8, 4.5)
         clutter.meshes.append((*_cylinder_mesh(u, v, -0.5, trunk, top + 0.5 + crown[2] * 0.5), 0.7))
         clutter.meshes.append((*_blob_mesh(np.array([u, v, top + crown[2]]), crown, rng), 0.45))
         clutter.layout.add(tree)
+
+
+def _add_street_ends(rng, street: _Street, clutter: _Clutter) -> None:
+    """Where the street bends or ends: building fronts or tree lines across it, 45-85 m ahead
+    or behind (each in 40% of the scenes)."""
+    for direction in (-1, 1):
+        if rng.random() >= 0.4:
+            continue
+        u = direction * rng.uniform(45.0, 85.0)
+        if street.on_cross(u, 5.0):
+            continue
+        width = 2 * (street.road_half + street.sidewalk) + rng.uniform(10.0, 40.0)
+        depth = rng.uniform(1.0, 6.0)
+        v = street.lateral(rng.uniform(-5.0, 5.0))
+        front = np.array([u + direction * depth / 2, v, 0, depth, width, rng.uniform(4, 15), 0])
+        if clutter.layout.free(front, 0.5):
+            clutter.boxes.append((front, rng.uniform(0.6, 1.4)))
+            clutter.layout.add(front)
+
+
+def _add_fences_and_hedges(rng, street: _Street, clutter: _Clutter) -> None:
+    """Fences and hedges along the outer edge of the sidewalks, in segments (front gardens,
+    lots), where nothing stands yet."""
+    for side in (-1, 1):
+        u = -street.reach + rng.uniform(0.0, 10.0)
+        while u < street.reach:
+            length = rng.uniform(5.0, 30.0)
+            center = u + length / 2
+            if rng.random() < 0.6 and not street.on_cross(center, length / 2 + 1.0):
+                hedge = rng.random() < 0.5
+                thickness = rng.uniform(0.6, 1.4) if hedge else rng.uniform(0.05, 0.15)
+                height = rng.uniform(0.8, 2.2) if hedge else rng.uniform(0.9, 2.0)
+                v = street.lateral(side * (street.road_half + street.sidewalk - thickness / 2))
+                segment = np.array([center, v, 0, length, thickness, height, 0])
+                if clutter.layout.free(segment, 0.1):
+                    reflect = rng.uniform(0.5, 0.9) if hedge else rng.uniform(0.6, 1.6)
+                    clutter.boxes.append((segment, reflect))
+                    clutter.layout.add(segment)
+            u += length + rng.uniform(1.0, 8.0)
 
 
 def _add_poles_and_trees(rng, street: _Street, clutter: _Clutter) -> None:
@@ -295,13 +337,13 @@ def _add_poles_and_trees(rng, street: _Street, clutter: _Clutter) -> None:
                     _add_pole(rng, u, v, clutter)
                 else:
                     _add_tree(rng, u, v, clutter)
-            u += rng.uniform(8.0, 30.0)
+            u += rng.uniform(4.0, 12.0)
 
 
 def _add_bushes_and_containers(rng, street: _Street, clutter: _Clutter) -> None:
     """Bushes and hedges beside the road; car-sized containers and kiosks (false-positive bait)."""
     road_half, sidewalk, reach = street.road_half, street.sidewalk, street.reach
-    for _ in range(int(rng.integers(3, 12))):
+    for _ in range(int(rng.integers(12, 30))):
         side = rng.choice([-1, 1])
         u, v = (
             rng.uniform(-reach, reach),
@@ -327,7 +369,9 @@ def _car_slot(rng, street: _Street, size: np.ndarray, max_center: float):
     the cross street or anywhere off the road."""
     slot = rng.random()
     side = rng.choice([-1, 1])
-    u = rng.uniform(-max_center, max_center)
+    # nearer cars more often than farther ones (real drives: a third of the cars in view are
+    # beyond 40 m), without a hole under the sensor
+    u = rng.choice([-1, 1]) * max_center * rng.random() ** NEAR_BIAS
     if slot < 0.35:  # driving in a lane (right-hand traffic)
         lane_index = int(rng.integers(0, street.lanes_per_side))
         v = side * (lane_index + 0.5) * street.lane + rng.normal(0, 0.25)
@@ -343,13 +387,13 @@ def _car_slot(rng, street: _Street, size: np.ndarray, max_center: float):
         v = rng.uniform(-max_center, max_center)
         yaw = rng.choice([np.pi / 2, -np.pi / 2]) + rng.normal(0, 0.04)
     else:  # anywhere off the road at a random angle
-        v = side * (street.road_half + rng.uniform(1.0, 30.0))
+        v = side * (street.road_half + street.sidewalk + rng.uniform(1.0, 30.0))
         yaw = rng.uniform(-np.pi, np.pi)
     return u, street.lateral(v), yaw
 
 
 def _place_cars(rng, street, clutter, sensor, cars) -> list[np.ndarray]:
-    """5-30 cars (ego road frame boxes) that overlap nothing; up to 30 tries each."""
+    """2-13 cars (ego road frame boxes) that overlap nothing; up to 30 tries each."""
     count = int(rng.integers(MIN_CARS, MAX_CARS + 1))
     sizes = sample_car_sizes(
         rng, count, np.array(cars.car_mean_lwh_m), np.array(cars.car_std_lwh_m)
@@ -412,11 +456,13 @@ def generate_scene(
     rng: np.random.Generator, sensor: SensorProfile, cars: SensorProfile
 ) -> SynthScene:
     """Lay out one street scene (see module docstring); every draw comes from `rng`, in order:
-    ground and road, curbs, walls, poles and trees, bushes and containers, cars, car models."""
+    ground and road, sidewalks, walls, fences and hedges, street ends, poles and trees, bushes and containers, cars, car models."""
     ground, street = _ground_and_street(rng, sensor)
     clutter = _Clutter()
-    _add_curbs(rng, street, clutter)
+    _add_sidewalks(rng, street, clutter)
     _add_walls(rng, street, clutter)
+    _add_fences_and_hedges(rng, street, clutter)
+    _add_street_ends(rng, street, clutter)
     _add_poles_and_trees(rng, street, clutter)
     _add_bushes_and_containers(rng, street, clutter)
     placed = _place_cars(rng, street, clutter, sensor, cars)
@@ -429,7 +475,8 @@ def generate_scene(
         ground=ground,
         cars=car_boxes,
         car_models=rng.integers(0, POOL_SIZE, len(car_boxes)),
-        car_reflectance=rng.uniform(0.5, 1.7, len(car_boxes)),
+        # paint from near-black to white: real car returns are mostly dark, a few bright
+        car_reflectance=np.exp(rng.uniform(np.log(0.15), np.log(3.0), len(car_boxes))),
         clutter_vertices=vertices,
         clutter_faces=faces,
         face_reflectance=reflectance,
