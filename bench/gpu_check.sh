@@ -6,7 +6,9 @@
 # 1. the demo's two DALI iterations (`make iter2`, 48/48 frames, seed 0) with DEVICE=cuda: every
 #    model stage (pretrain, ptsn-sweep, pseudo-label, retrain, eval) on the GPU, per-frame stages
 #    on 8 local workers; 2. one pretraining under torchrun (NPROC=1: DDP with nccl);
-#    3. the test suite, where `--device auto` now means the GPU. Writes OUT_DIR/log.txt (what it
+#    3. training frames/s, data-wait share and GPU utilisation with 0 and 8 loader workers,
+#    and the time of each stage of the chain; 4. the test suite, where `--device auto` now means
+#    the GPU (and tests/test_box_ops.py compares the GPU's IoU and NMS with numpy). Writes OUT_DIR/log.txt (what it
 #    printed), iter2.log, ddp.log, pytest.log, report.md (`dali report` of the demo run) and
 #    gpu_check.tar.gz (the run's manifests and metrics, and the logs).
 set -uo pipefail
@@ -37,6 +39,36 @@ start=$(date +%s)
 make --no-print-directory iter2 VENV=$V RUN=$RUN FRAMES=48 EPOCHS=6 SEED=0 DEVICE=cuda \
     WORKERS=8 SYNTH_WORKERS=8 > "$OUT/iter2.log" 2>&1 || { status=1; echo "make iter2 FAILED"; tail -n 30 "$OUT/iter2.log"; }
 echo "make iter2 on cuda: $(( $(date +%s) - start )) s"
+# time per stage of the chain (each manifest's timings, seconds)
+find $RUN -name manifest.json | sort | while read -r m; do
+    python3 -c 'import json, sys; m = json.load(open(sys.argv[1]))
+t = m.get("timings", {}); total = sum(v for v in t.values() if isinstance(v, (int, float)))
+print(f"stage {m.get(\"stage\", \"?\"):14s} {total:8.1f} s  {sys.argv[1]}")' "$m"
+done
+# training throughput: frames/s, the data-wait share and the GPU's utilisation, with the
+# batches made in the training process (0 loader workers) and in 8 loader workers
+for workers in 0 8; do
+    nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader,nounits -lms 500 \
+        > "$OUT/util-w$workers.csv" 2> /dev/null &
+    smi=$!
+    start=$(date +%s)
+    $V/bin/dali pretrain --source $RUN/data/source --epochs 2 --batch-size 8 --device cuda \
+        --seed 0 --loader-workers $workers --quiet --force --out $RUN/speed-w$workers/model \
+        > "$OUT/speed-w$workers.log" 2>&1 || { status=1; tail -n 30 "$OUT/speed-w$workers.log"; }
+    kill $smi 2> /dev/null
+    python3 -c 'import json, sys
+import pyarrow.parquet as pq
+d, util = sys.argv[1], sys.argv[2]
+train = json.load(open(d + "/model.json"))["train"]
+log = pq.read_table(d + "/train_log.parquet").to_pylist()[1:]
+wait = sum(r.get("data_wait_share", 0) for r in log) / max(1, len(log))
+rows = [line.split(",") for line in open(util) if line.strip()]
+busy = [float(r[0]) for r in rows]
+print(f"loader workers {sys.argv[3]}: {train[\"frames_per_s\"]} frames/s, data wait {wait:.0%}, "
+      f"GPU busy {sum(busy) / max(1, len(busy)):.0f} % (mean of {len(busy)} samples)")' \
+        $RUN/speed-w$workers/model "$OUT/util-w$workers.csv" $workers || status=1
+    echo "pretrain batch 8, $workers loader workers: $(( $(date +%s) - start )) s"
+done
 python3 -m dali_cli.cli report $RUN > "$OUT/report.md" 2>&1 || status=1
 start=$(date +%s)
 $V/bin/torchrun --standalone --nproc-per-node 1 $V/bin/dali pretrain --source $RUN/data/source \

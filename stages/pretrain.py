@@ -69,8 +69,9 @@ def run_pretrain(
 
         config = DetectorConfig.from_dict({**(config_overrides or {}), "features": features})
         data = load_labeled(
-            source, config, boxes_dir=boxes, labels=labels, sensors_path=sensors_path
-        )
+            source, config, boxes_dir=boxes, labels=labels, sensors_path=sensors_path,
+            stream=True,
+        )  # fmt: skip
         config.sensor, config.mount_height_m = data.sensor, data.mount_height_m
         if data.num_boxes == 0:
             raise StageError(

@@ -68,6 +68,7 @@ def expected_size_of(ptsn_dir: str | Path) -> tuple[float, float, float]:
 def pool(sets: list, name: str):
     """Concatenate labeled sets into one (frame ids prefixed by their set's index)."""
     from dali_cli.detector import LabeledFrames
+    from dali_cli.detector.data import chain_points
 
     first = sets[0]
     return LabeledFrames(
@@ -75,7 +76,7 @@ def pool(sets: list, name: str):
         sensor=first.sensor,
         mount_height_m=first.mount_height_m,
         frame_ids=[f"{i}/{f}" for i, s in enumerate(sets) for f in s.frame_ids],
-        points=[p for s in sets for p in s.points],
+        points=chain_points([s.points for s in sets]),
         boxes=[b for s in sets for b in s.boxes],
     )
 
@@ -126,7 +127,7 @@ def run_retrain(
         from dali_cli.detector import Detector
 
         previous = Detector.load(init)
-        load = dict(config=previous.config, labels=labels, sensors_path=sensors_path)
+        load = dict(config=previous.config, labels=labels, sensors_path=sensors_path, stream=True)
         shift = (target_size, target_profile) if source_size == "sn" else None
         source_data, source_augmentation, card = load_source(
             source, previous.card, load, training, shift

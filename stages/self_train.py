@@ -80,7 +80,9 @@ def run_self_train(
         previous = detector.Detector.load(init)
         config = previous.config
         # frames from the target, boxes from the pseudo labels: the target's labels stay unread
-        data = detector.load_labeled(target, config, boxes_dir=pseudo, sensors_path=sensors_path)
+        data = detector.load_labeled(
+            target, config, boxes_dir=pseudo, sensors_path=sensors_path, stream=True
+        )
         if data.num_boxes == 0:
             raise StageError(f"{pseudo}: no pseudo boxes with points to train on")
         data = scale_about_ground(data, train_scale)

@@ -247,11 +247,11 @@ def test_a_failing_rank_fails_the_stage_with_no_artifact(toy_dir, tmp_path):
     script = tmp_path / "flaky_dali.py"
     script.write_text(
         "import importlib, os, sys\n"
-        "train = importlib.import_module('dali_cli.detector.train')\n"
+        "loader = importlib.import_module('dali_cli.detector.loader')\n"
         "if os.environ['RANK'] == '1':\n"
         "    def lost(*args, **kwargs):\n"
         "        raise RuntimeError('rank 1 lost its frames')\n"
-        "    train.augmented_sample = lost\n"
+        "    loader.augmented_sample = lost\n"
         "from dali_cli.cli import main\n"
         "sys.exit(main())\n"
     )

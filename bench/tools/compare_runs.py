@@ -11,13 +11,16 @@ a field records time, the machine or the run's own path rather than the result:
   directory (RUN_A / RUN_B replaced by one placeholder);
 - model.json: as JSON without train.seconds, train.frames_per_s, train.runtime and paths;
 - Parquet files that are not byte-identical: compared column by column (NaN equal to NaN),
-  without the timing columns frames_per_s, elapsed_s (train_log) and seconds (sweep.parquet);
+  without the timing columns frames_per_s, elapsed_s, data_wait_share (train_log) and seconds
+  (sweep.parquet), which one side may lack;
 - model.pt: the saved tensors (state dict) exactly, plus the non-tensor metadata as above
   (torch's zip container records file names that differ run to run, not the weights).
 
-Other files must be byte-identical; where a JSON file is not, the line says which fields
-differ. Prints one line per difference (and per file only one side has) and a summary; exits 1 when
-anything differs, so it is usable as a check that a refactor leaves a run's artifacts unchanged.
+Files under `.dali-cache/` (training caches derived from the artifacts, e.g. the gt database)
+are not compared. Other files must be byte-identical; where a JSON file is not, the line says
+which fields differ. Prints one line per difference (and per file only one side has) and a
+summary; exits 1 when anything differs, so it is usable as a check that a refactor leaves a
+run's artifacts unchanged.
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ TIMING_KEYS = {
     "created", "timings", "runtime", "executor", "seconds", "frames_per_s", "detector_seconds",
     "per_frame_compute_seconds", "bytes",
 }  # fmt: skip
-TIMING_COLUMNS = {"frames_per_s", "elapsed_s", "seconds"}
+TIMING_COLUMNS = {"frames_per_s", "elapsed_s", "seconds", "data_wait_share"}
 
 
 def _strip(value, roots: tuple[str, ...]):
@@ -146,10 +149,14 @@ def _table_differences(a: Path, b: Path) -> list[str]:
 
     left, right = pq.read_table(a), pq.read_table(b)
     found = [
-        f"column '{c}' only in the first" for c in left.column_names if c not in right.column_names
+        f"column '{c}' only in the first"
+        for c in left.column_names
+        if c not in right.column_names and c not in TIMING_COLUMNS
     ]
     found += [
-        f"column '{c}' only in the second" for c in right.column_names if c not in left.column_names
+        f"column '{c}' only in the second"
+        for c in right.column_names
+        if c not in left.column_names and c not in TIMING_COLUMNS
     ]
     if left.num_rows != right.num_rows:
         return [*found, f"rows {left.num_rows} != {right.num_rows}"]
@@ -181,14 +188,20 @@ def compare_file(a: Path, b: Path, roots: tuple[str, ...]) -> list[str]:
 def compare_runs(run_a: Path, run_b: Path) -> tuple[int, list[str]]:
     """(files compared, one line per difference)."""
     roots = (str(run_a.resolve()), str(run_b.resolve()), str(run_a), str(run_b))
-    files_a = {p.relative_to(run_a) for p in run_a.rglob("*") if p.is_file()}
-    files_b = {p.relative_to(run_b) for p in run_b.rglob("*") if p.is_file()}
+    files_a = {p.relative_to(run_a) for p in run_a.rglob("*") if p.is_file() and not cached(p)}
+    files_b = {p.relative_to(run_b) for p in run_b.rglob("*") if p.is_file() and not cached(p)}
     lines = [f"only in {run_a}: {p}" for p in sorted(files_a - files_b)]
     lines += [f"only in {run_b}: {p}" for p in sorted(files_b - files_a)]
     for relative in sorted(files_a & files_b):
         for difference in compare_file(run_a / relative, run_b / relative, roots):
             lines.append(f"{relative}: {difference}")
     return len(files_a & files_b), lines
+
+
+def cached(path: Path) -> bool:
+    """A file of a training cache (`.dali-cache/`, e.g. the gt database): derived from the
+    artifacts, not an output of its own."""
+    return ".dali-cache" in path.parts
 
 
 def main(argv: list[str]) -> int:

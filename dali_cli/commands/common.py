@@ -301,6 +301,15 @@ def training_options(function):
             "by the processes torchrun starts on this machine; recorded in the manifest).",
         ),
         click.option(
+            "--loader-workers",
+            type=click.IntRange(min=0),
+            default=None,
+            help="Processes that read, augment and batch the training frames ahead of the "
+            "training step (default: the cores this process may use, less one, at most 8; "
+            "0: in the training process). The batches do not depend on it; recorded in the "
+            "manifest's runtime.",
+        ),
+        click.option(
             "--no-augment",
             "no_augment",
             is_flag=True,
@@ -363,6 +372,7 @@ def pop_training(options: dict):
         lr=options.pop("lr"),
         precision=options.pop("precision"),
         threads=options.pop("threads"),
+        loader_workers=options.pop("loader_workers"),
         augment=not options.pop("no_augment"),
         device=options.pop("device"),
         progress=not options.pop("no_progress"),

@@ -134,17 +134,9 @@ class ObjectDatabase:
         range x0, x1, y0, y1, if given: pasting a car nobody sees is wasted work)."""
         kept_boxes, kept_points = [], []
         for points, frame_boxes in zip(frames, boxes, strict=True):  # frames, not points
-            if region is not None:
-                frame_boxes = frame_boxes[in_region(frame_boxes, region)]
-            if len(frame_boxes) == 0:
-                continue
-            owner = point_box_indices(points, frame_boxes)  # (n,)
-            order = np.argsort(owner, kind="stable")
-            counts = np.bincount(owner[owner >= 0], minlength=len(frame_boxes))
-            starts = np.searchsorted(owner[order], np.arange(len(frame_boxes)))
-            for j in np.flatnonzero(counts >= min_points):
-                kept_boxes.append(frame_boxes[j])
-                kept_points.append(points[order[starts[j] : starts[j] + counts[j]]])
+            instances = frame_instances(points, frame_boxes, min_points, region)
+            kept_boxes.extend(instances[0])
+            kept_points.extend(instances[1])
         sizes = [len(p) for p in kept_points]
         return cls(
             boxes=np.asarray(kept_boxes, np.float64).reshape(-1, 7),
@@ -152,6 +144,28 @@ class ObjectDatabase:
             offsets=np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
             region=region,
         )
+
+
+def frame_instances(
+    points: np.ndarray,
+    boxes: np.ndarray,
+    min_points: int = 5,
+    region: tuple[float, float, float, float] | None = None,
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """One frame's database instances: its boxes (7,) with >= min_points of `points` (n, 4) inside
+    (and their centres in `region`), and those points (k_i, 4) each, in box order."""
+    if region is not None:
+        boxes = boxes[in_region(boxes, region)]
+    if len(boxes) == 0:
+        return [], []
+    owner = point_box_indices(points, boxes)  # (n,)
+    order = np.argsort(owner, kind="stable")
+    counts = np.bincount(owner[owner >= 0], minlength=len(boxes))
+    starts = np.searchsorted(owner[order], np.arange(len(boxes)))
+    kept = np.flatnonzero(counts >= min_points)
+    return [boxes[j] for j in kept], [
+        points[order[starts[j] : starts[j] + counts[j]]] for j in kept
+    ]
 
 
 def in_region(boxes: np.ndarray, region: tuple[float, float, float, float]) -> np.ndarray:

@@ -51,22 +51,42 @@ def decode(
     batch = heat_score.shape[0]
     iou = torch.sigmoid(gather_cells(maps["iou"].detach(), index)[..., 0])  # (B, k)
     alpha = config.iou_alpha
-    score = (heat_score.pow(1 - alpha) * iou.pow(alpha)).float().cpu().numpy()  # (B, k)
-    boxes = boxes.cpu().numpy()  # one copy of the top-k per batch to the host (NMS is numpy)
+    score = (heat_score.pow(1 - alpha) * iou.pow(alpha)).float()  # (B, k)
+    on_device = score.is_cuda  # threshold and NMS where the maps are; the kept boxes come back
+    if not on_device:
+        score, boxes = score.cpu().numpy(), boxes.cpu().numpy()  # numpy geometry on the host
     results = []
     for b in range(batch):  # frames: a few per batch
-        keep = score[b] >= config.score_threshold
-        frame_boxes = boxes[b][keep]
-        frame_scores = score[b][keep].astype(np.float32)
-        frame_boxes[:, 6] = wrap_angle(frame_boxes[:, 6])
-        kept = nms_bev(frame_boxes, frame_scores, config.nms_iou)
-        frame_boxes, frame_scores = frame_boxes[kept], frame_scores[kept]
+        if on_device:
+            frame_boxes, frame_scores = device_nms(boxes[b], score[b], config)
+        else:
+            keep = score[b] >= config.score_threshold
+            frame_boxes = boxes[b][keep]
+            frame_scores = score[b][keep].astype(np.float32)
+            frame_boxes[:, 6] = wrap_angle(frame_boxes[:, 6])
+            kept = nms_bev(frame_boxes, frame_scores, config.nms_iou)
+            frame_boxes, frame_scores = frame_boxes[kept], frame_scores[kept]
         if refiner is not None:
             frame_boxes, frame_scores = rescore_refined(
                 refiner, points_list[b], frame_boxes, frame_scores, config
             )
         results.append((frame_boxes, frame_scores))
     return results
+
+
+def device_nms(
+    boxes: torch.Tensor, score: torch.Tensor, config: DetectorConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """One frame's top-k boxes (k, 7) and scores (k,) on a GPU -> the boxes (M, 7) float64 and
+    scores (M,) float32 that pass the score threshold and BEV NMS (box_ops), copied to the host."""
+    from dali_cli.detector import box_ops
+
+    keep = score >= config.score_threshold
+    frame_boxes, frame_scores = boxes[keep].double(), score[keep]
+    yaw = torch.remainder(frame_boxes[:, 6] + np.pi, 2 * np.pi) - np.pi
+    frame_boxes[:, 6] = torch.where(yaw >= np.pi, yaw - 2 * np.pi, yaw)
+    kept = box_ops.nms_bev(frame_boxes, frame_scores, config.nms_iou)
+    return frame_boxes[kept].cpu().numpy(), frame_scores[kept].cpu().numpy().astype(np.float32)
 
 
 def rescore_refined(

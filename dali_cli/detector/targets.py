@@ -244,6 +244,11 @@ def peak_iou_loss(
     anything elsewhere, so a score that leans on it (iou_alpha) lifts background peaks."""
     index, boxes = peak_boxes(maps, config, config.iou_peak_cells)
     batch, k = index.shape
+    if boxes.is_cuda:  # on the GPU: the host does not wait
+        target = device_peak_targets(boxes, targets.objects, batch, k)
+        logits = gather_cells(maps["iou"], index)[..., 0]  # (B, k)
+        losses = F.binary_cross_entropy_with_logits(logits, target, reduction="none")
+        return losses.sum() / global_normalizer(logits.new_tensor(float(losses.numel())), 1.0)
     boxes = boxes.cpu().numpy()  # (B, k, 7): the exact IoU targets are numpy geometry
     target = np.zeros((batch, k), np.float32)
     for b in range(batch):  # frames: one or a few per batch
@@ -255,6 +260,44 @@ def peak_iou_loss(
         logits, torch.from_numpy(target).to(logits.device), reduction="none"
     )
     return losses.sum() / global_normalizer(logits.new_tensor(float(losses.numel())), 1.0)
+
+
+def device_peak_targets(boxes: torch.Tensor, objects, batch: int, k: int) -> torch.Tensor:
+    """(B, k) float32 on boxes' device: the best 3D IoU of each peak's box (B, k, 7) with frame
+    b's target boxes objects[b] (M_b, 7) (0 without any), computed there (box_ops)."""
+    from dali_cli.detector import box_ops
+
+    target = torch.zeros(batch, k, dtype=torch.float32, device=boxes.device)
+    for b in range(batch):  # frames: one or a few per batch
+        if objects is not None and len(objects[b]):
+            found = torch.from_numpy(objects[b]).to(boxes.device, non_blocking=True)
+            target[b] = box_ops.iou_3d(boxes[b], found).max(dim=1).values.float()
+    return target
+
+
+def cell_iou_targets(
+    predicted_boxes: torch.Tensor,
+    targets: Targets,
+    mask: torch.Tensor,
+    on_device: bool | None = None,
+) -> torch.Tensor:
+    """(B, K) float32 IoU-head targets: the 3D IoU of the box decoded at each regressing cell
+    (B, K, 7) with its object, 0 elsewhere. `on_device` (default: on a GPU): computed where the
+    boxes are for every cell (box_ops, no host copy); else numpy geometry on the selected cells
+    (one copy to the host)."""
+    if predicted_boxes.is_cuda if on_device is None else on_device:
+        from dali_cli.detector import box_ops
+
+        gt = torch.from_numpy(targets.boxes).to(predicted_boxes.device, non_blocking=True)
+        iou = box_ops.iou_3d_pairs(predicted_boxes.reshape(-1, 7), gt.reshape(-1, 7))
+        return iou.reshape(mask.shape).float() * mask
+    iou_target = np.zeros(mask.shape, np.float32)
+    selected = mask.cpu().numpy()
+    if selected.any():  # exact rotated-box IoU (numpy geometry): one copy to the host
+        iou_target[selected] = iou_3d_pairs(
+            predicted_boxes.cpu().numpy()[selected], targets.boxes[selected]
+        )
+    return torch.from_numpy(iou_target).to(mask.device)
 
 
 def detection_loss(
@@ -277,17 +320,9 @@ def detection_loss(
     iou_logits = gather_cells(maps["iou"], targets.index)[..., 0]  # (B, K)
     with torch.no_grad():
         predicted_boxes = regression_to_boxes(predicted.detach().double(), targets.index, config)
-        iou_target = np.zeros(mask.shape, np.float32)
-        selected = mask.cpu().numpy()
-        if selected.any():  # exact rotated-box IoU (numpy geometry): one copy to the host
-            iou_target[selected] = iou_3d_pairs(
-                predicted_boxes.cpu().numpy()[selected], targets.boxes[selected]
-            )
+        iou_target = cell_iou_targets(predicted_boxes, targets, mask)  # (B, K)
     iou = (
-        F.binary_cross_entropy_with_logits(
-            iou_logits, torch.from_numpy(iou_target).to(iou_logits.device), reduction="none"
-        )
-        * cell_weight
+        F.binary_cross_entropy_with_logits(iou_logits, iou_target, reduction="none") * cell_weight
     ).sum() / count
     w_heat, w_box, w_iou = config.loss_weights
     total = w_heat * heat + w_box * box + w_iou * iou

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dali_cli.detector.data import Augmentation, LabeledFrames, augmented_sample
+from dali_cli.detector.data import Augmentation, LabeledFrames
 from dali_cli.detector.distributed import (
     SINGLE,
     World,
@@ -23,11 +23,26 @@ from dali_cli.detector.distributed import (
     rank_slice,
     wrap,
 )
+from dali_cli.detector.loader import (
+    Batch,
+    StepBatches,
+    TrainingSamples,
+    batch_indices,
+    collate,
+    default_loader_workers,
+    interleave,
+    start_loader,
+    step_frames,
+    stop_loader,
+    training_loader,
+)
 from dali_cli.detector.model import PillarCenterNet
 from dali_cli.detector.refine import refine_loss
-from dali_cli.detector.targets import build_targets, detection_loss, peak_boxes
+from dali_cli.detector.targets import detection_loss, peak_boxes
 from dali_cli.runtime.machine import runtime_info, training_threads
 from dali_cli.store.artifacts import ArtifactError
+
+__all__ = ["batch_indices", "interleave"]  # the sampler's parts, where they always were
 
 REFINE_STREAM = 7_919  # random stream of the refiner's jittered boxes, apart from the samples'
 
@@ -50,6 +65,9 @@ class TrainSettings:
     seed: int = 0
     precision: str = "fp32"  # "bf16" autocast: on CUDA, or on CPUs with AMX / AVX512-BF16
     threads: int | None = None  # None: this process's share of the cores (runtime.training_threads)
+    # DataLoader worker processes making the batches (None: loader.default_loader_workers;
+    # 0: in the training process); the batches do not depend on it
+    loader_workers: int | None = None
     device: str = "auto"  # auto | cpu | cuda | cuda:N (dali_cli.runtime.device.resolve_device)
     mix: tuple[int, ...] = (1,)
     log_every: int = 5
@@ -83,31 +101,6 @@ def schedule_lr(fraction: float, settings: TrainSettings) -> float:
     return one_cycle(fraction, settings.lr, settings.pct_start)
 
 
-def interleave(mix: tuple[int, ...]) -> list[int]:
-    """Data set of each step in one cycle: (1, 1) -> [0, 1]; (2, 1) -> [0, 1, 0]."""
-    counts, pattern = list(mix), []
-    total = sum(counts)
-    taken = [0] * len(counts)
-    for step in range(total):  # spread each set evenly over the cycle
-        d = max(range(len(counts)), key=lambda i: counts[i] * (step + 1) / total - taken[i])
-        taken[d] += 1
-        pattern.append(d)
-    return pattern
-
-
-def batch_indices(
-    size: int, batch_number: int, batch_size: int, seed: int, dataset: int
-) -> np.ndarray:
-    """Frame indices of the `batch_number`-th batch of a set: a fresh permutation per pass."""
-    positions = batch_number * batch_size + np.arange(batch_size)
-    passes = positions // size
-    out = np.empty(batch_size, np.int64)
-    for p in np.unique(passes):  # at most two passes per batch
-        order = np.random.default_rng([seed, dataset, int(p)]).permutation(size)
-        out[passes == p] = order[positions[passes == p] % size]
-    return out
-
-
 def total_steps(datasets: list[LabeledFrames], settings: TrainSettings, world_size: int = 1) -> int:
     """Optimizer steps of an epoch budget; a step takes batch_size frames on each of
     `world_size` ranks (the global batch)."""
@@ -139,7 +132,6 @@ def train(
     saves resume states and shows progress, and every rank leaves with the same weights."""
     device, threads = training_device(settings, device, world)
     check_training_inputs(datasets, augmentations, settings, world)
-    pattern = interleave(settings.mix)
     budget_s = settings.minutes * 60 if settings.minutes else None
     steps = None if budget_s else total_steps(datasets, settings, world.size)
     net.to(device)
@@ -157,36 +149,53 @@ def train(
     bar = progress_bar(steps, budget_s, step, elapsed, world, progress)
     mine = rank_slice(world, settings.batch_size)  # this rank's positions in the global batch
     global_batch = settings.batch_size * world.size
+    workers = (
+        default_loader_workers(world.local_size)
+        if settings.loader_workers is None
+        else settings.loader_workers
+    )
+    loader = training_loader(
+        TrainingSamples(datasets, augmentations, settings.seed),
+        StepBatches([len(d) for d in datasets], settings.mix, global_batch, mine, settings.seed,
+                    start=step, stop=steps),
+        net.config, workers, pin_memory=device.type == "cuda",
+    )  # fmt: skip
+    batches = start_loader(loader)
     last_save = time.perf_counter()
-    window_frames, window_time = 0, 0.0
-    while (step < steps) if steps else (elapsed < budget_s):
-        started = time.perf_counter()
-        fraction = step / steps if steps else elapsed / budget_s
-        lr = schedule_lr(fraction, settings)
-        for group in optimizer.param_groups:
-            group["lr"] = lr
-        d, samples = step_samples(
-            datasets, augmentations, pattern, step, global_batch, settings, mine
-        )
-        terms = optimize_step(net, forward, optimizer, samples, settings, device, step, mine)
-        step += 1
-        took = time.perf_counter() - started
-        elapsed = broadcast_float(elapsed + took, world) if budget_s else elapsed + took
-        window_frames, window_time = window_frames + global_batch, window_time + took
-        bar.update(1 if steps else min(round(elapsed), bar.total) - bar.n)
-        if step % settings.log_every == 0 or step == 1 or step == steps:
-            row = log_row(step, d, terms, lr, window_frames / max(window_time, 1e-9), elapsed)
-            log.append(row)
-            window_frames, window_time = 0, 0.0
-            bar.set_postfix(
-                loss=f"{row['loss']:.3f}", fps=f"{row['frames_per_s']:.1f}", lr=f"{lr:.1e}"
-            )
-            if on_log and world.is_main:
-                on_log(row)
-        due = time.perf_counter() - last_save > settings.checkpoint_every_s
-        if world.is_main and resume_path and due:
-            save_resume_state(resume_path, resume_key, net, optimizer, step, elapsed, log)
-            last_save = time.perf_counter()
+    window_frames, window_time, window_wait = 0, 0.0, 0.0
+    try:
+        while (step < steps) if steps else (elapsed < budget_s):
+            started = time.perf_counter()
+            fraction = step / steps if steps else elapsed / budget_s
+            lr = schedule_lr(fraction, settings)
+            for group in optimizer.param_groups:
+                group["lr"] = lr
+            batch = next(batches)  # the wait for the input pipeline
+            waited = time.perf_counter() - started
+            terms = optimize_step(net, forward, optimizer, batch, settings, device, step, mine)
+            step += 1
+            took = time.perf_counter() - started
+            elapsed = broadcast_float(elapsed + took, world) if budget_s else elapsed + took
+            window_frames, window_time = window_frames + global_batch, window_time + took
+            window_wait += waited
+            bar.update(1 if steps else min(round(elapsed), bar.total) - bar.n)
+            if step % settings.log_every == 0 or step == 1 or step == steps:
+                row = log_row(step, batch.dataset, terms, lr, window_frames / max(window_time, 1e-9),
+                              elapsed, window_wait / max(window_time, 1e-9))  # fmt: skip
+                log.append(row)
+                window_frames, window_time, window_wait = 0, 0.0, 0.0
+                bar.set_postfix(
+                    loss=f"{row['loss']:.3f}", fps=f"{row['frames_per_s']:.1f}",
+                    wait=f"{row['data_wait_share']:.0%}", lr=f"{lr:.1e}",
+                )  # fmt: skip
+                if on_log and world.is_main:
+                    on_log(row)
+            due = time.perf_counter() - last_save > settings.checkpoint_every_s
+            if world.is_main and resume_path and due:
+                save_resume_state(resume_path, resume_key, net, optimizer, step, elapsed, log)
+                last_save = time.perf_counter()
+    finally:  # also when training fails or is interrupted
+        stop_loader(batches)
     bar.close()
     net.eval()
     return TrainResult(
@@ -195,7 +204,7 @@ def train(
         seconds=elapsed,
         log=log,
         resumed_from_step=resumed_from,
-        runtime=runtime_info(threads, device, world),
+        runtime={**runtime_info(threads, device, world), "loader_workers": workers},
     )
 
 
@@ -282,44 +291,34 @@ def step_samples(
     mine,
 ) -> tuple[int, list]:
     """The data set of optimizer step `step` (the mix's interleaving) and this rank's augmented
-    samples (data.Sample: points (n, 4), boxes (k, 7)) of its batch: frame j of the global batch
-    is drawn from (seed, step, j), whatever the rank."""
-    d = pattern[step % len(pattern)]
-    cycles, within = divmod(step, len(pattern))
-    batch_number = cycles * pattern.count(d) + pattern[:within].count(d)
-    indices = batch_indices(len(datasets[d]), batch_number, global_batch, settings.seed, d)
-    samples = [  # each frame's draws follow its place in the global batch, not the rank
-        augmented_sample(
-            datasets[d],
-            int(indices[j]),
-            np.random.default_rng([settings.seed, step, j]),
-            augmentations[d],
-        )
-        for j in mine
-    ]
-    return d, samples
+    samples (data.Sample) of its batch, made here: what the training loader's batch of that
+    step holds (frame j of the global batch drawn from (seed, step, j), whatever the rank)."""
+    d, indices = step_frames([len(x) for x in datasets], pattern, step, global_batch, settings.seed)
+    samples = TrainingSamples(datasets, augmentations, settings.seed)
+    return d, [samples[(d, int(indices[j]), step, j)][1] for j in mine]
 
 
 def optimize_step(
-    net: PillarCenterNet, forward, optimizer, samples: list, settings: TrainSettings, device,
-    step: int, mine,
+    net: PillarCenterNet, forward, optimizer, batch: Batch | list, settings: TrainSettings,
+    device, step: int, mine,
 ) -> dict:  # fmt: skip
-    """One optimizer step on `samples` (forward, detection + refine losses, clipped backward);
-    returns the loss terms (tensors)."""
+    """One optimizer step on `batch` (a loader.Batch, or a list of data.Sample collated here):
+    forward, detection + refine losses, clipped backward; returns the loss terms (tensors)."""
     from dali_cli.runtime.device import autocast
 
+    if isinstance(batch, list):
+        batch = collate([(0, sample) for sample in batch], net.config)
     config = net.config
-    points = torch.from_numpy(np.concatenate([s.points for s in samples])).to(device)  # (P, 4)
-    batch_index = torch.from_numpy(
-        np.repeat(np.arange(len(samples)), [len(s.points) for s in samples])
-    ).to(device)
-    targets = build_targets([s.boxes for s in samples], config).to(device)
+    blocking = not batch.points.is_pinned()
+    points = batch.points.to(device, non_blocking=not blocking)  # (P, 4)
+    batch_index = batch.batch_index.to(device, non_blocking=not blocking)  # (P,)
+    targets = batch.targets.to(device)
     with autocast(device, settings.precision):  # bf16: the networks' matrix products
-        maps = forward(points, batch_index, len(samples))  # float32 maps
+        maps = forward(points, batch_index, len(batch))  # float32 maps
         loss, terms = detection_loss(maps, targets, config)
         if net.refiner is not None:  # its point MLP is a third of a step's products
             loss, terms = add_refine_loss(
-                net, maps, [s.points for s in samples], targets, loss, terms, settings.seed, step,
+                net, maps, batch.frame_points, targets, loss, terms, settings.seed, step,
                 positions=list(mine),
             )  # fmt: skip
     optimizer.zero_grad(set_to_none=True)
@@ -330,9 +329,11 @@ def optimize_step(
 
 
 def log_row(
-    step: int, dataset: int, terms: dict, lr: float, frames_per_s: float, elapsed: float
-) -> dict:
-    """A train_log row: the loss terms averaged over the ranks, lr, throughput (all ranks)."""
+    step: int, dataset: int, terms: dict, lr: float, frames_per_s: float, elapsed: float,
+    data_wait_share: float = 0.0,
+) -> dict:  # fmt: skip
+    """A train_log row: the loss terms averaged over the ranks, lr, throughput (all ranks) and
+    the share of the step time this rank waited for its batch (the input pipeline)."""
     terms = {k: float(v) for k, v in mean_over_ranks(terms).items()}
     return {
         "step": step,
@@ -341,6 +342,7 @@ def log_row(
         "lr": lr,
         "frames_per_s": frames_per_s,
         "elapsed_s": elapsed,
+        "data_wait_share": data_wait_share,
     }
 
 

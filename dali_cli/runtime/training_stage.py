@@ -31,6 +31,7 @@ class TrainingOptions:
     lr: float = 5e-3
     precision: str = "fp32"
     threads: int | None = None  # None: this process's share of the cores
+    loader_workers: int | None = None  # None: loader.default_loader_workers; 0: in process
     augment: bool = True
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     progress: bool = True
@@ -57,7 +58,8 @@ class TrainingOptions:
         return TrainSettings(
             epochs=self.epochs, minutes=self.minutes, batch_size=self.batch_size, lr=self.lr,
             seed=self.seed, precision=self.precision,
-            threads=self.threads, device=self.device, **extra,
+            threads=self.threads, device=self.device,
+            loader_workers=self.loader_workers, **extra,
         )  # fmt: skip
 
     def augmentation(self):
@@ -127,6 +129,8 @@ def write_train_log(directory: Path, rows: list[dict]) -> None:
 
 def training_summary(result, settings) -> dict:
     tail = result.log[-5:]
+    settings = asdict(settings)
+    settings.pop("loader_workers")  # the runtime records it: it does not change the model
     return {
         "steps": result.steps,
         "frames": result.frames,
@@ -134,22 +138,27 @@ def training_summary(result, settings) -> dict:
         "frames_per_s": round(result.frames / max(result.seconds, 1e-9), 2),
         "resumed_from_step": result.resumed_from_step,
         "final_loss": float(np.mean([r["loss"] for r in tail])) if tail else None,
-        "settings": asdict(settings),
+        "settings": settings,
         "runtime": result.runtime,
     }
 
 
 def attach_database(data, config, augment: bool) -> None:
     """Give `data` its gt-sampling database (its own boxes inside the detection region), or
-    none when augmentation is off."""
+    none when augmentation is off: built in memory for points in memory, else read from (or
+    built once into) the on-disk cache of dali_cli.detector.gt_database, memory-mapped."""
     from dali_cli.detector.augment import ObjectDatabase
     from dali_cli.detector.data import detection_region
+    from dali_cli.detector.gt_database import cached_database
 
-    data.database = (
-        ObjectDatabase.build(data.points, data.boxes, region=detection_region(config))
-        if augment
-        else None
-    )
+    if not augment:
+        data.database = None
+    elif isinstance(data.points, list):
+        data.database = ObjectDatabase.build(
+            data.points, data.boxes, region=detection_region(config)
+        )
+    else:
+        data.database = cached_database(data, region=detection_region(config))
 
 
 @dataclass

@@ -89,6 +89,29 @@ def read_whole_array(
         raise error(f"{where}: cannot be read ({problem})") from None
 
 
+class ChunkCache:
+    """The last `max_chunks` point chunks (decoded, `(chunk, 4)` float32 each) one reader of a
+    FrameSet used, least recently used first out: bounded memory for random access."""
+
+    def __init__(self, max_chunks: int = 2):
+        from collections import OrderedDict
+
+        self.max_chunks = max(1, int(max_chunks))
+        self._chunks: OrderedDict[int, np.ndarray] = OrderedDict()
+
+    def get(self, chunk: int) -> np.ndarray | None:
+        data = self._chunks.get(chunk)
+        if data is not None:
+            self._chunks.move_to_end(chunk)
+        return data
+
+    def put(self, chunk: int, data: np.ndarray) -> np.ndarray:
+        self._chunks[chunk] = data
+        while len(self._chunks) > self.max_chunks:
+            self._chunks.popitem(last=False)
+        return data
+
+
 class FrameSet:
     """Read access to a FrameSet directory. Reading one frame reads only the chunks it spans."""
 
@@ -171,11 +194,25 @@ class FrameSet:
         except KeyError:
             raise ArtifactError(f"{self.path}: no frame '{frame_id}'") from None
 
-    def frame(self, index_or_id: int | str) -> np.ndarray:
-        """Points of one frame, `(n, 4)` float32. Raises ArtifactError on NaN/inf values."""
+    def frame(self, index_or_id: int | str, cache: ChunkCache | None = None) -> np.ndarray:
+        """Points of one frame, `(n, 4)` float32. Raises ArtifactError on NaN/inf values.
+        With a `cache`, the whole chunks the frame spans are read and kept there (a frame of
+        a chunk read before costs no read); without one only the frame's points are asked for."""
         index = self.index_of(index_or_id) if isinstance(index_or_id, str) else int(index_or_id)
         start, stop = int(self.offsets[index]), int(self.offsets[index + 1])
-        return self._checked(self._read_points(start, stop), index)
+        if cache is None or stop <= start:
+            return self._checked(self._read_points(start, stop), index)
+        first, last = start // self._chunk, (stop - 1) // self._chunk
+        parts = []
+        for chunk in range(first, last + 1):
+            lo = chunk * self._chunk
+            data = cache.get(chunk)
+            if data is None:
+                data = cache.put(
+                    chunk, self._read_points(lo, min(lo + self._chunk, self.num_points))
+                )
+            parts.append(data[max(start, lo) - lo : min(stop, lo + self._chunk) - lo])
+        return self._checked(parts[0] if len(parts) == 1 else np.concatenate(parts), index)
 
     def _read_points(self, start: int, stop: int) -> np.ndarray:
         """points[start:stop] `(stop - start, 4)` float32, verified: every chunk it spans must exist
