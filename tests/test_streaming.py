@@ -28,6 +28,7 @@ from dali_cli.detector.gt_database import cache_root, cached_database
 from dali_cli.detector.loader import StepBatches, TrainingSamples, training_loader
 from dali_cli.sensors import get_profile
 from dali_cli.store.artifacts import ChunkCache, FrameSet, write_frameset
+from dali_cli.store.atomic_dir import mark_leftover
 
 
 @pytest.fixture(scope="module")
@@ -93,8 +94,13 @@ def test_cached_database_equals_the_in_memory_one_and_is_reused(toy, config, tmp
     assert database.region == expected.region
     abandoned = tmp_path / "gt_database" / "0123.tmp-999999999"  # a writer that died
     abandoned.mkdir()
+    mark_leftover(abandoned, abandoned.with_name("0123"), "tmp")
+    users = tmp_path / "gt_database" / "mine.tmp-999999998"  # the same name pattern, not dali's
+    users.mkdir()
     other_root = cached_database(streamed, region=region, root=tmp_path)
     assert other_root.directory == database.directory and not abandoned.exists()
+    assert users.is_dir(), "a directory dali did not mark must never be removed"
+    users.rmdir()
     entries = list((tmp_path / "gt_database").iterdir())
     assert len(entries) == 1 and not list(tmp_path.glob("gt_database/*.tmp-*"))
     stamp = (entries[0] / "points.f32").stat().st_mtime_ns

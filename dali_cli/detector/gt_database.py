@@ -21,6 +21,8 @@ import numpy as np
 
 from dali_cli.detector.augment import ObjectDatabase, frame_instances
 from dali_cli.runtime import console
+from dali_cli.runtime.errors import StageError
+from dali_cli.store.atomic_dir import is_leftover, mark_leftover, unmark
 
 CACHE_ENV = "DALI_CACHE_DIR"  # where caches go instead of beside the training data
 FORMAT = 1  # bump when the layout or the instances' selection changes
@@ -102,10 +104,14 @@ def cached_database(
     if (directory / "database.json").is_file():
         return load_database(directory)
     tmp = directory.with_name(f"{directory.name}.tmp-{os.getpid()}")
+    if tmp.exists() and not is_leftover(tmp, directory, "tmp"):
+        raise StageError(f"{tmp}: exists and was not written by dali; move it away")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
+    mark_leftover(tmp, directory, "tmp")
     try:
         write_database(tmp, frames, region, min_points)
+        unmark(tmp)
         try:
             tmp.rename(directory)
         except OSError:  # another run wrote the same entry meanwhile: keep theirs
@@ -117,13 +123,26 @@ def cached_database(
     return load_database(directory)
 
 
-def remove_abandoned(folder: Path) -> None:
-    """Remove the half-written entries (`*.tmp-<pid>`) of processes that died writing them."""
-    from dali_cli.store.atomic_dir import process_alive
+def process_alive(pid: int) -> bool:
+    """Whether a process `pid` exists (a reused pid reads as alive: the entry is then kept, and
+    a later run removes it)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
 
+
+def remove_abandoned(folder: Path) -> None:
+    """Remove the half-written entries (`<key>.tmp-<pid>`) that dali marked as its own
+    (store.atomic_dir's leftover marker) and whose process is gone; anything else is left."""
     for tmp in folder.glob("*.tmp-*"):
-        pid = tmp.name.rpartition(".tmp-")[2]
-        if pid.isdigit() and not process_alive(int(pid)):
+        key, _, pid = tmp.name.rpartition(".tmp-")
+        if not pid.isdigit() or not is_leftover(tmp, tmp.with_name(key), "tmp"):
+            continue
+        if not process_alive(int(pid)):
             shutil.rmtree(tmp, ignore_errors=True)
 
 
