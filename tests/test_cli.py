@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -41,3 +42,24 @@ def test_help_does_not_import_torch():
         "assert 'torch' not in sys.modules, 'dali --help imported torch'"
     )
     subprocess.run([sys.executable, "-c", code], check=True, capture_output=True)
+
+
+def test_tuning_options_stay_out_of_the_default_help_but_work_and_show_on_request():
+    """The tuning group: hidden from `--help` unless DALI_HELP=all, and still accepted."""
+    code = (
+        "import click; from dali_cli.cli import main as root; "
+        "ctx = click.Context(root); cmd = root.get_command(ctx, 'ptsn-sweep'); "
+        "print(sorted(o.opts[0] for o in cmd.params if isinstance(o, click.Option) and o.hidden))"
+    )
+    hidden = {}
+    for value in ("", "all"):
+        env = {**os.environ, "DALI_HELP": value}
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+        hidden[value] = out.stdout.strip()
+    assert "--noise" in hidden[""] and "--subsample-min" in hidden[""]
+    assert hidden["all"] == "[]"
+    result = CliRunner().invoke(main, ["ptsn-sweep", "--help"])
+    assert "--noise" not in result.output and "DALI_HELP=all" in result.output
+    # a hidden option is parsed like any other: a bad value is refused naming it
+    bad = CliRunner().invoke(main, ["ptsn-sweep", "--model", ".", "--target", ".", "--noise", "x"])
+    assert bad.exit_code == 2 and "--noise" in bad.output

@@ -6,6 +6,7 @@ the common option kinds (an existing input directory, a choice with a shown defa
 from __future__ import annotations
 
 import math
+import os
 
 import click
 
@@ -23,11 +24,33 @@ def out_dir_option(help: str = "Output directory.", *decls: str):
     return click.option("--out", *decls, type=click.Path(file_okay=False), required=True, help=help)
 
 
-def choice_option(*decls: str, choices: list[str], default: str | None, help: str):
-    """One of `choices`, with the default shown in --help."""
-    return click.option(
-        *decls, type=click.Choice(choices), default=default, show_default=True, help=help
-    )
+def choice_option(
+    *decls: str, choices: list[str], default: str | None, help: str, tuning: bool = False
+):
+    """One of `choices`, with the default shown in --help (a tuning option with `tuning`)."""
+    option = tuning_option if tuning else click.option
+    return option(*decls, type=click.Choice(choices), default=default, show_default=True, help=help)
+
+
+# Tuning options: settings of an algorithm whose defaults were measured (docs/RESULTS.md,
+# docs/ptsn.md, docs/ppcg.md) and that only research changes. They work like any option but stay
+# out of `--help` unless the environment has DALI_HELP=all; each such command says so below its
+# options (TUNING_NOTE).
+SHOW_TUNING = os.environ.get("DALI_HELP", "") == "all"
+TUNING_NOTE = (
+    "Tuning options (measured defaults, for research) are listed with: DALI_HELP=all dali "
+    "COMMAND --help"
+)
+
+
+def tuning_option(*decls: str, **kwargs):
+    """A click option of the tuning group: hidden from the default --help (see SHOW_TUNING)."""
+    return click.option(*decls, hidden=not SHOW_TUNING, **kwargs)
+
+
+def with_tuning_note(epilog: str = "") -> str:
+    """A command's epilog followed by TUNING_NOTE."""
+    return f"{epilog}\n\n\b\n{TUNING_NOTE}" if epilog else f"\b\n{TUNING_NOTE}"
 
 
 class FiniteFloat(click.FloatRange):
@@ -421,6 +444,6 @@ def protocol_options(function):
                           "FOV-cropped clouds; for 360-degree frames such as dali synth's."),
         click.option("--class", "class_name", default="Car", show_default=True,
                      help="Class to evaluate."),
-        click.option("--min-gt-points", type=click.IntRange(min=0), default=0, show_default=True,
+        tuning_option("--min-gt-points", type=click.IntRange(min=0), default=0, show_default=True,
                      help="Ignore ground-truth boxes with fewer points (needs num_points)."),
     ])  # fmt: skip

@@ -17,6 +17,7 @@ from dali_cli.commands.common import (
     protocol_options,
     score_min_option,
     stage_options,
+    with_tuning_note,
     workers_option,
 )
 
@@ -54,7 +55,7 @@ correction "size_correction" (factors, E_est, E_pred and the scale.json they cam
 )
 
 
-@click.command(name="eval", epilog=EPILOG)
+@click.command(name="eval", epilog=with_tuning_note(EPILOG))
 @click.option("--pred", "pred_path", type=click.Path(exists=True, path_type=Path),
               help="Predictions (box table or label_2 dir).")  # fmt: skip
 @click.option("--gt", "gt_path", type=click.Path(exists=True, path_type=Path),

@@ -15,6 +15,8 @@ from dali_cli.commands.common import (
     sensors_option,
     stage_options,
     target_profile_option,
+    tuning_option,
+    with_tuning_note,
     workers_option,
 )
 from dali_cli.ppcg.frame import DEFAULT_POINT_MARGIN_M
@@ -32,10 +34,10 @@ def ppcg_options(function):
         target_profile_option("sensor"),
         click.option("--models", type=click.Choice(["cad", "points"]), default=None,
                      help="Model kind to fit  [default: cad if the library has meshes, else points]"),
-        click.option("--top-k", type=click.IntRange(min=1), default=1, show_default=True,
+        tuning_option("--top-k", type=click.IntRange(min=1), default=1, show_default=True,
                      help="Pick at random among the K best models (per-box seed); 1 = the best."),
         click.option("--seed", type=SEED, default=0, show_default=True, help="Run seed."),
-        click.option("--ground-margin-m", type=finite_range(min=0), default=0.1,
+        tuning_option("--ground-margin-m", type=finite_range(min=0), default=0.1,
                      show_default=True,
                      help="Points of a box below max(box bottom, -mount height) + this are "
                           "ground: kept."),
@@ -44,7 +46,7 @@ def ppcg_options(function):
                           "facing the other way (the detector's headings are right only up to "
                           "a half turn; dali_cli.ppcg.orient). Mesh models only  [default: on "
                           "with mesh models, off with point models]"),
-        click.option("--point-margin-m", type=finite_range(min=0),
+        tuning_option("--point-margin-m", type=finite_range(min=0),
                      default=DEFAULT_POINT_MARGIN_M, show_default=True,
                      help="A box's points are those in the box grown by this on every side: "
                           "LiDAR points lie on a car's surface, so a pseudo box a little off "
@@ -59,7 +61,7 @@ def ppcg_options(function):
     return apply_options(function, decorators)
 
 
-@click.command(name="ppcg-rc")
+@click.command(name="ppcg-rc", epilog=with_tuning_note())
 @ppcg_options
 @click.option("--max-points", type=click.IntRange(min=2), default=300, show_default=True,
               help="Boxes with this many points or more are dense: skipped.")  # fmt: skip

@@ -12,18 +12,20 @@ from dali_cli.commands.common import (
     score_min_option,
     target_profile_option,
     target_scaling_options,
+    tuning_option,
+    with_tuning_note,
     workers_option,
 )
 
 
-@click.command(name="pseudo-label")
+@click.command(name="pseudo-label", epilog=with_tuning_note())
 @model_target_out_options("Trained model directory (model.pt + model.json).")
 @click.option("--scale-from", type=click.Path(exists=True), default=None,
               help="PTSN directory (or scale.json) of `dali ptsn-sweep`: its 'scale' is ŝ.")  # fmt: skip
 @click.option("--scale", type=finite_range(0, min_open=True), default=None,
               help="Use this scale instead (overrides --scale-from's ŝ).")  # fmt: skip
 @score_min_option()
-@click.option("--nms-iou", type=finite_range(0, 1), default=0.1, show_default=True,
+@tuning_option("--nms-iou", type=finite_range(0, 1), default=0.1, show_default=True,
               help="BEV NMS IoU threshold after de-scaling.")  # fmt: skip
 @target_profile_option()
 @choice_option("--size-correction", "size_correction_method", choices=["per-dim", "none"],

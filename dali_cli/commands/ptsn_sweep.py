@@ -12,6 +12,8 @@ from dali_cli.commands.common import (
     score_min_option,
     target_profile_option,
     target_scaling_options,
+    tuning_option,
+    with_tuning_note,
 )
 from dali_cli.ptsn import ScaleRange, parse_scale_range
 
@@ -33,7 +35,7 @@ class ScaleRangeType(click.ParamType):
 SCALE_RANGE = ScaleRangeType()
 
 
-@click.command(name="ptsn-sweep")
+@click.command(name="ptsn-sweep", epilog=with_tuning_note())
 @model_target_out_options("Trained model directory (model.pt + model.json), e.g. RUN/iter0/model.")
 @click.option("--scales", "scale_range", type=SCALE_RANGE, default="0.8:1.4", show_default=True,
               help="Swept scales LOW:HIGH[:STEP] (STEP default 0.01; the grid and the confirm "
@@ -41,29 +43,29 @@ SCALE_RANGE = ScaleRangeType()
 @click.option("--expected-size", "expected_size", default="sn", show_default=True,
               help="E_est: 'sn' (target profile's mean car size, sensors.toml), 'ros' (source "
                    "mean x mean ROS factor) or explicit L,W,H in metres.")  # fmt: skip
-@choice_option("--search", choices=["bracket", "grid"], default="bracket",
+@choice_option("--search", choices=["bracket", "grid"], tuning=True, default="bracket",
                help="bracket: secant on a frame subsample, confirmed on all frames; grid: every "
                     "scale.")  # fmt: skip
 @click.option("--frames", type=click.IntRange(min=1), default=None, help="Use N seeded frames.")
 @click.option("--frame-fraction", type=finite_range(0, 1, min_open=True), default=None,
               help="Use this fraction of the frames (seeded).")  # fmt: skip
 @score_min_option()
-@choice_option("--no-detections", choices=["identity", "error"], default="identity",
+@choice_option("--no-detections", choices=["identity", "error"], tuning=True, default="identity",
                help="When no box reaches --score-min at any tried scale: identity = write ŝ = 1 "
                     "(no size normalization) with a warning recorded in scale.json and the "
                     "manifest; error = exit 1.")  # fmt: skip
-@choice_option("--mean", choices=["per-frame", "pooled"], default="per-frame",
+@choice_option("--mean", choices=["per-frame", "pooled"], tuning=True, default="per-frame",
                help="per-frame: mean of per-frame means (paper Eq. 1); pooled: one mean over all "
                     "boxes.")  # fmt: skip
-@choice_option("--match", choices=["volume", "lwh"], default="volume",
+@choice_option("--match", choices=["volume", "lwh"], tuning=True, default="volume",
                help="Match mean volume (a 1-D root) or l, w, h in the least-squares sense.")  # fmt: skip
 @click.option("--seed", type=SEED, default=0, show_default=True,
               help="Seed of the frame subsamples.")  # fmt: skip
-@click.option("--subsample-fraction", type=finite_range(0, 1, min_open=True), default=0.25,
+@tuning_option("--subsample-fraction", type=finite_range(0, 1, min_open=True), default=0.25,
               show_default=True, help="bracket: fraction of the frames used for the secant phase.")  # fmt: skip
-@click.option("--subsample-min", type=click.IntRange(min=1), default=16, show_default=True,
+@tuning_option("--subsample-min", type=click.IntRange(min=1), default=16, show_default=True,
               help="bracket: at least this many frames in the secant phase.")  # fmt: skip
-@click.option("--noise", type=finite_range(min=0), default=0.02, show_default=True,
+@tuning_option("--noise", type=finite_range(min=0), default=0.02, show_default=True,
               help="How far the criterion may rise with s and still count as monotone (volume: "
                    "log ratio).")  # fmt: skip
 @target_profile_option()
