@@ -531,6 +531,11 @@ def test_openpcdet_bad_label_and_class_mapping(tmp_path):
     )
     result = invoke("import", "openpcdet", root, "--sensor", "no-such-lidar", "--out", bad)
     assert result.exit_code == 1 and "no-such-lidar" in result.output and not bad.exists()
+    # the one plausibility rule of every stage: a label 1e9 m away is corrupt, not a car
+    (root / "labels" / "a.txt").write_text("10 0 1e9 4 2 1.4 0.3 Vehicle\n")
+    _expect_error(
+        invoke("import", "openpcdet", root, "--sensor", "kitti", "--out", bad), bad, "a.txt", "'a'"
+    )
 
 
 def test_quaternion_matrix_matches_rodrigues():

@@ -40,6 +40,7 @@ from dali_cli.importers.kitti import (
     camera_fov_mask,
     read_velodyne,
 )
+from dali_cli.labels import plausibility
 from dali_cli.store.artifacts import BoxTable
 from dali_cli.store.manifest import BuildResult
 
@@ -342,6 +343,9 @@ def build_import(
             if poses is not None:
                 table = tracklet_table(
                     frame_id, poses.select(poses.frame == int(frame_id)), points, calib, image_size
+                )
+                plausibility.refuse_implausible(
+                    table.boxes, np.ones(len(table), bool), str(drive.tracklets), table.frame_id
                 )
             yield frame_id, points, table
 

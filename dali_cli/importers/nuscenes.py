@@ -22,6 +22,7 @@ from dali_cli.importers.common import (
     read_float_records,
     write_imported,
 )
+from dali_cli.labels import plausibility
 from dali_cli.store.artifacts import BoxTable, TableValueError, int32_column
 from dali_cli.store.manifest import BuildResult
 
@@ -502,6 +503,12 @@ def build_import(
             table = None
             if labeled is not None:
                 boxes, labels, lidar_pts = labeled
+                plausibility.refuse_implausible(
+                    boxes,
+                    np.ones(len(boxes), bool),
+                    f"the annotations of sample '{sample.frame_id}'",
+                    [sample.frame_id] * len(boxes),
+                )
                 counts = (
                     count_points_in_boxes(points, boxes) if len(boxes) else np.zeros(0, np.int32)
                 )

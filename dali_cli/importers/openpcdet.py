@@ -20,6 +20,7 @@ from dali_cli.importers.common import (
     read_text_lines,
     write_imported,
 )
+from dali_cli.labels import plausibility
 from dali_cli.store.artifacts import BoxTable
 from dali_cli.store.frame_ids import child_path
 from dali_cli.store.manifest import BuildResult
@@ -122,6 +123,10 @@ def build_import(
             table = None
             if label_path.is_file():
                 boxes, classes = read_labels(label_path)
+                real = classes.astype(str) != "DontCare"  # regions, not objects (size 0)
+                plausibility.refuse_implausible(
+                    boxes, real, str(label_path), [frame_id] * len(boxes)
+                )
                 labels = np.where(
                     np.isin(classes.astype(str), list(car_classes)), "Car", classes
                 ).astype(object)
