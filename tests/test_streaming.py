@@ -167,3 +167,16 @@ def test_training_on_streamed_frames_equals_training_in_memory(toy, config, tmp_
     for workers in (0, 2):
         weights = train_weights(streamed_set(toy, config, tmp_path), workers)
         assert all(torch.equal(reference[k], weights[k]) for k in reference), workers
+
+
+def test_loader_workers_default_to_none_on_the_cpu_and_to_the_spare_cores_on_a_gpu(monkeypatch):
+    """On the CPU the training step computes on every core, so the default keeps the input
+    pipeline in process; on a GPU the spare cores (one kept for the step) feed it."""
+    from dali_cli.detector import loader
+
+    monkeypatch.setattr("dali_cli.runtime.cores.available_cores", lambda: 6)
+    assert loader.default_loader_workers(1, "cpu") == 0
+    assert loader.default_loader_workers(1, "cuda") == 5
+    assert loader.default_loader_workers(2, "cuda") == 2  # two ranks share the six cores
+    monkeypatch.setattr("dali_cli.runtime.cores.available_cores", lambda: 64)
+    assert loader.default_loader_workers(1, "cuda") == loader.MAX_DEFAULT_WORKERS

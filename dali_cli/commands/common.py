@@ -328,8 +328,8 @@ def training_options(function):
             type=click.IntRange(min=0),
             default=None,
             help="Processes that read, augment and batch the training frames ahead of the "
-            "training step (default: the cores this process may use, less one, at most 8; "
-            "0: in the training process). The batches do not depend on it; recorded in the "
+            "training step (default on a GPU: the cores this process may use, less one, at "
+            "most 8; on the CPU 0: in the training process, whose step uses every core). The batches do not depend on it; recorded in the "
             "manifest's runtime.",
         ),
         click.option(

@@ -24,11 +24,15 @@ from dali_cli.detector.targets import Targets, build_targets
 MAX_DEFAULT_WORKERS = 8
 
 
-def default_loader_workers(local_processes: int = 1) -> int:
-    """Loader workers per training process when not given: one less than its share of the
-    available cores (the training process keeps one), at most MAX_DEFAULT_WORKERS."""
+def default_loader_workers(local_processes: int = 1, device_type: str = "cuda") -> int:
+    """Loader workers per training process when not given. On a GPU: one less than its share of
+    the available cores (the training process keeps one), at most MAX_DEFAULT_WORKERS. On the CPU
+    none: there the training step itself computes on every core, and a worker would take cores
+    from it (measured ~2x slower on a 2-core machine, docs/scale-out.md)."""
     from dali_cli.runtime.cores import available_cores
 
+    if device_type != "cuda":
+        return 0
     share = available_cores() // max(1, local_processes)
     return max(0, min(MAX_DEFAULT_WORKERS, share - 1))
 
