@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from ray_reference import hits_and_window_rays, slab_hits
 
 from dali_cli.geometry import inside_boxes
 from dali_cli.ppcg.fitting import (
@@ -169,17 +170,6 @@ def test_point_model_selection_matches_bruteforce():
 # ------------------------------------------------------------------------------- windows
 
 
-def slab_hits(directions: np.ndarray, box: np.ndarray) -> np.ndarray:
-    """Reference: which unit rays from the origin intersect the solid box `(7,)`."""
-    origins, local_dirs = rays_to_model(np.zeros(3), directions, box)  # unit box [-0.5, 0.5]^3
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1 = (-0.5 - origins) / local_dirs
-        t2 = (0.5 - origins) / local_dirs
-    t_near = np.nanmax(np.minimum(t1, t2), axis=1)
-    t_far = np.nanmin(np.maximum(t1, t2), axis=1)
-    return (t_far >= np.maximum(t_near, 0.0)) & (t_far > 0)
-
-
 def surface_samples(box: np.ndarray, count: int, rng) -> np.ndarray:
     local = rng.uniform(-0.5, 0.5, size=(count, 3))
     axis = rng.integers(0, 3, count)
@@ -215,19 +205,10 @@ def test_window_contains_every_box_point_and_is_tight():
 
 def test_window_selects_every_ray_that_can_hit_the_box():
     profile = get_profile("kitti")
-    pattern = profile.ray_pattern()
-    directions = pattern.directions.astype(np.float64)
+    directions = profile.ray_pattern().directions.astype(np.float64)
     boxes = np.array([[6.0, 0.0, -0.9, 1.8, 4.5, 1.5, 0.0], [-20.0, 0.3, -0.8, 4.0, 1.8, 1.5, 0.3]])
     windows = box_windows(boxes)
-    for index, box in enumerate(boxes):
-        hits = np.flatnonzero(slab_hits(directions, box))
-        rays = window_rays(
-            profile,
-            windows.azimuth_lo[index],
-            windows.azimuth_hi[index],
-            windows.elevation_lo[index],
-            windows.elevation_hi[index],
-        )
+    for _, _, hits, rays in hits_and_window_rays(profile, boxes):
         assert len(hits) > 100
         assert np.isin(hits, rays.index).all()
         np.testing.assert_allclose(rays.directions, directions[rays.index], atol=1e-6)
