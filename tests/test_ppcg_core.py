@@ -308,6 +308,20 @@ def test_point_model_cast_handles_empty_inputs():
 # ------------------------------------------------------------------------------- in-box points
 
 
+def random_boxes(rng, k: int, *, xy_m: float, z_m, size_m, yaw: float) -> np.ndarray:
+    """`k` boxes `(k, 7)`: x, y uniform in [-xy_m, xy_m], z in `z_m`, each of l, w, h in `size_m`
+    (m), yaw in [-yaw, yaw] (rad)."""
+    return np.concatenate(
+        [
+            rng.uniform(-xy_m, xy_m, (k, 2)),
+            rng.uniform(*z_m, (k, 1)),
+            rng.uniform(*size_m, (k, 3)),
+            rng.uniform(-yaw, yaw, (k, 1)),
+        ],
+        1,
+    )
+
+
 @pytest.mark.parametrize("seed", range(8))
 def test_points_per_box_equals_bruteforce(seed):
     rng = np.random.default_rng(seed)
@@ -321,15 +335,7 @@ def test_points_per_box_equals_bruteforce(seed):
         1,
     ).astype(np.float32)
     k = int(rng.integers(1, 20))
-    boxes = np.concatenate(
-        [
-            rng.uniform(-35, 35, (k, 2)),
-            rng.uniform(-1, 0, (k, 1)),
-            rng.uniform(0.5, 6, (k, 3)),
-            rng.uniform(-4, 4, (k, 1)),
-        ],
-        1,
-    )
+    boxes = random_boxes(rng, k, xy_m=35, z_m=(-1, 0), size_m=(0.5, 6), yaw=4)
     boxes = np.concatenate([boxes, boxes[:1] + [0.5, 0, 0, 0, 0, 0, 0.3]])  # an overlapping pair
     margin = float(rng.uniform(0, 0.5))
     result = points_per_box(points, boxes, margin)
@@ -348,15 +354,7 @@ def test_points_per_box_agrees_with_inside_boxes_on_the_faces(seed):
     decides every point exactly as geometry.inside_boxes does in float32, first box winning."""
     rng = np.random.default_rng(seed)
     k = 12
-    boxes = np.concatenate(
-        [
-            rng.uniform(-60, 60, (k, 2)),
-            rng.uniform(-1.5, 0, (k, 1)),
-            rng.uniform(0.3, 8, (k, 3)),
-            rng.uniform(-np.pi, np.pi, (k, 1)),
-        ],
-        1,
-    )
+    boxes = random_boxes(rng, k, xy_m=60, z_m=(-1.5, 0), size_m=(0.3, 8), yaw=np.pi)
     boxes = np.concatenate([boxes, boxes[:3] + [0.4, -0.2, 0, 0, 0, 0, 0.5]])  # overlaps
     # points on each box's faces (unit-cube surface in box coordinates), nudged by ~float32 ulps
     per_box = 3000
