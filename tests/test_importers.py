@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from fixture_copies import writable_copy
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -43,11 +44,7 @@ def calib() -> kitti.Calibration:
 
 def kitti_copy(tmp_path: Path) -> Path:
     """A writable copy of the KITTI fixture root."""
-    root = tmp_path / "kitti"
-    shutil.copytree(KITTI, root)
-    for path in root.rglob("*"):
-        path.chmod(0o755 if path.is_dir() else 0o644)
-    return root
+    return writable_copy(KITTI, tmp_path / "kitti")
 
 
 def camera_frame_counts(
