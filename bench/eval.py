@@ -14,10 +14,10 @@ import platform
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
+from pareto.common import best_seconds
 
 from dali_cli import geometry
 from dali_cli.evaluation.evaluate import evaluate
@@ -26,15 +26,6 @@ from dali_cli.store.artifacts import BoxTable, write_boxes
 
 RESULTS = Path(__file__).resolve().parent / "results" / "eval.json"
 CAR = (3.9, 1.6, 1.5)
-
-
-def best_of(function, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def random_boxes(rng, count, spread):
@@ -94,13 +85,13 @@ def main() -> None:
     pairs = 50_000 if args.quick else 200_000
     a = random_boxes(rng, pairs, 5.0)
     b = a + np.c_[rng.uniform(-2, 2, (pairs, 2)), np.zeros((pairs, 4)), rng.uniform(-1, 1, pairs)]
-    seconds = best_of(lambda: geometry.bev_iou_pairs(a, b), repeats)
+    seconds = best_seconds(lambda: geometry.bev_iou_pairs(a, b), repeats)
     results["bev_iou_pairs_overlapping"] = {
         "pairs": pairs,
         "seconds": seconds,
         "pairs_per_s": pairs / seconds,
     }
-    seconds = best_of(lambda: geometry.iou_pairs_bev_3d(a, b), repeats)
+    seconds = best_seconds(lambda: geometry.iou_pairs_bev_3d(a, b), repeats)
     results["iou_pairs_bev_3d_overlapping"] = {
         "pairs": pairs,
         "seconds": seconds,
@@ -111,7 +102,7 @@ def main() -> None:
     n = 1000 if args.quick else 3000
     boxes = random_boxes(rng, n, 50.0)
     other = boxes + np.c_[rng.normal(0, 0.5, (n, 2)), np.zeros((n, 5))]
-    seconds = best_of(lambda: geometry.bev_iou(boxes, other), repeats)
+    seconds = best_seconds(lambda: geometry.bev_iou(boxes, other), repeats)
     results["bev_iou_pairwise_scene"] = {
         "shape": [n, n],
         "area_m": [100, 100],
@@ -133,7 +124,7 @@ def main() -> None:
                 inter = pa.intersection(pb).area
                 _ = inter / (pa.area + pb.area - inter)
 
-        seconds = best_of(with_shapely, 1)
+        seconds = best_seconds(with_shapely, 1)
         results["shapely_pairs_per_s"] = sample / seconds
     except ImportError:
         pass
@@ -148,7 +139,7 @@ def main() -> None:
         np.tile(CAR, (30, 1)),
         rng.uniform(-3, 3, 30),
     ]
-    seconds = best_of(lambda: geometry.point_box_indices(points, cars), repeats)
+    seconds = best_seconds(lambda: geometry.point_box_indices(points, cars), repeats)
     results["point_box_indices"] = {"points": 120_000, "boxes": 30, "seconds": seconds}
     candidates = np.c_[
         rng.uniform(0, 70, (1000, 2)),
@@ -157,13 +148,13 @@ def main() -> None:
         rng.uniform(-3, 3, 1000),
     ]
     scores = rng.uniform(size=1000)
-    seconds = best_of(lambda: geometry.nms_bev(candidates, scores, 0.1), repeats)
+    seconds = best_seconds(lambda: geometry.nms_bev(candidates, scores, 0.1), repeats)
     results["nms_bev"] = {"boxes": 1000, "seconds": seconds}
 
     # 5. evaluation at KITTI val size: 3,769 frames x 20 boxes (GT and predictions)
     frames = 3769
     gt_table, pred_table = kitti_val_like(rng, frames, 20)
-    seconds = best_of(lambda: evaluate(pred_table, gt_table), repeats)
+    seconds = best_seconds(lambda: evaluate(pred_table, gt_table), repeats)
     metrics = evaluate(pred_table, gt_table)["Car"]
     results["evaluate_3769x20"] = {
         "frames": frames,
@@ -196,7 +187,7 @@ def main() -> None:
                 "--protocol",
                 "range",
             ]
-            seconds = best_of(
+            seconds = best_seconds(
                 lambda command=command: subprocess.run(command, check=True, capture_output=True),
                 repeats,
             )

@@ -16,10 +16,10 @@ import argparse
 import json
 import platform
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
+from pareto.common import best_seconds
 
 from dali_cli.store.artifacts import FRAMES_NAME, FrameSet, FrameSetWriter
 
@@ -44,15 +44,6 @@ def write(directory: Path, frame: np.ndarray, frames: int, compress: bool, check
             chunks=(2**21, 4),
             compressors=(ZstdCodec(level=0),) if compress else None,
         )
-
-
-def best_seconds(run, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        started = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - started)
-    return min(times)
 
 
 def main() -> None:

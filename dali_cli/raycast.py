@@ -269,6 +269,22 @@ def _apply(matrix: np.ndarray, vectors: np.ndarray) -> np.ndarray:
     return np.einsum("kj,ij->ik", matrix, vectors)
 
 
+def _checked_rays(origins, directions: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Check a ray batch: `directions` `(N, 3)`, `origins` one shared `(3,)` or `(N, 3)`, all
+    finite (ValueError otherwise). Returns (origins as float64, whether the origin is shared)."""
+    if directions.ndim != 2 or directions.shape[1] != 3:
+        raise ValueError(f"directions must be (N, 3), got {directions.shape}")
+    origins = np.asarray(origins, np.float64)
+    shared = origins.shape == (3,)
+    if not shared and origins.shape != directions.shape:
+        raise ValueError(
+            f"origins {origins.shape} and directions {directions.shape} differ in shape"
+        )
+    if not (np.isfinite(origins).all() and np.isfinite(directions).all()):
+        raise ValueError("origins/directions contain NaN/inf")
+    return origins, shared
+
+
 def cast(
     bvh: Scene,
     origins: np.ndarray,
@@ -285,17 +301,8 @@ def cast(
     computed in float64 from the original origins and directions.
     """
     directions32 = np.ascontiguousarray(directions, dtype=np.float32)
-    if directions32.ndim != 2 or directions32.shape[1] != 3:
-        raise ValueError(f"directions must be (N, 3), got {directions32.shape}")
+    origins64, shared = _checked_rays(origins, directions32)
     count = len(directions32)
-    origins64 = np.asarray(origins, np.float64)
-    shared = origins64.shape == (3,)
-    if not shared and origins64.shape != directions32.shape:
-        raise ValueError(
-            f"origins {origins64.shape} and directions {directions32.shape} differ in shape"
-        )
-    if not (np.isfinite(origins64).all() and np.isfinite(directions32).all()):
-        raise ValueError("origins/directions contain NaN/inf")
     if count == 0:
         return RayHits.misses(0)
     if shared and not origins64.any():
@@ -393,17 +400,8 @@ def _cast_model_frame(
 ) -> RayHits:
     """cast_transformed given A^-1 `(3, 3)` and t `(3,)`; a `(3,)` origin is transformed once."""
     directions = np.asarray(directions, np.float64)
-    if directions.ndim != 2 or directions.shape[1] != 3:
-        raise ValueError(f"directions must be (N, 3), got {directions.shape}")
+    origins, shared = _checked_rays(origins, directions)
     count = len(directions)
-    origins = np.asarray(origins, np.float64)
-    shared = origins.shape == (3,)
-    if not shared and origins.shape != directions.shape:
-        raise ValueError(
-            f"origins {origins.shape} and directions {directions.shape} differ in shape"
-        )
-    if not (np.isfinite(origins).all() and np.isfinite(directions).all()):
-        raise ValueError("origins/directions contain NaN/inf")
     if count == 0:
         return RayHits.misses(0)
     # model frame; a shared origin is one vector

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from fixture_copies import writable_copy
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -43,11 +44,7 @@ def calib() -> kitti.Calibration:
 
 def kitti_copy(tmp_path: Path) -> Path:
     """A writable copy of the KITTI fixture root."""
-    root = tmp_path / "kitti"
-    shutil.copytree(KITTI, root)
-    for path in root.rglob("*"):
-        path.chmod(0o755 if path.is_dir() else 0o644)
-    return root
+    return writable_copy(KITTI, tmp_path / "kitti")
 
 
 def camera_frame_counts(
@@ -198,61 +195,57 @@ def _expect_error(result, out: Path, *fragments: str) -> None:
     assert not list(out.parent.glob(f"{out.name}.tmp-*"))
 
 
-@needs_fixtures
-def test_kitti_truncated_bin_is_an_error(tmp_path):
-    root = kitti_copy(tmp_path)
+def _truncate_scan(root: Path) -> None:
     scan = root / "training" / "velodyne" / "000008.bin"
     scan.write_bytes(scan.read_bytes()[:-6])
-    out = tmp_path / "out"
-    _expect_error(
-        invoke("import", "kitti", root, "--out", out), out, "000008.bin", "not a multiple of 16"
-    )
 
 
-@needs_fixtures
-def test_kitti_nan_points_are_an_error(tmp_path):
-    root = kitti_copy(tmp_path)
+def _nan_point(root: Path) -> None:
     scan = root / "training" / "velodyne" / "000008.bin"
     points = np.fromfile(scan, np.float32).reshape(-1, 4)
     points[1234, 1] = np.nan
     points.tofile(scan)
-    out = tmp_path / "out"
-    _expect_error(
-        invoke("import", "kitti", root, "--out", out), out, "000008.bin", "point 1234", "NaN"
-    )
 
 
-@needs_fixtures
-def test_kitti_missing_calib_is_an_error(tmp_path):
-    root = kitti_copy(tmp_path)
+def _remove_calib(root: Path) -> None:
     (root / "training" / "calib" / "000008.txt").unlink()
-    out = tmp_path / "out"
-    _expect_error(invoke("import", "kitti", root, "--out", out), out, "calib", "000008")
 
 
-@needs_fixtures
-def test_kitti_label_with_14_fields_is_an_error(tmp_path):
-    root = kitti_copy(tmp_path)
+def _label_with_14_fields(root: Path) -> None:
     label = root / "training" / "label_2" / "000008.txt"
     lines = label.read_text().splitlines()
     lines[2] = " ".join(lines[2].split()[:14])
     label.write_text("\n".join(lines) + "\n")
-    out = tmp_path / "out"
-    _expect_error(invoke("import", "kitti", root, "--out", out), out, "000008.txt:3", "got 14")
 
 
-@needs_fixtures
-def test_kitti_bad_label_value_and_calib_key(tmp_path):
-    root = kitti_copy(tmp_path)
+def _bad_label_value(root: Path) -> None:
     label = root / "training" / "label_2" / "000008.txt"
     label.write_text(label.read_text().replace("3.23 -2.70", "3.23 abc", 1))
-    out = tmp_path / "out"
-    _expect_error(invoke("import", "kitti", root, "--out", out), out, "000008.txt:1", "'abc'")
-    label.write_text((KITTI_FRAME / "label_2" / "000008.txt").read_text())
+
+
+def _calib_without_r0_rect(root: Path) -> None:
     calib_path = root / "training" / "calib" / "000008.txt"
     text = calib_path.read_text().splitlines()
     calib_path.write_text("\n".join(line for line in text if not line.startswith("R0_rect")))
-    _expect_error(invoke("import", "kitti", root, "--out", out), out, "R0_rect", "missing")
+
+
+@needs_fixtures
+@pytest.mark.parametrize(
+    "damage, fragments",
+    [
+        (_truncate_scan, ("000008.bin", "not a multiple of 16")),
+        (_nan_point, ("000008.bin", "point 1234", "NaN")),
+        (_remove_calib, ("calib", "000008")),
+        (_label_with_14_fields, ("000008.txt:3", "got 14")),
+        (_bad_label_value, ("000008.txt:1", "'abc'")),
+        (_calib_without_r0_rect, ("R0_rect", "missing")),
+    ],
+)
+def test_a_damaged_kitti_file_is_an_error(tmp_path, damage, fragments):
+    root = kitti_copy(tmp_path)
+    damage(root)
+    out = tmp_path / "out"
+    _expect_error(invoke("import", "kitti", root, "--out", out), out, *fragments)
 
 
 @needs_fixtures

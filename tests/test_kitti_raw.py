@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from fixture_copies import writable_copy
 
 from dali_cli.cli import main
 from dali_cli.evaluation.kitti_label import BBOX_COLUMNS
@@ -51,11 +52,7 @@ def drive_calib() -> kitti.Calibration:
 
 
 def writable_day(tmp_path: Path) -> Path:
-    day = tmp_path / "2011_09_26"
-    shutil.copytree(DAY, day)
-    for path in day.rglob("*"):
-        path.chmod(0o755 if path.is_dir() else 0o644)
-    return day
+    return writable_copy(DAY, tmp_path / "2011_09_26")
 
 
 def test_frames_and_box_counts_follow_the_xml(tmp_path):

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from ray_reference import hits_and_window_rays
 
 from dali_cli.geometry import (
     point_box_indices,
@@ -29,7 +30,6 @@ from dali_cli.ppcg import models as ppcg_models
 from dali_cli.ppcg.fitting import rays_to_model
 from dali_cli.ppcg.inbox import points_per_box
 from dali_cli.ppcg.models import ModelBank
-from dali_cli.ppcg.window import box_windows, window_rays
 from dali_cli.sensors import get_profile
 
 CAST_SURFACE_ERROR_M = 5e-6  # 5 um
@@ -209,37 +209,18 @@ def test_scaling_frames_stays_within_its_float32_bound_at_the_far_end(scale):
     np.testing.assert_allclose(back, boxes, rtol=1e-12, atol=1e-12)
 
 
-def _slab_hits(directions: np.ndarray, box: np.ndarray) -> np.ndarray:
-    origin, local = rays_to_model(np.zeros(3), directions, box)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1, t2 = (-0.5 - origin) / local, (0.5 - origin) / local
-    near = np.nanmax(np.minimum(t1, t2), axis=1)
-    far = np.nanmin(np.maximum(t1, t2), axis=1)
-    return (far >= np.maximum(near, 0.0)) & (far > 0)
-
-
 @pytest.mark.parametrize("sensor", ["kitti", "nuscenes"])
 @pytest.mark.parametrize("lwh", [(0.3, 0.3, 0.3), (3.9, 1.6, 1.5), (20.0, 20.0, 20.0)])
 def test_cf_windows_drop_no_hitting_ray_at_the_far_end(sensor, lwh):
     """CF casts only the rays inside a box's angular window: that skip must lose no hit, from
     1 m to 150 m, for tiny and huge boxes, and for boxes grazing the sensor's horizontal plane."""
     profile = get_profile(sensor)
-    directions = profile.ray_pattern().directions.astype(np.float64)
     rng = np.random.default_rng(3)
     boxes = np.concatenate([_boxes_at(r, lwh, rng, 3) for r in (1.0, 10.0, 60.0, 150.0)])
     boxes[::3, 2] = -0.5 * lwh[2] + 1e-3  # top face just above the sensor's height
     boxes[1::3, 2] = -1.7  # on the ground
-    windows = box_windows(boxes)
     total = 0
-    for i, box in enumerate(boxes):
-        hits = np.flatnonzero(_slab_hits(directions, box))
-        rays = window_rays(
-            profile,
-            windows.azimuth_lo[i],
-            windows.azimuth_hi[i],
-            windows.elevation_lo[i],
-            windows.elevation_hi[i],
-        )
+    for i, box, hits, rays in hits_and_window_rays(profile, boxes):
         assert np.isin(hits, rays.index).all(), (i, box)
         total += len(hits)
     assert total > 0

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from ray_reference import hits_and_window_rays, slab_hits
 
 from dali_cli.geometry import inside_boxes
 from dali_cli.ppcg.fitting import (
@@ -169,17 +170,6 @@ def test_point_model_selection_matches_bruteforce():
 # ------------------------------------------------------------------------------- windows
 
 
-def slab_hits(directions: np.ndarray, box: np.ndarray) -> np.ndarray:
-    """Reference: which unit rays from the origin intersect the solid box `(7,)`."""
-    origins, local_dirs = rays_to_model(np.zeros(3), directions, box)  # unit box [-0.5, 0.5]^3
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1 = (-0.5 - origins) / local_dirs
-        t2 = (0.5 - origins) / local_dirs
-    t_near = np.nanmax(np.minimum(t1, t2), axis=1)
-    t_far = np.nanmin(np.maximum(t1, t2), axis=1)
-    return (t_far >= np.maximum(t_near, 0.0)) & (t_far > 0)
-
-
 def surface_samples(box: np.ndarray, count: int, rng) -> np.ndarray:
     local = rng.uniform(-0.5, 0.5, size=(count, 3))
     axis = rng.integers(0, 3, count)
@@ -215,19 +205,10 @@ def test_window_contains_every_box_point_and_is_tight():
 
 def test_window_selects_every_ray_that_can_hit_the_box():
     profile = get_profile("kitti")
-    pattern = profile.ray_pattern()
-    directions = pattern.directions.astype(np.float64)
+    directions = profile.ray_pattern().directions.astype(np.float64)
     boxes = np.array([[6.0, 0.0, -0.9, 1.8, 4.5, 1.5, 0.0], [-20.0, 0.3, -0.8, 4.0, 1.8, 1.5, 0.3]])
     windows = box_windows(boxes)
-    for index, box in enumerate(boxes):
-        hits = np.flatnonzero(slab_hits(directions, box))
-        rays = window_rays(
-            profile,
-            windows.azimuth_lo[index],
-            windows.azimuth_hi[index],
-            windows.elevation_lo[index],
-            windows.elevation_hi[index],
-        )
+    for _, _, hits, rays in hits_and_window_rays(profile, boxes):
         assert len(hits) > 100
         assert np.isin(hits, rays.index).all()
         np.testing.assert_allclose(rays.directions, directions[rays.index], atol=1e-6)
@@ -327,6 +308,20 @@ def test_point_model_cast_handles_empty_inputs():
 # ------------------------------------------------------------------------------- in-box points
 
 
+def random_boxes(rng, k: int, *, xy_m: float, z_m, size_m, yaw: float) -> np.ndarray:
+    """`k` boxes `(k, 7)`: x, y uniform in [-xy_m, xy_m], z in `z_m`, each of l, w, h in `size_m`
+    (m), yaw in [-yaw, yaw] (rad)."""
+    return np.concatenate(
+        [
+            rng.uniform(-xy_m, xy_m, (k, 2)),
+            rng.uniform(*z_m, (k, 1)),
+            rng.uniform(*size_m, (k, 3)),
+            rng.uniform(-yaw, yaw, (k, 1)),
+        ],
+        1,
+    )
+
+
 @pytest.mark.parametrize("seed", range(8))
 def test_points_per_box_equals_bruteforce(seed):
     rng = np.random.default_rng(seed)
@@ -340,15 +335,7 @@ def test_points_per_box_equals_bruteforce(seed):
         1,
     ).astype(np.float32)
     k = int(rng.integers(1, 20))
-    boxes = np.concatenate(
-        [
-            rng.uniform(-35, 35, (k, 2)),
-            rng.uniform(-1, 0, (k, 1)),
-            rng.uniform(0.5, 6, (k, 3)),
-            rng.uniform(-4, 4, (k, 1)),
-        ],
-        1,
-    )
+    boxes = random_boxes(rng, k, xy_m=35, z_m=(-1, 0), size_m=(0.5, 6), yaw=4)
     boxes = np.concatenate([boxes, boxes[:1] + [0.5, 0, 0, 0, 0, 0, 0.3]])  # an overlapping pair
     margin = float(rng.uniform(0, 0.5))
     result = points_per_box(points, boxes, margin)
@@ -367,15 +354,7 @@ def test_points_per_box_agrees_with_inside_boxes_on_the_faces(seed):
     decides every point exactly as geometry.inside_boxes does in float32, first box winning."""
     rng = np.random.default_rng(seed)
     k = 12
-    boxes = np.concatenate(
-        [
-            rng.uniform(-60, 60, (k, 2)),
-            rng.uniform(-1.5, 0, (k, 1)),
-            rng.uniform(0.3, 8, (k, 3)),
-            rng.uniform(-np.pi, np.pi, (k, 1)),
-        ],
-        1,
-    )
+    boxes = random_boxes(rng, k, xy_m=60, z_m=(-1.5, 0), size_m=(0.3, 8), yaw=np.pi)
     boxes = np.concatenate([boxes, boxes[:3] + [0.4, -0.2, 0, 0, 0, 0, 0.5]])  # overlaps
     # points on each box's faces (unit-cube surface in box coordinates), nudged by ~float32 ulps
     per_box = 3000

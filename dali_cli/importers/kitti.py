@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dali_cli.columns import Columns
 from dali_cli.evaluation import kitti_label
 from dali_cli.geometry import count_points_in_boxes, wrap_angle
 from dali_cli.importers.common import (
@@ -164,7 +165,7 @@ def png_size(path: str | Path) -> tuple[int, int] | None:
 
 
 @dataclass
-class CameraObjects:
+class CameraObjects(Columns):
     """Raw label_2 rows of one file, camera frame, as arrays (N objects).
 
     type : (N,) object str; truncated (N,) float32; occluded (N,) int32; alpha (N,) float64;
@@ -182,9 +183,6 @@ class CameraObjects:
     location: np.ndarray
     rotation_y: np.ndarray
     score: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.type)
 
 
 def parse_label_file(path: str | Path) -> CameraObjects:

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dali_cli.columns import Columns
 from dali_cli.evaluation.camera import kitti_label_columns
 from dali_cli.geometry import count_points_in_boxes, wrap_angle
 from dali_cli.importers.common import (
@@ -117,7 +118,7 @@ def read_raw_calib(calib_dir: str | Path) -> tuple[Calibration, tuple[int, int]]
 
 
 @dataclass
-class TrackletPoses:
+class TrackletPoses(Columns):
     """Every pose of a tracklet file, one row per (object, frame) (N rows).
 
     frame : (N,) int64 frame index; label : (N,) object str (objectType); hwl : (N, 3) float64
@@ -132,9 +133,6 @@ class TrackletPoses:
     occlusion: np.ndarray
     truncation: np.ndarray
     track: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.frame)
 
     def boxes(self) -> np.ndarray:
         """`(N, 7)` float64 dali boxes: x, y, z (geometric centre), l, w, h, yaw."""

@@ -17,6 +17,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from dali_cli.columns import Columns
 from dali_cli.geometry import wrap_angle
 from dali_cli.sensors import SensorProfile
 
@@ -24,7 +25,7 @@ _EPS = 1e-9  # rad: rays exactly on a window edge are kept
 
 
 @dataclass(frozen=True)
-class AngularWindows:
+class AngularWindows(Columns):
     """Windows of N boxes, all `(N,)` float64 rad.
 
     azimuth_lo <= azimuth_hi, azimuth_lo in [-pi, pi), the span below 2 pi (it may end past pi);
@@ -36,9 +37,6 @@ class AngularWindows:
     elevation_lo: np.ndarray
     elevation_hi: np.ndarray
     full: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.azimuth_lo)
 
 
 def footprint_distances(boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

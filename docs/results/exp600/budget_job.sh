@@ -18,9 +18,7 @@ SEED=${SEED:-0}; RE=${RETRAIN_EPOCHS:-4}; DALI=${DALI:-.venv/bin/dali}
 HERE=$(cd "$(dirname "$0")" && pwd)
 MAKEFILE=${MAKEFILE:-$HERE/../../../Makefile}
 R=runs/experiment-s$SEED
-V=$R/variants/budget-re$RE
-O=runs/val800/experiment-s$SEED/budget-re$RE
-source "$HERE/variant_links.sh"; link_variant $V ptsn pseudo rc cf
+source "$HERE/variant_links.sh"; ppcg_variant budget-re$RE
 M=(make -f "$MAKEFILE" RUN=$V SEED=$SEED SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAMES=200 EPOCHS=4
    RETRAIN_EPOCHS=$RE "TRAIN_FLAGS=--threads 1")
 source "$HERE/eval_row.sh"

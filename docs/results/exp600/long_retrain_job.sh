@@ -16,13 +16,12 @@ HERE=$(cd "$(dirname "$0")" && pwd)
 MAKEFILE=${MAKEFILE:-$HERE/../../../Makefile}
 D=${DALI:-.venv/bin/dali}
 R=runs/experiment-s$SEED
-V=$R/variants/x1long-re$N
 M=(taskset -c $CORE make -f "$MAKEFILE" SEED=$SEED SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAMES=200 EPOCHS=4
    RETRAIN_EPOCHS=2 WORKERS=1 SYNTH_WORKERS=1 "TRAIN_FLAGS=--threads 1")
 "${M[@]}" RUN=$R iter0 $R/iter1/rc/manifest.json $R/iter1/cf/manifest.json
-source "$HERE/variant_links.sh"; link_variant $V ptsn pseudo rc cf
+source "$HERE/variant_links.sh"; ppcg_variant x1long-re$N
 "${M[@]}" RUN=$V RETRAIN_EPOCHS_1=1 RETRAIN_EPOCHS_2=$(( N - 1 )) $V/x1_long/eval/manifest.json
 source "$HERE/eval_row.sh"
 kitti_row $V/x1_long/eval
-D="taskset -c $CORE $D" val800_row $V/x1_long/model runs/val800/experiment-s$SEED/x1long-re$N \
+D="taskset -c $CORE $D" val800_row $V/x1_long/model $O \
     --scale-from $V/x1_long/ptsn

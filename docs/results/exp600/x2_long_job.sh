@@ -19,9 +19,7 @@ SEED=${SEED:-0}; RE=${RETRAIN_EPOCHS:-4}; D=${DALI:-.venv/bin/dali}
 HERE=$(cd "$(dirname "$0")" && pwd)
 MAKEFILE=${MAKEFILE:-$HERE/../../../Makefile}
 R=runs/experiment-s$SEED
-V=$R/variants/x2long-re$RE
-O=runs/val800/experiment-s$SEED/x2long-re$RE
-source "$HERE/variant_links.sh"; link_variant $V ptsn pseudo rc cf
+source "$HERE/variant_links.sh"; ppcg_variant x2long-re$RE
 make -f "$MAKEFILE" RUN=$V SEED=$SEED SOURCE_SENSOR=waymo FRAMES=600 VAL_FRAMES=200 EPOCHS=4 \
     RETRAIN_EPOCHS=$RE "TRAIN_FLAGS=--threads 1" iter2 kitti-protocol
 source "$HERE/eval_row.sh"
