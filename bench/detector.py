@@ -27,17 +27,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dali_cli.detector import (
-    Augmentation,
-    Detector,
-    DetectorConfig,
-    PillarCenterNet,
-    TrainSettings,
-    load_labeled,
-    train,
-)
 from dali_cli.detector.augment import ObjectDatabase
-from dali_cli.detector.data import detection_region
+from dali_cli.detector.config import DetectorConfig
+from dali_cli.detector.data import Augmentation, detection_region, load_labeled
+from dali_cli.detector.infer import Detector
+from dali_cli.detector.model import PillarCenterNet
+from dali_cli.detector.train import TrainSettings, train
 from dali_cli.runtime.machine import cpu_model
 from dali_cli.sensors import get_profile
 from dali_cli.store.artifacts import BoxTable, FrameSet, read_boxes

@@ -20,16 +20,12 @@ from test_retrain import SMALL, TOY  # the tiny detector and toy frames of the t
 from toy_scenes import write_toy_dataset
 
 from dali_cli.cli import main
-from dali_cli.detector import (
-    Augmentation,
-    Detector,
-    DetectorConfig,
-    PillarCenterNet,
-    TrainSettings,
-    load_labeled,
-    train,
-)
+from dali_cli.detector.config import DetectorConfig
+from dali_cli.detector.data import Augmentation, load_labeled
 from dali_cli.detector.distributed import World, join, launched, leave
+from dali_cli.detector.infer import Detector
+from dali_cli.detector.model import PillarCenterNet
+from dali_cli.detector.train import TrainSettings, train
 from dali_cli.runtime.device import DeviceError, parse_device_spec, resolve_device
 from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.runtime.machine import available_cores
