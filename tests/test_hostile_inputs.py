@@ -118,6 +118,7 @@ def option_cases():
         "eval": {"--scale": POSITIVE_BAD, "--iou": FRACTION_BAD,
                  "--score-min": FRACTION_BAD},
         "synth": {"--frames": COUNT_BAD[:-1], "--seed": SEED_BAD, "--threads": COUNT_BAD},
+        "library-build": {"--length-m": ("0:inf", "nan:5", "5:1", "-1:5", "x")},
         "import-kitti": {"--intensity-max": POSITIVE_BAD},
     }  # fmt: skip
     return [
@@ -144,6 +145,7 @@ def base_args(world: Path, command: str, out: Path) -> list:
         "export-openpcdet": ["export", "openpcdet", target, "--out", out],
         "eval": ["eval", "--pred", target, "--gt", target, "--out", out],
         "synth": ["synth", "--sensor", "kitti", "--out", out],
+        "library-build": ["library", "build", "--procedural", "1", "--out", out],
         "import-kitti": ["import", "kitti", world / "kitti", "--out", out],
     }[command]  # fmt: skip
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import click
 
 from dali_cli.commands.common import SEED, out_dir_option, stage_options
@@ -19,8 +21,8 @@ def _parse_range(_ctx, _param, value: str | None) -> tuple[float, float] | None:
         low, high = (float(v) for v in value.split(":"))
     except ValueError:
         raise click.BadParameter(f"expected LOW:HIGH, got {value!r}") from None
-    if not 0 <= low < high:
-        raise click.BadParameter(f"need 0 <= LOW < HIGH, got {value!r}")
+    if not (math.isfinite(low) and math.isfinite(high) and 0 <= low < high):
+        raise click.BadParameter(f"need finite 0 <= LOW < HIGH, got {value!r}")
     return low, high
 
 
