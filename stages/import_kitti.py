@@ -4,9 +4,10 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Unpack
 
-from dali_cli.sensors import get_profile
-from dali_cli.store.manifest import StageOutcome, run_stage
+from dali_cli.importers.common import ImportRun, check_sensor, run_import
+from dali_cli.store.manifest import StageOutcome
 
 
 def import_kitti(
@@ -18,15 +19,13 @@ def import_kitti(
     label_dir: str | Path | None = None,
     crop_fov: bool = False,
     sensor: str = "kitti",
-    sensors_path: str | None = None,
-    force: bool = False,
-    dry_run: bool = False,
+    **run: Unpack[ImportRun],
 ) -> StageOutcome:
     """Import ROOT[/split] (every scan, or the ids of `ids_path`) into `out`."""
     from dali_cli.importers.common import check_point_files, read_id_list
     from dali_cli.importers.kitti import KittiLayout, build_import
 
-    get_profile(sensor, sensors_path)  # an unknown profile fails before any work
+    check_sensor(sensor, run)  # an unknown profile fails before any work
     layout = KittiLayout.of(root, split, label_dir)
     frame_ids = layout.frame_ids(read_id_list(ids_path) if ids_path else None)
     check_point_files([layout.velodyne_dir / f"{frame_id}.bin" for frame_id in frame_ids])
@@ -35,12 +34,11 @@ def import_kitti(
         if path.is_dir():
             inputs[name] = path
     params = {"split": split, "crop_fov": crop_fov, "sensor": sensor, "frames": len(frame_ids)}
-    return run_stage(
+    return run_import(
         "import-kitti",
         out,
         inputs,
         params,
         lambda tmp: build_import(tmp, layout, frame_ids, crop_fov=crop_fov, sensor=sensor),
-        force=force,
-        dry_run=dry_run,
+        run,
     )

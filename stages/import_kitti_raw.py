@@ -4,9 +4,10 @@ tracklet_labels.xml) -> a FrameSet with boxes (dali_cli.importers.kitti_raw)."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Unpack
 
-from dali_cli.sensors import get_profile
-from dali_cli.store.manifest import StageOutcome, run_stage
+from dali_cli.importers.common import ImportRun, check_sensor, run_import
+from dali_cli.store.manifest import StageOutcome
 
 
 def import_kitti_raw(
@@ -18,14 +19,12 @@ def import_kitti_raw(
     labels: bool = True,
     crop_fov: bool = False,
     sensor: str = "kitti",
-    sensors_path: str | None = None,
-    force: bool = False,
-    dry_run: bool = False,
+    **run: Unpack[ImportRun],
 ) -> StageOutcome:
     """Import the drive DRIVE_DIR into `out` (with its tracklets unless `labels` is False)."""
     from dali_cli.importers.kitti_raw import RawDrive, build_import
 
-    get_profile(sensor, sensors_path)  # an unknown profile fails before any work
+    check_sensor(sensor, run)  # an unknown profile fails before any work
     drive = RawDrive.of(drive_dir, calib_dir, tracklets, labels)
     frame_ids = drive.frame_ids()
     inputs = {
@@ -40,12 +39,11 @@ def import_kitti_raw(
         "sensor": sensor,
         "frames": len(frame_ids),
     }
-    return run_stage(
+    return run_import(
         "import-kitti-raw",
         out,
         inputs,
         params,
         lambda tmp: build_import(tmp, drive, frame_ids, crop_fov=crop_fov, sensor=sensor),
-        force=force,
-        dry_run=dry_run,
+        run,
     )

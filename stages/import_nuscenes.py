@@ -4,10 +4,11 @@ CSV) -> a FrameSet with boxes (dali_cli.importers.nuscenes)."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Unpack
 
+from dali_cli.importers.common import ImportRun, check_sensor, run_import
 from dali_cli.runtime.errors import ParameterError
-from dali_cli.sensors import get_profile
-from dali_cli.store.manifest import StageOutcome, run_stage
+from dali_cli.store.manifest import StageOutcome
 
 
 def import_nuscenes(
@@ -21,14 +22,12 @@ def import_nuscenes(
     max_frames: int | None = None,
     lidar_frame: bool = False,
     sensor: str = "nuscenes",
-    sensors_path: str | None = None,
-    force: bool = False,
-    dry_run: bool = False,
+    **run: Unpack[ImportRun],
 ) -> StageOutcome:
     """Import the nuScenes data at `path` into `out` (x forward unless `lidar_frame`)."""
     from dali_cli.importers import nuscenes
 
-    get_profile(sensor, sensors_path)
+    check_sensor(sensor, run)
     categories = tuple(car_categories) or nuscenes.DEFAULT_CAR_CATEGORIES
     if boxes_csv:
         if scenes:
@@ -47,7 +46,7 @@ def import_nuscenes(
         "x_forward": not lidar_frame,
         "sensor": sensor,
     }
-    return run_stage(
+    return run_import(
         "import-nuscenes",
         out,
         inputs,
@@ -55,6 +54,5 @@ def import_nuscenes(
         lambda tmp: nuscenes.build_import(
             tmp, source, samples, categories, x_forward=not lidar_frame, sensor=sensor
         ),
-        force=force,
-        dry_run=dry_run,
+        run,
     )

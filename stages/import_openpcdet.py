@@ -4,9 +4,10 @@ with boxes (dali_cli.importers.openpcdet)."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Unpack
 
-from dali_cli.sensors import get_profile
-from dali_cli.store.manifest import StageOutcome, run_stage
+from dali_cli.importers.common import ImportRun, check_sensor, run_import
+from dali_cli.store.manifest import StageOutcome
 
 
 def import_openpcdet(
@@ -17,14 +18,12 @@ def import_openpcdet(
     split: str | None = None,
     car_classes: tuple[str, ...] = (),
     intensity_max: float = 1.0,
-    sensors_path: str | None = None,
-    force: bool = False,
-    dry_run: bool = False,
+    **run: Unpack[ImportRun],
 ) -> StageOutcome:
     """Import ROOT (the ids of ImageSets/`split`.txt, or every points/*.npy) into `out`."""
     from dali_cli.importers import openpcdet
 
-    get_profile(sensor, sensors_path)
+    check_sensor(sensor, run)
     classes = tuple(car_classes) or openpcdet.DEFAULT_CAR_CLASSES
     frame_ids = openpcdet.frame_ids(root, split)
     root = Path(root)
@@ -38,12 +37,11 @@ def import_openpcdet(
         "sensor": sensor,
         "frames": len(frame_ids),
     }
-    return run_stage(
+    return run_import(
         "import-openpcdet",
         out,
         inputs,
         params,
         lambda tmp: openpcdet.build_import(tmp, root, frame_ids, classes, intensity_max, sensor),
-        force=force,
-        dry_run=dry_run,
+        run,
     )

@@ -4,10 +4,11 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Unpack
 
+from dali_cli.importers.common import ImportRun, check_sensor, run_import
 from dali_cli.runtime.errors import ParameterError, StageError
-from dali_cli.sensors import get_profile
-from dali_cli.store.manifest import StageOutcome, run_stage
+from dali_cli.store.manifest import StageOutcome
 
 
 def import_waymo(
@@ -21,14 +22,12 @@ def import_waymo(
     returns: int = 1,
     segments: str | None = None,
     sensor: str = "waymo",
-    sensors_path: str | None = None,
-    force: bool = False,
-    dry_run: bool = False,
+    **run: Unpack[ImportRun],
 ) -> StageOutcome:
     """Import ROOT[/split] (every `every`-th frame of each segment, or of `segments`) into `out`."""
     from dali_cli.importers.waymo import WaymoFormatError, WaymoSource, build_import
 
-    get_profile(sensor, sensors_path)
+    check_sensor(sensor, run)
     folder = Path(root) / split if split else Path(root)
     if not folder.is_dir():
         raise ParameterError("split", f"{folder}: no such folder")
@@ -47,12 +46,11 @@ def import_waymo(
         except WaymoFormatError as error:
             raise StageError(str(error)) from None
 
-    return run_stage(
+    return run_import(
         "import-waymo",
         out,
         {"segments": source.input_paths()},
         params,
         build,
-        force=force,
-        dry_run=dry_run,
+        run,
     )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
 
@@ -155,3 +156,27 @@ def write_imported(
         counts["boxes"] = len(boxes)
         counts["boxes_by_label"] = {str(k): int(v) for k, v in zip(labels, per_label, strict=True)}
     return BuildResult(counts=counts, notes=list(notes or []))
+
+
+class ImportRun(TypedDict, total=False):
+    """What every import stage takes besides its source and options: a sensors.toml to use
+    instead of the project's, and the stage runner's force / dry_run."""
+
+    sensors_path: str | None
+    force: bool
+    dry_run: bool
+
+
+def check_sensor(sensor: str, run: ImportRun) -> None:
+    """An unknown sensor profile fails before any work (sensors.get_profile's error)."""
+    from dali_cli.sensors import get_profile
+
+    get_profile(sensor, run.get("sensors_path"))
+
+
+def run_import(stage: str, out, inputs: dict, params: dict, build, run: ImportRun):
+    """store.manifest.run_stage of an import stage with its `run` flags: the StageOutcome."""
+    from dali_cli.store.manifest import run_stage
+
+    force, dry_run = run.get("force", False), run.get("dry_run", False)
+    return run_stage(stage, out, inputs, params, build, force=force, dry_run=dry_run)
