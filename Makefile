@@ -307,7 +307,7 @@ compare: $(RUN)/compare_r40.json $(RUN)/compare_r400.json
 REAL_DRIVE   ?= data/kitti_raw/2011_09_26/2011_09_26_drive_0001_sync
 REAL_OBJECTS ?= tests/fixtures/real/kitti/training
 REAL_RUN     ?= runs/real-kitti
-REAL_EVAL_FLAGS = --protocol kitti --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
+REAL_EVAL_FLAGS = --protocol kitti --iou 0.7 --iou 0.5 --score-min $(SCORE_MIN)
 REAL_VARS = RUN=$(REAL_RUN) FRAMES=$(DEMO_FRAMES) EPOCHS=$(DEMO_EPOCHS) EVAL_FLAGS="$(REAL_EVAL_FLAGS)" \
     TARGET=$(REAL_RUN)/data/drive TARGET_VAL=$(REAL_RUN)/data/drive_labels
 OBJECTS ?= $(RUN)/data/objects
