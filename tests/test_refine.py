@@ -108,3 +108,96 @@ def test_refiner_learns_to_correct_disturbed_boxes():
     before, after = iou_3d_pairs(proposals, truth), iou_3d_pairs(refined, truth)
     assert after.mean() > before.mean() + 0.1  # measured: 0.59 -> 0.74
     assert np.corrcoef(predicted_iou, after)[0, 1] > 0.25  # measured: 0.37
+
+
+def toy_frames(count: int, seed: int):
+    kitti = get_profile("kitti")
+    rng = np.random.default_rng(seed)
+    frames = []
+    for _ in range(count):
+        cars = place_cars(
+            rng, 5, kitti.car_mean_lwh_m, kitti.mount_height_m, (6.0, 30.0), (-10.0, 10.0)
+        )
+        points = scan(cars, kitti, beams=32, points_per_beam=600, azimuth_range_deg=(-60.0, 60.0))
+        points[:, 2] += kitti.mount_height_m
+        cars[:, 2] += kitti.mount_height_m
+        frames.append((points.astype(np.float32), cars))
+    return frames
+
+
+def test_torch_crop_equals_the_numpy_crop(monkeypatch):
+    """The device crop picks the same points in the same order as the numpy reference, in
+    blocks of boxes too (a block size that splits the boxes), for empty and far boxes."""
+    from dali_cli.detector import refine
+    from dali_cli.detector.refine import box_point_features_torch
+
+    rng = np.random.default_rng(3)
+    points = np.c_[rng.uniform(0, 70, (30_000, 2)) - [0, 35], rng.uniform(-0.5, 2.5, 30_000)]
+    points = points.astype(np.float32)
+    boxes = random_boxes(rng, 23)
+    boxes[0, :3] = [200.0, 0.0, 1.0]  # no point
+    boxes[1, 3:6] = [0.3, 0.3, 0.3]  # a few points: repeated picks
+    expected, found = box_point_features(points, boxes, 48, 0.3)
+    for block in (1 << 22, 7 * len(points)):  # one block; blocks of 7 boxes
+        monkeypatch.setattr(refine, "CROP_PAIR_BLOCK", block)
+        features, found_t = box_point_features_torch(
+            torch.from_numpy(points), torch.from_numpy(boxes), 48, 0.3
+        )
+        assert np.array_equal(found_t.numpy(), found) and found[0] == 0
+        assert features.dtype == torch.float32
+        assert np.abs(features.numpy() - expected).max() < 1e-6 * max(1.0, np.abs(expected).max())
+    empty, none = box_point_features_torch(torch.zeros(0, 3), torch.from_numpy(boxes), 8, 0.3)
+    assert empty.shape == (23, 8, 9) and not empty.any() and not none.any()
+
+
+def test_residuals_and_yaw_wrap_on_tensors_equal_numpy():
+    from dali_cli.detector import box_ops
+    from dali_cli.geometry import wrap_angle
+
+    rng = np.random.default_rng(4)
+    proposals, truth = random_boxes(rng, 40), random_boxes(rng, 40)
+    residuals = rng.normal(0, 0.5, (40, 7))
+    as_t = torch.from_numpy
+    assert np.allclose(
+        encode_residuals(as_t(proposals), as_t(truth)).numpy(),
+        encode_residuals(proposals, truth), atol=1e-12,
+    )  # fmt: skip
+    assert np.allclose(
+        apply_residuals(as_t(proposals), as_t(residuals)).numpy(),
+        apply_residuals(proposals, residuals), atol=1e-12,
+    )  # fmt: skip
+    angles = np.r_[rng.uniform(-20, 20, 200), -np.pi, np.pi, 0.0, -1e-17, 3 * np.pi]
+    assert np.array_equal(box_ops.wrap_angle(as_t(angles)).numpy(), wrap_angle(angles))
+
+
+def test_refine_loss_on_tensors_equals_the_numpy_reference():
+    """The device path (points and proposals as tensors) gives the numpy path's losses and
+    gradients: frames with cars, one without any, and one without proposals."""
+    config = DetectorConfig(refine=True, refine_points=32)
+    frames = toy_frames(3, seed=5)
+    rng = np.random.default_rng(6)
+    proposals = [jitter_boxes(cars, rng) for _, cars in frames]
+    proposals[2] = np.zeros((0, 7))
+    objects = [cars for _, cars in frames]
+    objects[1] = np.zeros((0, 7))
+    torch.manual_seed(0)
+    refiner = BoxRefiner(config)
+    results = []
+    for tensors in (False, True):
+        refiner.zero_grad()
+        points_list = [p for p, _ in frames]
+        found = proposals
+        if tensors:
+            points_list = [torch.from_numpy(p) for p in points_list]
+            found = [torch.from_numpy(b).float() for b in proposals]
+        else:
+            found = [b.astype(np.float32) for b in proposals]
+        rngs = [np.random.default_rng([7, j]) for j in range(3)]
+        box, iou = refine_loss(refiner, points_list, found, objects, config, rngs)
+        (box + iou).backward()
+        grads = torch.cat([p.grad.flatten() for p in refiner.parameters()])
+        results.append((float(box), float(iou), grads.clone()))
+    (box_np, iou_np, grad_np), (box_t, iou_t, grad_t) = results
+    assert box_np > 0 and iou_np > 0
+    assert abs(box_t - box_np) < 1e-6 * box_np and abs(iou_t - iou_np) < 1e-6 * iou_np
+    assert torch.allclose(grad_t, grad_np, rtol=1e-5, atol=1e-7)

@@ -180,3 +180,38 @@ def test_loader_workers_default_to_none_on_the_cpu_and_to_the_spare_cores_on_a_g
     assert loader.default_loader_workers(2, "cuda") == 2  # two ranks share the six cores
     monkeypatch.setattr("dali_cli.runtime.cores.available_cores", lambda: 64)
     assert loader.default_loader_workers(1, "cuda") == loader.MAX_DEFAULT_WORKERS
+
+
+def test_prepared_frames_are_bounded_least_recently_used_first_out_and_read_only():
+    from dali_cli.detector.data import PreparedFrames
+
+    kept = PreparedFrames(max_bytes=3 * 400)
+    arrays = {i: np.full((25, 4), i, np.float32) for i in range(5)}  # 400 bytes each
+    for i in (0, 1, 2):
+        kept.put(("a", i), arrays[i])
+    assert kept.get(("a", 0)) is arrays[0]  # 0 is now the most recent: 1 goes first
+    kept.put(("a", 3), arrays[3])
+    assert kept.get(("a", 1)) is None and kept.get(("a", 2)) is arrays[2] and kept.bytes == 1200
+    assert not arrays[3].flags.writeable
+    with pytest.raises(ValueError):
+        arrays[3][0, 0] = 1.0  # a sample cannot change the frame every later sample reads
+    big = np.zeros((400, 4), np.float32)
+    assert kept.put(("a", 9), big) is big and kept.get(("a", 9)) is None and kept.bytes == 1200
+
+
+@pytest.mark.parametrize("limit_bytes", ["0", str(1 << 30)])
+def test_streamed_frames_are_prepared_once_per_process_within_the_limit(
+    toy, config, monkeypatch, limit_bytes
+):
+    from dali_cli.detector import data
+
+    monkeypatch.setenv("DALI_FRAME_CACHE_BYTES", limit_bytes)
+    monkeypatch.setattr(data, "_PREPARED", None)
+    memory = load_labeled(toy, config)
+    streamed = load_labeled(toy, config, stream=True)
+    first, again = streamed.points[2], streamed.points[2]
+    assert (first is again) == (limit_bytes != "0")
+    assert np.array_equal(first, memory.points[2]) and np.array_equal(again, memory.points[2])
+    scaled = scale_about_ground(streamed, 0.9).points[2]  # another reader: not the cached frame
+    assert np.array_equal(scaled, scale_about_ground(memory, 0.9).points[2])
+    assert data.prepared_frames().bytes <= int(limit_bytes)

@@ -10,11 +10,19 @@ their edges (at most 4 + 4 + 16 candidates), ordered by angle about their centro
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 CORNER_SIGNS = ((0.5, 0.5), (-0.5, 0.5), (-0.5, -0.5), (0.5, -0.5))  # counter-clockwise
 EPS = 1e-9
 PAIR_BLOCK = 1 << 16  # pairs per block of the pairwise functions (memory ~ 24 candidates each)
+
+
+def wrap_angle(angle: torch.Tensor) -> torch.Tensor:
+    """Angles (rad) wrapped into [-pi, pi) in their dtype (dali_cli.geometry.wrap_angle's rule)."""
+    wrapped = torch.remainder(angle + math.pi, 2.0 * math.pi) - math.pi
+    return torch.where(wrapped >= math.pi, wrapped - 2.0 * math.pi, wrapped)
 
 
 def bev_corners(boxes: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:

@@ -20,6 +20,55 @@ from dali_cli.store.artifacts import ArtifactError, ChunkCache, FrameSet, read_b
 CACHED_CHUNKS = 2  # point chunks (up to 32 MiB each) a streaming reader keeps decoded
 
 
+class PreparedFrames:
+    """The prepared frames (clipped and transformed, read-only arrays) a process used last, up to
+    `max_bytes` in all, least recently used first out, keyed by (reader, frame index). A training
+    set that fits is decoded and prepared once per process, as when it was held in memory; a
+    larger one costs at most `max_bytes` (runtime.limits "frame_cache_bytes",
+    DALI_FRAME_CACHE_BYTES), whatever the number of sets and frames."""
+
+    def __init__(self, max_bytes: int):
+        from collections import OrderedDict
+
+        self.max_bytes, self.bytes = max(0, int(max_bytes)), 0
+        self._frames: OrderedDict[tuple, np.ndarray] = OrderedDict()
+
+    def get(self, key: tuple) -> np.ndarray | None:
+        points = self._frames.get(key)
+        if points is not None:
+            self._frames.move_to_end(key)
+        return points
+
+    def put(self, key: tuple, points: np.ndarray) -> np.ndarray:
+        points.flags.writeable = False  # shared by every sample made of it
+        if points.nbytes <= self.max_bytes:
+            self._frames[key] = points
+            self.bytes += points.nbytes
+            while self.bytes > self.max_bytes:
+                self.bytes -= self._frames.popitem(last=False)[1].nbytes
+        return points
+
+
+_PREPARED: PreparedFrames | None = None
+
+
+def new_token() -> str:
+    """A key no other reader of this run has: a reader's frames in the PreparedFrames."""
+    import uuid
+
+    return uuid.uuid4().hex
+
+
+def prepared_frames() -> PreparedFrames:
+    """This process's PreparedFrames (made at first use, with the limit of the environment)."""
+    global _PREPARED
+    if _PREPARED is None:
+        from dali_cli.runtime.limits import limit
+
+        _PREPARED = PreparedFrames(limit("frame_cache_bytes"))
+    return _PREPARED
+
+
 @dataclass
 class Augmentation:
     """Which augmentations run, with their ranges. `object_scale` is ROS (None = off)."""
@@ -54,8 +103,8 @@ class FramePoints(Sequence):
     for: item i is frame i clipped (`clip_points`) and then changed by `transforms`, in order:
     ("sn", delta_lwh (3,), boxes) shifts the size of frame i's boxes[i] (m_i, 7) with their points
     (size_norm.shift_frame); ("scale", s) scales about the ground (scale_ground_points). Each
-    process keeps the last CACHED_CHUNKS decoded chunks it read (bounded memory); iterating reads
-    the frames in order, block-wise. Picklable: a DataLoader worker opens the set itself."""
+    process keeps the last CACHED_CHUNKS decoded chunks it read and the prepared frames it used
+    last (PreparedFrames: bounded memory); iterating reads the frames in order, block-wise. Picklable: a DataLoader worker opens the set itself."""
 
     def __init__(
         self, directory: str | Path, mount_m: float, far_m: float, reach_rad: float,
@@ -67,6 +116,7 @@ class FramePoints(Sequence):
         self._frames: FrameSet | None = None
         self._cache = ChunkCache(CACHED_CHUNKS)
         self._length = len(self.frameset())
+        self._token = new_token()
 
     def frameset(self) -> FrameSet:
         if self._frames is None:
@@ -80,7 +130,11 @@ class FramePoints(Sequence):
         if not -self._length <= index < self._length:
             raise IndexError(index)
         index = index % self._length
-        return self._prepared(index, self.frameset().frame(index, self._cache))
+        kept, key = prepared_frames(), (self._token, index)
+        points = kept.get(key)
+        if points is None:
+            points = kept.put(key, self._prepared(index, self.frameset().frame(index, self._cache)))
+        return points
 
     def __iter__(self):
         for index, (_, points) in enumerate(self.frameset().iter_frames()):
@@ -101,7 +155,8 @@ class FramePoints(Sequence):
     def then(self, *transform) -> FramePoints:
         """These points with one more transform (see the class)."""
         out = FramePoints.__new__(FramePoints)
-        out.__setstate__({**self.__getstate__(), "transforms": (*self.transforms, transform)})
+        state = {**self.__getstate__(), "transforms": (*self.transforms, transform)}
+        out.__setstate__({**state, "_token": new_token()})  # other points: other cache keys
         return out
 
     def identity(self) -> dict:
@@ -120,7 +175,7 @@ class FramePoints(Sequence):
     def __getstate__(self) -> dict:
         return {
             "directory": self.directory, "clip": self.clip, "transforms": self.transforms,
-            "_length": self._length,
+            "_length": self._length, "_token": self._token,
         }  # fmt: skip
 
     def __setstate__(self, state: dict) -> None:

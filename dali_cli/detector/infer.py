@@ -83,8 +83,7 @@ def device_nms(
 
     keep = score >= config.score_threshold
     frame_boxes, frame_scores = boxes[keep].double(), score[keep]
-    yaw = torch.remainder(frame_boxes[:, 6] + np.pi, 2 * np.pi) - np.pi
-    frame_boxes[:, 6] = torch.where(yaw >= np.pi, yaw - 2 * np.pi, yaw)
+    frame_boxes[:, 6] = box_ops.wrap_angle(frame_boxes[:, 6])
     kept = box_ops.nms_bev(frame_boxes, frame_scores, config.nms_iou)
     return frame_boxes[kept].cpu().numpy(), frame_scores[kept].cpu().numpy().astype(np.float32)
 

@@ -19,10 +19,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from dali_cli.detector import box_ops
 from dali_cli.detector.config import DetectorConfig
 from dali_cli.geometry import bev_iou, iou_3d, point_box_pairs, wrap_angle
 
 POINT_FEATURES = 9
+CROP_PAIR_BLOCK = 1 << 22  # point-box pairs per block of the torch crop (~150 MB of temporaries)
 CROP_CELL_M = 1.0  # cell of the coarse grid that crops a frame's points to the proposals' areas
 PROPOSAL_SIZE_M = (0.2, 8.0)  # proposals' l, w, h are clipped to this before refinement: an
 # untrained head's boxes can be 100 m long and would gather every point of the frame
@@ -100,45 +102,100 @@ def box_point_features(
     return features, found
 
 
-def clip_proposals(boxes: np.ndarray) -> np.ndarray:
-    """Proposals (K, 7) with l, w, h clipped to PROPOSAL_SIZE_M (a copy)."""
+def box_point_features_torch(
+    points: torch.Tensor, boxes: torch.Tensor, count: int, margin_m: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """`box_point_features` on torch tensors, on their device: (K, count, 9) float32 features and
+    the points found (K,) int64, the same points picked (numpy stays the reference: tests within
+    1e-6).
+
+    points (P, >=3), boxes (K, 7). Every point is tested against every box in blocks of about
+    CROP_PAIR_BLOCK pairs (no coarse grid: on a GPU the brute-force test is cheaper than building
+    one, and no step waits on a data-dependent size); the evenly spaced picks are a search in
+    each box's running count of its points, so the order is the numpy version's (scan order).
+    """
+    device = points.device
+    boxes = boxes.to(device, torch.float64).reshape(-1, 7)
+    features = torch.zeros(len(boxes), count, POINT_FEATURES, dtype=torch.float32, device=device)
+    found = torch.zeros(len(boxes), dtype=torch.int64, device=device)
+    if len(boxes) == 0 or len(points) == 0:
+        return features, found
+    xyz = points[:, :3].double()  # (P, 3)
+    slots = (torch.arange(count, dtype=torch.float64, device=device) + 0.5) / count  # (N,)
+    rows = max(1, CROP_PAIR_BLOCK // len(xyz))
+    for start in range(0, len(boxes), rows):
+        box = boxes[start : start + rows]  # (k, 7)
+        c, s = torch.cos(box[:, 6:7]), torch.sin(box[:, 6:7])  # (k, 1)
+        dx, dy = xyz[None, :, 0] - box[:, 0:1], xyz[None, :, 1] - box[:, 1:2]  # (k, P)
+        reach = 0.5 * box[:, 3:6] + margin_m  # (k, 3)
+        inside = (c * dx + s * dy).abs() <= reach[:, 0:1]
+        inside &= (c * dy - s * dx).abs() <= reach[:, 1:2]
+        inside &= (xyz[None, :, 2] - box[:, 2:3]).abs() <= reach[:, 2:3]
+        running = inside.cumsum(dim=1)  # (k, P): points of the box up to each point
+        total = running[:, -1]  # (k,)
+        wanted = torch.floor(slots[None, :] * total[:, None].double()).long() + 1  # (k, N)
+        index = torch.searchsorted(running, wanted).clamp_(max=len(xyz) - 1)  # (k, N)
+        offset = xyz[index] - box[:, None, :3]  # (k, N, 3)
+        local = torch.stack(
+            [c * offset[..., 0] + s * offset[..., 1], -s * offset[..., 0] + c * offset[..., 1],
+             offset[..., 2]],
+            dim=-1,
+        )  # fmt: skip
+        half = box[:, None, 3:6] / 2  # (k, 1, 3)
+        block = torch.cat([local, local + half, half - local], dim=-1).float()  # (k, N, 9)
+        features[start : start + rows] = block * (total > 0)[:, None, None]
+        found[start : start + rows] = total
+    return features, found
+
+
+def clip_proposals(boxes: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
+    """Proposals (K, 7) float64 with l, w, h clipped to PROPOSAL_SIZE_M (a copy; numpy or torch)."""
+    if isinstance(boxes, torch.Tensor):
+        boxes = boxes.double().reshape(-1, 7).clone()
+        boxes[:, 3:6] = boxes[:, 3:6].clamp(*PROPOSAL_SIZE_M)
+        return boxes
     boxes = np.asarray(boxes, np.float64).reshape(-1, 7).copy()
     boxes[:, 3:6] = np.clip(boxes[:, 3:6], *PROPOSAL_SIZE_M)
     return boxes
 
 
-def encode_residuals(proposals: np.ndarray, truth: np.ndarray) -> np.ndarray:
+def encode_residuals(proposals, truth):
     """Regression targets (K, 7) from proposals to their ground truth (both (K, 7)): the centre
     shift in the proposal's frame over its BEV diagonal (x, y) and height (z), log size ratios,
-    and the heading difference modulo pi."""
+    and the heading difference modulo pi. numpy arrays or torch tensors (then on their device)."""
+    xp = torch if isinstance(proposals, torch.Tensor) else np
     offset = truth[:, :3] - proposals[:, :3]
-    c, s = np.cos(proposals[:, 6]), np.sin(proposals[:, 6])
-    diagonal = np.hypot(proposals[:, 3], proposals[:, 4])
-    return np.stack(
+    c, s = xp.cos(proposals[:, 6]), xp.sin(proposals[:, 6])
+    diagonal = xp.hypot(proposals[:, 3], proposals[:, 4])
+    return xp.stack(
         [
             (c * offset[:, 0] + s * offset[:, 1]) / diagonal,
             (-s * offset[:, 0] + c * offset[:, 1]) / diagonal,
             offset[:, 2] / proposals[:, 5],
-            np.log(truth[:, 3] / proposals[:, 3]),
-            np.log(truth[:, 4] / proposals[:, 4]),
-            np.log(truth[:, 5] / proposals[:, 5]),
+            xp.log(truth[:, 3] / proposals[:, 3]),
+            xp.log(truth[:, 4] / proposals[:, 4]),
+            xp.log(truth[:, 5] / proposals[:, 5]),
             wrap_half_turn(truth[:, 6] - proposals[:, 6]),
         ],
-        axis=1,
+        1,
     )
 
 
-def apply_residuals(proposals: np.ndarray, residuals: np.ndarray) -> np.ndarray:
-    """The inverse of `encode_residuals`: refined boxes (K, 7), yaw in [-pi, pi)."""
-    c, s = np.cos(proposals[:, 6]), np.sin(proposals[:, 6])
-    diagonal = np.hypot(proposals[:, 3], proposals[:, 4])
+def apply_residuals(proposals, residuals):
+    """The inverse of `encode_residuals`: refined boxes (K, 7), yaw in [-pi, pi) (numpy or torch,
+    like `proposals`)."""
+    tensor = isinstance(proposals, torch.Tensor)
+    xp = torch if tensor else np
+    c, s = xp.cos(proposals[:, 6]), xp.sin(proposals[:, 6])
+    diagonal = xp.hypot(proposals[:, 3], proposals[:, 4])
     dx, dy = residuals[:, 0] * diagonal, residuals[:, 1] * diagonal
-    refined = proposals.copy()
+    refined = proposals.clone() if tensor else proposals.copy()
     refined[:, 0] += c * dx - s * dy
     refined[:, 1] += s * dx + c * dy
     refined[:, 2] += residuals[:, 2] * proposals[:, 5]
-    refined[:, 3:6] *= np.exp(np.clip(residuals[:, 3:6], -1.0, 1.0))
-    refined[:, 6] = wrap_angle(proposals[:, 6] + residuals[:, 6])
+    refined[:, 3:6] *= xp.exp(xp.clip(residuals[:, 3:6], -1.0, 1.0))
+    yaw = proposals[:, 6] + residuals[:, 6]
+    refined[:, 6] = box_ops.wrap_angle(yaw) if tensor else wrap_angle(yaw)
     return refined
 
 
@@ -188,17 +245,27 @@ def refine_boxes(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Refined boxes (K, 7) float64 and their predicted 3D IoU (K,) float32, one frame.
 
-    points (P, >=3) and proposals (K, 7) in the network's (ground, PTSN-scaled) frame."""
+    points (P, >=3) and proposals (K, 7) in the network's (ground, PTSN-scaled) frame. With the
+    refiner on a GPU the points go there once and are cropped there (box_point_features_torch);
+    on the CPU the numpy crop runs (the reference)."""
     if len(proposals) == 0:
         return np.zeros((0, 7)), np.zeros(0, np.float32)
     proposals = clip_proposals(proposals)
-    features, _ = box_point_features(
-        points, proposals, config.refine_points, config.refine_margin_m
-    )
     device = next(refiner.parameters()).device
+    if device.type == "cpu":
+        features, _ = box_point_features(
+            points, proposals, config.refine_points, config.refine_margin_m
+        )
+        features = torch.from_numpy(features)
+    else:
+        features, _ = box_point_features_torch(
+            torch.from_numpy(np.asarray(points[:, :3], np.float32)).to(device),
+            torch.from_numpy(proposals).to(device),
+            config.refine_points,
+            config.refine_margin_m,
+        )
     residuals, iou_logits = refiner(
-        torch.from_numpy(features).to(device),
-        torch.from_numpy(proposals[:, 3:6].astype(np.float32)).to(device),
+        features.to(device), torch.from_numpy(proposals[:, 3:6].astype(np.float32)).to(device)
     )
     refined = apply_residuals(proposals, residuals.double().cpu().numpy())
     return refined, torch.sigmoid(iou_logits).float().cpu().numpy()
@@ -218,8 +285,8 @@ def jitter_boxes(boxes: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 def refine_loss(
     refiner: BoxRefiner,
-    points_list: list[np.ndarray],
-    proposals_list: list[np.ndarray],
+    points_list: list[np.ndarray] | list[torch.Tensor],
+    proposals_list: list[np.ndarray] | list[torch.Tensor],
     objects_list: list[np.ndarray],
     config: DetectorConfig,
     rng: np.random.Generator | list[np.random.Generator],
@@ -229,59 +296,87 @@ def refine_loss(
     mean over the (global, under DDP) batch's positives and proposals.
 
     points_list[b] (P_b, >=3), proposals_list[b] (K_b, 7) (detached first-stage boxes) and
-    objects_list[b] (M_b, 7) target boxes, all in the ground frame. `rng`: one generator for
-    the whole batch, or one per frame (what distributed training needs)."""
+    objects_list[b] (M_b, 7) target boxes (numpy), all in the ground frame. `rng`: one generator
+    for the whole batch, or one per frame (what distributed training needs); the jitter is drawn
+    on the host either way. Points and proposals as numpy arrays: crops and targets in numpy (the
+    reference); as torch tensors on the refiner's device: crops, IoU and residual targets there
+    (torch, box_ops), so that a GPU step never waits for the host."""
     from dali_cli.detector.distributed import global_normalizer
 
     rngs = rng if isinstance(rng, list) else [rng] * len(points_list)
     device = next(refiner.parameters()).device
-    features, sizes, proposals, truth, positive, objects_of = [], [], [], [], [], []
+    on_device = bool(points_list) and isinstance(points_list[0], torch.Tensor)
+    features, sizes, proposals, truth, positive, rows = [], [], [], [], [], []
     for b, (points, found, objects) in enumerate(
         zip(points_list, proposals_list, objects_list, strict=True)
     ):
-        rng = rngs[b]
         found = clip_proposals(found)
-        boxes = np.concatenate([found, jitter_boxes(objects, rng)]) if len(objects) else found
+        if len(objects):
+            jittered = jitter_boxes(objects, rngs[b])
+            if on_device:
+                objects = torch.from_numpy(np.asarray(objects, np.float64)).to(device)
+                jittered = torch.from_numpy(jittered).to(device)
+                boxes = torch.cat([found, jittered])
+            else:
+                boxes = np.concatenate([found, jittered])
+        else:
+            boxes = found
         if len(boxes) == 0:
             continue
-        frame_features, _ = box_point_features(
-            points, boxes, config.refine_points, config.refine_margin_m
-        )
-        features.append(frame_features)
+        crop = box_point_features_torch if on_device else box_point_features
+        frame_features, _ = crop(points, boxes, config.refine_points, config.refine_margin_m)
+        features.append(frame_features if on_device else torch.from_numpy(frame_features))
         sizes.append(boxes[:, 3:6])
         proposals.append(boxes)
-        objects_of.extend([b] * len(boxes))
-        if len(objects):
+        first = rows[-1][1].stop if rows else 0
+        rows.append((b, slice(first, first + len(boxes)), objects))
+        if len(objects) and on_device:
+            overlap = box_ops.bev_iou(boxes, objects)  # (K, M)
+            best, index = overlap.max(dim=1)
+            truth.append(objects[index])
+            positive.append(best >= 0.4)
+        elif len(objects):
             overlap = bev_iou(boxes, objects)  # (K, M)
-            best = overlap.argmax(axis=1)
-            truth.append(objects[best])
+            truth.append(objects[overlap.argmax(axis=1)])
             positive.append(overlap.max(axis=1) >= 0.4)
         else:
-            truth.append(boxes.copy())
-            positive.append(np.zeros(len(boxes), bool))
+            truth.append(boxes.clone() if on_device else boxes.copy())
+            positive.append(
+                torch.zeros(len(boxes), dtype=torch.bool, device=device)
+                if on_device
+                else np.zeros(len(boxes), bool)
+            )
     if not proposals:  # still a graph over every weight: DDP waits for each one's gradient
         zero = sum(p.sum() for p in refiner.parameters()) * 0.0
         global_normalizer(zero.new_zeros(()), 1.0)  # the collectives the other ranks run
         global_normalizer(zero.new_zeros(()), 1.0)
         return zero, zero
-    proposals_all, truth_all = np.concatenate(proposals), np.concatenate(truth)
-    positive_all = torch.from_numpy(np.concatenate(positive)).to(device)
-    residuals, iou_logits = refiner(
-        torch.from_numpy(np.concatenate(features)).to(device),
-        torch.from_numpy(np.concatenate(sizes).astype(np.float32)).to(device),
-    )
-    target = torch.from_numpy(encode_residuals(proposals_all, truth_all).astype(np.float32))
+    if on_device:
+        proposals_all, truth_all = torch.cat(proposals), torch.cat(truth)
+        positive_all, sizes_all = torch.cat(positive), torch.cat(sizes).float()
+    else:
+        proposals_all, truth_all = np.concatenate(proposals), np.concatenate(truth)
+        positive_all = torch.from_numpy(np.concatenate(positive)).to(device)
+        sizes_all = torch.from_numpy(np.concatenate(sizes).astype(np.float32)).to(device)
+    residuals, iou_logits = refiner(torch.cat(features).to(device), sizes_all)
+    target = encode_residuals(proposals_all, truth_all)
+    target = target.float() if on_device else torch.from_numpy(target.astype(np.float32))
     l1 = F.l1_loss(residuals, target.to(device), reduction="none").sum(dim=1)  # (K,)
     box = (l1 * positive_all).sum() / global_normalizer(positive_all.sum().float(), 1.0)
     with torch.no_grad():
-        refined = apply_residuals(proposals_all, residuals.detach().double().cpu().numpy())
-    iou_target = np.zeros(len(refined), np.float32)
-    frame_of = np.asarray(objects_of)
-    for b, objects in enumerate(objects_list):
-        rows = np.flatnonzero(frame_of == b)
-        if len(rows) and len(objects):
-            iou_target[rows] = iou_3d(refined[rows], objects).max(axis=1)
-    losses = F.binary_cross_entropy_with_logits(
-        iou_logits, torch.from_numpy(iou_target).to(device), reduction="none"
-    )
+        moved = residuals.detach().double()
+        refined = apply_residuals(proposals_all, moved if on_device else moved.cpu().numpy())
+        if on_device:
+            iou_target = torch.zeros(len(refined), dtype=torch.float32, device=device)
+            for _, frame_rows, objects in rows:
+                if len(objects):
+                    best = box_ops.iou_3d(refined[frame_rows], objects).max(dim=1).values
+                    iou_target[frame_rows] = best.float()
+        else:
+            iou_target = np.zeros(len(refined), np.float32)
+            for _, frame_rows, objects in rows:
+                if len(objects):
+                    iou_target[frame_rows] = iou_3d(refined[frame_rows], objects).max(axis=1)
+            iou_target = torch.from_numpy(iou_target).to(device)
+    losses = F.binary_cross_entropy_with_logits(iou_logits, iou_target, reduction="none")
     return box, losses.sum() / global_normalizer(losses.new_tensor(float(len(losses))), 1.0)

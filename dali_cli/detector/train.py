@@ -317,8 +317,11 @@ def optimize_step(
         maps = forward(points, batch_index, len(batch))  # float32 maps
         loss, terms = detection_loss(maps, targets, config)
         if net.refiner is not None:  # its point MLP is a third of a step's products
+            frame_points = batch.frame_points
+            if points.device.type != "cpu":  # crops and targets where the points already are
+                frame_points = list(points.split([len(p) for p in batch.frame_points]))
             loss, terms = add_refine_loss(
-                net, maps, batch.frame_points, targets, loss, terms, settings.seed, step,
+                net, maps, frame_points, targets, loss, terms, settings.seed, step,
                 positions=list(mine),
             )  # fmt: skip
     optimizer.zero_grad(set_to_none=True)
@@ -350,14 +353,16 @@ def add_refine_loss(
     net, maps, points_list, targets, loss, terms, seed: int, step: int, positions=None
 ):
     """`loss` plus the second stage's losses on the heads' strongest peaks (see refine.py).
-    Frame b's jitter draws are seeded by (seed, step, its position in the global batch)."""
+    points_list: each frame's points, numpy (the reference crops) or tensors on the device (the
+    crops and targets computed there, a GPU's step). Frame b's jitter draws are seeded by (seed,
+    step, its position in the global batch)."""
     config = net.config
     _, boxes = peak_boxes(maps, config, config.refine_train_peaks)  # (B, k, 7)
     positions = range(len(points_list)) if positions is None else positions
     rngs = [np.random.default_rng([seed, step, REFINE_STREAM, j]) for j in positions]
-    box, iou = refine_loss(
-        net.refiner, points_list, list(boxes.cpu().numpy()), targets.objects, config, rngs
-    )
+    on_device = bool(points_list) and isinstance(points_list[0], torch.Tensor)
+    proposals = list(boxes.detach()) if on_device else list(boxes.cpu().numpy())
+    box, iou = refine_loss(net.refiner, points_list, proposals, targets.objects, config, rngs)
     w_box, w_iou = config.refine_weights
     total = loss + w_box * box + w_iou * iou
     return total, {
