@@ -25,7 +25,7 @@ LIMITS: dict[str, tuple[int, str, str]] = {
         "bytes of one point file (a 128-beam scan is about 30 MB)",
     ),
     "frame_cache_bytes": (
-        512 << 20,
+        256 << 20,
         "DALI_FRAME_CACHE_BYTES",
         "bytes of prepared training frames each reading process keeps (0: none)",
     ),
