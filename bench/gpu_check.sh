@@ -8,8 +8,9 @@
 #    on 8 local workers; 2. one pretraining under torchrun (NPROC=1: DDP with nccl);
 #    3. training frames/s, data-wait share and GPU utilisation with 0 and 8 loader workers,
 #    and the time of each stage of the chain; 4. the test suite, where `--device auto` now means
-#    the GPU (and tests/test_box_ops.py compares the GPU's IoU and NMS with numpy). Writes OUT_DIR/log.txt (what it
-#    printed), iter2.log, ddp.log, pytest.log, report.md (`dali report` of the demo run) and
+#    the GPU (and tests/test_box_ops.py compares the GPU's IoU and NMS with numpy); 5. the
+#    refiner's point crop on the GPU vs numpy (bench/refine_crop.py). Writes OUT_DIR/log.txt (what it
+#    printed), iter2.log, ddp.log, pytest.log, refine_crop.json, report.md (`dali report` of the demo run) and
 #    gpu_check.tar.gz (the run's manifests and metrics, and the logs).
 set -uo pipefail
 OUT=${1:?usage: bash bench/gpu_check.sh OUT_DIR}
@@ -69,6 +70,9 @@ print(f"loader workers {sys.argv[3]}: {train[\"frames_per_s\"]} frames/s, data w
         $RUN/speed-w$workers/model "$OUT/util-w$workers.csv" $workers || status=1
     echo "pretrain batch 8, $workers loader workers: $(( $(date +%s) - start )) s"
 done
+# the refiner's point crop on the GPU against numpy's on the CPU (same points, time per frame)
+python3 bench/refine_crop.py --data $RUN/data/target --device cuda > "$OUT/refine_crop.json" 2>&1 \
+    || { status=1; echo "refine crop FAILED"; tail -n 20 "$OUT/refine_crop.json"; }
 python3 -m dali_cli.cli report $RUN > "$OUT/report.md" 2>&1 || status=1
 start=$(date +%s)
 $V/bin/torchrun --standalone --nproc-per-node 1 $V/bin/dali pretrain --source $RUN/data/source \
