@@ -28,16 +28,16 @@ from dali_cli.runtime.machine import cpu_model
 RESULT = Path(__file__).parent / "results" / "refine_crop.json"
 
 
-def clock(device: torch.device, fn):
-    """(result, seconds): CPU time on the CPU, wall time after a synchronize on a GPU."""
+def clock(device: torch.device, fn, *args):
+    """(fn(*args), seconds): CPU time on the CPU, wall time after a synchronize on a GPU."""
     if device.type == "cuda":
         torch.cuda.synchronize()
         start = time.perf_counter()
-        result = fn()
+        result = fn(*args)
         torch.cuda.synchronize()
         return result, time.perf_counter() - start
     start = time.process_time()
-    result = fn()
+    result = fn(*args)
     return result, time.process_time() - start
 
 
@@ -60,16 +60,12 @@ def main() -> None:
         copies = np.repeat(labels, -(-config.refine_train_peaks // len(labels)), axis=0)
         peaks = jitter_boxes(copies[: config.refine_train_peaks], rng)
         boxes = np.concatenate([peaks, jitter_boxes(labels, rng)])
-        (reference, found), numpy_s = clock(
-            torch.device("cpu"),
-            lambda: box_point_features(points, boxes, config.refine_points, config.refine_margin_m),
-        )
+        crop = (config.refine_points, config.refine_margin_m)
+        cpu = torch.device("cpu")
+        (reference, found), numpy_s = clock(cpu, box_point_features, points, boxes, *crop)
         on = torch.from_numpy(points).to(device), torch.from_numpy(boxes).to(device)
-        box_point_features_torch(*on, config.refine_points, config.refine_margin_m)  # warm-up
-        (features, found_t), torch_s = clock(
-            device,
-            lambda: box_point_features_torch(*on, config.refine_points, config.refine_margin_m),
-        )
+        box_point_features_torch(*on, *crop)  # warm-up
+        (features, found_t), torch_s = clock(device, box_point_features_torch, *on, *crop)
         assert np.array_equal(found, found_t.cpu().numpy())
         assert np.abs(features.cpu().numpy() - reference).max() < 1e-5
         rows.append((len(points), len(boxes), numpy_s * 1e3, torch_s * 1e3))
