@@ -54,7 +54,7 @@ for workers in 0 8; do
     smi=$!
     start=$(date +%s)
     $V/bin/dali pretrain --source $RUN/data/source --epochs 2 --batch-size 8 --device cuda \
-        --seed 0 --loader-workers $workers --quiet --force --out $RUN/speed-w$workers/model \
+        --seed 0 --loader-workers $workers --no-progress --force --out $RUN/speed-w$workers/model \
         > "$OUT/speed-w$workers.log" 2>&1 || { status=1; tail -n 30 "$OUT/speed-w$workers.log"; }
     kill $smi 2> /dev/null
     python3 -c 'import json, sys

@@ -130,7 +130,7 @@ def main() -> None:
         command = [
             args.dali, "pretrain", "--source", directory, "--out", str(out),
             "--epochs", str(epochs[name]),
-            "--batch-size", str(args.batch_size), "--device", "cpu", "--quiet", "--force",
+            "--batch-size", str(args.batch_size), "--device", "cpu", "--no-progress", "--force",
         ]  # fmt: skip
         if args.loader_workers >= 0:  # < 0: a dali without the option (frames in memory)
             command += ["--loader-workers", str(args.loader_workers)]
