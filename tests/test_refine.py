@@ -4,6 +4,7 @@ against a brute-force containment test, and a refiner that learns to fix disturb
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 from toy_scenes import place_cars, scan
 
@@ -201,3 +202,31 @@ def test_refine_loss_on_tensors_equals_the_numpy_reference():
     assert box_np > 0 and iou_np > 0
     assert abs(box_t - box_np) < 1e-6 * box_np and abs(iou_t - iou_np) < 1e-6 * iou_np
     assert torch.allclose(grad_t, grad_np, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (bench/gpu_check.sh)")
+def test_refiner_on_a_gpu_equals_the_cpu_reference():
+    """On a GPU the crops, targets and losses run there: the same losses as the numpy path on the
+    CPU, and refine_boxes' device crop gives the CPU's refined boxes."""
+    config = DetectorConfig(refine=True, refine_points=32)
+    frames = toy_frames(2, seed=8)
+    rng = np.random.default_rng(9)
+    proposals = [jitter_boxes(cars, rng).astype(np.float32) for _, cars in frames]
+    objects = [cars for _, cars in frames]
+    torch.manual_seed(0)
+    refiner = BoxRefiner(config)
+    rngs = [np.random.default_rng([7, j]) for j in range(2)]
+    box, iou = refine_loss(refiner, [p for p, _ in frames], proposals, objects, config, rngs)
+    gpu = BoxRefiner(config).cuda()
+    gpu.load_state_dict(refiner.state_dict())
+    rngs = [np.random.default_rng([7, j]) for j in range(2)]
+    box_g, iou_g = refine_loss(
+        gpu, [torch.from_numpy(p).cuda() for p, _ in frames],
+        [torch.from_numpy(b).cuda() for b in proposals], objects, config, rngs,
+    )  # fmt: skip
+    assert abs(float(box_g) - float(box)) < 1e-4 * float(box)
+    assert abs(float(iou_g) - float(iou)) < 1e-4 * float(iou)
+    with torch.no_grad():
+        cpu_boxes, cpu_iou = refine_boxes(refiner.eval(), frames[0][0], proposals[0], config)
+        gpu_boxes, gpu_iou = refine_boxes(gpu.eval(), frames[0][0], proposals[0], config)
+    assert np.allclose(gpu_boxes, cpu_boxes, atol=1e-4) and np.allclose(gpu_iou, cpu_iou, atol=1e-4)
