@@ -20,7 +20,7 @@ from dali_cli.store.artifacts import ArtifactError, ChunkCache, FrameSet, read_b
 CACHED_CHUNKS = 2  # point chunks (up to 32 MiB each) a streaming reader keeps decoded
 
 
-class PreparedFrames:
+class PreparedFrames(ChunkCache):
     """The prepared frames (clipped and transformed, read-only arrays) a process used last, up to
     `max_bytes` in all, least recently used first out, keyed by (reader, frame index). A training
     set that fits is decoded and prepared once per process, as when it was held in memory; a
@@ -28,25 +28,11 @@ class PreparedFrames:
     DALI_FRAME_CACHE_BYTES), whatever the number of sets and frames."""
 
     def __init__(self, max_bytes: int):
-        from collections import OrderedDict
-
-        self.max_bytes, self.bytes = max(0, int(max_bytes)), 0
-        self._frames: OrderedDict[tuple, np.ndarray] = OrderedDict()
-
-    def get(self, key: tuple) -> np.ndarray | None:
-        points = self._frames.get(key)
-        if points is not None:
-            self._frames.move_to_end(key)
-        return points
+        super().__init__(max_chunks=None, max_bytes=max_bytes)
 
     def put(self, key: tuple, points: np.ndarray) -> np.ndarray:
         points.flags.writeable = False  # shared by every sample made of it
-        if points.nbytes <= self.max_bytes:
-            self._frames[key] = points
-            self.bytes += points.nbytes
-            while self.bytes > self.max_bytes:
-                self.bytes -= self._frames.popitem(last=False)[1].nbytes
-        return points
+        return super().put(key, points)
 
 
 _PREPARED: PreparedFrames | None = None

@@ -90,25 +90,35 @@ def read_whole_array(
 
 
 class ChunkCache:
-    """The last `max_chunks` point chunks (decoded, `(chunk, 4)` float32 each) one reader of a
-    FrameSet used, least recently used first out: bounded memory for random access."""
+    """Arrays one reader used last, least recently used first out, bounded by their number
+    (`max_chunks`: a FrameSet reader's decoded point chunks, `(chunk, 4)` float32 each) and/or
+    their total bytes (`max_bytes`; an array larger than that is returned but not kept): bounded
+    memory for random access."""
 
-    def __init__(self, max_chunks: int = 2):
+    def __init__(self, max_chunks: int | None = 2, max_bytes: int | None = None):
         from collections import OrderedDict
 
-        self.max_chunks = max(1, int(max_chunks))
-        self._chunks: OrderedDict[int, np.ndarray] = OrderedDict()
+        self.max_chunks = None if max_chunks is None else max(1, int(max_chunks))
+        self.max_bytes = None if max_bytes is None else max(0, int(max_bytes))
+        self.bytes = 0
+        self._chunks: OrderedDict = OrderedDict()
 
-    def get(self, chunk: int) -> np.ndarray | None:
+    def get(self, chunk) -> np.ndarray | None:
         data = self._chunks.get(chunk)
         if data is not None:
             self._chunks.move_to_end(chunk)
         return data
 
-    def put(self, chunk: int, data: np.ndarray) -> np.ndarray:
+    def put(self, chunk, data: np.ndarray) -> np.ndarray:
+        if self.max_bytes is not None and data.nbytes > self.max_bytes:
+            return data
+        old = self._chunks.pop(chunk, None)
+        self.bytes += data.nbytes - (0 if old is None else old.nbytes)
         self._chunks[chunk] = data
-        while len(self._chunks) > self.max_chunks:
-            self._chunks.popitem(last=False)
+        while (self.max_chunks is not None and len(self._chunks) > self.max_chunks) or (
+            self.max_bytes is not None and self.bytes > self.max_bytes
+        ):
+            self.bytes -= self._chunks.popitem(last=False)[1].nbytes
         return data
 
 
