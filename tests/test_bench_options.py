@@ -8,9 +8,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-import click
-
-from dali_cli.cli import main as dali_main
+from cli_commands import cli_commands, option_words
 
 BENCH = Path(__file__).resolve().parents[1] / "bench"
 OTHER_TOOLS = {
@@ -22,20 +20,7 @@ OTHER_TOOLS = {
 
 
 def dali_options() -> set[str]:
-    names: set[str] = set()
-
-    def walk(command: click.Command) -> None:
-        if isinstance(command, click.Group):
-            context = click.Context(command)
-            for name in command.list_commands(context):
-                walk(command.get_command(context, name))
-            return
-        for param in command.params:
-            if isinstance(param, click.Option):
-                names.update(param.opts + param.secondary_opts)
-
-    walk(dali_main)
-    return names
+    return set().union(*(option_words(command) for command in cli_commands().values()))
 
 
 def unknown_options(text: str, known: set[str]) -> list[str]:

@@ -10,8 +10,7 @@ from pathlib import Path
 
 import click
 import pytest
-
-from dali_cli.cli import main as cli
+from cli_commands import cli_commands
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "INTERFACES.md"
 OPTION = re.compile(r"`(--[a-z0-9][a-z0-9-]*)`")
@@ -44,24 +43,6 @@ def parse_stage_table() -> tuple[dict[str, dict], set[str], set[str]]:
             "parameters": set(OPTION.findall(cells[4])),
         }
     return rows, set(OPTION.findall(shared_line)), set(COMMAND.findall(readers_line))
-
-
-def cli_commands() -> dict[str, click.Command]:
-    """Every leaf command of `dali`, by its full name ("import kitti")."""
-    ctx = click.Context(cli)
-    found = {}
-
-    def walk(group: click.Group, prefix: str) -> None:
-        for name in group.list_commands(ctx):
-            command = group.get_command(ctx, name)
-            full = f"{prefix}{name}"
-            if isinstance(command, click.Group):
-                walk(command, full + " ")
-            else:
-                found[full] = command
-
-    walk(cli, "")
-    return found
 
 
 def options_of(command: click.Command) -> set[str]:
