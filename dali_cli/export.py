@@ -105,8 +105,10 @@ def build_export_kitti(
     keep_outside: bool = False,
     reuse_columns: bool = True,
     with_score: bool = True,
+    progress: bool = True,
 ) -> dict:
-    """Stage body of `dali export kitti`: write OUT/data/<frame>.txt for every frame id.
+    """Stage body of `dali export kitti`: write OUT/data/<frame>.txt for every frame id
+    (`progress`: a progress bar on stderr).
 
     The image size comes from `image_size`, else the frame's image_2 PNG, else 1242 x 375.
     A frame without its calib file is an error naming the file.
@@ -119,7 +121,9 @@ def build_export_kitti(
         child_path(data, frame_id, ".txt")
     rows = table.rows_by_frame()
     written = outside = 0
-    for frame_id in tqdm(frame_ids, desc="export kitti", unit="frame", leave=False):
+    for frame_id in tqdm(
+        frame_ids, desc="export kitti", unit="frame", disable=not progress, leave=False
+    ):
         calib_path = calib_dir / f"{frame_id}.txt"
         if not calib_path.is_file():
             raise ImportFormatError(f"{calib_path}: calib file missing for frame '{frame_id}'")

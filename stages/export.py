@@ -35,9 +35,11 @@ def export_kitti(
     with_score: bool = True,
     force: bool = False,
     dry_run: bool = False,
+    progress: bool = True,
 ) -> StageOutcome:
     """KITTI label_2 files `out`/data/<frame>.txt of the box table `boxes_dir` through the
-    calib files under `calib_root` (every frame of `frames_dir`, or of the box table's dir)."""
+    calib files under `calib_root` (every frame of `frames_dir`, or of the box table's dir);
+    `progress`: a progress bar on stderr."""
     from dali_cli.export import build_export_kitti
     from dali_cli.importers.kitti import find_calib_dir
     from dali_cli.store.artifacts import FRAMES_NAME, read_boxes
@@ -74,6 +76,7 @@ def export_kitti(
             keep_outside,
             reuse_columns=not project_bbox,
             with_score=with_score,
+            progress=progress,
         ),  # fmt: skip
         force=force,
         dry_run=dry_run,

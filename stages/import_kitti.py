@@ -39,6 +39,13 @@ def import_kitti(
         out,
         inputs,
         params,
-        lambda tmp: build_import(tmp, layout, frame_ids, crop_fov=crop_fov, sensor=sensor),
+        lambda tmp: build_import(
+            tmp,
+            layout,
+            frame_ids,
+            crop_fov=crop_fov,
+            sensor=sensor,
+            progress=run.get("progress", True),
+        ),
         run,
     )

@@ -44,6 +44,13 @@ def import_kitti_raw(
         out,
         inputs,
         params,
-        lambda tmp: build_import(tmp, drive, frame_ids, crop_fov=crop_fov, sensor=sensor),
+        lambda tmp: build_import(
+            tmp,
+            drive,
+            frame_ids,
+            crop_fov=crop_fov,
+            sensor=sensor,
+            progress=run.get("progress", True),
+        ),
         run,
     )

@@ -52,7 +52,13 @@ def import_nuscenes(
         inputs,
         params,
         lambda tmp: nuscenes.build_import(
-            tmp, source, samples, categories, x_forward=not lidar_frame, sensor=sensor
+            tmp,
+            source,
+            samples,
+            categories,
+            x_forward=not lidar_frame,
+            sensor=sensor,
+            progress=run.get("progress", True),
         ),
         run,
     )

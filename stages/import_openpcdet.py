@@ -42,6 +42,8 @@ def import_openpcdet(
         out,
         inputs,
         params,
-        lambda tmp: openpcdet.build_import(tmp, root, frame_ids, classes, intensity_max, sensor),
+        lambda tmp: openpcdet.build_import(
+            tmp, root, frame_ids, classes, intensity_max, sensor, progress=run.get("progress", True)
+        ),
         run,
     )

@@ -41,7 +41,13 @@ def import_waymo(
     def build(tmp):
         try:
             return build_import(
-                tmp, source, returns=returns, lidars=lidars, every=every, sensor=sensor
+                tmp,
+                source,
+                returns=returns,
+                lidars=lidars,
+                every=every,
+                sensor=sensor,
+                progress=run.get("progress", True),
             )
         except WaymoFormatError as error:
             raise StageError(str(error)) from None

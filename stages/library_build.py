@@ -30,9 +30,11 @@ def library_build(
     label: str = "Car",
     force: bool = False,
     dry_run: bool = False,
+    progress: bool = True,
 ) -> StageOutcome:
     """Build a library into `out` from any of `cad_dir`, `procedural_count` cars, `points_dir`.
-    With `force`, CAD models of odd proportions are kept (a warning each, in the manifest)."""
+    With `force`, CAD models of odd proportions are kept (a warning each, in the manifest);
+    `progress`: a progress bar on stderr while point models are taken."""
     from dali_cli.library import LibraryError, axis_rotation
 
     if cad_dir is None and procedural_count == 0 and points_dir is None:
@@ -72,7 +74,9 @@ def library_build(
         timings["procedural_seconds"] = round(time.perf_counter() - started, 3)
         started = time.perf_counter()
         point_models = (
-            point_models_from_frameset(points_dir, min_points, label) if points_dir else None
+            point_models_from_frameset(points_dir, min_points, label, progress=progress)
+            if points_dir
+            else None
         )
         timings["point_models_seconds"] = round(time.perf_counter() - started, 3)
         counts = write_library(tmp, meshes, point_models)

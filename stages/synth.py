@@ -25,10 +25,12 @@ def synth(
     dry_run: bool = False,
     executor: str = "local",
     ray_address: str | None = None,
+    progress: bool = True,
 ) -> StageOutcome:
     """`frames` scenes scanned with `sensor`'s pattern, cars sized by `cars_profile` (default:
     the sensor's own); frame k depends only on (seed, k), whatever the engine (`executor`,
-    `workers`, `ray_address`: dali_cli.executors) and `threads`."""
+    `workers`, `ray_address`: dali_cli.executors) and `threads`; `progress`: a progress bar on
+    stderr."""
     from dali_cli.executors import make_executor, run_on
     from dali_cli.runtime.cores import available_cores
     from dali_cli.runtime.limits import check_limit
@@ -64,7 +66,14 @@ def synth(
             engine,
             "synth",
             lambda pool: build_synth(
-                tmp, sensor_profile, cars, frames, seed, threads=threads, executor=pool
+                tmp,
+                sensor_profile,
+                cars,
+                frames,
+                seed,
+                progress=progress,
+                threads=threads,
+                executor=pool,
             ),
         ),
         force=force,

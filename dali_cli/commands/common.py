@@ -205,10 +205,11 @@ def output_options(function):
 
 
 def import_options(default_sensor: str | None):
-    """--sensor (the profile recorded with imported frames; required when None) + output_options."""
+    """--sensor (the profile recorded with imported frames; required when None) + output_options
+    and --no-progress."""
 
     def decorate(function):
-        function = output_options(function)
+        function = output_options(no_progress_option(function))
         if default_sensor is None:
             return click.option(
                 "--sensor", required=True, help="Sensor profile of the data (a sensors.toml name)."

@@ -6,7 +6,13 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import FRACTION, choice_option, out_dir_option, stage_options
+from dali_cli.commands.common import (
+    FRACTION,
+    choice_option,
+    no_progress_option,
+    out_dir_option,
+    stage_options,
+)
 
 
 @click.group(name="export")
@@ -53,6 +59,7 @@ def _parse_image_size(_ctx, _param, value: str | None) -> tuple[int, int] | None
 @click.option("--no-score", is_flag=True,
               help="Write 15-field lines (ground-truth format) without the score.")  # fmt: skip
 @out_dir_option()
+@no_progress_option
 @stage_options
 def kitti_command(
     boxes_dir,
@@ -65,6 +72,7 @@ def kitti_command(
     project_bbox,
     no_score,
     out,
+    no_progress,
     force,
     dry_run,
 ):
@@ -82,7 +90,7 @@ def kitti_command(
     outcome = export_kitti(
         boxes_dir, calib_root, out, split=split, frames_dir=frames_dir, image_size=image_size,
         score_min=score_min, keep_outside=keep_outside, project_bbox=project_bbox,
-        with_score=not no_score, force=force, dry_run=dry_run,
+        with_score=not no_score, force=force, dry_run=dry_run, progress=not no_progress,
     )  # fmt: skip
     if outcome.status == "ran":
         counts = outcome.manifest["outputs"]["counts"]

@@ -47,7 +47,17 @@ def _summary(outcome) -> None:
                    "it).")  # fmt: skip
 @import_options("kitti")
 def kitti_command(
-    root, split, ids_path, label_dir, crop_fov, sensor, out, sensors_path, force, dry_run
+    root,
+    split,
+    ids_path,
+    label_dir,
+    crop_fov,
+    sensor,
+    out,
+    sensors_path,
+    no_progress,
+    force,
+    dry_run,
 ):
     """Import KITTI object data from ROOT (holding training/ and testing/, or one split).
 
@@ -64,6 +74,7 @@ def kitti_command(
     outcome = import_kitti(
         root, out, split=split, ids_path=ids_path, label_dir=label_dir, crop_fov=crop_fov,
         sensor=sensor, sensors_path=sensors_path, force=force, dry_run=dry_run,
+        progress=not no_progress,
     )  # fmt: skip
     _summary(outcome)
 
@@ -84,7 +95,17 @@ def kitti_command(
               help="Keep only points that project into the left colour camera's image.")  # fmt: skip
 @import_options("kitti")
 def kitti_raw_command(
-    drive_dir, calib_dir, tracklets, no_labels, crop_fov, sensor, out, sensors_path, force, dry_run
+    drive_dir,
+    calib_dir,
+    tracklets,
+    no_labels,
+    crop_fov,
+    sensor,
+    out,
+    sensors_path,
+    no_progress,
+    force,
+    dry_run,
 ):
     """Import a KITTI raw synced drive DRIVE_DIR (YYYY_MM_DD_drive_NNNN_sync).
 
@@ -101,6 +122,7 @@ def kitti_raw_command(
     outcome = import_kitti_raw(
         drive_dir, out, calib_dir=calib_dir, tracklets=tracklets, labels=not no_labels,
         crop_fov=crop_fov, sensor=sensor, sensors_path=sensors_path, force=force, dry_run=dry_run,
+        progress=not no_progress,
     )  # fmt: skip
     _summary(outcome)
 
@@ -136,6 +158,7 @@ def nuscenes_command(
     sensor,
     out,
     sensors_path,
+    no_progress,
     force,
     dry_run,
 ):
@@ -157,6 +180,7 @@ def nuscenes_command(
         path, out, version=version, boxes_csv=boxes_csv, scenes=scenes,
         car_categories=tuple(car_categories), max_frames=max_frames, lidar_frame=lidar_frame,
         sensor=sensor, sensors_path=sensors_path, force=force, dry_run=dry_run,
+        progress=not no_progress,
     )  # fmt: skip
     _summary(outcome)
 
@@ -178,7 +202,7 @@ def nuscenes_command(
               help="Intensities are divided by this (255 for 8-bit intensities).")  # fmt: skip
 @import_options(None)
 def openpcdet_command(
-    root, split, car_classes, intensity_max, sensor, out, sensors_path, force, dry_run
+    root, split, car_classes, intensity_max, sensor, out, sensors_path, no_progress, force, dry_run
 ):
     """Import OpenPCDet's custom format from ROOT.
 
@@ -192,6 +216,7 @@ def openpcdet_command(
     outcome = import_openpcdet(
         root, out, sensor=sensor, split=split, car_classes=tuple(car_classes),
         intensity_max=intensity_max, sensors_path=sensors_path, force=force, dry_run=dry_run,
+        progress=not no_progress,
     )  # fmt: skip
     _summary(outcome)
 
@@ -214,7 +239,19 @@ def openpcdet_command(
 @click.option("--segments", default=None, help="Comma-separated segment names (default: all).")
 @import_options("waymo")
 def waymo_command(
-    root, fmt, split, every, lidars, returns, segments, sensor, out, sensors_path, force, dry_run
+    root,
+    fmt,
+    split,
+    every,
+    lidars,
+    returns,
+    segments,
+    sensor,
+    out,
+    sensors_path,
+    no_progress,
+    force,
+    dry_run,
 ):
     """Import Waymo Open Dataset frames without TensorFlow.
 
@@ -234,5 +271,6 @@ def waymo_command(
     outcome = import_waymo(
         root, out, fmt=fmt, split=split, every=every, lidars=lidars, returns=returns,
         segments=segments, sensor=sensor, sensors_path=sensors_path, force=force, dry_run=dry_run,
+        progress=not no_progress,
     )  # fmt: skip
     _summary(outcome)

@@ -6,7 +6,7 @@ import math
 
 import click
 
-from dali_cli.commands.common import SEED, out_dir_option, stage_options
+from dali_cli.commands.common import SEED, no_progress_option, out_dir_option, stage_options
 
 
 @click.group(name="library")
@@ -56,8 +56,9 @@ def _parse_range(_ctx, _param, value: str | None) -> tuple[float, float] | None:
               help="Point models: instances with at least this many points in their box.")  # fmt: skip
 @click.option("--label", default="Car", show_default=True, help="Point models: box label to use.")
 @out_dir_option("Output library directory.")
+@no_progress_option
 @stage_options
-def build_command(out, **options):
+def build_command(out, no_progress, **options):
     """Build a model library OUT from any combination of --cad, --procedural and --points.
 
     Meshes are normalized to the unit box centered at the origin (l along +x, up +z) and keep
@@ -71,7 +72,7 @@ def build_command(out, **options):
     """
     from stages.library_build import library_build
 
-    outcome = library_build(out, **options)
+    outcome = library_build(out, progress=not no_progress, **options)
     if outcome.status == "ran":
         counts = outcome.manifest["outputs"]["counts"]
         click.echo(

@@ -8,6 +8,7 @@ from dali_cli.commands.common import (
     BATCH,
     SEED,
     executor_options,
+    no_progress_option,
     out_dir_option,
     sensors_option,
     stage_options,
@@ -32,6 +33,7 @@ from dali_cli.commands.common import (
                    "not depend on it.")  # fmt: skip
 @out_dir_option()
 @sensors_option
+@no_progress_option
 @stage_options
 def command(
     sensor,
@@ -44,6 +46,7 @@ def command(
     threads,
     out,
     sensors_path,
+    no_progress,
     force,
     dry_run,
 ):
@@ -64,7 +67,7 @@ def command(
     outcome = synth(
         out, sensor=sensor, cars_profile=cars_profile, frames=frames, seed=seed, workers=workers,
         threads=threads, sensors_path=sensors_path, force=force, dry_run=dry_run,
-        executor=executor, ray_address=ray_address,
+        executor=executor, ray_address=ray_address, progress=not no_progress,
     )  # fmt: skip
     if outcome.status == "ran":
         counts = outcome.manifest["outputs"]["counts"]

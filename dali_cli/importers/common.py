@@ -121,8 +121,10 @@ def write_imported(
     total: int | None = None,
     description: str = "import",
     notes: list[str] | None = None,
+    progress: bool = True,
 ):
-    """Write `(frame_id, points (n, 4), BoxTable | None)` triples as a FrameSet + boxes.parquet.
+    """Write `(frame_id, points (n, 4), BoxTable | None)` triples as a FrameSet + boxes.parquet
+    (`progress`: a progress bar of `total` frames on stderr, named `description`).
 
     A frame whose table is None has no labels; when no frame has labels, no box table is written
     (an unlabeled set). Returns the manifest's BuildResult (counts, notes). `out` is the stage's
@@ -137,7 +139,7 @@ def write_imported(
     unlabeled = 0
     with FrameSetWriter(out, sensor=sensor, attrs=attrs) as writer:
         for frame_id, points, table in tqdm(
-            frames, total=total, desc=description, unit="frame", leave=False
+            frames, total=total, desc=description, unit="frame", disable=not progress, leave=False
         ):
             writer.append(frame_id, points)
             if table is None:
@@ -160,11 +162,13 @@ def write_imported(
 
 class ImportRun(TypedDict, total=False):
     """What every import stage takes besides its source and options: a sensors.toml to use
-    instead of the project's, and the stage runner's force / dry_run."""
+    instead of the project's, the stage runner's force / dry_run, and progress (a progress bar
+    on stderr; default on)."""
 
     sensors_path: str | None
     force: bool
     dry_run: bool
+    progress: bool
 
 
 def check_sensor(sensor: str, run: ImportRun) -> None:

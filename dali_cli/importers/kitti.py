@@ -428,8 +428,10 @@ def build_import(
     frame_ids: list[str],
     crop_fov: bool = False,
     sensor: str = "kitti",
+    progress: bool = True,
 ) -> BuildResult:
-    """Stage body of `dali import kitti`: read every frame, write FrameSet + boxes into `out`."""
+    """Stage body of `dali import kitti`: read every frame, write FrameSet + boxes into `out`
+    (`progress`: a progress bar on stderr)."""
 
     def frames():
         for frame_id in frame_ids:
@@ -444,6 +446,7 @@ def build_import(
         attrs,
         total=len(frame_ids),
         description="import kitti",
+        progress=progress,
         notes=[
             "boxes: label_2 through calib (R0_rect, Tr_velo_to_cam) to the LiDAR frame, geometric centre",
             "DontCare rows: zero-size boxes at the origin; their 2D region is kept in bbox_*",

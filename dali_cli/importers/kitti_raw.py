@@ -318,8 +318,10 @@ def build_import(
     frame_ids: list[str],
     crop_fov: bool = False,
     sensor: str = "kitti",
+    progress: bool = True,
 ) -> BuildResult:
-    """Stage body of `dali import kitti-raw`: every scan, and its tracklet boxes when labelled."""
+    """Stage body of `dali import kitti-raw`: every scan, and its tracklet boxes when labelled
+    (`progress`: a progress bar on stderr)."""
     calib, image_size = read_raw_calib(drive.calib_dir)
     poses = read_tracklets(drive.tracklets) if drive.tracklets is not None else None
     notes = ["points: velodyne_points/data scans (LiDAR frame)"]
@@ -349,7 +351,13 @@ def build_import(
 
     attrs = {"source_format": "kitti-raw", "crop_fov": bool(crop_fov)}
     result = write_imported(
-        out, frames(), sensor, attrs, total=len(frame_ids), description="import kitti-raw"
+        out,
+        frames(),
+        sensor,
+        attrs,
+        total=len(frame_ids),
+        description="import kitti-raw",
+        progress=progress,
     )
     result.notes.extend(notes)
     return result

@@ -494,8 +494,10 @@ def build_import(
     car_categories: tuple[str, ...] = DEFAULT_CAR_CATEGORIES,
     x_forward: bool = True,
     sensor: str = "nuscenes",
+    progress: bool = True,
 ) -> BuildResult:
-    """Stage body of `dali import nuscenes`: write FrameSet + boxes into `out`; returns counts."""
+    """Stage body of `dali import nuscenes`: write FrameSet + boxes into `out`; returns counts
+    (`progress`: a progress bar on stderr)."""
 
     def frames():
         for sample in samples:
@@ -535,6 +537,7 @@ def build_import(
         attrs,
         total=len(samples),
         description="import nuscenes",
+        progress=progress,
         notes=[
             attrs["axes"],
             "one key-frame sweep per frame (no multi-sweep accumulation); intensity / 255",

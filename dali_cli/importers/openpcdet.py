@@ -111,8 +111,10 @@ def build_import(
     car_classes: tuple[str, ...] = DEFAULT_CAR_CLASSES,
     intensity_max: float = 1.0,
     sensor: str = "kitti",
+    progress: bool = True,
 ) -> BuildResult:
-    """Stage body of `dali import openpcdet`: FrameSet + boxes into `out`; returns counts."""
+    """Stage body of `dali import openpcdet`: FrameSet + boxes into `out`; returns counts
+    (`progress`: a progress bar on stderr)."""
 
     root = Path(root)
 
@@ -149,6 +151,7 @@ def build_import(
         attrs,
         total=len(frame_ids),
         description="import openpcdet",
+        progress=progress,
         notes=[f"intensity divided by {intensity_max}"],
     )
 

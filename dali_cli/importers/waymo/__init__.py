@@ -108,9 +108,17 @@ def describe_top(frame: WaymoFrame) -> dict:
 
 
 def build_import(
-    tmp: Path, source: WaymoSource, *, returns: int, lidars: str, every: int, sensor: str
+    tmp: Path,
+    source: WaymoSource,
+    *,
+    returns: int,
+    lidars: str,
+    every: int,
+    sensor: str,
+    progress: bool = True,
 ):
-    """Write the chosen frames of every segment into `tmp` (the stage's temporary directory)."""
+    """Write the chosen frames of every segment into `tmp` (the stage's temporary directory);
+    `progress`: a progress bar on stderr."""
     from dali_cli.importers.common import write_imported
 
     per_segment: dict[str, dict] = {}
@@ -131,7 +139,7 @@ def build_import(
     top_calibration = {}
     result = write_imported(tmp, frames(), sensor, attrs={"source": "waymo", "format":
                             source.format, "lidars": lidars, "returns": returns},
-                            description=f"waymo {source.format}")  # fmt: skip
+                            description=f"waymo {source.format}", progress=progress)  # fmt: skip
     seconds = time.perf_counter() - started
     result.counts["segments"] = per_segment
     result.timings = {"frames_per_second": round(result.counts["frames"] / max(seconds, 1e-9), 3)}
