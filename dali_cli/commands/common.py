@@ -206,7 +206,8 @@ def output_options(function):
 
 def import_options(default_sensor: str | None):
     """--sensor (the profile recorded with imported frames; required when None) + output_options
-    and --no-progress."""
+    and --no-progress. The commands hand --sensors / --force / --dry-run on to their stage as
+    `**run` (dali_cli.importers.common.ImportRun)."""
 
     def decorate(function):
         function = output_options(no_progress_option(function))

@@ -46,19 +46,7 @@ def _summary(outcome) -> None:
               help="Keep only points that project into the camera image (KITTI labels cover only "
                    "it).")  # fmt: skip
 @import_options("kitti")
-def kitti_command(
-    root,
-    split,
-    ids_path,
-    label_dir,
-    crop_fov,
-    sensor,
-    out,
-    sensors_path,
-    no_progress,
-    force,
-    dry_run,
-):
+def kitti_command(root, split, ids_path, label_dir, crop_fov, sensor, out, no_progress, **run):
     """Import KITTI object data from ROOT (holding training/ and testing/, or one split).
 
     Reads <split>/velodyne/*.bin (float32 x, y, z, reflectance), label_2/*.txt (camera frame,
@@ -73,8 +61,7 @@ def kitti_command(
 
     outcome = import_kitti(
         root, out, split=split, ids_path=ids_path, label_dir=label_dir, crop_fov=crop_fov,
-        sensor=sensor, sensors_path=sensors_path, force=force, dry_run=dry_run,
-        progress=not no_progress,
+        sensor=sensor, progress=not no_progress, **run,
     )  # fmt: skip
     _summary(outcome)
 
@@ -95,17 +82,7 @@ def kitti_command(
               help="Keep only points that project into the left colour camera's image.")  # fmt: skip
 @import_options("kitti")
 def kitti_raw_command(
-    drive_dir,
-    calib_dir,
-    tracklets,
-    no_labels,
-    crop_fov,
-    sensor,
-    out,
-    sensors_path,
-    no_progress,
-    force,
-    dry_run,
+    drive_dir, calib_dir, tracklets, no_labels, crop_fov, sensor, out, no_progress, **run
 ):
     """Import a KITTI raw synced drive DRIVE_DIR (YYYY_MM_DD_drive_NNNN_sync).
 
@@ -121,8 +98,7 @@ def kitti_raw_command(
 
     outcome = import_kitti_raw(
         drive_dir, out, calib_dir=calib_dir, tracklets=tracklets, labels=not no_labels,
-        crop_fov=crop_fov, sensor=sensor, sensors_path=sensors_path, force=force, dry_run=dry_run,
-        progress=not no_progress,
+        crop_fov=crop_fov, sensor=sensor, progress=not no_progress, **run,
     )  # fmt: skip
     _summary(outcome)
 
@@ -157,10 +133,8 @@ def nuscenes_command(
     lidar_frame,
     sensor,
     out,
-    sensors_path,
     no_progress,
-    force,
-    dry_run,
+    **run,
 ):
     """Import nuScenes LIDAR_TOP key frames.
 
@@ -179,8 +153,7 @@ def nuscenes_command(
     outcome = import_nuscenes(
         path, out, version=version, boxes_csv=boxes_csv, scenes=scenes,
         car_categories=tuple(car_categories), max_frames=max_frames, lidar_frame=lidar_frame,
-        sensor=sensor, sensors_path=sensors_path, force=force, dry_run=dry_run,
-        progress=not no_progress,
+        sensor=sensor, progress=not no_progress, **run,
     )  # fmt: skip
     _summary(outcome)
 
@@ -201,9 +174,7 @@ def nuscenes_command(
               show_default=True,
               help="Intensities are divided by this (255 for 8-bit intensities).")  # fmt: skip
 @import_options(None)
-def openpcdet_command(
-    root, split, car_classes, intensity_max, sensor, out, sensors_path, no_progress, force, dry_run
-):
+def openpcdet_command(root, split, car_classes, intensity_max, sensor, out, no_progress, **run):
     """Import OpenPCDet's custom format from ROOT.
 
     Reads ROOT/points/ID.npy ((n, 4) x, y, z, intensity; more columns are dropped) and
@@ -215,8 +186,7 @@ def openpcdet_command(
 
     outcome = import_openpcdet(
         root, out, sensor=sensor, split=split, car_classes=tuple(car_classes),
-        intensity_max=intensity_max, sensors_path=sensors_path, force=force, dry_run=dry_run,
-        progress=not no_progress,
+        intensity_max=intensity_max, progress=not no_progress, **run,
     )  # fmt: skip
     _summary(outcome)
 
@@ -239,19 +209,7 @@ def openpcdet_command(
 @click.option("--segments", default=None, help="Comma-separated segment names (default: all).")
 @import_options("waymo")
 def waymo_command(
-    root,
-    fmt,
-    split,
-    every,
-    lidars,
-    returns,
-    segments,
-    sensor,
-    out,
-    sensors_path,
-    no_progress,
-    force,
-    dry_run,
+    root, fmt, split, every, lidars, returns, segments, sensor, out, no_progress, **run
 ):
     """Import Waymo Open Dataset frames without TensorFlow.
 
@@ -270,7 +228,6 @@ def waymo_command(
 
     outcome = import_waymo(
         root, out, fmt=fmt, split=split, every=every, lidars=lidars, returns=returns,
-        segments=segments, sensor=sensor, sensors_path=sensors_path, force=force, dry_run=dry_run,
-        progress=not no_progress,
+        segments=segments, sensor=sensor, progress=not no_progress, **run,
     )  # fmt: skip
     _summary(outcome)
