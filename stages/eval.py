@@ -12,7 +12,9 @@ With `size_correction="per-dim"` the Car predictions are resized per dimension b
 evaluated (and saved) by the factors E_est / E_pred(ŝ) of the `scale_from` sweep
 (`dali_cli.labels.size_correction.factors_from_sweep`: label-free, from the unlabeled target training
 frames), bottom face kept; metrics.json records them under
-"size_correction". It works on both routes: a model run at ŝ, or a prediction table (then
+"size_correction". metrics.json's "errors" holds the error breakdown of the same boxes
+(dali_cli.evaluation.errors); it is not a parameter, so artifacts written before it stay up to
+date without it (`dali report` says to rerun with --force). It works on both routes: a model run at ŝ, or a prediction table (then
 `scale_from` gives only the factors).
 Returns the metrics for the command to print."""
 
@@ -36,6 +38,7 @@ from dali_cli.store.output_paths import DERIVED_FILES
 
 PREDICTIONS_NAME = "predictions.parquet"
 METRICS_NAME = "metrics.json"
+ERRORS_KEY = "errors"  # metrics.json's error breakdown (dali_cli.evaluation.errors)
 KITTI_METRICS_NAME = DERIVED_FILES["eval"][0]  # written beside metrics.json by a second eval
 
 
@@ -323,6 +326,7 @@ def keeps_predictions(save_predictions: bool, model, size_correction: str) -> bo
 
 def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
     """(the metrics document, the predictions evaluated) of one evaluation."""
+    from dali_cli.evaluation.errors import breakdown
     from dali_cli.evaluation.evaluate import EvaluationError, evaluate
 
     pred, gt, frame_ids, source, gt_path, runtime = predictions_and_truth(**routes)
@@ -347,6 +351,12 @@ def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
         block = result[class_name]
         block["source"] = source
         metrics[class_name if index == 0 else f"{class_name}@{iou:g}"] = block
+    metrics[ERRORS_KEY] = breakdown(
+        pred, gt, ious=options["ious"], recall_positions=options["recall_positions"],
+        protocol=options["protocol"], class_name=class_name,
+        min_gt_points=options["min_gt_points"], frame_ids=frame_ids,
+        front_only=options["front_only"],
+    )  # fmt: skip
     metrics["sizes"] = {
         "pred": mean_box_size(pred, class_name, score_min=options["size_score_min"]),
         "gt": mean_box_size(gt, class_name),

@@ -50,7 +50,9 @@ Output: the AP table on stdout; --out FILE writes metrics.json
 one more block "Car@<iou>" per further --iou, "sizes": {"pred", "gt"} mean l/w/h in metres of
 the class (predictions: score >= --score-min), "scale" (with --model; with --pred the
 scale of the eval that saved them, when its metrics.json says), with a size
-correction "size_correction" (factors, E_est, E_pred and the scale.json they came from).
+correction "size_correction" (factors, E_est, E_pred and the scale.json they came from),
+"errors": the error breakdown (box errors of the matches, false positives by kind and the AP
+each kind costs; docs/evaluation.md).
 """
 )
 
@@ -120,8 +122,9 @@ def command(
 ):
     """Average precision (KITTI protocol, BEV and 3D, float64 rotated IoU) of predictions.
     With --model, the detector runs on --executor with --workers."""
+    from dali_cli.evaluation.errors import format_breakdown
     from dali_cli.evaluation.evaluate import format_table
-    from stages.eval import run_eval
+    from stages.eval import ERRORS_KEY, run_eval
 
     result = run_eval(
         pred_path=pred_path, gt_path=gt_path, model=model, data=data, scale=scale,
@@ -137,8 +140,10 @@ def command(
     blocks = {
         k: v
         for k, v in result.metrics.items()
-        if k not in ("sizes", "scale", "runtime", "size_correction")
+        if k not in ("sizes", "scale", "runtime", "size_correction", ERRORS_KEY)
     }
     click.echo(format_table(blocks))
+    if ERRORS_KEY in result.metrics:  # absent from artifacts written before it existed
+        click.echo(format_breakdown(result.metrics[ERRORS_KEY]))
     if result.status == "ran" and out is not None and out.suffix == ".json":
         click.echo(f"wrote {out}", err=True)

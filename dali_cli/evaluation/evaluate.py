@@ -75,6 +75,7 @@ class _Boxes:
     score: np.ndarray  # (n,) float64
     label: np.ndarray  # (n,) lower-case class names
     columns: dict[str, np.ndarray]  # the table's other columns, same order
+    row: np.ndarray  # (n,) int64 the table row of each box
 
 
 def _prepare(table: BoxTable, universe: np.ndarray) -> _Boxes:
@@ -92,6 +93,7 @@ def _prepare(table: BoxTable, universe: np.ndarray) -> _Boxes:
         score=np.asarray(table["score"], dtype=np.float64)[order],
         label=np.char.lower(names)[inverse.reshape(-1)][order] if len(names) else ids[:0],
         columns=columns,
+        row=order.astype(np.int64),
     )
 
 
@@ -234,10 +236,11 @@ class _Component:
 
 
 def _match_sequentially(component, scores, ignored_gt, ignored_pred, level, compute_fp):
-    """The reference compute_statistics loop on one component: (tp, fp, fn, tp scores)."""
+    """The reference compute_statistics loop on one component: (tp, fp, fn, tp scores, the
+    matched (ground truth, prediction) pairs)."""
     assigned: set[int] = set()
     tp = fn = 0
-    tp_scores = []
+    tp_scores, matched = [], []
     for gt, candidates in zip(component.gts, component.candidates, strict=True):
         chosen, best_overlap, chose_ignored = -1, 0.0, False
         best_score = -math.inf
@@ -255,6 +258,7 @@ def _match_sequentially(component, scores, ignored_gt, ignored_pred, level, comp
             fn += int(ignored_gt[gt] == 0)
             continue
         assigned.add(chosen)
+        matched.append((gt, chosen))
         if ignored_gt[gt] == 0 and ignored_pred[chosen] == 0:
             tp += 1
             tp_scores.append(scores[chosen])
@@ -264,7 +268,7 @@ def _match_sequentially(component, scores, ignored_gt, ignored_pred, level, comp
             (ignored_pred[component.preds] == 0) & (scores[component.preds] >= level)
         ]
         fp = len(kept) - len(assigned.intersection(kept.tolist()))
-    return tp, fp, fn, tp_scores
+    return tp, fp, fn, tp_scores, matched
 
 
 def _components(pred_index, gt_index, overlap, labels) -> list[_Component]:
@@ -579,18 +583,17 @@ def evaluate(
     "range" this gives the bands of the front region, with "st3d" it also drops predictions there.
     """
     protocol = _checked_protocol(gt, iou, recall_positions, protocol)
-    pred, gt = _restricted(pred, gt, protocol, front_only, st3d_fov_deg, st3d_range_m)
-    universe = _frame_universe(pred, gt, frame_ids)
-    num_frames = len(universe)
-    pred_boxes, gt_boxes = _prepare(pred, universe), _prepare(gt, universe)
-    pairs = _frame_pairs(pred_boxes, gt_boxes, num_frames)
-    bev, volume = geometry.iou_pairs_bev_3d(pred_boxes.boxes[pairs[0]], gt_boxes.boxes[pairs[1]])
-    groups = _groups(pred_boxes, gt_boxes, class_name.lower(), protocol, min_gt_points)
+    scored = scored_boxes(
+        pred, gt, protocol, class_name, min_gt_points, frame_ids, front_only, st3d_fov_deg,
+        st3d_range_m,
+    )  # fmt: skip
+    pred_boxes, gt_boxes, pairs = scored.pred, scored.gt, scored.pairs
+    bev, volume = scored.overlap["bev"], scored.overlap["3d"]
     result = {
         "iou": float(iou),
         "recall_positions": int(recall_positions),
         "protocol": protocol,
-        "frames": int(num_frames),
+        "frames": int(len(scored.frame_ids)),
         "min_gt_points": int(min_gt_points),
         "front_only": bool(front_only),
         "bev": {},
@@ -598,7 +601,7 @@ def evaluate(
         "counts": {},
         "curves": {"bev": {}, "3d": {}},
     }
-    for name, (ignored_gt, ignored_pred) in groups.items():
+    for name, (ignored_gt, ignored_pred) in scored.flags.items():
         counts = {
             "gt": int(np.sum(ignored_gt == 0)),
             "gt_ignored": int(np.sum(ignored_gt == 1)),
@@ -619,6 +622,84 @@ def evaluate(
             for name in DIFFICULTIES[1:]:
                 section[name] = section[DIFFICULTIES[0]]
     return {class_name: result}
+
+
+@dataclass
+class Scored:
+    """The boxes one evaluation scores: both tables after the protocol's restriction, in the
+    evaluator's order (by frame, table order within a frame), their candidate pairs with BEV and
+    3D overlaps, and the ignore flags of every difficulty or band."""
+
+    protocol: str  # resolved ("auto" never)
+    frame_ids: np.ndarray  # (F,) str evaluated frames
+    pred_table: BoxTable  # predictions after the protocol's restriction (rows: `pred.row`)
+    gt_table: BoxTable
+    pred: _Boxes  # (P,) boxes in the evaluator's order
+    gt: _Boxes  # (G,)
+    pairs: tuple[np.ndarray, np.ndarray]  # (E,) prediction and ground-truth indices, same frame
+    overlap: dict[str, np.ndarray]  # {"bev", "3d"}: (E,) float64 IoU of each pair
+    # group -> (ignored_gt (G,), ignored_pred (P,)) int8: -1 takes no part, 0 counts, 1 ignored
+    flags: dict[str, tuple[np.ndarray, np.ndarray]]
+
+
+def scored_boxes(
+    pred: BoxTable,
+    gt: BoxTable,
+    protocol: str = "auto",
+    class_name: str = "Car",
+    min_gt_points: int = 0,
+    frame_ids: list[str] | None = None,
+    front_only: bool = False,
+    st3d_fov_deg: float = ST3D_FOV_DEG,
+    st3d_range_m: tuple = ST3D_RANGE_M,
+) -> Scored:
+    """What `evaluate` (same arguments) scores, before any threshold: see `Scored`."""
+    protocol = _checked_protocol(gt, 0.0, RECALL_POSITIONS[0], protocol)
+    pred, gt = _restricted(pred, gt, protocol, front_only, st3d_fov_deg, st3d_range_m)
+    universe = _frame_universe(pred, gt, frame_ids)
+    pred_boxes, gt_boxes = _prepare(pred, universe), _prepare(gt, universe)
+    pairs = _frame_pairs(pred_boxes, gt_boxes, len(universe))
+    bev, volume = geometry.iou_pairs_bev_3d(pred_boxes.boxes[pairs[0]], gt_boxes.boxes[pairs[1]])
+    return Scored(
+        protocol=protocol,
+        frame_ids=universe,
+        pred_table=pred,
+        gt_table=gt,
+        pred=pred_boxes,
+        gt=gt_boxes,
+        pairs=pairs,
+        overlap={"bev": bev, "3d": volume},
+        flags=_groups(pred_boxes, gt_boxes, class_name.lower(), protocol, min_gt_points),
+    )
+
+
+def matched_ground_truth(scored: Scored, metric: str, group: str, iou: float) -> np.ndarray:
+    """`(P,)` int64: the ground truth (index into `scored.gt`) each prediction is matched to with
+    every prediction kept, -1 for none: the matching behind `counts` (per ground truth in label
+    order, the unassigned prediction with the largest `metric` overlap above `iou`, counted
+    predictions before ignored ones). True positives: matched, both flags 0; false positives:
+    flag 0 and unmatched; misses: counted ground truths no prediction is matched to."""
+    ignored_gt, ignored_pred = scored.flags[group]
+    pred_index, gt_index = scored.pairs
+    overlap = scored.overlap[metric]
+    keep = (overlap > iou) & (ignored_gt[gt_index] != -1) & (ignored_pred[pred_index] != -1)
+    num_pred = len(scored.pred.frame)
+    fast, components, _, _ = _split_greedy_groups(
+        pred_index[keep], gt_index[keep], overlap[keep], num_pred, len(scored.gt.frame)
+    )
+    pred_index, gt_index, overlap = fast  # each prediction a candidate of one ground truth
+    rank = np.where(ignored_pred[pred_index] == 0, -overlap, 0.0)
+    order = np.lexsort((pred_index, rank, ignored_pred[pred_index], gt_index))
+    first = order[np.r_[True, gt_index[order][1:] != gt_index[order][:-1]]] if len(order) else order
+    matched = np.full(num_pred, -1, dtype=np.int64)
+    matched[pred_index[first]] = gt_index[first]
+    for component in components:
+        loop = _match_sequentially(
+            component, scored.pred.score, ignored_gt, ignored_pred, -math.inf, True
+        )
+        for gt, chosen in loop[4]:
+            matched[chosen] = gt
+    return matched
 
 
 def _checked_protocol(gt: BoxTable, iou: float, recall_positions: int, protocol: str) -> str:
