@@ -22,6 +22,8 @@ from dali_cli.evaluation.errors import (
 )
 from dali_cli.evaluation.evaluate import evaluate
 from dali_cli.store.artifacts import BoxTable, write_boxes
+from dali_cli.store.manifest import MANIFEST_NAME, hash_tree
+from stages.eval import KITTI_METRICS_NAME
 
 CAR = (3.9, 1.6, 1.5)
 
@@ -257,3 +259,44 @@ def test_dali_eval_writes_and_prints_the_breakdown(tmp_path):
                                       "--out", str(tmp_path / "m2.json")])  # fmt: skip
     assert again.exit_code == 0, again.output
     assert "errors" in json.loads((tmp_path / "m2.json").read_text())
+
+
+def test_report_shows_the_breakdown_and_names_older_evaluations(tmp_path):
+    truth, gt, pred = scene()
+    for name, boxes in (("gt", gt), ("pred", pred)):
+        (tmp_path / name).mkdir()
+        write_boxes(tmp_path / name, boxes)
+    run = tmp_path / "run"
+    runner = CliRunner()
+    for row in ("iter0/eval", "iter2/eval"):
+        args = ["eval", "--pred", str(tmp_path / "pred"), "--gt", str(tmp_path / "gt"),
+                "--out", str(run / row)]  # fmt: skip
+        assert runner.invoke(main, args).exit_code == 0
+    # an evaluation written before the breakdown existed: still up to date, and not an error
+    older = run / "iter2" / "eval" / "metrics.json"
+    document = json.loads(older.read_text())
+    del document["errors"]
+    older.write_text(json.dumps(document))
+    manifest_path = older.parent / MANIFEST_NAME
+    manifest = json.loads(manifest_path.read_text())
+    manifest["content_hash"] = hash_tree(older.parent, (MANIFEST_NAME, KITTI_METRICS_NAME))
+    manifest_path.write_text(json.dumps(manifest))
+    again = runner.invoke(main, [*args, "--no-progress"])
+    assert again.exit_code == 0 and "Error breakdown" not in again.output
+    assert "errors" not in json.loads(older.read_text())  # skipped: up to date
+    report = runner.invoke(main, ["report", str(run)])
+    assert report.exit_code == 0, report.output
+    text = (run / "report" / "report.md").read_text()
+    assert "## Error breakdown" in text and "radial_m" in text
+    section = text.split("## Error breakdown")[1].split("\n## ")[0]
+    errors_row, losses_row = (line for line in section.splitlines() if "| Source only |" in line)
+    assert "| 45 | +0.30 [+0.30, +0.30] | +0.00 [+0.00, +0.00] |" in errors_row
+    # 14 of 60 cars missed outweigh one background and one mislocalized box
+    block = json.loads((run / "iter0/eval/metrics.json").read_text())["errors"]
+    block = block["false_positives"]["0.7"]["3d"]
+    gain = block["ap_fixed"]["missed"] - block["ap"]
+    assert losses_row.split("|")[-2].strip() == f"missed (+{gain:.2f})"
+    assert "no breakdown: rerun dali eval --force (x2)" in section
+    assert (run / "report" / "plots" / "error_breakdown.png").is_file()
+    forced = runner.invoke(main, [*args, "--force", "--no-progress"])
+    assert forced.exit_code == 0 and "errors" in json.loads(older.read_text())

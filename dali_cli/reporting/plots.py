@@ -1,5 +1,5 @@
 """Plots of a run for `dali report`: PTSN curves, pseudo-label and predicted size distributions,
-bird's-eye views of predictions and PPCG examples.
+bird's-eye views of predictions, the error breakdown and PPCG examples.
 
 Each plot is drawn only from artifacts the run holds; a missing artifact means a missing plot.
 """
@@ -265,6 +265,54 @@ def plot_ppcg(run: Path, out_dir: Path) -> list[Path]:
     return drawn
 
 
+def plot_error_breakdown(run: Path, out: Path) -> Path | None:
+    """Per method row with an error breakdown in its metrics.json: the median box error of the
+    matches and its 16-84 % interval per range band (one panel per quantity), and the AP_3D at
+    IoU 0.7 each fix would gain (last panel)."""
+    from dali_cli.evaluation.errors import ERROR_BANDS_M, FIXES, QUANTITIES
+    from dali_cli.reporting.report import BREAKDOWN_IOU, CONTROL_ROWS, ROWS, collect_rows
+
+    rows = [row for row in collect_rows(run, ROWS + CONTROL_ROWS) if row.errors]
+    if not rows:
+        return None
+    plt = _pyplot()
+    figure, axes = plt.subplots(2, 4, figsize=(14, 6.4))
+    bands = list(ERROR_BANDS_M)
+    width = 0.8 / len(rows)
+    for index, row in enumerate(rows):
+        shift = (index - (len(rows) - 1) / 2) * width
+        matches = row.errors["true_positives"]
+        for axis, quantity in zip(axes.flat, QUANTITIES, strict=False):
+            stats = [matches[band][quantity] for band in bands]
+            at = [k for k, entry in enumerate(stats) if entry["median"] is not None]
+            median = np.array([stats[k]["median"] for k in at])
+            spread = np.array([[median[j] - stats[k]["p16"], stats[k]["p84"] - median[j]]
+                               for j, k in enumerate(at)]).reshape(-1, 2).T  # fmt: skip
+            axis.errorbar(np.asarray(at) + shift, median, yerr=spread, fmt="o", ms=4, capsize=2,
+                          label=row.name)  # fmt: skip
+        block = row.errors["false_positives"].get(BREAKDOWN_IOU, {}).get("3d", {})
+        base = block.get("ap")
+        gains = [
+            (block["ap_fixed"][name] - base) if base is not None and block["ap_fixed"][name]
+            is not None else 0.0 for name in FIXES
+        ]  # fmt: skip
+        axes.flat[-1].bar(np.arange(len(FIXES)) + shift, gains, width, label=row.name)
+    for axis, quantity in zip(axes.flat, QUANTITIES, strict=False):
+        axis.axhline(0, color="0.6", lw=0.8)
+        axis.set_xticks(range(len(bands)), [f"{band} m" for band in bands], fontsize=8)
+        axis.set_title(f"{quantity} (pred − truth)", fontsize=9)
+    last = axes.flat[-1]
+    last.set_xticks(range(len(FIXES)), list(FIXES), fontsize=8)
+    last.set_title(f"AP_3D@{BREAKDOWN_IOU} gained if fixed", fontsize=9)
+    axes.flat[0].legend(fontsize=7)
+    matches = rows[0].errors["true_positives"]
+    figure.suptitle(
+        f"Box errors of the matches ({matches['overlap'].upper()} IoU > {matches['iou']:g}): "
+        "median and 16-84 % per range band; false positives' cost"
+    )
+    return _save(plt, figure, out, dpi=110)
+
+
 def draw_plots(run: Path, out_dir: Path) -> list[Path]:
     """Every plot the run's artifacts allow; [] (and no error) when matplotlib is missing."""
     try:
@@ -277,6 +325,7 @@ def draw_plots(run: Path, out_dir: Path) -> list[Path]:
         plot_size_distributions(run, out_dir / "pseudo_sizes.png"),
         plot_method_sizes(run, out_dir / "method_sizes.png", found),
         plot_bev_views(run, out_dir / "bev_views.png", found=found),
+        plot_error_breakdown(run, out_dir / "error_breakdown.png"),
         *plot_ppcg(run, out_dir),
     ]
     return [path for path in drawn if path is not None]

@@ -67,6 +67,8 @@ class Row:
     # {"0.7": [p_1, ..., p_40]}: AP_3D's interpolated precision at the recall positions k/40 of
     # the summary bucket (0 above the maximum recall), R40 blocks with curves only
     precision_3d: dict = field(default_factory=dict)
+    # metrics.json's error breakdown (dali_cli.evaluation.errors); None when the file predates it
+    errors: dict | None = None
 
 
 def _summary_key(block: dict) -> str | None:
@@ -158,14 +160,16 @@ def collect_rows(run: Path, rows=ROWS) -> list[Row]:
     collected = []
     for name, relative in rows:
         path = run / relative
+        errors = None
         if path.is_file():
             document = json.loads(path.read_text())
             ap, sizes, scale = read_metrics(path, document)
             bands, precision = read_bands(document), read_precision_3d(document)
+            errors = document.get("errors") if isinstance(document.get("errors"), dict) else None
         else:
             ap, sizes, scale, bands, precision = {}, {}, None, {}, {}
         kitti = read_kitti(path.with_name(KITTI_NAME))
-        collected.append(Row(name, relative, ap, sizes, scale, bands, kitti, precision))
+        collected.append(Row(name, relative, ap, sizes, scale, bands, kitti, precision, errors))
     return collected
 
 
@@ -319,6 +323,7 @@ def build_report(run: Path) -> tuple[str, dict]:
         parts += ["", "### KITTI difficulties (AP_R40)", "", by_difficulty]
     if any(row.ap for row in source_rows):
         parts += ["", "## Source validation (cross-domain check)", "", markdown_table(source_rows)]
+    parts += breakdown_section(rows + controls)
     parts += ptsn_section(scales) + timings_section(timings)
     missing = [row.name for row in rows if not row.ap]
     if missing:
@@ -394,6 +399,77 @@ def controls_section(rows: list, controls: list) -> list[str]:
                         f"\nGap from {what} to the oracle, both with x2's budget, closed by "
                         f"{final} (AP_{metric.upper()}@{iou}): {100 * equal:.0f}%"
                     )
+    return parts
+
+
+def _signed(value: float) -> str:
+    """`value` with its sign and 2 decimals; a value that rounds to 0 is +0.00, never -0.00."""
+    return f"{round(value, 2) + 0.0:+.2f}"
+
+
+NO_BREAKDOWN = "no breakdown: rerun dali eval --force"
+BREAKDOWN_IOU = "0.7"  # the threshold whose losses the report names
+
+
+def breakdown_section(rows: list[Row]) -> list[str]:
+    """Box errors of the matches and the false positives with the AP each fix gains, for the
+    rows whose metrics.json holds the error breakdown; rows evaluated before it existed are
+    named with NO_BREAKDOWN."""
+    from dali_cli.evaluation.errors import FIXES, KINDS, QUANTITIES, largest_loss
+
+    shown = [row for row in rows if row.errors]
+    stale = [row.name for row in rows if row.ap and not row.errors]
+    if not shown:
+        return (
+            _section("## Error breakdown", f"{NO_BREAKDOWN} ({', '.join(stale)})") if stale else []
+        )
+    first = shown[0].errors
+    matches = first["true_positives"]
+    parts = _section(
+        "## Error breakdown",
+        f"Box errors of the matches ({matches['overlap'].upper()} IoU > {matches['iou']:g}, "
+        f"{first['protocol']} {first['group']}, prediction − truth; radial > 0: too far from the "
+        "sensor; yaw: raw wrapped difference): median [16 %, 84 %]",
+        "",
+        "| method | matches | " + " | ".join(QUANTITIES) + " |",
+        "|---|---|" + "---|" * len(QUANTITIES),
+    )
+    for row in shown:
+        block = row.errors["true_positives"]["all"]
+        cells = [
+            "—" if block[q]["median"] is None
+            else f"{_signed(block[q]['median'])} [{_signed(block[q]['p16'])}, "
+                 f"{_signed(block[q]['p84'])}]"
+            for q in QUANTITIES
+        ]  # fmt: skip
+        parts.append(f"| {row.name} | {block['count']} | " + " | ".join(cells) + " |")
+    parts += [
+        "",
+        f"False positives at IoU {BREAKDOWN_IOU} (3D; every prediction kept) and AP_3D with each "
+        "kind fixed alone (TIDE's dAP: mislocalized boxes snapped to their car, duplicates or "
+        "background boxes removed, missed cars removed from the truth):",
+        "",
+        "| method | AP_3D | TP | FP | " + " | ".join(KINDS) + " | missed | "
+        + " | ".join(f"+{name}" for name in FIXES) + " | largest loss |",
+        "|---|---|---|---|" + "---|" * (len(KINDS) + 2 + len(FIXES)),
+    ]  # fmt: skip
+    for row in shown:
+        block = row.errors["false_positives"].get(BREAKDOWN_IOU, {}).get("3d")
+        if block is None:
+            continue
+        counts = block["counts"][row.errors["group"]]
+        gains = [
+            "—" if block["ap_fixed"][name] is None or block["ap"] is None
+            else _signed(block["ap_fixed"][name] - block["ap"])
+            for name in FIXES
+        ]  # fmt: skip
+        loss = largest_loss(block)
+        cells = [_cell(block["ap"]), counts["tp"], counts["fp"], *(counts[k] for k in KINDS),
+                 counts["missed"], *gains,
+                 "—" if loss is None else f"{loss[0]} ({_signed(loss[1])})"]  # fmt: skip
+        parts.append(f"| {row.name} | " + " | ".join(map(str, cells)) + " |")
+    if stale:
+        parts += ["", f"{NO_BREAKDOWN} ({', '.join(stale)})"]
     return parts
 
 
