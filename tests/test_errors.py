@@ -232,11 +232,17 @@ def test_ignored_boxes_are_neither_errors_nor_matches():
 # The command and the report
 
 
-def test_dali_eval_writes_and_prints_the_breakdown(tmp_path):
-    truth, gt, pred = scene()
+def scene_tables(directory):
+    """`scene()` written as box tables DIRECTORY/gt and DIRECTORY/pred; returns the predictions."""
+    _, gt, pred = scene()
     for name, boxes in (("gt", gt), ("pred", pred)):
-        (tmp_path / name).mkdir()
-        write_boxes(tmp_path / name, boxes)
+        (directory / name).mkdir()
+        write_boxes(directory / name, boxes)
+    return pred
+
+
+def test_dali_eval_writes_and_prints_the_breakdown(tmp_path):
+    pred = scene_tables(tmp_path)
     out = tmp_path / "metrics.json"
     args = ["eval", "--pred", str(tmp_path / "pred"), "--gt", str(tmp_path / "gt"),
             "--iou", "0.7", "--iou", "0.5", "--out", str(out), "--no-progress"]  # fmt: skip
@@ -262,10 +268,7 @@ def test_dali_eval_writes_and_prints_the_breakdown(tmp_path):
 
 
 def test_report_shows_the_breakdown_and_names_older_evaluations(tmp_path):
-    truth, gt, pred = scene()
-    for name, boxes in (("gt", gt), ("pred", pred)):
-        (tmp_path / name).mkdir()
-        write_boxes(tmp_path / name, boxes)
+    scene_tables(tmp_path)
     run = tmp_path / "run"
     runner = CliRunner()
     for row in ("iter0/eval", "iter2/eval"):

@@ -17,7 +17,7 @@ import numpy as np
 from dali_cli import geometry
 from dali_cli.evaluation.evaluate import (
     Scored,
-    evaluate,
+    average_precision,
     matched_ground_truth,
     scored_boxes,
 )
@@ -195,20 +195,21 @@ def breakdown(
         "false_positives": {},
     }
     options = dict(
-        recall_positions=recall_positions, protocol=scored.protocol, class_name=class_name,
-        min_gt_points=min_gt_points, frame_ids=list(scored.frame_ids), front_only=front_only,
+        protocol=scored.protocol, class_name=class_name, min_gt_points=min_gt_points,
+        frame_ids=list(scored.frame_ids), front_only=front_only,
     )  # fmt: skip
     for iou in ious:
-        base = evaluate(scored.pred_table, scored.gt_table, iou=iou, **options)[class_name]
         block = {}
         for metric in ("bev", "3d"):
             splits = {name: _split(scored, metric, name, iou) for name in scored.flags}
             fixed = _tables_fixed(scored, *splits[group][1:])
             block[metric] = {
                 "counts": {name: split[0] for name, split in splits.items()},
-                "ap": base[metric][group],
+                "ap": average_precision(scored, metric, group, iou, recall_positions),
                 "ap_fixed": {
-                    name: evaluate(p, g, iou=iou, **options)[class_name][metric][group]
+                    name: average_precision(
+                        scored_boxes(p, g, **options), metric, group, iou, recall_positions
+                    )
                     for name, (p, g) in fixed.items()
                 },
             }

@@ -702,6 +702,19 @@ def matched_ground_truth(scored: Scored, metric: str, group: str, iou: float) ->
     return matched
 
 
+def average_precision(
+    scored: Scored, metric: str, group: str, iou: float, recall_positions: int = 40
+) -> float | None:
+    """AP in percent of one overlap kind ("bev", "3d") and group of `scored` at `iou`: what
+    `evaluate` reports there, without the other kind and groups."""
+    ignored_gt, ignored_pred = scored.flags[group]
+    curve = _statistics(
+        scored.pred, scored.gt, scored.pairs, scored.overlap[metric], ignored_gt, ignored_pred,
+        iou, sample_points(recall_positions),
+    )  # fmt: skip
+    return _average_precision(curve, recall_positions)[0]
+
+
 def _checked_protocol(gt: BoxTable, iou: float, recall_positions: int, protocol: str) -> str:
     """The protocol to run ("auto" resolved); EvaluationError for a parameter it cannot take."""
     if recall_positions not in RECALL_POSITIONS:

@@ -299,7 +299,11 @@ def plot_error_breakdown(run: Path, out: Path) -> Path | None:
         axes.flat[-1].bar(np.arange(len(FIXES)) + shift, gains, width, label=row.name)
     for axis, quantity in zip(axes.flat, QUANTITIES, strict=False):
         axis.axhline(0, color="0.6", lw=0.8)
-        axis.set_xticks(range(len(bands)), [band if band == "all" else f"{band} m" for band in bands], fontsize=8)
+        axis.set_xticks(
+            range(len(bands)),
+            [band if band == "all" else f"{band} m" for band in bands],
+            fontsize=8,
+        )
         axis.set_title(f"{quantity} (pred − truth)", fontsize=9)
     last = axes.flat[-1]
     last.set_xticks(range(len(FIXES)), list(FIXES), fontsize=8)
