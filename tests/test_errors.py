@@ -293,7 +293,7 @@ def test_report_shows_the_breakdown_and_names_older_evaluations(tmp_path):
     assert "## Error breakdown" in text and "radial_m" in text
     section = text.split("## Error breakdown")[1].split("\n## ")[0]
     errors_row, losses_row = (line for line in section.splitlines() if "| Source only |" in line)
-    assert "| 45 | +0.30 [+0.30, +0.30] | +0.00 [+0.00, +0.00] |" in errors_row
+    assert "| 45 (0 turned > 90°) | +0.30 [+0.30, +0.30] | +0.00 [+0.00, +0.00] |" in errors_row
     # 14 of 60 cars missed outweigh one background and one mislocalized box
     block = json.loads((run / "iter0/eval/metrics.json").read_text())["errors"]
     block = block["false_positives"]["0.7"]["3d"]

@@ -263,12 +263,12 @@ def format_breakdown(result: dict) -> str:
     lines = [
         f"Error breakdown ({result['protocol']} {group}): {tps['all']['count']} true positives "
         f"at {tps['overlap'].upper()} IoU > {tps['iou']:g}, prediction - truth",
-        f"{'':<14}{'median':>8}{'bias':>8}{'med|e|':>8}{'16%':>8}{'84%':>8}",
+        f"{'':<14}{'median':>9}{'bias':>9}{'med|e|':>9}{'16%':>9}{'84%':>9}",
     ]
     for quantity in QUANTITIES:
         stats = tps["all"][quantity]
         cells = "".join(
-            f"{stats[k]:8.3f}" if stats[k] is not None else f"{'-':>8}"
+            f"{stats[k]:9.3f}" if stats[k] is not None else f"{'-':>9}"
             for k in ("median", "mean", "median_abs", "p16", "p84")
         )
         lines.append(f"{quantity:<14}{cells}")

@@ -442,7 +442,8 @@ def breakdown_section(rows: list[Row]) -> list[str]:
                  f"{_signed(block[q]['p84'])}]"
             for q in QUANTITIES
         ]  # fmt: skip
-        parts.append(f"| {row.name} | {block['count']} | " + " | ".join(cells) + " |")
+        count = f"{block['count']} ({block['flipped']} turned > 90°)"
+        parts.append(f"| {row.name} | {count} | " + " | ".join(cells) + " |")
     parts += [
         "",
         f"False positives at IoU {BREAKDOWN_IOU} (3D; every prediction kept) and AP_3D with each "
