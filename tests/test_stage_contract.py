@@ -133,6 +133,7 @@ def test_every_parameter_error_names_a_flag_of_its_command():
     for stage in (
         "import_kitti",
         "import_kitti_raw",
+        "import_kitti_odometry",
         "import_nuscenes",
         "import_openpcdet",
         "import_waymo",
