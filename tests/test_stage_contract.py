@@ -93,7 +93,7 @@ def test_stage_error_mapping(tmp_path):
 
 
 # library modules whose ParameterErrors reach the user through these commands
-SHARED_BODIES = {"dali_cli/ppcg/run.py": ("ppcg_rc", "ppcg_cf")}
+SHARED_BODIES = {"dali_cli/ppcg/run.py": ("ppcg_rc", "ppcg_cf"), "dali_cli/merge.py": ("merge",)}
 
 
 def parameter_fields(path: Path) -> set[str]:
