@@ -137,6 +137,20 @@ def read_id_list(path: str | Path) -> list[str]:
     return ids
 
 
+def indexed_scan_ids(directory: Path, what: str = "scan index") -> list[str]:
+    """Every `directory/*.bin` stem, each a whole scan index (digits only), sorted as text (the
+    datasets zero-pad them); ImportFormatError naming the file, or the directory without scans."""
+    ids = []
+    for path in sorted(directory.glob("*.bin")):
+        check_id(path.stem, f"{path}: file name")
+        if not path.stem.isdigit():
+            raise ImportFormatError(f"{path}: file name is not a {what}")
+        ids.append(path.stem)
+    if not ids:
+        raise ImportFormatError(f"{directory}: no .bin scans")
+    return ids
+
+
 def check_id(frame_id: str, where: str) -> str:
     """`frame_id` if it can name a file, else ImportFormatError `"<where>: frame id ..."`."""
     problem = name_problem(frame_id)

@@ -23,7 +23,7 @@ import pyarrow as pa
 
 from dali_cli.importers.common import (
     ImportFormatError,
-    check_id,
+    indexed_scan_ids,
     keyed_matrix,
     read_keyed,
     read_text_lines,
@@ -144,15 +144,7 @@ class OdometrySequence:
 
     def frame_ids(self) -> list[str]:
         """Every `velodyne/*.bin` stem (each a whole scan index), sorted."""
-        ids = []
-        for path in sorted(self.velodyne_dir.glob("*.bin")):
-            check_id(path.stem, f"{path}: file name")
-            if not path.stem.isdigit():
-                raise ImportFormatError(f"{path}: file name is not a scan index")
-            ids.append(path.stem)
-        if not ids:
-            raise ImportFormatError(f"{self.velodyne_dir}: no .bin scans")
-        return ids
+        return indexed_scan_ids(self.velodyne_dir)
 
     def image_size(self) -> tuple[int, int]:
         """camera 2's image size from `image_2/000000.png` when present, else KITTI's default."""

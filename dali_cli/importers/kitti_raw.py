@@ -31,7 +31,7 @@ from dali_cli.evaluation.camera import kitti_label_columns
 from dali_cli.geometry import count_points_in_boxes, wrap_angle
 from dali_cli.importers.common import (
     ImportFormatError,
-    check_id,
+    indexed_scan_ids,
     keyed_matrix,
     read_keyed,
     write_imported,
@@ -270,15 +270,7 @@ class RawDrive:
 
     def frame_ids(self) -> list[str]:
         """Every `velodyne_points/data/*.bin` stem (each a whole frame index), sorted."""
-        ids = []
-        for path in sorted(self.velodyne_dir.glob("*.bin")):
-            check_id(path.stem, f"{path}: file name")
-            if not path.stem.isdigit():
-                raise ImportFormatError(f"{path}: file name is not a frame index")
-            ids.append(path.stem)
-        if not ids:
-            raise ImportFormatError(f"{self.velodyne_dir}: no .bin scans")
-        return ids
+        return indexed_scan_ids(self.velodyne_dir, "frame index")
 
 
 def build_import(
