@@ -415,9 +415,10 @@ real-kitti-rows: $(foreach row,$(REAL_ROWS),$(RUN)/$(call row_field,$(row),3)/ma
     $(foreach set,$(REAL_OBJECT_SETS),$(foreach row,$(REAL_ROWS),$(RUN)/$(set)/$(call row_field,$(row),1)/manifest.json)) \
     $(foreach set,drive $(REAL_OBJECT_SETS),$(foreach pair,$(REAL_PAIRS),$(RUN)/compare_real/$(set)-$(call row_field,$(pair),1).json))
 # pseudo-label quality on the drive's frames (cars with >= 5 points, BEV IoU >= 0.5)
-real-kitti-pseudo:
-	$(BIN)/python bench/pseudo_labels.py --target $(TARGET_VAL) --pseudo $(RUN)/iter1/pseudo $(RUN)/iter2/pseudo \
-	    $(RUN)/iter3/pseudo $(RUN)/baselines/source_x2_budget/pseudo --iou 0.5 --min-points 5 --out $(RUN)/pseudo_labels.json
+REAL_PSEUDO = iter1/pseudo iter2/pseudo iter3/pseudo baselines/source_x2_budget/pseudo
+real-kitti-pseudo: $(foreach dir,$(REAL_PSEUDO),$(RUN)/$(dir)/manifest.json) $(TARGET_VAL)/manifest.json
+	$(BIN)/python bench/pseudo_labels.py --target $(TARGET_VAL) --pseudo $(foreach dir,$(REAL_PSEUDO),$(RUN)/$(dir)) \
+	    --iou 0.5 --min-points 5 --out $(RUN)/pseudo_labels.json
 # the data once, then every seed's rows, then the table over the seeds
 real-kitti: install
 	$(MAKE) $(SUBMAKE_FLAGS) real-kitti-data $(REAL_VARS)
