@@ -233,10 +233,19 @@ $(RUN)/baselines/oracle_x2_budget/model/manifest.json: $(TARGET)/manifest.json
 ST_EPOCHS ?= $(RETRAIN_EPOCHS)
 ST_FLAGS  ?= --lr 1e-3
 ST_BUDGET  = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(ST_EPOCHS))
-$(RUN)/iter2_st/model/manifest.json: $(RUN)/iter3/pseudo/manifest.json $(TARGET)/manifest.json
-	$(TRAIN_DALI) self-train --init $(RUN)/iter2/model --target $(TARGET) --pseudo $(RUN)/iter3/pseudo --seed $(SEED) $(ST_BUDGET) $(ST_FLAGS) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
-$(RUN)/iter2_st/eval/manifest.json: $(RUN)/iter2_st/model/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter2_st/model --data $(TARGET_VAL) --scale-from $(RUN)/iter3/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
+# a self-trained row: its directory, the model it starts from, its pseudo labels, their PTSN scale
+define SELF_TRAIN
+$(RUN)/$(1)/model/manifest.json: $(RUN)/$(3)/manifest.json $(TARGET)/manifest.json
+	$(TRAIN_DALI) self-train --init $(RUN)/$(2) --target $(TARGET) --pseudo $(RUN)/$(3) --seed $(SEED) $(ST_BUDGET) $(ST_FLAGS) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $$(@D)
+$(RUN)/$(1)/eval/manifest.json: $(RUN)/$(1)/model/manifest.json $(TARGET_VAL)/manifest.json
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/$(1)/model --data $(TARGET_VAL) --scale-from $(RUN)/$(4) $(EVAL_FLAGS) $(EXEC_FLAGS) --out $$(@D)
+endef
+$(eval $(call SELF_TRAIN,iter2_st,iter2/model,iter3/pseudo,iter3/ptsn))
+# the control self-trained the same way (control + ST): the x2-budget control pseudo-labels the
+# target at its own PTSN scale with iteration N's pseudo-label settings, then self-trains on them
+$(RUN)/baselines/%/pseudo/manifest.json: $(RUN)/baselines/%/ptsn/manifest.json
+	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --target $(TARGET) --scale-from $(RUN)/baselines/$*/ptsn --score-min $(SCORE_MIN) $(PSEUDO_FLAGS) $(EXEC_FLAGS) --out $(@D)
+$(eval $(call SELF_TRAIN,baselines/source_x2_budget_st,baselines/source_x2_budget/model,baselines/source_x2_budget/pseudo,baselines/source_x2_budget/ptsn))
 # KITTI easy / moderate / hard of the same predictions (synthetic labels carry KITTI's columns)
 KITTI_EVAL_FLAGS ?= --protocol kitti --iou 0.7 --iou 0.5 --score-min $(SCORE_MIN)
 $(RUN)/%/metrics_kitti.json: $(RUN)/%/manifest.json
@@ -295,61 +304,131 @@ compare: $(RUN)/compare_r40.json $(RUN)/compare_r400.json
     controls-x1 controls-x2 iter2-st kitti-protocol compare
 
 # ---------------------------------------------------------------------------------------------
-# The real target: a KITTI raw drive (make real-kitti). The demo's source model (DEMO_FRAMES
-# synthetic Waymo-like frames, DEMO_EPOCHS epochs) adapted to the drive's scans as the unlabeled
-# target (imported without its tracklets; camera field of view); every row is evaluated with KITTI's
-# protocol on the drive's tracklets (transductive, TARGET_VAL) and on the labelled KITTI object
-# frames of REAL_OBJECTS (inductive, $(RUN)/objects/<row>, at the scale the row's drive evaluation
-# used). Rows: source only, PTSN only, x1, x2, x2 + ST, the x2-budget control (source only + test-time
-# PTSN) and the sim oracle (labelled synthetic KITTI-like frames, x2's budget). Nothing is fetched:
-# REAL_DRIVE is a synced drive, its date folder above it holding the calib files (README, "A real
-# target"). Only `dali eval` and bench/pseudo_labels.py read the tracklets.
+# The real target: KITTI drives (make real-kitti). The demo's source model (DEMO_FRAMES synthetic
+# Waymo-like frames, DEMO_EPOCHS epochs) adapted to one unlabeled target made of the scans of every
+# drive of REAL_DRIVES, once per seed of SEEDS (REAL_RUN-s<seed>; data seeds and training seeds
+# follow the seed). REAL_DRIVES holds raw synced drives (.../YYYY_MM_DD_drive_NNNN_sync, the calib
+# files in the date folder above) and KITTI odometry sequences (.../sequences/NN), each imported
+# without labels into REAL_DATA/drives/<name> (raw: the drive without _sync; odometry:
+# odometry_NN), then merged (dali merge) into REAL_DATA/target, frame ids <name>-<frame>.
+# The evaluation sets are camera field of view, and so is the target: raw drives and sequences with
+# a calib.txt are cropped to camera 2's image (--crop-fov); a sequence without calib (odometry 00
+# of the sample data) to the front REAL_FRONT_DEG degrees of azimuth, the image's width, which
+# also keeps the near ground below the image (docs/data.md).
+# Every row is evaluated with KITTI's protocol on REAL_DRIVE's tracklets (TARGET_VAL:
+# REAL_DATA/drive_labels) and on the labelled KITTI object frames of REAL_OBJECTS, at the scale the
+# row's drive evaluation used: with a frames table (REAL_FRAMES_TABLE, KITTI devkit's mapping of
+# each object frame to its raw drive: columns id, raw_drive) split into the frames of the target's
+# drives (REAL_DATA/objects_adapted, transductive) and of other drives (objects_other, inductive);
+# without one, all of them (objects). Rows: source only, PTSN only, x1, x2, x2 + ST, the x2-budget
+# control (source only + test-time PTSN), control + ST (the control pseudo-labelling the target at
+# its own PTSN scale and self-trained like x2 + ST) and the sim oracle (labelled synthetic
+# KITTI-like frames, x2's budget); x2 against the control and x2 + ST against control + ST also
+# with `dali compare` (a paired bootstrap over each set's frames). REAL_REPORT/real-kitti.md: the
+# mean ± std over the seeds per row and set, each row minus the control paired by seed
+# (bench/real_kitti_table.py). The source trainings (iter0, the control, the sim oracle) are
+# the targets of `make RUN=REAL_RUN-s<seed> SEED=<seed> FRAMES=48 EPOCHS=6` as well: those built
+# that way are reused. Nothing is fetched (docs/data.md). Only `dali eval`, `dali compare` and
+# the bench scripts read the tracklets and the object labels.
 REAL_DRIVE   ?= data/kitti_raw/2011_09_26/2011_09_26_drive_0001_sync
+REAL_DRIVES  ?= $(REAL_DRIVE)
 REAL_OBJECTS ?= tests/fixtures/real/kitti/training
+REAL_FRAMES_TABLE ?= $(firstword $(wildcard $(REAL_OBJECTS)/frames.tsv $(REAL_OBJECTS)/../frames.tsv))
+REAL_FRONT_DEG ?= 82
 REAL_RUN     ?= runs/real-kitti
+REAL_DATA    ?= $(REAL_RUN)-data
+REAL_REPORT  ?= $(REAL_RUN)-report
 REAL_EVAL_FLAGS = --protocol kitti --iou 0.7 --iou 0.5 --score-min $(SCORE_MIN)
-REAL_VARS = RUN=$(REAL_RUN) FRAMES=$(DEMO_FRAMES) EPOCHS=$(DEMO_EPOCHS) EVAL_FLAGS="$(REAL_EVAL_FLAGS)" \
-    TARGET=$(REAL_RUN)/data/drive TARGET_VAL=$(REAL_RUN)/data/drive_labels
-OBJECTS ?= $(RUN)/data/objects
+REAL_VARS = FRAMES=$(DEMO_FRAMES) EPOCHS=$(DEMO_EPOCHS) EVAL_FLAGS="$(REAL_EVAL_FLAGS)" REAL_DATA=$(REAL_DATA) \
+    TARGET=$(REAL_DATA)/target TARGET_VAL=$(REAL_DATA)/drive_labels
+# KITTI odometry devkit: the raw drive of each sequence (for the object frames' split)
+ODOMETRY_RAW_DRIVES ?= 00=2011_10_03_drive_0027 01=2011_10_03_drive_0042 02=2011_10_03_drive_0034 \
+    03=2011_09_26_drive_0067 04=2011_09_30_drive_0016 05=2011_09_30_drive_0018 06=2011_09_30_drive_0020 \
+    07=2011_09_30_drive_0027 08=2011_09_30_drive_0028 09=2011_09_30_drive_0033 10=2011_09_30_drive_0034
+real_dir = $(patsubst %/,%,$(1))
+is_raw_drive = $(filter %_sync,$(call real_dir,$(1)))
+# a drive's name in the target's frame ids, and its raw drive as the frames table names it
+drive_name = $(if $(call is_raw_drive,$(1)),$(patsubst %_sync,%,$(notdir $(call real_dir,$(1)))),odometry_$(notdir $(call real_dir,$(1))))
+raw_drive_of = $(if $(call is_raw_drive,$(1)),$(notdir $(call real_dir,$(1))),$(addsuffix _sync,$(patsubst $(notdir $(call real_dir,$(1)))=%,%,$(filter $(notdir $(call real_dir,$(1)))=%,$(ODOMETRY_RAW_DRIVES)))))
+REAL_DRIVE_NAMES = $(foreach drive,$(REAL_DRIVES),$(call drive_name,$(drive)))
+REAL_TARGET_RAW_DRIVES = $(foreach drive,$(REAL_DRIVES),$(call raw_drive_of,$(drive)))
+# the ids of the table's frames in (1) or not in (0) the target's drives
+real_object_ids = awk -F'\t' -v drives=' $(REAL_TARGET_RAW_DRIVES) ' -v inside=$(1) \
+    'NR > 1 && (index(drives, " " $$2 " ") > 0) == inside { print $$1 }' $(REAL_FRAMES_TABLE)
+REAL_OBJECT_SETS = $(if $(REAL_FRAMES_TABLE),$(if $(shell $(call real_object_ids,1)),objects_adapted) \
+    $(if $(shell $(call real_object_ids,0)),objects_other),objects)
+# a target drive's import (unlabeled, camera field of view)
+define REAL_DRIVE_IMPORT
+$(REAL_DATA)/drives/$(call drive_name,$(1))/manifest.json: | install
+	$(if $(call is_raw_drive,$(1)),$(DALI) import kitti-raw $(1) --no-labels --crop-fov,$(DALI) import kitti-odometry $(1) $(if $(wildcard $(1)/calib.txt),--crop-fov,--crop-front-deg $(REAL_FRONT_DEG))) --out $$(@D)
+endef
+$(foreach drive,$(REAL_DRIVES),$(eval $(call REAL_DRIVE_IMPORT,$(drive))))
+$(REAL_DATA)/target/manifest.json: $(foreach name,$(REAL_DRIVE_NAMES),$(REAL_DATA)/drives/$(name)/manifest.json)
+	$(DALI) merge $(foreach name,$(REAL_DRIVE_NAMES),--in $(name)=$(REAL_DATA)/drives/$(name)) --no-labels --out $(@D)
+# the drive's tracklets, its frame ids named as in the target (for the pseudo-label diagnostic)
+$(REAL_DATA)/drive_tracklets/manifest.json: | install
+	$(DALI) import kitti-raw $(REAL_DRIVE) --crop-fov --out $(@D)
+$(REAL_DATA)/drive_labels/manifest.json: $(REAL_DATA)/drive_tracklets/manifest.json
+	$(DALI) merge --in $(call drive_name,$(REAL_DRIVE))=$(REAL_DATA)/drive_tracklets --out $(@D)
+$(REAL_DATA)/objects/manifest.json: | install
+	$(DALI) import kitti $(REAL_OBJECTS) --crop-fov --out $(@D)
+$(REAL_DATA)/objects_adapted.txt $(REAL_DATA)/objects_other.txt: $(REAL_FRAMES_TABLE)
+	@mkdir -p $(@D)
+	$(call real_object_ids,$(if $(findstring adapted,$(@F)),1,0)) > $@.tmp && mv $@.tmp $@
+$(REAL_DATA)/objects_%/manifest.json: $(REAL_DATA)/objects_%.txt | install
+	$(DALI) import kitti $(REAL_OBJECTS) --ids $< --crop-fov --out $(@D)
 # the sim oracle: the oracle of the x2 budget trained on the synthetic KITTI-like frames
 $(RUN)/baselines/sim_oracle_x2_budget/model/manifest.json: $(RUN)/data/target/manifest.json
 	$(TRAIN_DALI) pretrain --source $(RUN)/data/target --seed $(SEED) $(X2_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
-$(RUN)/data/drive/manifest.json: | install
-	$(DALI) import kitti-raw $(REAL_DRIVE) --no-labels --crop-fov --out $(@D)
-$(RUN)/data/drive_labels/manifest.json: | install
-	$(DALI) import kitti-raw $(REAL_DRIVE) --crop-fov --out $(@D)
-$(RUN)/data/objects/manifest.json: | install
-	$(DALI) import kitti $(REAL_OBJECTS) --crop-fov --out $(@D)
-# a row on the object frames: name, model, its drive evaluation, the scale flag that evaluation used
+# the rows: name, model, drive evaluation, the scale flag of that evaluation
+REAL_ROWS = source:iter0/model:iter0/eval:--scale=1.0 \
+    ptsn:iter0/model:iter0/eval_ptsn:--scale-from=$(RUN)/iter1/ptsn \
+    x1:iter1/model:iter1/eval:--scale-from=$(RUN)/iter2/ptsn \
+    x2:iter2/model:iter2/eval:--scale-from=$(RUN)/iter3/ptsn \
+    x2_st:iter2_st/model:iter2_st/eval:--scale-from=$(RUN)/iter3/ptsn \
+    control:baselines/source_x2_budget/model:baselines/source_x2_budget/eval_ptsn:--scale-from=$(RUN)/baselines/source_x2_budget/ptsn \
+    control_st:baselines/source_x2_budget_st/model:baselines/source_x2_budget_st/eval:--scale-from=$(RUN)/baselines/source_x2_budget/ptsn \
+    oracle:baselines/sim_oracle_x2_budget/model:baselines/sim_oracle_x2_budget/eval:--scale=1.0
+row_field = $(word $(2),$(subst :, ,$(1)))
+# a row (1) on an object set (2): the row's model at the scale its drive evaluation used
 define OBJECTS_ROW
-$(RUN)/objects/$(1)/manifest.json: $(RUN)/$(3)/manifest.json $(OBJECTS)/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/$(2) --data $(OBJECTS) $(4) $(EVAL_FLAGS) $(EXEC_FLAGS) --out $$(@D)
+$(RUN)/$(2)/$(call row_field,$(1),1)/manifest.json: $(RUN)/$(call row_field,$(1),3)/manifest.json $(REAL_DATA)/$(2)/manifest.json
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/$(call row_field,$(1),2) --data $(REAL_DATA)/$(2) $(subst =, ,$(call row_field,$(1),4)) $(EVAL_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 endef
-$(eval $(call OBJECTS_ROW,source,iter0/model,iter0/eval,--scale 1.0))
-$(eval $(call OBJECTS_ROW,ptsn,iter0/model,iter0/eval_ptsn,--scale-from $(RUN)/iter1/ptsn))
-$(eval $(call OBJECTS_ROW,x1,iter1/model,iter1/eval,--scale-from $(RUN)/iter2/ptsn))
-$(eval $(call OBJECTS_ROW,x2,iter2/model,iter2/eval,--scale-from $(RUN)/iter3/ptsn))
-$(eval $(call OBJECTS_ROW,x2_st,iter2_st/model,iter2_st/eval,--scale-from $(RUN)/iter3/ptsn))
-$(eval $(call OBJECTS_ROW,control,baselines/source_x2_budget/model,baselines/source_x2_budget/eval_ptsn,--scale-from $(RUN)/baselines/source_x2_budget/ptsn))
-$(eval $(call OBJECTS_ROW,oracle,baselines/sim_oracle_x2_budget/model,baselines/sim_oracle_x2_budget/eval,--scale 1.0))
-REAL_ROWS = source ptsn x1 x2 x2_st control oracle
-real-kitti-data: $(RUN)/data/drive/manifest.json $(RUN)/data/drive_labels/manifest.json \
-    $(RUN)/data/objects/manifest.json
-real-kitti-dali: iter2-st
-real-kitti-control: $(RUN)/baselines/source_x2_budget/eval_ptsn/manifest.json
-real-kitti-oracle: $(RUN)/baselines/sim_oracle_x2_budget/eval/manifest.json
-real-kitti-objects: $(foreach row,$(REAL_ROWS),$(RUN)/objects/$(row)/manifest.json)
-# pseudo-label quality on the drive (cars with >= 5 points, BEV IoU >= 0.5), then the table
-real-kitti-report:
-	$(BIN)/python bench/pseudo_labels.py --target $(RUN)/data/drive_labels --pseudo $(RUN)/iter1/pseudo \
-	    $(RUN)/iter2/pseudo $(RUN)/iter3/pseudo --iou 0.5 --min-points 5 --out $(RUN)/pseudo_labels.json
-	$(BIN)/python bench/real_kitti_table.py $(RUN) --out $(RUN)/real-kitti.md
+$(foreach set,$(REAL_OBJECT_SETS),$(foreach row,$(REAL_ROWS),$(eval $(call OBJECTS_ROW,$(row),$(set)))))
+# x2 against the control and x2 + ST against control + ST on each set: a paired bootstrap over its
+# frames (KITTI R40, IoU 0.7); the predictions are the rows' evaluations'
+REAL_PAIRS = x2:control x2_st:control_st
+real_eval_dir = $(if $(filter drive,$(2)),$(call row_field,$(filter $(1):%,$(REAL_ROWS)),3),$(2)/$(1))
+real_truth = $(if $(filter drive,$(1)),$(TARGET_VAL),$(REAL_DATA)/$(1))
+define REAL_COMPARE
+$(RUN)/compare_real/$(2)-$(call row_field,$(1),1).json: $(RUN)/$(call real_eval_dir,$(call row_field,$(1),1),$(2))/manifest.json $(RUN)/$(call real_eval_dir,$(call row_field,$(1),2),$(2))/manifest.json
+	@mkdir -p $$(@D)
+	$(DALI) compare --gt $(call real_truth,$(2)) --pred $(call row_field,$(1),2)=$(RUN)/$(call real_eval_dir,$(call row_field,$(1),2),$(2))/predictions.parquet \
+	    --pred $(call row_field,$(1),1)=$(RUN)/$(call real_eval_dir,$(call row_field,$(1),1),$(2))/predictions.parquet \
+	    --protocol kitti --iou 0.7 --recall-positions 40 --samples $(COMPARE_SAMPLES) --seed $(SEED) --no-progress --out $$@
+endef
+$(foreach set,drive $(REAL_OBJECT_SETS),$(foreach pair,$(REAL_PAIRS),$(eval $(call REAL_COMPARE,$(pair),$(set)))))
+real-kitti-data: $(REAL_DATA)/target/manifest.json $(REAL_DATA)/drive_labels/manifest.json \
+    $(foreach set,$(REAL_OBJECT_SETS),$(REAL_DATA)/$(set)/manifest.json)
+real-kitti-rows: $(foreach row,$(REAL_ROWS),$(RUN)/$(call row_field,$(row),3)/manifest.json) \
+    $(foreach set,$(REAL_OBJECT_SETS),$(foreach row,$(REAL_ROWS),$(RUN)/$(set)/$(call row_field,$(row),1)/manifest.json)) \
+    $(foreach set,drive $(REAL_OBJECT_SETS),$(foreach pair,$(REAL_PAIRS),$(RUN)/compare_real/$(set)-$(call row_field,$(pair),1).json))
+# pseudo-label quality on the drive's frames (cars with >= 5 points, BEV IoU >= 0.5)
+REAL_PSEUDO = iter1/pseudo iter2/pseudo iter3/pseudo baselines/source_x2_budget/pseudo
+real-kitti-pseudo: $(foreach dir,$(REAL_PSEUDO),$(RUN)/$(dir)/manifest.json) $(TARGET_VAL)/manifest.json
+	$(BIN)/python bench/pseudo_labels.py --target $(TARGET_VAL) --pseudo $(foreach dir,$(REAL_PSEUDO),$(RUN)/$(dir)) \
+	    --iou 0.5 --min-points 5 --out $(RUN)/pseudo_labels.json
+# the data once, then every seed's rows, then the table over the seeds
 real-kitti: install
-	$(MAKE) $(SUBMAKE_FLAGS) real-kitti-data real-kitti-dali real-kitti-control real-kitti-oracle \
-	    real-kitti-objects $(REAL_VARS)
-	$(MAKE) $(SUBMAKE_FLAGS) real-kitti-report $(REAL_VARS)
-.PHONY: real-kitti real-kitti-data real-kitti-dali real-kitti-control real-kitti-oracle real-kitti-objects \
-    real-kitti-report
+	$(MAKE) $(SUBMAKE_FLAGS) real-kitti-data $(REAL_VARS)
+	@for seed in $(SEEDS); do \
+	    $(MAKE) $(SUBMAKE_FLAGS) real-kitti-rows real-kitti-pseudo RUN=$(REAL_RUN)-s$$seed SEED=$$seed $(REAL_VARS) || exit 1; \
+	done
+	@mkdir -p $(REAL_REPORT)
+	$(BIN)/python bench/real_kitti_table.py $(foreach seed,$(SEEDS),$(REAL_RUN)-s$(seed)) --data $(REAL_DATA) \
+	    --sets drive $(REAL_OBJECT_SETS) --out $(REAL_REPORT)/real-kitti.md
+.PHONY: real-kitti real-kitti-data real-kitti-rows real-kitti-pseudo
 
 report: | install
 	$(DALI) report $(RUN)

@@ -13,6 +13,9 @@ RC leaves as they are), and the true / false positives kept at higher score cuts
     .venv/bin/python bench/pseudo_labels.py --target RUN/data/target \
         --pseudo RUN/iter1/pseudo_raw RUN/iter1/pseudo [--iou 0.5] [--out bench/results/pseudo_labels.json]
 
+Only the pseudo boxes on the labelled set's frames count (a target of several drives is
+pseudo-labelled on every drive; the labels may cover one).
+
 Truth counted: every target label of class Car inside the detection grid (x 0..70.4 m,
 |y| <= 40 m, the detector's default range) with at least --min-points points.
 """
@@ -33,7 +36,7 @@ sys.path.insert(0, str(ROOT))
 
 from dali_cli.geometry import bev_iou  # noqa: E402
 from dali_cli.runtime.machine import cpu_model  # noqa: E402
-from dali_cli.store.artifacts import read_boxes  # noqa: E402
+from dali_cli.store.artifacts import FrameSet, read_boxes  # noqa: E402
 
 BANDS = ((0.0, 30.0), (30.0, 50.0), (50.0, 80.0))
 GRID_X, GRID_Y = (0.0, 70.4), 40.0
@@ -62,8 +65,14 @@ def match(pred: np.ndarray, scores: np.ndarray, truth: np.ndarray, iou: float) -
     return matched
 
 
-def evaluate(pseudo_dir: Path, truth_table, iou: float, min_points: int) -> dict:
+def evaluate(
+    pseudo_dir: Path, truth_table, iou: float, min_points: int, frames: set | None = None
+) -> dict:
+    """Pseudo boxes against `truth_table`; with `frames` (the labelled set's frame ids) only
+    those on its frames."""
     pseudo = read_boxes(pseudo_dir)
+    if frames is not None:
+        pseudo = pseudo.select(np.isin(pseudo.frame_id.astype(str), sorted(frames)))
     truth_rows, pseudo_rows = truth_table.rows_by_frame(), pseudo.rows_by_frame()
     pred_range, truth_range, pred_hit, truth_hit, size_error = [], [], [], [], []
     car_distance, scores, points = [], [], []
@@ -159,6 +168,7 @@ def main() -> None:
     args = parser.parse_args()
     truth = read_boxes(args.target)
     truth = truth.select(np.asarray(truth["label"]).astype(str) == "Car")
+    frames = set(FrameSet(args.target).frame_ids)
     grid = in_grid(truth.boxes) & (truth["num_points"] >= args.min_points)
     result = {
         "command": "bench/pseudo_labels.py " + " ".join(sys.argv[1:]),
@@ -170,7 +180,7 @@ def main() -> None:
             "mean_lwh_in_grid": [round(float(v), 4) for v in truth.boxes[grid, 3:6].mean(axis=0)],
             "mean_lwh_all": [round(float(v), 4) for v in truth.boxes[:, 3:6].mean(axis=0)],
         },
-        "pseudo": [evaluate(p, truth, args.iou, args.min_points) for p in args.pseudo],
+        "pseudo": [evaluate(p, truth, args.iou, args.min_points, frames) for p in args.pseudo],
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")

@@ -1,13 +1,17 @@
-"""The real-target table of `make real-kitti` (markdown): every row's KITTI AP on the drive's
-tracklets (transductive) and on the labelled object frames (inductive), the mean predicted size
-against the labels', the pseudo labels' precision and recall on the drive (by score band, and
-where the false boxes lie), and each stage's wall time.
+"""The real-target table of `make real-kitti` (markdown) over one run per seed: every row's KITTI
+AP (Car, R40, moderate) on each evaluation set as mean ± std over the seeds, every row minus the
+equal-budget control paired by seed, `dali compare`'s paired bootstrap over the frames (x2 against
+the control, x2 + ST against control + ST), the pseudo labels' precision and recall on the
+labelled drive (by score band, and where the false boxes lie) and each stage's wall time.
 
-    .venv/bin/python bench/real_kitti_table.py RUN [--out RUN/real-kitti.md]
+    .venv/bin/python bench/real_kitti_table.py RUN-s0 RUN-s1 RUN-s2 --data REAL_DATA \
+        [--sets drive objects_adapted objects_other] [--out REPORT/real-kitti.md]
 
-A diagnostic: it reads the drive's labels (RUN/data/drive_labels), which no DALI stage does.
-Pseudo-label truth: the drive's cars with at least --min-points points inside the detection grid;
-a pseudo box is a true positive at BEV IoU > --iou with a not yet matched car (greedy by score).
+Sets: `drive` is the labelled drive (REAL_DATA/drive_labels, the rows' drive evaluations); any
+other name is an object-frame set REAL_DATA/<set> evaluated into RUN/<set>/<row>.
+A diagnostic: it reads the drive's labels, which no DALI stage does. Pseudo-label truth: the
+drive's cars with at least --min-points points inside the detection grid; a pseudo box is a true
+positive at BEV IoU > --iou with a not yet matched car (greedy by score).
 """
 
 from __future__ import annotations
@@ -28,68 +32,148 @@ from pseudo_labels import HALLUCINATED_M, in_grid, match  # noqa: E402
 from dali_cli.geometry import point_box_indices  # noqa: E402
 from dali_cli.store.artifacts import FrameSet, read_boxes  # noqa: E402
 
-# row name, its drive evaluation, its object-frame evaluation
+# row name, its drive evaluation, its name on the object sets (RUN/<set>/<name>)
 ROWS = (
-    ("source only", "iter0/eval", "objects/source"),
-    ("PTSN only", "iter0/eval_ptsn", "objects/ptsn"),
-    ("DALI x1", "iter1/eval", "objects/x1"),
-    ("DALI x2", "iter2/eval", "objects/x2"),
-    ("DALI x2 + ST", "iter2_st/eval", "objects/x2_st"),
-    (
-        "control (source, x2 budget, PTSN)",
-        "baselines/source_x2_budget/eval_ptsn",
-        "objects/control",
-    ),
-    ("sim oracle (x2 budget)", "baselines/sim_oracle_x2_budget/eval", "objects/oracle"),
+    ("source only", "iter0/eval", "source"),
+    ("PTSN only", "iter0/eval_ptsn", "ptsn"),
+    ("DALI x1", "iter1/eval", "x1"),
+    ("DALI x2", "iter2/eval", "x2"),
+    ("DALI x2 + ST", "iter2_st/eval", "x2_st"),
+    ("control (source, x2 budget, PTSN)", "baselines/source_x2_budget/eval_ptsn", "control"),
+    ("control + ST", "baselines/source_x2_budget_st/eval", "control_st"),
+    ("sim oracle (x2 budget)", "baselines/sim_oracle_x2_budget/eval", "oracle"),
 )
-LEVELS = ("easy", "moderate", "hard")
+CONTROL = "control"
+# `dali compare` files (RUN/compare_real/<set>-<row>.json): the row against its reference
+PAIRS = (("x2", "control"), ("x2_st", "control_st"))
+# (metric key, IoU key in metrics.json, header)
+METRICS = (
+    ("bev", "Car", "BEV@0.7"),
+    ("3d", "Car", "3D@0.7"),
+    ("bev", "Car@0.5", "BEV@0.5"),
+    ("3d", "Car@0.5", "3D@0.5"),
+)
 SCORE_BANDS = ((0.3, 0.4), (0.4, 0.5), (0.5, 0.6), (0.6, 0.8), (0.8, 1.01))
 FLAT_M = 0.5  # a box whose points span less height than this holds road, curb or clutter
+SET_TITLES = {
+    "drive": "the labelled drive's tracklets",
+    "objects_adapted": "labelled object frames of the target's drives (transductive)",
+    "objects_other": "labelled object frames of other drives (inductive)",
+    "objects": "labelled object frames",
+}
 
 
 def read_json(path: Path) -> dict | None:
     return json.loads(path.read_text()) if path.is_file() else None
 
 
-def ap_cells(metrics: dict | None) -> list[str]:
-    """AP_BEV, AP_3D at 0.7 (easy, moderate, hard), then at 0.5 (moderate) as text cells."""
-    if metrics is None:
-        return ["-"] * 8
-    strict, loose = metrics["Car"], metrics.get("Car@0.5", {})
-    cells = [f"{strict[kind][level]:.1f}" for kind in ("bev", "3d") for level in LEVELS]
-    cells += [f"{loose[kind]['moderate']:.1f}" if loose else "-" for kind in ("bev", "3d")]
-    return cells
+def metrics_of(run: Path, set_name: str, row: tuple[str, str, str]) -> dict | None:
+    """A row's metrics.json on a set, or None when it was not evaluated (yet)."""
+    directory = run / row[1] if set_name == "drive" else run / set_name / row[2]
+    return read_json(directory / "metrics.json")
 
 
-def size_cell(metrics: dict | None) -> str:
-    if metrics is None or not metrics.get("sizes", {}).get("pred"):
+def moderate(metrics: dict | None, kind: str, block: str) -> float | None:
+    if metrics is None or block not in metrics:
+        return None
+    return float(metrics[block][kind]["moderate"])
+
+
+def spread(values: list[float], sign: str = "") -> str:
+    """`mean ± std` (sample std) of the values there are (`sign="+"`: signed), `-` when none."""
+    if not values:
         return "-"
-    return " × ".join(f"{v:.2f}" for v in metrics["sizes"]["pred"])
+    mean = f"{np.mean(values):{sign}.1f}"
+    return mean if len(values) == 1 else f"{mean} ± {np.std(values, ddof=1):.1f}"
 
 
-def ap_table(run: Path, column: int) -> list[str]:
-    header = (
-        "| row | BEV@0.7 E | M | H | 3D@0.7 E | M | H | BEV@0.5 M | 3D@0.5 M | mean l × w × h "
-        "(score ≥ 0.3) | scale |"
-    )
-    lines = [header, "|" + "---|" * 11]
-    truth = None
-    for name, *paths in ROWS:
-        metrics = read_json(run / paths[column] / "metrics.json")
-        if metrics is not None and truth is None:
-            truth = metrics["sizes"]["gt"]
-        scale = f"{metrics['scale']:.3f}" if metrics and metrics.get("scale") else "-"
-        cells = [name, *ap_cells(metrics), size_cell(metrics), scale]
-        lines.append("| " + " | ".join(cells) + " |")
-    if truth:
-        lines.append("")
-        lines.append("Labelled cars' mean l × w × h: " + " × ".join(f"{v:.2f}" for v in truth))
+def ap_table(runs: list[Path], set_name: str) -> list[str]:
+    """Each row's moderate AP over the seeds, then the per-seed BEV / 3D at 0.7."""
+    headers = [header for _, _, header in METRICS]
+    lines = [
+        "| row | " + " | ".join(headers) + " | per seed BEV / 3D @0.7 |",
+        "|---|" + "---|" * (len(headers) + 1),
+    ]
+    for row in ROWS:
+        found = [metrics_of(run, set_name, row) for run in runs]
+        cells = []
+        for kind, block, _ in METRICS:
+            values = [moderate(m, kind, block) for m in found]
+            cells.append(spread([v for v in values if v is not None]))
+        per_seed = " · ".join(
+            "-"
+            if m is None
+            else f"{moderate(m, 'bev', 'Car'):.1f} / {moderate(m, '3d', 'Car'):.1f}"
+            for m in found
+        )
+        lines.append(f"| {row[0]} | " + " | ".join(cells) + f" | {per_seed} |")
+    return lines
+
+
+def paired_table(runs: list[Path], set_name: str) -> list[str]:
+    """Every row minus the control, seed by seed (only seeds where both were evaluated)."""
+    control = next(row for row in ROWS if row[2] == CONTROL)
+    headers = [header for _, _, header in METRICS]
+    lines = [
+        "| row − control | " + " | ".join(headers) + " | per seed BEV@0.7 |",
+        "|---|" + "---|" * (len(headers) + 1),
+    ]
+    for row in ROWS:
+        if row is control:
+            continue
+        cells, per_seed = [], []
+        for kind, block, _ in METRICS:
+            deltas = []
+            for run in runs:
+                mine = moderate(metrics_of(run, set_name, row), kind, block)
+                theirs = moderate(metrics_of(run, set_name, control), kind, block)
+                delta = None if mine is None or theirs is None else mine - theirs
+                if delta is not None:
+                    deltas.append(delta)
+                if (kind, block) == ("bev", "Car"):
+                    per_seed.append("-" if delta is None else f"{delta:+.1f}")
+            cells.append(spread(deltas, sign="+"))
+        lines.append(f"| {row[0]} | " + " | ".join(cells) + f" | {' · '.join(per_seed)} |")
+    return lines
+
+
+def bootstrap_table(runs: list[Path], sets: list[str]) -> list[str]:
+    """`dali compare`'s paired bootstrap per set, pair and seed: Δ AP (moderate, IoU 0.7) ± the
+    bootstrap std, its 95 % interval and P(Δ ≤ 0)."""
+    lines = [
+        "| set | row − reference | seed | Δ BEV ± std | 95 % | P(Δ≤0) | Δ 3D ± std | 95 % | P(Δ≤0) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for set_name in sets:
+        for row, reference in PAIRS:
+            for run in runs:
+                document = read_json(run / "compare_real" / f"{set_name}-{row}.json")
+                if document is None:
+                    continue
+                entry = document["bootstrap"]["rows"][row]
+                cells = []
+                for kind in ("bev", "3d"):
+                    metric = entry.get(f"{kind} moderate")
+                    if metric is None or metric.get("delta") is None:
+                        cells += ["-", "-", "-"]
+                        continue
+                    low, high = metric["delta_interval_95"]
+                    cells += [
+                        f"{metric['delta']:+.1f} ± {metric['delta_std']:.1f}",
+                        f"[{low:+.1f}, {high:+.1f}]",
+                        f"{metric['share_not_above_reference']:.2f}",
+                    ]
+                lines.append(
+                    f"| {set_name} | {row} − {reference} | {run.name} | " + " | ".join(cells) + " |"
+                )
     return lines
 
 
 def pseudo_label_quality(pseudo_dir: Path, truth, frames: FrameSet, iou: float, min_points: int):
-    """Precision / recall of one pseudo-label set, by score band, and where false boxes lie."""
+    """Precision / recall of one pseudo-label set on the labelled frames `frames` (a target of
+    several drives is pseudo-labelled on all of them), by score band, and where false boxes lie."""
     pseudo = read_boxes(pseudo_dir)
+    pseudo = pseudo.select(np.isin(pseudo.frame_id.astype(str), frames.frame_ids))
     truth_rows, pseudo_rows = truth.rows_by_frame(), pseudo.rows_by_frame()
     hits, scores, near, flat, ranges, found, true_ranges = [], [], [], [], [], [], []
     for frame_id in sorted(set(truth_rows) | set(pseudo_rows)):
@@ -158,34 +242,37 @@ def pct(value) -> str:
     return "-" if value is None else f"{100 * value:.0f} %"
 
 
-def pseudo_section(run: Path, iou: float, min_points: int) -> tuple[list[str], dict]:
-    truth = read_boxes(run / "data/drive_labels")
+PSEUDO_SETS = ("iter1/pseudo", "iter2/pseudo", "iter3/pseudo", "baselines/source_x2_budget/pseudo")
+
+
+def pseudo_section(
+    runs: list[Path], data: Path, iou: float, min_points: int
+) -> tuple[list[str], dict]:
+    """The pseudo labels of every run on the labelled drive's frames."""
+    truth = read_boxes(data / "drive_labels")
     truth = truth.select(np.asarray(truth["label"]).astype(str) == "Car")
-    frames = FrameSet(run / "data/drive")
+    frames = FrameSet(data / "drive_labels")
     lines = [
         f"Drive cars in the detection grid with ≥ {min_points} points; a match is BEV IoU > {iou:g}.",
         "",
-        "| pseudo labels | boxes | boxes / frame | cars | precision | recall | recall < 30 m |",
-        "|---|---|---|---|---|---|---|",
+        "| run | pseudo labels | boxes | boxes / frame | cars | precision | recall | recall < 30 m |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     results = {}
-    for name in ("iter1", "iter2", "iter3"):
-        directory = run / name / "pseudo"
-        if not (directory / "manifest.json").is_file():
-            continue
-        result = pseudo_label_quality(directory, truth, frames, iou, min_points)
-        results[name] = result
-        per_frame = result["boxes"] / max(result["frames"], 1)
-        lines.append(
-            f"| {name}/pseudo | {result['boxes']} | {per_frame:.1f} | {result['cars']} | "
-            f"{pct(result['precision'])} | {pct(result['recall'])} | {pct(result['recall_0_30'])} |"
-        )
+    for run in runs:
+        for name in PSEUDO_SETS:
+            directory = run / name
+            if not (directory / "manifest.json").is_file():
+                continue
+            result = pseudo_label_quality(directory, truth, frames, iou, min_points)
+            results[f"{run.name}/{name}"] = result
+            per_frame = result["boxes"] / max(len(frames), 1)
+            lines.append(
+                f"| {run.name} | {name} | {result['boxes']} | {per_frame:.1f} | {result['cars']} | "
+                f"{pct(result['precision'])} | {pct(result['recall'])} | {pct(result['recall_0_30'])} |"
+            )
     for name, result in results.items():
-        lines += [
-            "",
-            f"{name}/pseudo by score band (precision in the band; P and R at or above it):",
-            "",
-        ]
+        lines += ["", f"{name} by score band (precision in the band; P and R at or above it):", ""]
         lines += ["| score | boxes | precision | P ≥ | R ≥ |", "|---|---|---|---|---|"]
         for band in result["bands"]:
             lines.append(
@@ -195,7 +282,7 @@ def pseudo_section(run: Path, iou: float, min_points: int) -> tuple[list[str], d
         false = result["false"]
         lines += [
             "",
-            f"{name}/pseudo false boxes: {false['boxes']}; within {HALLUCINATED_M:g} m of a labelled "
+            f"{name} false boxes: {false['boxes']}; within {HALLUCINATED_M:g} m of a labelled "
             f"car {false['near_a_car']}; away from cars and flat (their points span < {FLAT_M} m "
             f"of height: road, curb, low clutter) {false['flat_away_from_cars']}; away from cars "
             f"and taller {false['tall_away_from_cars']}; by range: < 20 m {false['within_20_m']}, "
@@ -204,38 +291,57 @@ def pseudo_section(run: Path, iou: float, min_points: int) -> tuple[list[str], d
     return lines, results
 
 
-def wall_times(run: Path) -> list[str]:
-    lines = ["| stage output | wall s |", "|---|---|"]
-    total = 0.0
-    for manifest in sorted(run.rglob("manifest.json")):
-        data = read_json(manifest)
-        seconds = (data or {}).get("timings", {}).get("wall_seconds")
-        if seconds is None:
-            continue
-        total += seconds
-        lines.append(f"| {manifest.parent.relative_to(run)} | {seconds:.0f} |")
-    lines.append(f"| all stages | {total:.0f} |")
+def wall_times(runs: list[Path], data: Path) -> list[str]:
+    """Each stage's wall time per run (the shared data once) and the totals."""
+    lines = ["| stage output | " + " | ".join(run.name for run in runs) + " |"]
+    lines.append("|---|" + "---|" * len(runs))
+    seconds: dict[str, dict[int, float]] = {}
+    for column, run in enumerate(runs):
+        for manifest in sorted(run.rglob("manifest.json")):
+            wall = ((read_json(manifest) or {}).get("timings") or {}).get("wall_seconds")
+            if wall is not None:
+                seconds.setdefault(str(manifest.parent.relative_to(run)), {})[column] = wall
+    for stage, by_run in seconds.items():
+        cells = [f"{by_run[c]:.0f}" if c in by_run else "-" for c in range(len(runs))]
+        lines.append(f"| {stage} | " + " | ".join(cells) + " |")
+    totals = [sum(by_run.get(c, 0.0) for by_run in seconds.values()) for c in range(len(runs))]
+    lines.append("| all stages | " + " | ".join(f"{t:.0f}" for t in totals) + " |")
+    shared = sum(
+        ((read_json(m) or {}).get("timings") or {}).get("wall_seconds") or 0.0
+        for m in data.rglob("manifest.json")
+    )
+    lines += ["", f"Shared data ({data.name}: imports, merges): {shared:.0f} s."]
     return lines
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("run", type=Path)
+    parser.add_argument("runs", type=Path, nargs="+", help="one run per seed")
+    parser.add_argument(
+        "--data", type=Path, required=True, help="the runs' shared data (REAL_DATA)"
+    )
+    parser.add_argument("--sets", nargs="+", default=["drive", "objects_adapted", "objects_other"])
     parser.add_argument("--iou", type=float, default=0.5)
     parser.add_argument("--min-points", type=int, default=5)
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
-    run = args.run
-    lines = ["## On the drive's tracklets (transductive, KITTI R40, Car)", ""]
-    lines += ap_table(run, 0)
-    lines += ["", "## On the labelled KITTI object frames (inductive, KITTI R40, Car)", ""]
-    lines += ap_table(run, 1)
+    seeds = len(args.runs)
+    lines = [
+        f"KITTI R40, Car, moderate; mean ± std over {seeds} run(s): {', '.join(r.name for r in args.runs)}."
+    ]
+    for set_name in args.sets:
+        title = SET_TITLES.get(set_name, set_name)
+        lines += ["", f"## On {title} ({set_name})", ""] + ap_table(args.runs, set_name)
+        lines += ["", "Paired by seed:", ""] + paired_table(args.runs, set_name)
+    lines += ["", "## Paired bootstrap over the frames (`dali compare`, per seed)", ""]
+    lines += bootstrap_table(args.runs, args.sets)
     lines += ["", "## Pseudo labels on the drive", ""]
-    pseudo_lines, results = pseudo_section(run, args.iou, args.min_points)
+    pseudo_lines, results = pseudo_section(args.runs, args.data, args.iou, args.min_points)
     lines += pseudo_lines
-    lines += ["", "## Wall time per stage", ""] + wall_times(run)
+    lines += ["", "## Wall time per stage (s)", ""] + wall_times(args.runs, args.data)
     text = "\n".join(lines) + "\n"
     if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text)
         args.out.with_suffix(".json").write_text(json.dumps(results, indent=2) + "\n")
     print(text)

@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "Point and car statistics of frame sets side by side (real vs synthetic).",
     ),
     "import": ("importers", "Import KITTI, nuScenes or OpenPCDet data."),
+    "merge": ("merge", "One frame set from several (e.g. a target of several drives)."),
     "export": ("export", "Export boxes to other formats (KITTI label_2)."),
     "view": ("view", "Draw a frame with boxes as a PNG."),
     "size-norm": ("size_norm", "A labeled frame set with cars resized to a model's SN size."),

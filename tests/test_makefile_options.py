@@ -19,6 +19,11 @@ GOALS = [
     ("experiment", "SEEDS=0 1", "EXPERIMENT_LANES=1"),
     ("experiment", "SEEDS=0", "SOURCE_SENSOR=nuscenes"),
     ("real-kitti", "REAL_DRIVE=/data/2011_09_26/2011_09_26_drive_0001_sync"),
+    (
+        "real-kitti",
+        "SEEDS=0 1",
+        "REAL_DRIVES=/data/2011_09_26/2011_09_26_drive_0005_sync /data/sequences/04",
+    ),
     ("iter2-st", "x1-long", "baselines", "controls", "kitti-protocol", "cross-domain", "compare"),
     ("iter2", "DEVICE=cuda", "PRECISION=bf16"),
 ]

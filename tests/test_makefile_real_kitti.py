@@ -1,62 +1,254 @@
-"""`make real-kitti`'s plan (`make -n`, nothing runs): only `dali eval` and the bench diagnostics
-read the drive's tracklets; the DALI stages and the control adapt to the unlabeled drive, the sim
-oracle trains on synthetic frames, and every row is evaluated on the drive and on the object
-frames."""
+"""`make real-kitti`'s plan (`make -n`, nothing trains) over several drives and seeds: every drive
+imported unlabeled and merged into one target, the DALI stages and the controls adapting to it,
+every row evaluated on the labelled drive and on the object frames split by their drive, control +
+ST self-trained exactly like x2 + ST, the source trainings the same commands as the plain per-run
+targets (so runs built that way are reused), and the object frames' split run for real."""
 
 from __future__ import annotations
 
+import shlex
 import shutil
-import subprocess
 from pathlib import Path
 
 import pytest
-
-REPO = Path(__file__).resolve().parents[1]
+from make_plans import dali_commands, make
 
 pytestmark = pytest.mark.skipif(shutil.which("make") is None, reason="make is not installed")
 
+LABELLED = "/data/raw/2011_09_26/2011_09_26_drive_0001_sync"
+RAW = "/data/scans/2011_09_26/2011_09_26_drive_0005_sync"
+SEEDS = ("0", "1")
+# the object frames' raw drives: 0005 and odometry 04's (2011_09_30_drive_0016) are in the target
+TABLE = [
+    ("000001", "2011_09_26_drive_0005_sync"),
+    ("000002", "2011_09_26_drive_0101_sync"),
+    ("000003", "2011_09_30_drive_0016_sync"),
+    ("000004", "2011_10_03_drive_0047_sync"),
+]
+ROWS = {  # row -> (model, drive evaluation)
+    "source": ("iter0/model", "iter0/eval"),
+    "ptsn": ("iter0/model", "iter0/eval_ptsn"),
+    "x1": ("iter1/model", "iter1/eval"),
+    "x2": ("iter2/model", "iter2/eval"),
+    "x2_st": ("iter2_st/model", "iter2_st/eval"),
+    "control": ("baselines/source_x2_budget/model", "baselines/source_x2_budget/eval_ptsn"),
+    "control_st": ("baselines/source_x2_budget_st/model", "baselines/source_x2_budget_st/eval"),
+    "oracle": ("baselines/sim_oracle_x2_budget/model", "baselines/sim_oracle_x2_budget/eval"),
+}
+SOURCE_TRAININGS = (
+    "data/source",
+    "data/target",
+    "iter0/model",
+    "baselines/source_x2_budget/model",
+    "baselines/sim_oracle_x2_budget/model",
+)
+
 
 @pytest.fixture(scope="module")
-def commands(tmp_path_factory) -> list[str]:
-    run = tmp_path_factory.mktemp("real") / "run"
-    result = subprocess.run(
-        ["make", "--no-print-directory", "-n", "-C", str(REPO), "real-kitti", f"REAL_RUN={run}",
-         "REAL_DRIVE=/data/2011_09_26/2011_09_26_drive_0001_sync"],
-        capture_output=True, text=True, timeout=60, check=True,
-    )  # fmt: skip
-    lines = [line for line in result.stdout.splitlines() if "/bin/dali " in line]
-    return [line.split("/bin/dali ", 1)[1] for line in lines] + [
-        line for line in result.stdout.splitlines() if "bench/" in line
+def setup(tmp_path_factory) -> dict:
+    """Object frames with a frames table, odometry sequences 00 (no calib) and 04 (calib)."""
+    root = tmp_path_factory.mktemp("real")
+    (root / "kitti" / "training").mkdir(parents=True)
+    lines = ["id\traw_drive\traw_frame\tcars\tpoints"]
+    lines += [f"{frame}\t{drive}\t0\t1\t100" for frame, drive in TABLE]
+    (root / "kitti" / "frames.tsv").write_text("\n".join(lines) + "\n")
+    for sequence in ("00", "04"):
+        (root / "odometry" / "sequences" / sequence / "velodyne").mkdir(parents=True)
+    (root / "odometry" / "sequences" / "04" / "calib.txt").write_text("P2: 0\n")
+    drives = [LABELLED, RAW, f"{root}/odometry/sequences/00", f"{root}/odometry/sequences/04/"]
+    variables = [
+        f"REAL_RUN={root / 'run'}",
+        f"REAL_DRIVE={LABELLED}",
+        f"REAL_DRIVES={' '.join(drives)}",
+        f"REAL_OBJECTS={root / 'kitti' / 'training'}",
+        f"SEEDS={' '.join(SEEDS)}",
     ]
+    data = root / "run-data"
+    commands = [
+        shlex.split(line.split("/bin/dali ", 1)[1])
+        for line in dali_commands("real-kitti", *variables)
+    ]
+    return {
+        "root": root,
+        "data": data,
+        "run": root / "run",
+        "variables": variables,
+        "commands": commands,
+    }
 
 
-def test_only_eval_and_bench_read_the_tracklets(commands):
-    readers = [line for line in commands if "drive_labels" in line]
-    assert readers
-    for line in readers:
-        assert line.startswith(("eval ", "import kitti-raw ")) or "bench/" in line, line
-        if line.startswith("import kitti-raw "):
-            assert "--no-labels" not in line and "--out" in line and "drive_labels" in line
-    unlabeled = [line for line in commands if line.startswith("import kitti-raw ")]
-    assert any(
-        "--no-labels" in line and line.rstrip().endswith("/data/drive") for line in unlabeled
+def option(words: list[str], name: str) -> str | None:
+    return words[words.index(name) + 1] if name in words else None
+
+
+def values(words: list[str], name: str) -> list[str]:
+    """Every value of a repeated option, in order."""
+    return [words[i + 1] for i, word in enumerate(words[:-1]) if word == name]
+
+
+def options(words: list[str], skip: tuple[str, ...]) -> list[str]:
+    """The words of a command without the options `skip` and their values."""
+    kept, drop = [], False
+    for word in words:
+        if drop:
+            drop = False
+        elif word in skip:
+            drop = True
+        else:
+            kept.append(word)
+    return kept
+
+
+def named(commands, *verb: str) -> list[list[str]]:
+    return [words for words in commands if tuple(words[: len(verb)]) == verb]
+
+
+def test_every_drive_is_imported_unlabeled_and_merged_into_the_target(setup):
+    data, commands = setup["data"], setup["commands"]
+    imports = {
+        option(w, "--out"): w for w in named(commands, "import") if "/drives/" in option(w, "--out")
+    }
+    raw = {f"{data}/drives/2011_09_26_drive_0001", f"{data}/drives/2011_09_26_drive_0005"}
+    odometry = {f"{data}/drives/odometry_00", f"{data}/drives/odometry_04"}
+    assert set(imports) == raw | odometry
+    for out in raw:
+        assert imports[out][:2] == ["import", "kitti-raw"]
+        assert "--no-labels" in imports[out] and "--crop-fov" in imports[out]
+    # camera field of view everywhere: through the calib where there is one, else by azimuth
+    assert "--crop-fov" in imports[f"{data}/drives/odometry_04"]
+    assert option(imports[f"{data}/drives/odometry_00"], "--crop-front-deg") == "82"
+    assert "--crop-fov" not in imports[f"{data}/drives/odometry_00"]
+    merges = [w for w in named(commands, "merge") if option(w, "--out") == f"{data}/target"]
+    assert merges and all(w == merges[0] for w in merges)
+    inputs = values(merges[0], "--in")
+    assert (
+        inputs == [f"{Path(out).name}={out}" for out in sorted(imports)]
+        and "--no-labels" in merges[0]
     )
 
 
-def test_dali_stages_adapt_to_the_unlabeled_drive(commands):
-    stages = ("ptsn-sweep", "pseudo-label", "ppcg-rc", "ppcg-cf", "self-train")
-    for line in commands:
-        if line.split(" ", 1)[0] in stages:
-            assert "/data/drive " in line + " " and "drive_labels" not in line, line
-    oracle = [
-        line for line in commands if "sim_oracle_x2_budget/model" in line and "pretrain" in line
+def test_the_dali_stages_and_the_controls_adapt_to_the_merged_target(setup):
+    data, commands = setup["data"], setup["commands"]
+    adapting = [
+        w
+        for w in commands
+        if w[0] in ("ptsn-sweep", "pseudo-label", "ppcg-rc", "ppcg-cf", "self-train")
     ]
-    assert len(oracle) == 1 and "--source " in oracle[0] and "/data/target " in oracle[0] + " "
+    assert adapting
+    assert all(option(w, "--target") == f"{data}/target" for w in adapting)
+    # only the evaluations, the comparisons and the merge that names the drive's frames read labels
+    for words in commands:
+        if any(
+            "drive_labels" in word or "/objects" in word or "drive_tracklets" in word
+            for word in words
+        ):
+            assert words[0] in ("eval", "compare", "merge", "import"), words
+    labelled = named(commands, "import", "kitti-raw")
+    assert {option(w, "--out") for w in labelled if "--no-labels" not in w} == {
+        f"{data}/drive_tracklets"
+    }
 
 
-def test_every_row_is_evaluated_on_both_sets(commands):
-    evals = [line for line in commands if line.startswith("eval ")]
-    on_drive = [line for line in evals if "--data" in line and "drive_labels" in line]
-    on_objects = [line for line in evals if "/data/objects" in line]
-    assert len(on_drive) == len(on_objects) == 7
-    assert all("--protocol kitti" in line for line in evals)
+def test_every_row_is_evaluated_on_every_set_in_every_seed(setup):
+    data, commands = setup["data"], setup["commands"]
+    evals = named(commands, "eval")
+    assert all("--protocol" in w and option(w, "--protocol") == "kitti" for w in evals)
+    assert all(" ".join(w).count("--iou") == 2 for w in evals)
+    for seed in SEEDS:
+        run = f"{setup['run']}-s{seed}"
+        on_drive = {
+            option(w, "--out"): w for w in evals if option(w, "--data") == f"{data}/drive_labels"
+        }
+        for row, (model, drive_eval) in ROWS.items():
+            drive = on_drive[f"{run}/{drive_eval}"]
+            assert option(drive, "--model") == f"{run}/{model}"
+            scale = options(drive, ("--data", "--out"))
+            for set_name in ("objects_adapted", "objects_other"):
+                on_set = [w for w in evals if option(w, "--out") == f"{run}/{set_name}/{row}"]
+                assert len({" ".join(w) for w in on_set}) == 1, (row, set_name)
+                assert option(on_set[0], "--data") == f"{data}/{set_name}"
+                # the same model at the same scale as on the drive
+                assert options(on_set[0], ("--data", "--out")) == scale
+
+
+def test_control_st_is_pseudo_labelled_and_self_trained_like_x2_st(setup):
+    commands = setup["commands"]
+    run = f"{setup['run']}-s0"
+    pseudo = {option(w, "--out"): w for w in named(commands, "pseudo-label")}
+    x2, control = pseudo[f"{run}/iter3/pseudo"], pseudo[f"{run}/baselines/source_x2_budget/pseudo"]
+    assert option(control, "--model") == f"{run}/baselines/source_x2_budget/model"
+    assert option(control, "--scale-from") == f"{run}/baselines/source_x2_budget/ptsn"
+    skip = ("--model", "--scale-from", "--out")
+    assert options(control, skip) == options(x2, skip)
+    train = {option(w, "--out"): w for w in named(commands, "self-train")}
+    x2_st = train[f"{run}/iter2_st/model"]
+    control_st = train[f"{run}/baselines/source_x2_budget_st/model"]
+    assert option(control_st, "--init") == f"{run}/baselines/source_x2_budget/model"
+    assert option(control_st, "--pseudo") == f"{run}/baselines/source_x2_budget/pseudo"
+    skip = ("--init", "--pseudo", "--out")
+    assert options(control_st, skip) == options(x2_st, skip)
+    assert option(control_st, "--epochs") == option(x2_st, "--epochs") is not None
+
+
+def test_the_pairs_are_compared_on_every_set_with_a_paired_bootstrap(setup):
+    data, commands = setup["data"], setup["commands"]
+    compares = {option(w, "--out"): w for w in named(commands, "compare")}
+    truth = {"drive": f"{data}/drive_labels", "objects_adapted": f"{data}/objects_adapted",
+             "objects_other": f"{data}/objects_other"}  # fmt: skip
+    for seed in SEEDS:
+        run = f"{setup['run']}-s{seed}"
+        for set_name, gt in truth.items():
+            for row, reference in (("x2", "control"), ("x2_st", "control_st")):
+                words = compares[f"{run}/compare_real/{set_name}-{row}.json"]
+                assert option(words, "--gt") == gt and option(words, "--seed") == seed
+                preds = values(words, "--pred")
+                directory = [
+                    f"{run}/{ROWS[name][1]}" if set_name == "drive" else f"{run}/{set_name}/{name}"
+                    for name in (reference, row)
+                ]
+                assert preds == [
+                    f"{name}={d}/predictions.parquet"
+                    for name, d in zip((reference, row), directory, strict=True)
+                ]
+
+
+def test_the_source_trainings_are_the_plain_run_targets(setup):
+    """The same commands as `make RUN=REAL_RUN-s<seed> SEED=<seed> FRAMES=48 EPOCHS=6 <targets>`:
+    runs started that way are the ones `make real-kitti` continues."""
+    for seed in SEEDS:
+        run = f"{setup['run']}-s{seed}"
+        targets = [f"{run}/{path}/manifest.json" for path in SOURCE_TRAININGS]
+        plain = dali_commands(
+            f"RUN={run}",
+            f"SEED={seed}",
+            "FRAMES=48",
+            "EPOCHS=6",
+            "TRAIN_FLAGS=--threads=1",
+            *targets,
+        )
+        assert len(plain) == len(SOURCE_TRAININGS)
+        real = dali_commands("real-kitti", "TRAIN_FLAGS=--threads=1", *setup["variables"])
+        for line in plain:
+            assert line in real, line
+
+
+def test_the_object_frames_are_split_by_their_drive(setup):
+    data = setup["data"]
+    goals = [f"{data}/objects_adapted.txt", f"{data}/objects_other.txt"]
+    result = make(*goals, *setup["variables"])
+    assert result.returncode == 0, result.stderr
+    adapted = (data / "objects_adapted.txt").read_text().split()
+    other = (data / "objects_other.txt").read_text().split()
+    assert adapted == ["000001", "000003"] and other == ["000002", "000004"]
+    imports = {option(w, "--out"): w for w in named(setup["commands"], "import", "kitti")}
+    for set_name in ("objects_adapted", "objects_other"):
+        words = imports[f"{data}/{set_name}"]
+        assert option(words, "--ids") == f"{data}/{set_name}.txt" and "--crop-fov" in words
+
+
+def test_without_a_frames_table_all_object_frames_are_one_set(tmp_path):
+    commands = dali_commands("real-kitti", f"REAL_RUN={tmp_path / 'run'}", f"REAL_DRIVE={LABELLED}",
+                             f"REAL_OBJECTS={tmp_path}")  # fmt: skip
+    outs = {option(shlex.split(line.split("/bin/dali ", 1)[1]), "--out") for line in commands}
+    assert f"{tmp_path}/run-data/objects" in outs
+    assert not any("objects_" in out for out in outs if out)

@@ -93,7 +93,7 @@ def test_stage_error_mapping(tmp_path):
 
 
 # library modules whose ParameterErrors reach the user through these commands
-SHARED_BODIES = {"dali_cli/ppcg/run.py": ("ppcg_rc", "ppcg_cf")}
+SHARED_BODIES = {"dali_cli/ppcg/run.py": ("ppcg_rc", "ppcg_cf"), "dali_cli/merge.py": ("merge",)}
 
 
 def parameter_fields(path: Path) -> set[str]:
@@ -133,6 +133,7 @@ def test_every_parameter_error_names_a_flag_of_its_command():
     for stage in (
         "import_kitti",
         "import_kitti_raw",
+        "import_kitti_odometry",
         "import_nuscenes",
         "import_openpcdet",
         "import_waymo",

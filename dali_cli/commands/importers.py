@@ -1,4 +1,4 @@
-"""`dali import kitti|kitti-raw|nuscenes|openpcdet|waymo`: other datasets' files -> a FrameSet + boxes.parquet."""
+"""`dali import kitti|kitti-raw|kitti-odometry|nuscenes|openpcdet|waymo`: other datasets' files -> a FrameSet + boxes.parquet."""
 
 from __future__ import annotations
 
@@ -99,6 +99,41 @@ def kitti_raw_command(
     outcome = import_kitti_raw(
         drive_dir, out, calib_dir=calib_dir, tracklets=tracklets, labels=not no_labels,
         crop_fov=crop_fov, sensor=sensor, progress=not no_progress, **run,
+    )  # fmt: skip
+    _summary(outcome)
+
+
+@command.command(name="kitti-odometry", short_help="KITTI odometry / SemanticKITTI sequence.")
+@click.argument("sequence_dir", type=click.Path(exists=True, file_okay=False))
+@click.option("--calib", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="calib.txt (P2, Tr). Default: SEQUENCE_DIR/calib.txt when present.")  # fmt: skip
+@click.option("--poses", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="Poses file (3 x 4 per line). Default: SEQUENCE_DIR/poses.txt, else "
+                   "SEQUENCE_DIR/../../poses/<NN>.txt (the devkit layout), when present.")  # fmt: skip
+@click.option("--crop-fov", is_flag=True,
+              help="Keep only points that project into camera 2's image (needs the calib).")  # fmt: skip
+@click.option("--crop-front-deg", type=finite_range(0, 360, min_open=True), default=None,
+              metavar="DEG",
+              help="Keep only points within ±DEG/2 of straight ahead in azimuth (for a sequence "
+                   "without calib; KITTI's camera 2 sees about 82 degrees).")  # fmt: skip
+@import_options("kitti")
+def kitti_odometry_command(
+    sequence_dir, calib, poses, crop_fov, crop_front_deg, sensor, out, no_progress, **run
+):
+    """Import a KITTI odometry or SemanticKITTI sequence SEQUENCE_DIR (sequences/NN), unlabeled.
+
+    Reads velodyne/*.bin (float32 x, y, z, reflectance; frame ids are the file names' scan
+    indices), calib.txt (P2 and Tr: velodyne -> rectified camera 0) when present, times.txt and
+    the poses (3 x 4 camera-0 poses, one a line) when present. Line i of times.txt and of the
+    poses belongs to scan i, so a directory with part of a sequence's scans reads their lines.
+    Writes OUT/frames.zarr and, with times or poses, OUT/sequence.parquet (frame_id, index,
+    time_s, pose_00 .. pose_23 row-major).
+    """
+    from stages.import_kitti_odometry import import_kitti_odometry
+
+    outcome = import_kitti_odometry(
+        sequence_dir, out, calib=calib, poses=poses, crop_fov=crop_fov,
+        crop_front_deg=crop_front_deg, sensor=sensor, progress=not no_progress, **run,
     )  # fmt: skip
     _summary(outcome)
 

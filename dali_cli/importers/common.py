@@ -80,6 +80,38 @@ def read_text_lines(path: str | Path, what: str) -> list[str]:
         ) from None
 
 
+def read_keyed(path: Path) -> dict[str, tuple[int, str]]:
+    """`KEY: values` lines of a raw calib file -> {key: (line number, value text)}."""
+    values = {}
+    for number, line in enumerate(read_text_lines(path, "calib file"), start=1):
+        if not line.strip():
+            continue
+        key, sep, rest = line.partition(":")
+        if not sep:
+            raise ImportFormatError(f"{path}, line {number}: expected 'KEY: values', got {line!r}")
+        values[key.strip()] = (number, rest)
+    return values
+
+
+def keyed_matrix(path: Path, values: dict, key: str, shape: tuple[int, int]) -> np.ndarray:
+    """The `shape` float64 matrix of `key`; errors name the file, line and key."""
+    if key not in values:
+        raise ImportFormatError(f"{path}: calib key '{key}' missing")
+    number, text = values[key]
+    try:
+        numbers = np.array([float(v) for v in text.split()], dtype=np.float64)
+    except ValueError:
+        raise ImportFormatError(f"{path}, line {number}: '{key}' has a non-numeric value") from None
+    size = shape[0] * shape[1]
+    if numbers.size != size:
+        raise ImportFormatError(
+            f"{path}, line {number}: '{key}' has {numbers.size} values, expected {size}"
+        )
+    if not np.isfinite(numbers).all():
+        raise ImportFormatError(f"{path}, line {number}: '{key}' has NaN/inf values")
+    return numbers.reshape(shape)
+
+
 def read_id_list(path: str | Path) -> list[str]:
     """Frame ids from a text file, one per line (blank lines and `#` comments ignored).
 
@@ -102,6 +134,20 @@ def read_id_list(path: str | Path) -> list[str]:
             )
         first_line[frame_id] = number
         ids.append(frame_id)
+    return ids
+
+
+def indexed_scan_ids(directory: Path, what: str = "scan index") -> list[str]:
+    """Every `directory/*.bin` stem, each a whole scan index (digits only), sorted as text (the
+    datasets zero-pad them); ImportFormatError naming the file, or the directory without scans."""
+    ids = []
+    for path in sorted(directory.glob("*.bin")):
+        check_id(path.stem, f"{path}: file name")
+        if not path.stem.isdigit():
+            raise ImportFormatError(f"{path}: file name is not a {what}")
+        ids.append(path.stem)
+    if not ids:
+        raise ImportFormatError(f"{directory}: no .bin scans")
     return ids
 
 

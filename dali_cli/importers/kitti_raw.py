@@ -31,8 +31,9 @@ from dali_cli.evaluation.camera import kitti_label_columns
 from dali_cli.geometry import count_points_in_boxes, wrap_angle
 from dali_cli.importers.common import (
     ImportFormatError,
-    check_id,
-    read_text_lines,
+    indexed_scan_ids,
+    keyed_matrix,
+    read_keyed,
     write_imported,
 )
 from dali_cli.importers.kitti import (
@@ -56,38 +57,6 @@ _POSE_FIELDS = ("tx", "ty", "tz", "rz", "occlusion", "truncation")
 # Calibration
 
 
-def _read_keyed(path: Path) -> dict[str, tuple[int, str]]:
-    """`KEY: values` lines of a raw calib file -> {key: (line number, value text)}."""
-    values = {}
-    for number, line in enumerate(read_text_lines(path, "calib file"), start=1):
-        if not line.strip():
-            continue
-        key, sep, rest = line.partition(":")
-        if not sep:
-            raise ImportFormatError(f"{path}, line {number}: expected 'KEY: values', got {line!r}")
-        values[key.strip()] = (number, rest)
-    return values
-
-
-def _matrix(path: Path, values: dict, key: str, shape: tuple[int, int]) -> np.ndarray:
-    """The `shape` float64 matrix of `key`; errors name the file, line and key."""
-    if key not in values:
-        raise ImportFormatError(f"{path}: calib key '{key}' missing")
-    number, text = values[key]
-    try:
-        numbers = np.array([float(v) for v in text.split()], dtype=np.float64)
-    except ValueError:
-        raise ImportFormatError(f"{path}, line {number}: '{key}' has a non-numeric value") from None
-    size = shape[0] * shape[1]
-    if numbers.size != size:
-        raise ImportFormatError(
-            f"{path}, line {number}: '{key}' has {numbers.size} values, expected {size}"
-        )
-    if not np.isfinite(numbers).all():
-        raise ImportFormatError(f"{path}, line {number}: '{key}' has NaN/inf values")
-    return numbers.reshape(shape)
-
-
 def read_raw_calib(calib_dir: str | Path) -> tuple[Calibration, tuple[int, int]]:
     """The day's calibration of camera 2 from `calib_cam_to_cam.txt` and `calib_velo_to_cam.txt`.
 
@@ -96,16 +65,16 @@ def read_raw_calib(calib_dir: str | Path) -> tuple[Calibration, tuple[int, int]]
     """
     calib_dir = Path(calib_dir)
     cam_path, velo_path = calib_dir / "calib_cam_to_cam.txt", calib_dir / "calib_velo_to_cam.txt"
-    cam, velo = _read_keyed(cam_path), _read_keyed(velo_path)
-    p2 = _matrix(cam_path, cam, "P_rect_02", (3, 4))
-    r0 = _matrix(cam_path, cam, "R_rect_00", (3, 3))
-    rotation = _matrix(velo_path, velo, "R", (3, 3))
-    translation = _matrix(velo_path, velo, "T", (3, 1))
+    cam, velo = read_keyed(cam_path), read_keyed(velo_path)
+    p2 = keyed_matrix(cam_path, cam, "P_rect_02", (3, 4))
+    r0 = keyed_matrix(cam_path, cam, "R_rect_00", (3, 3))
+    rotation = keyed_matrix(velo_path, velo, "R", (3, 3))
+    translation = keyed_matrix(velo_path, velo, "T", (3, 1))
     if abs(np.linalg.det(r0)) < 1e-6 or abs(np.linalg.det(rotation)) < 1e-6:
         raise ImportFormatError(f"{calib_dir}: R_rect_00 or the velodyne R is singular")
     size = DEFAULT_IMAGE_SIZE
     if "S_rect_02" in cam:
-        width, height = _matrix(cam_path, cam, "S_rect_02", (1, 2))[0]
+        width, height = keyed_matrix(cam_path, cam, "S_rect_02", (1, 2))[0]
         if width < 1 or height < 1:
             raise ImportFormatError(f"{cam_path}, line {cam['S_rect_02'][0]}: 'S_rect_02' <= 0")
         size = (int(round(width)), int(round(height)))
@@ -301,15 +270,7 @@ class RawDrive:
 
     def frame_ids(self) -> list[str]:
         """Every `velodyne_points/data/*.bin` stem (each a whole frame index), sorted."""
-        ids = []
-        for path in sorted(self.velodyne_dir.glob("*.bin")):
-            check_id(path.stem, f"{path}: file name")
-            if not path.stem.isdigit():
-                raise ImportFormatError(f"{path}: file name is not a frame index")
-            ids.append(path.stem)
-        if not ids:
-            raise ImportFormatError(f"{self.velodyne_dir}: no .bin scans")
-        return ids
+        return indexed_scan_ids(self.velodyne_dir, "frame index")
 
 
 def build_import(

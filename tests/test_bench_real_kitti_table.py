@@ -1,0 +1,82 @@
+"""bench/real_kitti_table.py over runs whose metrics are written here: mean ± std over the seeds,
+every row minus the control paired by seed, and the bootstrap comparisons as `dali compare`
+wrote them."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from dali_cli.store.artifacts import BoxTable, FrameSetWriter, write_boxes
+
+ROOT = Path(__file__).resolve().parents[1]
+# per seed: (control, x2) AP_BEV@0.7 moderate on the drive; AP_3D is BEV - 20
+BEV = {"s0": (40.0, 50.0), "s1": (44.0, 60.0)}
+
+
+def metrics(bev: float) -> dict:
+    block = lambda value: {"easy": value, "moderate": value, "hard": value}  # noqa: E731
+    return {
+        "Car": {"bev": block(bev), "3d": block(bev - 20)},
+        "Car@0.5": {"bev": block(bev + 20), "3d": block(bev + 10)},
+    }
+
+
+def write(path: Path, document: dict) -> None:
+    path.mkdir(parents=True, exist_ok=True)
+    (path / "metrics.json").write_text(json.dumps(document))
+
+
+def make_runs(root: Path) -> tuple[list[Path], Path]:
+    data = root / "real-data"
+    with FrameSetWriter(data / "drive_labels", "kitti") as writer:
+        writer.append("d-0", np.zeros((3, 4), np.float32))
+    write_boxes(data / "drive_labels", BoxTable.from_arrays(["d-0"], [[10, 0, 0, 4, 2, 1.5, 0]]))
+    runs = []
+    for name, (control, x2) in BEV.items():
+        run = root / f"real-{name}"
+        write(run / "baselines/source_x2_budget/eval_ptsn", metrics(control))
+        write(run / "iter2/eval", metrics(x2))
+        write(run / "objects_other/x2", metrics(x2 - 10))
+        write(run / "objects_other/control", metrics(control - 10))
+        bootstrap = {
+            "bev moderate": {"delta": x2 - control, "delta_std": 3.0,
+                             "delta_interval_95": [1.0, 20.0], "share_not_above_reference": 0.01},
+            "3d moderate": {"delta": x2 - control, "delta_std": 4.0,
+                            "delta_interval_95": [-1.0, 21.0], "share_not_above_reference": 0.04},
+        }  # fmt: skip
+        (run / "compare_real").mkdir(parents=True)
+        (run / "compare_real" / "drive-x2.json").write_text(
+            json.dumps({"bootstrap": {"rows": {"control": {}, "x2": bootstrap}}})
+        )
+        runs.append(run)
+    return runs, data
+
+
+def test_means_pairs_and_bootstraps(tmp_path):
+    runs, data = make_runs(tmp_path)
+    out = tmp_path / "report" / "real-kitti.md"
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "bench" / "real_kitti_table.py"), *map(str, runs),
+         "--data", str(data), "--sets", "drive", "objects_other", "--out", str(out)],
+        capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    text = out.read_text()
+    assert text.strip() == result.stdout.strip()
+    lines = text.splitlines()
+    x2 = [line for line in lines if line.startswith("| DALI x2 |")]
+    # on the drive: BEV 50, 60 -> 55.0 ± 7.1; 3D 30, 40; per seed shown; then on the object set
+    assert x2[0].startswith("| DALI x2 | 55.0 ± 7.1 | 35.0 ± 7.1 | 75.0 ± 7.1 | 65.0 ± 7.1 |")
+    assert "50.0 / 30.0 · 60.0 / 40.0" in x2[0]
+    assert x2[2].startswith("| DALI x2 | 45.0 ± 7.1 |")
+    # minus the control, seed by seed: 10 and 16 -> +13.0 ± 4.2 on every metric
+    assert x2[1].startswith("| DALI x2 | +13.0 ± 4.2 | +13.0 ± 4.2 |") and "+10.0 · +16.0" in x2[1]
+    # rows never evaluated stay empty, not zero
+    assert any(line.startswith("| DALI x1 | - | - |") for line in lines)
+    boot = [line for line in lines if line.startswith("| drive | x2 − control |")]
+    assert [line.split(" | ")[2] for line in boot] == ["real-s0", "real-s1"]
+    assert "+10.0 ± 3.0 | [+1.0, +20.0] | 0.01" in boot[0]
