@@ -4,16 +4,22 @@ from __future__ import annotations
 
 import click
 
+from dali_cli import quantities
 from dali_cli.commands.common import sensors_option, stage_options, with_tuning_note
 from dali_cli.commands.ppcg_rc import ppcg_options
 
 
 def parse_range(text: str) -> tuple[float, float]:
-    """'20:50' -> (20.0, 50.0) (the stage checks 0 < LOW <= HIGH); a usage error names the option."""
+    """'20:50' -> (20.0, 50.0), each a distance from the sensor (quantities.DISTANCE_M; the stage
+    checks LOW <= HIGH); a usage error names the option."""
     try:
         low, high = (float(part) for part in str(text).split(":"))
     except ValueError:
         raise click.UsageError(f"--range-m: expected LOW:HIGH in metres, got '{text}'") from None
+    for value in (low, high):
+        problem = quantities.DISTANCE_M.problem(value)
+        if problem is not None:
+            raise click.UsageError(f"--range-m '{text}': {problem}")
     return low, high
 
 

@@ -300,7 +300,9 @@ def make_executor(
                 ("ray_address", "executor"), "a Ray address needs the ray executor"
             )
         from dali_cli.executors.local import LocalExecutor
+        from dali_cli.runtime.cores import check_local_workers
 
+        check_local_workers(workers)
         return LocalExecutor(workers or 1)
     if engine == "ray":
         from dali_cli.executors.ray import RayExecutor
