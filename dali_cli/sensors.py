@@ -18,6 +18,7 @@ import numpy as np
 from dali_cli import quantities
 from dali_cli.runtime.errors import StageError
 from dali_cli.runtime.limits import check_limit
+from dali_cli.store.regular_files import check_regular
 
 DEFAULT_SENSORS_PATH = Path(__file__).resolve().parent.parent / "sensors.toml"
 
@@ -292,7 +293,7 @@ def load_profiles(path: str | Path | None = None) -> dict[str, SensorProfile]:
     """Load every profile of a sensors.toml (default: the project's). Errors name file and key."""
     path = Path(path) if path is not None else DEFAULT_SENSORS_PATH
     try:
-        text = path.read_text(encoding="utf-8")
+        text = check_regular(path, "sensor file").read_text(encoding="utf-8")
     except FileNotFoundError:
         raise SensorConfigError(f"{path}: sensor file not found") from None
     except OSError as error:

@@ -21,6 +21,8 @@ import os
 import sqlite3
 from pathlib import Path
 
+from dali_cli.store.regular_files import check_regular
+
 HASH_BLOCK = 1 << 22
 CACHE_NAME = "file_hashes.sqlite"
 
@@ -117,7 +119,11 @@ def hash_tree(path: str | Path, exclude: tuple[str, ...] = ()) -> str:
     file works too (its own digest, under its name). Names in `exclude` are left out."""
     path = Path(path)
     digest = hashlib.blake2b(digest_size=16)
-    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
+    check_regular(path)
+    if path.is_file():
+        files = [path]
+    else:  # a FIFO or device inside would block or never end a reader: refused, named
+        files = sorted(p for p in path.rglob("*") if check_regular(p).is_file())
     for file in files:
         relative = file.name if file == path else file.relative_to(path).as_posix()
         if relative in exclude:
