@@ -31,7 +31,8 @@ from dali_cli.store.atomic_dir import (
 )
 from dali_cli.store.atomic_file import write_text_atomically
 from dali_cli.store.file_hashes import hash_tree as _hash_files
-from dali_cli.store.output_paths import check_output_path
+from dali_cli.store.foreign_files import foreign_files
+from dali_cli.store.output_paths import OutputPathError, check_output_path
 
 MANIFEST_NAME = "manifest.json"
 # how content hashes are computed; manifests of older versions hashed raw bytes differently
@@ -199,6 +200,25 @@ def why_stale(
     return None
 
 
+def refuse_foreign_files(given: Path, out: Path, stage: str, derived: tuple[str, ...]) -> None:
+    """Before `out` is replaced: refuse (OutputPathError naming them) when it holds files its
+    stage did not write, which the replacement would delete (foreign_files)."""
+    manifest = read_manifest(out) if out.is_dir() else None
+    if manifest is None:
+        return  # nothing there, or (eval only) an older eval's files, checked by name
+    foreign = foreign_files(out, manifest, (MANIFEST_NAME, LEFTOVER_MARKER, *derived), HASH_METHOD)
+    if foreign:
+        shown = ", ".join(foreign[:5]) + (
+            f" and {len(foreign) - 5} more" if len(foreign) > 5 else ""
+        )
+        raise OutputPathError(
+            f"{given}: {shown} inside it {'was' if len(foreign) == 1 else 'were'} not written by "
+            f"{stage} (added or changed since); rerunning would delete "
+            f"{'it' if len(foreign) == 1 else 'them'}, and dali never deletes a file it did not "
+            f"write: move {'it' if len(foreign) == 1 else 'them'} out of {given}, then rerun"
+        )
+
+
 def _write_json_atomic(path: Path, document: dict) -> None:
     write_text_atomically(path, json.dumps(document, indent=2, sort_keys=False, default=str) + "\n")
 
@@ -232,6 +252,7 @@ def run_stage(
         if reason is None and not force:
             echo(f"{stage}: {given} is up to date (use --force to rerun)")
             return StageOutcome("skipped", "up to date", read_manifest(out))
+        refuse_foreign_files(given, out, stage, derived)
         echo(f"{stage}: would run -> {given} ({reason or 'forced'})")
         return StageOutcome("dry-run", reason or "forced")
     with OutputLock(out):
@@ -241,6 +262,7 @@ def run_stage(
         if reason is None and not force:
             echo(f"{stage}: {given} is up to date (use --force to rerun)")
             return StageOutcome("skipped", "up to date", read_manifest(out))
+        refuse_foreign_files(given, out, stage, derived)
         reason = reason or "forced"
         manifest, wall = _build_and_commit(stage, out, records, params, build, seed, derived)
     echo(f"{stage}: wrote {given} ({wall:.1f} s)")
