@@ -63,6 +63,8 @@ DISTANCE_M = Quantity("a distance from the sensor", 0.1, 10_000.0, "m")
 MARGIN_M = Quantity("a margin around a box", 0.0, 10.0, "m")
 MOUNT_HEIGHT_M = Quantity("a sensor height above the ground", 0.0, 100.0, "m")
 RANGE_NOISE_M = Quantity("a range noise (standard deviation)", 0.0, 1.0, "m")
+# a CAD model's native length, in its file's units (metres, millimetres, inches...)
+MODEL_LENGTH = Quantity("a CAD model's length in its file's units", 0.0, 1e6)
 # scale factors (dimensionless): PTSN's s, ROS factors, self-training's scale
 SCALE = Quantity("a scale factor", 0.01, 100.0)
 # training budget and optimizer

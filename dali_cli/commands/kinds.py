@@ -70,6 +70,34 @@ INTENSITY_MAX = QuantityType(quantities.INTENSITY_MAX)
 TOLERANCE = QuantityType(quantities.TOLERANCE)
 
 
+class QuantityRange(click.ParamType):
+    """'LOW:HIGH': two numbers of one kind, LOW <= HIGH."""
+
+    name = "LOW:HIGH"
+
+    def __init__(self, quantity: quantities.Quantity):
+        self.quantity = quantity
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, tuple):
+            return value
+        try:
+            low, high = (float(part) for part in str(value).split(":"))
+        except ValueError:
+            self.fail(f"expected LOW:HIGH, got '{value}'", param, ctx)
+        for number in (low, high):
+            problem = self.quantity.problem(number)
+            if problem is not None:
+                self.fail(f"'{value}': {problem}", param, ctx)
+        if low > high:
+            self.fail(f"'{value}': expected LOW <= HIGH", param, ctx)
+        return low, high
+
+
+DISTANCE_RANGE = QuantityRange(quantities.DISTANCE_M)
+"""'LOW:HIGH' distances from the sensor in metres."""
+
+
 class CoreCount(click.ParamType):
     """Processes or threads of this machine: an integer from `low` to the cores this process may
     use (more would only oversubscribe it, or fork without end)."""
