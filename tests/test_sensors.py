@@ -115,8 +115,10 @@ def test_custom_file_and_explicit_elevations(tmp_path):
             "[0.1, 30] m",
         ),
         (
-            ("car_mean_lwh_m = [4.0, 1.8, 1.5]", "car_mean_lwh_m = [4.0, 1.8, 1.5]\n"
-             "car_std_lwh_m = [1e30, 0.1, 0.1]"),
+            (
+                "car_mean_lwh_m = [4.0, 1.8, 1.5]",
+                "car_mean_lwh_m = [4.0, 1.8, 1.5]\ncar_std_lwh_m = [1e30, 0.1, 0.1]",
+            ),
             "car_std_lwh_m",
             "[0, 10] m",
         ),

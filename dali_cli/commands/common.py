@@ -97,15 +97,14 @@ BATCH = click.IntRange(1, COUNT_LIMIT)
 exhaust memory or processes before the first step)."""
 
 
-
 def target_size_options(profile_help: str, size_help: str):
     """--target-profile and --target-size 'l,w,h': the target's mean car size (pretrain's SN,
     retrain's --source-size sn)."""
 
     def decorate(function):
-        function = click.option(
-            "--target-size", type=CAR_SIZE, default=None, help=size_help
-        )(function)
+        function = click.option("--target-size", type=CAR_SIZE, default=None, help=size_help)(
+            function
+        )
         return click.option("--target-profile", default=None, help=profile_help)(function)
 
     return decorate
