@@ -9,6 +9,7 @@ file or field named (docs/input-validation.md, "Parameter kinds").
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
 
@@ -84,3 +85,9 @@ def check_triple(quantity: Quantity, values, where: str) -> tuple[float, float, 
     if not isinstance(values, list | tuple) or len(values) != 3:
         raise QuantityError(f"{where}: expected 3 numbers [l, w, h], got {values!r}"[:200])
     return tuple(quantity.check(v, where) for v in values)  # type: ignore[return-value]
+
+
+def is_profile_name(text: str) -> bool:
+    """A sensors.toml profile name, the one name model.json carries: letters, digits, '_', '-',
+    '.', '+', not starting with '.' (`../../etc/passwd` is not one), at most 100 characters."""
+    return re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.+-]{0,99}", text) is not None

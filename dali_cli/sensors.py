@@ -7,7 +7,6 @@ limits, noise) plus the dataset's mean car size, which PTSN and SN use as target
 from __future__ import annotations
 
 import math
-import re
 import tomllib
 from dataclasses import dataclass
 from functools import lru_cache
@@ -129,12 +128,6 @@ def ray_pattern(profile: SensorProfile) -> RayPattern:
         beam=beam.reshape(-1),
         azimuth_index=column.reshape(-1),
     )
-
-
-def is_profile_name(text: str) -> bool:
-    """A sensors.toml profile name: letters, digits, '_', '-', '.', '+', not starting with '.'
-    (`../../etc/passwd` is not one), at most 100 characters."""
-    return re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.+-]{0,99}", text) is not None
 
 
 def _fail(source: str, profile: str, key: str, problem: str) -> SensorConfigError:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, fields
 
-from dali_cli.sensors import is_profile_name
+from dali_cli.quantities import is_profile_name
 
 # fields earlier models' model.json carry, with the one value still read: a second refinement
 # pass at inference and test-time flip, both measured to be no gain (docs/detector.md)

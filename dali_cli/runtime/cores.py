@@ -18,15 +18,3 @@ def available_cores() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # not Linux
         return max(1, os.cpu_count() or 1)
-
-
-def check_local_workers(count: int | None, field: str = "workers") -> None:
-    """Refuse more worker processes than this machine has cores (ParameterError naming `field`):
-    they would only oversubscribe it, and a mistyped 100000 would fork until it runs out."""
-    from dali_cli.runtime.errors import ParameterError
-
-    cores = available_cores()
-    if count is not None and count > cores:
-        raise ParameterError(
-            field, f"{count} worker processes, but this machine lets dali use {cores} cores"
-        )

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from dali_cli import quantities
-from dali_cli.sensors import is_profile_name
 from dali_cli.store.artifacts import ArtifactError, read_json
 from dali_cli.store.json_numbers import finite_number, finite_numbers
 
@@ -54,7 +53,7 @@ def _text(value) -> str | None:
 
 def _profile(value) -> str | None:
     """A sensor profile name (never a path), else None."""
-    return value if isinstance(value, str) and is_profile_name(value) else None
+    return value if isinstance(value, str) and quantities.is_profile_name(value) else None
 
 
 @dataclass(frozen=True)
