@@ -14,8 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
+from dali_cli import quantities
 from dali_cli.runtime.errors import StageError
 from dali_cli.runtime.limits import check_limit
+from dali_cli.store.regular_files import check_regular
 
 DEFAULT_SENSORS_PATH = Path(__file__).resolve().parent.parent / "sensors.toml"
 
@@ -132,7 +134,15 @@ def _fail(source: str, profile: str, key: str, problem: str) -> SensorConfigErro
     return SensorConfigError(f"{source}: profile [{profile}] key '{key}': {problem}")
 
 
-def _number(table: dict, key: str, source: str, name: str, default: float | None = None) -> float:
+def _number(
+    table: dict,
+    key: str,
+    source: str,
+    name: str,
+    default: float | None = None,
+    kind: quantities.Quantity | None = None,
+) -> float:
+    """The finite number at `key` (of `kind` when given: its physical range)."""
     if key not in table:
         if default is None:
             raise _fail(source, name, key, "missing")
@@ -140,23 +150,24 @@ def _number(table: dict, key: str, source: str, name: str, default: float | None
     value = table[key]
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
         raise _fail(source, name, key, f"must be a finite number, got {value!r}")
+    problem = kind.problem(value) if kind is not None else None
+    if problem is not None:
+        raise _fail(source, name, key, problem)
     return float(value)
 
 
-def _triple(table: dict, key: str, source: str, name: str, default=None) -> tuple[float, ...]:
+def _triple(
+    table: dict, key: str, source: str, name: str, kind: quantities.Quantity, default=None
+) -> tuple[float, ...]:
+    """[l, w, h] at `key`: three numbers of `kind` (metres)."""
     if key not in table:
         if default is None:
             raise _fail(source, name, key, "missing")
         return tuple(default)
-    value = table[key]
-    if (
-        not isinstance(value, list)
-        or len(value) != 3
-        or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
-        or not all(math.isfinite(v) and v > 0 for v in value)
-    ):
-        raise _fail(source, name, key, f"must be 3 positive numbers [l, w, h], got {value!r}")
-    return tuple(float(v) for v in value)
+    try:
+        return quantities.check_triple(kind, table[key], "")
+    except quantities.QuantityError as error:
+        raise _fail(source, name, key, str(error).removeprefix(": ")) from None
 
 
 def _positive_int(table: dict, key: str, source: str, name: str) -> int:
@@ -191,10 +202,8 @@ def _elevations(table: dict, beams: int, source: str, name: str) -> list[float]:
 
 def _ranges_and_noise(table: dict, source: str, name: str) -> dict:
     """mount_height_m, max/min_range_m, range_noise_sigma_m, ray_dropout, checked."""
-    mount = _number(table, "mount_height_m", source, name)
-    if mount < 0:
-        raise _fail(source, name, "mount_height_m", f"must be >= 0, got {mount}")
-    max_range = _number(table, "max_range_m", source, name)
+    mount = _number(table, "mount_height_m", source, name, kind=quantities.MOUNT_HEIGHT_M)
+    max_range = _number(table, "max_range_m", source, name, kind=quantities.DISTANCE_M)
     min_range = _number(table, "min_range_m", source, name, 0.0)
     if max_range <= 0:
         raise _fail(source, name, "max_range_m", f"must be > 0, got {max_range}")
@@ -202,9 +211,7 @@ def _ranges_and_noise(table: dict, source: str, name: str) -> dict:
         raise _fail(
             source, name, "min_range_m", f"must satisfy 0 <= min_range < max_range ({max_range})"
         )
-    noise = _number(table, "range_noise_sigma_m", source, name, 0.0)
-    if noise < 0:
-        raise _fail(source, name, "range_noise_sigma_m", f"must be >= 0, got {noise}")
+    noise = _number(table, "range_noise_sigma_m", source, name, 0.0, quantities.RANGE_NOISE_M)
     dropout = _number(table, "ray_dropout", source, name, 0.0)
     if not 0.0 <= dropout < 1.0:
         raise _fail(source, name, "ray_dropout", f"must satisfy 0 <= dropout < 1, got {dropout}")
@@ -255,8 +262,9 @@ def parse_profile(name: str, table: dict, source: str = "<sensors>") -> SensorPr
         raise _fail(source, name, "azimuth_min_deg", "need azimuth_min < azimuth_max, span <= 360")
     ranges = _ranges_and_noise(table, source, name)
     intensities = _intensities(table, source, name)
-    mean_lwh = _triple(table, "car_mean_lwh_m", source, name)
-    std_lwh = _triple(table, "car_std_lwh_m", source, name, tuple(0.08 * v for v in mean_lwh))
+    mean_lwh = _triple(table, "car_mean_lwh_m", source, name, quantities.CAR_SIZE_M)
+    spread = quantities.SIZE_SPREAD_M
+    std_lwh = _triple(table, "car_std_lwh_m", source, name, spread, [0.08 * v for v in mean_lwh])
     description = table.get("description", "")
     if not isinstance(description, str):
         raise _fail(source, name, "description", "must be a string")
@@ -278,7 +286,7 @@ def load_profiles(path: str | Path | None = None) -> dict[str, SensorProfile]:
     """Load every profile of a sensors.toml (default: the project's). Errors name file and key."""
     path = Path(path) if path is not None else DEFAULT_SENSORS_PATH
     try:
-        text = path.read_text(encoding="utf-8")
+        text = check_regular(path, "sensor file").read_text(encoding="utf-8")
     except FileNotFoundError:
         raise SensorConfigError(f"{path}: sensor file not found") from None
     except OSError as error:

@@ -370,6 +370,16 @@ def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
     return metrics, pred
 
 
+def marked(table):
+    """The Arrow table with the mark that says dali eval wrote it (output_paths.PREDICTIONS_MARK):
+    a later `dali eval --out` into that directory replaces only such a file."""
+    from dali_cli.store.output_paths import PREDICTIONS_MARK
+
+    return table.replace_schema_metadata(
+        {**(table.schema.metadata or {}), PREDICTIONS_MARK[0]: PREDICTIONS_MARK[1]}
+    )
+
+
 def write_outputs(metrics_path: Path, metrics: dict, pred: BoxTable | None) -> list[Path]:
     """metrics.json at `metrics_path` and (given `pred`) predictions.parquet beside it."""
     written = []
@@ -378,7 +388,8 @@ def write_outputs(metrics_path: Path, metrics: dict, pred: BoxTable | None) -> l
 
         path = metrics_path.parent / PREDICTIONS_NAME
         write_atomically(
-            path, lambda partial: pq.write_table(pred.to_arrow(), partial, compression="zstd")
+            path,
+            lambda partial: pq.write_table(marked(pred.to_arrow()), partial, compression="zstd"),
         )
         written.append(path)
     write_text_atomically(metrics_path, json.dumps(metrics, indent=2) + "\n")

@@ -16,7 +16,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # (geometry, sensors, raycast, ...) are layers of their own name.
 ALLOWED = {
     "runtime": set(),  # where code runs: imports nothing above it
-    "store": {"runtime"},
+    "store": {"runtime", "quantities"},
+    "quantities": set(),  # the kinds of number (and profile names): plain checks, no imports
     "geometry": set(),
     "evaluation": {"store", "runtime", "geometry", "importers"},
     "reporting": {"store", "runtime", "geometry", "evaluation", "ppcg"},

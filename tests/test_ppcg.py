@@ -483,10 +483,10 @@ def test_cli_errors_name_the_file_frame_and_field(dataset, tmp_path):
     )
     assert result.exit_code == 1 and "no point models" in result.output
     assert not (tmp_path / "o").exists()
-    with pytest.raises(click.UsageError):
-        from dali_cli.commands.ppcg_cf import parse_range
+    from dali_cli.commands.kinds import DISTANCE_RANGE
 
-        parse_range("20-50")
+    with pytest.raises(click.BadParameter):
+        DISTANCE_RANGE.convert("20-50", None, None)
 
 
 def test_cf_with_the_calibrated_waymo_top_pattern_loses_no_ray():

@@ -103,11 +103,29 @@ def test_custom_file_and_explicit_elevations(tmp_path):
             "ray_dropout",
             "0 <= dropout < 1",
         ),
-        (("max_range_m = 50.0", "max_range_m = -1.0"), "max_range_m", "> 0"),
+        (("max_range_m = 50.0", "max_range_m = -1.0"), "max_range_m", "[0.1, 10000] m"),
         (
             ("car_mean_lwh_m = [4.0, 1.8, 1.5]", "car_mean_lwh_m = [4.0, 1.8]"),
             "car_mean_lwh_m",
-            "3 positive",
+            "3 numbers",
+        ),
+        (
+            ("car_mean_lwh_m = [4.0, 1.8, 1.5]", "car_mean_lwh_m = [1e30, 1.8, 1.5]"),
+            "car_mean_lwh_m",
+            "[0.1, 30] m",
+        ),
+        (
+            (
+                "car_mean_lwh_m = [4.0, 1.8, 1.5]",
+                "car_mean_lwh_m = [4.0, 1.8, 1.5]\ncar_std_lwh_m = [1e30, 0.1, 0.1]",
+            ),
+            "car_std_lwh_m",
+            "[0, 10] m",
+        ),
+        (
+            ("max_range_m = 50.0", "max_range_m = 50.0\nrange_noise_sigma_m = 1e30"),
+            "range_noise_sigma_m",
+            "[0, 1] m",
         ),
         (("points_per_beam = 8\n", ""), "points_per_beam", "missing"),
         (("beams = 4", "beams = 4\nbeam_count = 3"), "beam_count", "unknown key"),

@@ -10,6 +10,8 @@ import os
 
 import click
 
+from dali_cli.commands.kinds import CAR_SIZE, EPOCHS, LEARNING_RATE, LOCAL_WORKERS, MINUTES
+
 INPUT_DIR = click.Path(exists=True, file_okay=False)
 """An existing directory (a frame set, a model, a library...)."""
 
@@ -87,33 +89,6 @@ def finite_range(
     return FiniteFloat(min, max, min_open=min_open, max_open=max_open)
 
 
-class FloatTuple(click.ParamType):
-    """'a,b,c': `count` comma-separated numbers, each converted by `each` (finite by default);
-    `increasing` asks for a strictly increasing sequence (a 'lo,hi' range)."""
-
-    def __init__(self, count: int, each: click.ParamType = FINITE, increasing: bool = False):
-        self.count = count
-        self.each = each
-        self.increasing = increasing
-        self.name = f"{count} numbers"
-
-    def convert(self, value, param, ctx):
-        if isinstance(value, tuple):
-            return value
-        parts = str(value).split(",")
-        if len(parts) != self.count:
-            self.fail(f"expected {self.count} comma-separated numbers, got '{value}'", param, ctx)
-        numbers = []
-        for part in parts:
-            try:
-                numbers.append(self.each.convert(part.strip(), param, ctx))
-            except click.BadParameter as error:
-                self.fail(f"'{value}': {error.message}", param, ctx)
-        if self.increasing and any(b <= a for a, b in zip(numbers, numbers[1:], strict=False)):
-            self.fail(f"'{value}': expected increasing numbers (lo < hi)", param, ctx)
-        return tuple(numbers)
-
-
 SEED = click.IntRange(0, 2**32 - 1)
 """A random seed: what numpy and torch both accept."""
 COUNT_LIMIT = 4096
@@ -121,22 +96,15 @@ BATCH = click.IntRange(1, COUNT_LIMIT)
 """Frames per batch, workers, threads: at least 1, at most COUNT_LIMIT (more would only
 exhaust memory or processes before the first step)."""
 
-POSITIVE_TRIPLE = FloatTuple(3, POSITIVE)
-"""'l,w,h': three finite numbers > 0 (a box size in metres)."""
-FINITE_TRIPLE = FloatTuple(3)
-"""'a,b,c': three finite numbers (a size delta in metres)."""
-POSITIVE_RANGE = FloatTuple(2, POSITIVE, increasing=True)
-"""'lo,hi': two finite numbers 0 < lo < hi."""
-
 
 def target_size_options(profile_help: str, size_help: str):
     """--target-profile and --target-size 'l,w,h': the target's mean car size (pretrain's SN,
     retrain's --source-size sn)."""
 
     def decorate(function):
-        function = click.option(
-            "--target-size", type=POSITIVE_TRIPLE, default=None, help=size_help
-        )(function)
+        function = click.option("--target-size", type=CAR_SIZE, default=None, help=size_help)(
+            function
+        )
         return click.option("--target-profile", default=None, help=profile_help)(function)
 
     return decorate
@@ -291,14 +259,14 @@ def training_options(function):
     options = [
         click.option(
             "--epochs",
-            type=POSITIVE,
+            type=EPOCHS,
             default=10.0,
             show_default=True,
             help="Passes over the (source) training frames.",
         ),
         click.option(
             "--minutes",
-            type=POSITIVE,
+            type=MINUTES,
             default=None,
             help="Wall-clock training budget instead of --epochs; the learning-rate "
             "schedule follows the elapsed fraction of the budget.",
@@ -313,7 +281,7 @@ def training_options(function):
         click.option("--batch-size", type=BATCH, default=1, show_default=True),
         click.option(
             "--lr",
-            type=POSITIVE,
+            type=LEARNING_RATE,
             default=5e-3,
             show_default=True,
             help="Peak learning rate of the one-cycle schedule (AdamW).",
@@ -327,7 +295,7 @@ def training_options(function):
         ),
         click.option(
             "--loader-workers",
-            type=click.IntRange(min=0),
+            type=LOCAL_WORKERS,
             default=None,
             help="Processes that read, augment and batch the training frames ahead of the "
             "training step (default on a GPU: the cores this process may use, less one, at "

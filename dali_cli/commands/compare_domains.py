@@ -7,6 +7,8 @@ from pathlib import Path
 
 import click
 
+from dali_cli.commands.kinds import VIEW_DEG
+
 EPILOG = """\b
 Each DOMAIN is a frame set directory, DIR or NAME=DIR (named after the directory when no NAME
 is given); its boxes.parquet, when present, gives the cars (rows labelled --label). Only points
@@ -42,7 +44,7 @@ def _parse_domain(value: str) -> tuple[str, Path]:
 
 @click.command(name="compare-domains", epilog=EPILOG)
 @click.argument("domains", nargs=-1, required=True, metavar="DOMAIN...")
-@click.option("--view-deg", type=click.FloatRange(min=0, min_open=True, max=360), default=80.0,
+@click.option("--view-deg", type=VIEW_DEG, default=80.0,
               show_default=True,
               help="Horizontal view in front of the sensor (degrees, centred on +x); "
                    "360 keeps everything.")  # fmt: skip

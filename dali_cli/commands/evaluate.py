@@ -8,7 +8,6 @@ import click
 
 from dali_cli.commands.common import (
     FRACTION,
-    POSITIVE,
     PROTOCOLS_HELP,
     choice_option,
     device_options,
@@ -20,6 +19,7 @@ from dali_cli.commands.common import (
     with_tuning_note,
     workers_option,
 )
+from dali_cli.commands.kinds import SCALE
 
 EPILOG = (
     """\b
@@ -66,7 +66,7 @@ each kind costs; docs/evaluation.md).
               help="Detector checkpoint dir: predict first.")  # fmt: skip
 @click.option("--data", type=click.Path(exists=True, file_okay=False),
               help="Frame set to run --model on (its boxes.parquet is the default --gt).")  # fmt: skip
-@click.option("--scale", type=POSITIVE, default=None,
+@click.option("--scale", type=SCALE, default=None,
               help="PTSN scale for --model inference (default 1).")  # fmt: skip
 @click.option("--scale-from", type=click.Path(exists=True, file_okay=False),
               help="Read the scale from PTSN_DIR/scale.json.")  # fmt: skip

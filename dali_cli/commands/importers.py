@@ -6,7 +6,8 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import choice_option, finite_range, import_options
+from dali_cli.commands.common import choice_option, import_options
+from dali_cli.commands.kinds import INTENSITY_MAX
 
 
 @click.group(name="import")
@@ -205,7 +206,7 @@ def nuscenes_command(
                    "points/*.npy.")  # fmt: skip
 @click.option("--car-class", "car_classes", multiple=True,
               help="Class name mapped to label 'Car' (repeatable). Default: Car and Vehicle.")  # fmt: skip
-@click.option("--intensity-max", type=finite_range(min=0, min_open=True), default=1.0,
+@click.option("--intensity-max", type=INTENSITY_MAX, default=1.0,
               show_default=True,
               help="Intensities are divided by this (255 for 8-bit intensities).")  # fmt: skip
 @import_options(None)

@@ -6,6 +6,7 @@ import math
 
 import click
 
+from dali_cli import quantities
 from dali_cli.commands.common import SEED, no_progress_option, out_dir_option, stage_options
 
 
@@ -23,6 +24,9 @@ def _parse_range(_ctx, _param, value: str | None) -> tuple[float, float] | None:
         raise click.BadParameter(f"expected LOW:HIGH, got {value!r}") from None
     if not (math.isfinite(low) and math.isfinite(high) and 0 <= low < high):
         raise click.BadParameter(f"need finite 0 <= LOW < HIGH, got {value!r}")
+    problem = quantities.MODEL_LENGTH.problem(high)
+    if problem is not None:
+        raise click.BadParameter(f"{value!r}: {problem}")
     return low, high
 
 

@@ -5,21 +5,13 @@ from __future__ import annotations
 import click
 
 from dali_cli.commands.common import sensors_option, stage_options, with_tuning_note
+from dali_cli.commands.kinds import DISTANCE_RANGE
 from dali_cli.commands.ppcg_rc import ppcg_options
-
-
-def parse_range(text: str) -> tuple[float, float]:
-    """'20:50' -> (20.0, 50.0) (the stage checks 0 < LOW <= HIGH); a usage error names the option."""
-    try:
-        low, high = (float(part) for part in str(text).split(":"))
-    except ValueError:
-        raise click.UsageError(f"--range-m: expected LOW:HIGH in metres, got '{text}'") from None
-    return low, high
 
 
 @click.command(name="ppcg-cf", epilog=with_tuning_note())
 @ppcg_options
-@click.option("--range-m", default="20:50", show_default=True,
+@click.option("--range-m", type=DISTANCE_RANGE, default="20:50", show_default=True,
               help="LOW:HIGH: each box is moved radially to a range drawn uniformly from it (m).")  # fmt: skip
 @sensors_option
 @stage_options
@@ -41,7 +33,7 @@ def command(target_dir, boxes_dir, library_dir, out, no_progress, range_m, **opt
         boxes_dir,
         library_dir,
         out,
-        range_m=parse_range(range_m),
+        range_m=range_m,
         progress=not no_progress,
         **options,
     )

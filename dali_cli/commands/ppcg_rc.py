@@ -8,7 +8,6 @@ from dali_cli.commands.common import (
     SEED,
     apply_options,
     executor_options,
-    finite_range,
     input_dir_option,
     no_progress_option,
     out_dir_option,
@@ -19,6 +18,7 @@ from dali_cli.commands.common import (
     with_tuning_note,
     workers_option,
 )
+from dali_cli.commands.kinds import MARGIN_M
 from dali_cli.ppcg.frame import DEFAULT_POINT_MARGIN_M
 
 
@@ -37,7 +37,7 @@ def ppcg_options(function):
         tuning_option("--top-k", type=click.IntRange(min=1), default=1, show_default=True,
                      help="Pick at random among the K best models (per-box seed); 1 = the best."),
         click.option("--seed", type=SEED, default=0, show_default=True, help="Run seed."),
-        tuning_option("--ground-margin-m", type=finite_range(min=0), default=0.1,
+        tuning_option("--ground-margin-m", type=MARGIN_M, default=0.1,
                      show_default=True,
                      help="Points of a box below max(box bottom, -mount height) + this are "
                           "ground: kept."),
@@ -46,7 +46,7 @@ def ppcg_options(function):
                           "facing the other way (the detector's headings are right only up to "
                           "a half turn; dali_cli.ppcg.orient). Mesh models only  [default: on "
                           "with mesh models, off with point models]"),
-        tuning_option("--point-margin-m", type=finite_range(min=0),
+        tuning_option("--point-margin-m", type=MARGIN_M,
                      default=DEFAULT_POINT_MARGIN_M, show_default=True,
                      help="A box's points are those in the box grown by this on every side: "
                           "LiDAR points lie on a car's surface, so a pseudo box a little off "

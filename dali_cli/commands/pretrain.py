@@ -7,7 +7,6 @@ from pathlib import Path
 import click
 
 from dali_cli.commands.common import (
-    POSITIVE_RANGE,
     choice_option,
     input_dir_option,
     out_dir_option,
@@ -15,6 +14,7 @@ from dali_cli.commands.common import (
     target_size_options,
     training_options,
 )
+from dali_cli.commands.kinds import SCALE_PAIR
 
 
 def read_json_option(path: str | None) -> dict | None:
@@ -39,7 +39,7 @@ def read_json_option(path: str | None) -> dict | None:
                     "ros: random object scaling U(--ros-range) per object, as augmentation.")  # fmt: skip
 @target_size_options("Sensor profile whose car_mean_lwh_m is the SN target (e.g. kitti).",
                      "SN target mean size 'l,w,h' in m (overrides the profile).")  # fmt: skip
-@click.option("--ros-range", type=POSITIVE_RANGE, default="0.75,1.0", show_default=True,
+@click.option("--ros-range", type=SCALE_PAIR, default="0.75,1.0", show_default=True,
               help="ROS scale range 'lo,hi'.")  # fmt: skip
 @choice_option("--features", choices=["xyz", "xyzi"], default="xyz",
                help="Point features fed to the pillar encoder.")  # fmt: skip

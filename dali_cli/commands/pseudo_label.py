@@ -16,13 +16,14 @@ from dali_cli.commands.common import (
     with_tuning_note,
     workers_option,
 )
+from dali_cli.commands.kinds import SCALE
 
 
 @click.command(name="pseudo-label", epilog=with_tuning_note())
 @model_target_out_options("Trained model directory (model.pt + model.json).")
 @click.option("--scale-from", type=click.Path(exists=True), default=None,
               help="PTSN directory (or scale.json) of `dali ptsn-sweep`: its 'scale' is ŝ.")  # fmt: skip
-@click.option("--scale", type=finite_range(0, min_open=True), default=None,
+@click.option("--scale", type=SCALE, default=None,
               help="Use this scale instead (overrides --scale-from's ŝ).")  # fmt: skip
 @score_min_option()
 @tuning_option("--nms-iou", type=finite_range(0, 1), default=0.1, show_default=True,

@@ -15,6 +15,7 @@ from dali_cli.commands.common import (
     tuning_option,
     with_tuning_note,
 )
+from dali_cli.commands.kinds import TOLERANCE
 from dali_cli.ptsn import ScaleRange, parse_scale_range
 
 
@@ -65,7 +66,7 @@ SCALE_RANGE = ScaleRangeType()
               show_default=True, help="bracket: fraction of the frames used for the secant phase.")  # fmt: skip
 @tuning_option("--subsample-min", type=click.IntRange(min=1), default=16, show_default=True,
               help="bracket: at least this many frames in the secant phase.")  # fmt: skip
-@tuning_option("--noise", type=finite_range(min=0), default=0.02, show_default=True,
+@tuning_option("--noise", type=TOLERANCE, default=0.02, show_default=True,
               help="How far the criterion may rise with s and still count as monotone (volume: "
                    "log ratio).")  # fmt: skip
 @target_profile_option()

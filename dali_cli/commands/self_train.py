@@ -5,12 +5,12 @@ from __future__ import annotations
 import click
 
 from dali_cli.commands.common import (
-    finite_range,
     input_dir_option,
     out_dir_option,
     run_training_command,
     training_options,
 )
+from dali_cli.commands.kinds import SCALE
 
 
 @click.command(name="self-train")
@@ -21,7 +21,7 @@ from dali_cli.commands.common import (
                   help="Pseudo labels of INIT on TARGET from `dali pseudo-label` (e.g. "
                        "RUN/iter3/pseudo).")  # fmt: skip
 @out_dir_option("Checkpoint directory to write.")
-@click.option("--scale", type=finite_range(0, min_open=True), default=None,
+@click.option("--scale", type=SCALE, default=None,
               help="Train in the frame scaled by this s (default: the pseudo labels' own PTSN "
                    "scale ŝ).")  # fmt: skip
 @training_options

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import FINITE_TRIPLE, input_dir_option, out_dir_option, stage_options
+from dali_cli.commands.common import input_dir_option, out_dir_option, stage_options
+from dali_cli.commands.kinds import SIZE_DELTA
 
 
 @click.command(name="size-norm")
@@ -12,7 +13,7 @@ from dali_cli.commands.common import FINITE_TRIPLE, input_dir_option, out_dir_op
 @click.option("--like-model", type=click.Path(exists=True, file_okay=False), default=None,
               help="Shift by the SN delta this model's training applied to its source (a model "
                    "of `retrain --source-size sn` or `pretrain --size-norm sn`).")  # fmt: skip
-@click.option("--delta", "delta_lwh", type=FINITE_TRIPLE, default=None, metavar="DL,DW,DH",
+@click.option("--delta", "delta_lwh", type=SIZE_DELTA, default=None, metavar="DL,DW,DH",
               help="Shift every box's l, w, h by these metres instead (e.g. -0.76,-0.47,-0.22).")  # fmt: skip
 @click.option("--label", "labels", multiple=True, default=("Car",), show_default=True,
               help="Box labels to shift (repeatable); other rows and their points stay.")  # fmt: skip

@@ -6,7 +6,8 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import FRACTION, choice_option, finite_range
+from dali_cli.commands.common import FRACTION, choice_option
+from dali_cli.commands.kinds import DISTANCE_M
 
 
 def _parse_boxes(value: str) -> tuple[str, Path]:
@@ -31,7 +32,7 @@ def _parse_boxes(value: str) -> tuple[str, Path]:
     "--score-min", type=FRACTION, default=None, help="Draw only boxes with score >= this."
 )
 @click.option("--side", is_flag=True, help="Add a side view (x-z) under the bird's-eye view.")
-@click.option("--range-m", type=finite_range(min=0, min_open=True), default=None,
+@click.option("--range-m", type=DISTANCE_M, default=None,
               help="Show x, y in [-R, R]. Default: fitted to the points and boxes.")  # fmt: skip
 @choice_option("--colour-by", choices=["z", "intensity"], default="z", help="Point colour.")  # fmt: skip
 @click.option("--annotate", is_flag=True, help="Write each box's score (or label) at its centre.")

@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, fields
 
+from dali_cli.quantities import is_profile_name
+
 # fields earlier models' model.json carry, with the one value still read: a second refinement
 # pass at inference and test-time flip, both measured to be no gain (docs/detector.md)
 RETIRED = {"refine_passes": 1, "flip_test": False}
@@ -180,6 +182,10 @@ BOUNDS: dict[str, tuple[float | None, float | None]] = {
     "z_range_m": (-1e4, 1e4),
 }
 
+# text fields: one of a few words, or the name of a sensors.toml profile (a word, never a path)
+CHOICES: dict[str, tuple[str, ...]] = {"features": ("xyz", "xyzi")}
+PROFILE_NAMES = ("sensor",)
+
 
 def check_field(name: str, value, default) -> None:
     """`value` has the kind of `default` (bool, str, int, finite float, a tuple of as many of
@@ -194,6 +200,10 @@ def check_field(name: str, value, default) -> None:
     if isinstance(default, bool) or isinstance(default, str):
         if type(value) is not type(default):
             raise ValueError(f"{name}: expected a {type(default).__name__}, got {value!r}")
+        if name in CHOICES and value not in CHOICES[name]:
+            raise ValueError(f"{name}: expected one of {', '.join(CHOICES[name])}, got {value!r}")
+        if name in PROFILE_NAMES and not is_profile_name(value):
+            raise ValueError(f"{name}: expected a sensor profile name, got {value!r}"[:200])
         return
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise ValueError(f"{name}: expected a number, got {value!r}"[:200])

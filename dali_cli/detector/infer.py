@@ -27,6 +27,7 @@ from dali_cli.geometry import (
 )
 from dali_cli.store.artifacts import ArtifactError, BoxTable, FrameSet
 from dali_cli.store.model_card import ModelCard, read_meta
+from dali_cli.store.regular_files import check_regular
 
 WEIGHTS_NAME = "model.pt"
 META_NAME = "model.json"
@@ -134,6 +135,7 @@ def load_weights_only(path: Path, what: str, advice: str = ""):
     """torch.load of a file dali wrote, with the weights_only unpickler (tensors, numbers,
     strings, lists, dicts: no code can run); ArtifactError naming the file (and `advice`)
     otherwise."""
+    check_regular(path, what)
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # UnpicklingError, RuntimeError, IndexError on garbage, ...

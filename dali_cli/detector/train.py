@@ -39,6 +39,7 @@ from dali_cli.detector.loader import (
 from dali_cli.detector.model import PillarCenterNet
 from dali_cli.detector.refine import refine_loss
 from dali_cli.detector.targets import detection_loss, peak_boxes
+from dali_cli.runtime.errors import StageError
 from dali_cli.runtime.machine import runtime_info, training_threads
 from dali_cli.store.artifacts import ArtifactError
 
@@ -324,11 +325,30 @@ def optimize_step(
                 net, maps, frame_points, targets, loss, terms, settings.seed, step,
                 positions=list(mine),
             )  # fmt: skip
+    check_finite_loss(loss, terms, step)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     torch.nn.utils.clip_grad_norm_(net.parameters(), settings.grad_clip)
     optimizer.step()
     return terms
+
+
+class NonFiniteLossError(StageError):
+    """The training loss became NaN or infinite: the weights would be ruined from here on."""
+
+
+def check_finite_loss(loss: torch.Tensor, terms: dict, step: int) -> None:
+    """Stop training at the first optimizer step (`step`, 0-based) whose loss is not finite,
+    before its gradients touch the weights (NonFiniteLossError naming the step and the terms).
+    One scalar read per step."""
+    if bool(torch.isfinite(loss.detach()).item()):
+        return
+    shown = ", ".join(f"{name} {float(value):.4g}" for name, value in terms.items())
+    raise NonFiniteLossError(
+        f"training step {step + 1}: the loss is {float(loss.detach()):g} ({shown}); nothing was "
+        "written. A learning rate too high (--lr) or box sizes far from the data's "
+        "(--target-size, the labels) make it diverge"
+    )
 
 
 def log_row(

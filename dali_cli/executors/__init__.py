@@ -300,7 +300,14 @@ def make_executor(
                 ("ray_address", "executor"), "a Ray address needs the ray executor"
             )
         from dali_cli.executors.local import LocalExecutor
+        from dali_cli.runtime.cores import available_cores
 
+        cores = available_cores()  # more processes would only oversubscribe it, or fork on
+        if workers is not None and workers > cores:  # until the machine runs out (100000)
+            raise ParameterError(
+                "workers",
+                f"{workers} worker processes, but this machine lets dali use {cores} cores",
+            )
         return LocalExecutor(workers or 1)
     if engine == "ray":
         from dali_cli.executors.ray import RayExecutor

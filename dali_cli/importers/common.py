@@ -10,6 +10,7 @@ import numpy as np
 from dali_cli.runtime.errors import StageError
 from dali_cli.runtime.limits import check_limit
 from dali_cli.store.frame_ids import name_problem
+from dali_cli.store.regular_files import check_regular
 
 
 class ImportFormatError(StageError):
@@ -26,6 +27,7 @@ def read_float_records(path: str | Path, fields: int) -> np.ndarray:
     try:
         if path.is_dir():
             raise ImportFormatError(f"{path}: a directory, not a point file")
+        check_regular(path, "point file")
         check_limit("point_file_bytes", path.stat().st_size, str(path))
         raw = path.read_bytes()
     except FileNotFoundError:
@@ -48,7 +50,7 @@ def check_point_files(paths: list[Path]) -> None:
     them: an oversized file fails at once instead of after hashing gigabytes."""
     for path in paths:
         try:
-            size = path.stat().st_size
+            size = check_regular(path, "point file").stat().st_size
         except OSError:
             continue  # missing files are named where they are read
         check_limit("point_file_bytes", size, str(path))
@@ -67,7 +69,7 @@ def check_finite_points(points: np.ndarray, path: str | Path) -> None:
 def read_text_lines(path: str | Path, what: str) -> list[str]:
     """The lines of a UTF-8 text file; ImportFormatError naming the file (and `what` it should
     be) when it is missing, unreadable or not UTF-8 text (the first bad byte's offset)."""
-    path = Path(path)
+    path = check_regular(path, what)
     try:
         return path.read_text(encoding="utf-8").splitlines()
     except FileNotFoundError:

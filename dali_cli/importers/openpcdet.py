@@ -24,6 +24,7 @@ from dali_cli.labels import plausibility
 from dali_cli.store.artifacts import BoxTable
 from dali_cli.store.frame_ids import child_path
 from dali_cli.store.manifest import BuildResult
+from dali_cli.store.regular_files import check_regular
 
 DEFAULT_CAR_CLASSES = ("Car", "Vehicle")
 
@@ -53,14 +54,15 @@ def frame_ids(root: str | Path, split: str | None = None) -> list[str]:
 
 def read_points(path: str | Path, intensity_max: float = 1.0) -> np.ndarray:
     """An OpenPCDet `.npy` cloud -> `(n, 4)` float32, intensity divided by `intensity_max`."""
-    path = Path(path)
+    path = check_regular(path, "point file")
     try:
         array = np.load(path, allow_pickle=False)
     except (OSError, ValueError) as error:
         raise ImportFormatError(f"{path}: cannot read .npy ({error})") from None
-    if array.ndim != 2 or array.shape[1] < 4 or not np.issubdtype(array.dtype, np.number):
+    real = array.dtype.kind in "iuf"  # integers or floats: no complex, booleans, strings
+    if array.ndim != 2 or array.shape[1] < 4 or not real:
         raise ImportFormatError(
-            f"{path}: expected a numeric (n, >=4) array, got {array.dtype} {array.shape}"
+            f"{path}: expected a numeric (n, >=4) array of real numbers, got {array.dtype} {array.shape}"
         )
     points = array[:, :4].astype(np.float32)
     check_finite_points(points, path)

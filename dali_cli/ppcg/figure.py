@@ -14,13 +14,13 @@ import numpy as np
 from dali_cli.geometry import wrap_angle
 from dali_cli.ppcg.fitting import sensor_to_model
 from dali_cli.store.artifacts import ArtifactError, FrameSet, read_boxes
-from dali_cli.store.manifest import read_manifest
+from dali_cli.store.manifest import read_input_manifest
 
 _MARGIN_M = 0.6  # drawn around each box
 
 
 def _target_of(stage_dir: Path) -> Path:
-    manifest = read_manifest(stage_dir) or {}
+    manifest = read_input_manifest(stage_dir) or {}
     records = manifest.get("inputs", {}).get("target") or []
     if not records:
         raise ArtifactError(f"{stage_dir}/manifest.json: no 'target' input recorded")

@@ -10,6 +10,8 @@ from typing import Protocol
 
 import numpy as np
 
+from dali_cli import quantities
+
 SCALE_DECIMALS = 9  # cache keys: scales equal to 1e-9 are the same scale
 DEFAULT_STEP = 0.01
 DEFAULT_ROS_FACTOR = 0.875  # mean of U(0.75, 1.0), the ROS default of ST3D / dali pretrain
@@ -79,8 +81,10 @@ def parse_scale_range(text: str) -> ScaleRange:
         raise ValueError(f"'{text}': values must be finite")
     low, high = values[:2]
     step = values[2] if len(values) == 3 else DEFAULT_STEP
-    if low <= 0:
-        raise ValueError(f"'{text}': LOW must be > 0 (a scale), got {low:g}")
+    for value in (low, high):
+        problem = quantities.SCALE.problem(value)
+        if problem is not None:
+            raise ValueError(f"'{text}': {problem}")
     if not low < high:
         raise ValueError(f"'{text}': LOW must be < HIGH")
     if not 0 < step <= high - low:

@@ -30,6 +30,7 @@ import pyarrow.parquet as pq
 from dali_cli.runtime.errors import StageError
 from dali_cli.store import raw_chunks
 from dali_cli.store.frame_ids import FrameIdError, check_name, first_bad_name
+from dali_cli.store.regular_files import check_regular
 
 FRAMES_NAME = "frames.zarr"
 BOXES_NAME = "boxes.parquet"
@@ -49,7 +50,7 @@ def read_json(path: Path, missing: str, invalid: str):
     if not path.is_file():
         raise ArtifactError(f"{path}: {missing}")
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        return json.loads(check_regular(path).read_text(encoding="utf-8"))
     except (OSError, ValueError) as error:  # not UTF-8, not JSON, an integer of 5,000 digits
         reason = error.strerror if isinstance(error, OSError) else str(error)[:160]
         raise ArtifactError(f"{path}: {invalid} ({reason})") from None

@@ -224,8 +224,9 @@ class OutputLock:
     def __enter__(self) -> OutputLock:
         self.out.parent.mkdir(parents=True, exist_ok=True)
         while True:
-            try:  # never through a symbolic link: it would write our pid into its target
-                fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+            try:  # never through a link: it would write our pid into its target; a FIFO
+                flags = os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK  # must not block
+                fd = os.open(self.path, flags, 0o644)
             except OSError as error:
                 if error.errno not in (errno.ELOOP, errno.EISDIR, errno.ENXIO):
                     raise
@@ -235,12 +236,14 @@ class OutputLock:
                     "yourself, then rerun"
                 ) from None
             info = os.fstat(fd)
-            held = os.pread(fd, 64, 0) if stat.S_ISREG(info.st_mode) else b""
-            if not stat.S_ISREG(info.st_mode) or not (held == b"" or held.strip().isdigit()):
+            regular = stat.S_ISREG(info.st_mode) and info.st_nlink == 1  # a hard link: not ours
+            held = os.pread(fd, 64, 0) if regular else b""
+            if not regular or not (held == b"" or held.strip().isdigit()):
                 os.close(fd)  # a user's file of that name: dali writes only its own pid files
                 raise OutputPathError(
                     f"{self.path}: the lock file of {self.out} is not a lock dali made (a "
-                    "regular file holding a pid); move or delete it yourself, then rerun"
+                    "regular file with one link, holding a pid); move or delete it yourself, "
+                    "then rerun"
                 )
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)

@@ -21,6 +21,8 @@ import os
 import sqlite3
 from pathlib import Path
 
+from dali_cli.store.regular_files import check_regular
+
 HASH_BLOCK = 1 << 22
 CACHE_NAME = "file_hashes.sqlite"
 
@@ -115,13 +117,26 @@ def file_digest(path: str | Path) -> str:
 def hash_tree(path: str | Path, exclude: tuple[str, ...] = ()) -> str:
     """Digest of every file under `path` (relative names and file digests, sorted by name); a
     file works too (its own digest, under its name). Names in `exclude` are left out."""
-    path = Path(path)
+    path = check_regular(Path(path))
+    if path.is_file():
+        return tree_digest([(path.name, path)])
+    return tree_digest([(r, f) for r, f in tree_files(path).items() if r not in exclude])
+
+
+def tree_files(directory: Path) -> dict[str, Path]:
+    """Every file under `directory` by its relative name (POSIX), in hash_tree's order (sorted
+    as paths, part by part: not the order of the names as strings); a FIFO, socket or
+    device inside is refused (SpecialFileError naming it): it would block or never end a
+    reader."""
+    files = sorted(p for p in directory.rglob("*") if check_regular(p).is_file())
+    return {file.relative_to(directory).as_posix(): file for file in files}
+
+
+def tree_digest(files: list[tuple[str, Path]]) -> str:
+    """The digest `hash_tree` gives a tree of these (relative name, path) files, taken in the
+    order given (tree_files')."""
     digest = hashlib.blake2b(digest_size=16)
-    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
-    for file in files:
-        relative = file.name if file == path else file.relative_to(path).as_posix()
-        if relative in exclude:
-            continue
+    for relative, file in files:
         digest.update(relative.encode())
         digest.update(b"\0")
         digest.update(file_digest(file).encode())

@@ -31,7 +31,8 @@ from dali_cli.store.atomic_dir import (
 )
 from dali_cli.store.atomic_file import write_text_atomically
 from dali_cli.store.file_hashes import hash_tree as _hash_files
-from dali_cli.store.output_paths import check_output_path
+from dali_cli.store.foreign_files import foreign_files
+from dali_cli.store.output_paths import OutputPathError, check_output_path
 
 MANIFEST_NAME = "manifest.json"
 # how content hashes are computed; manifests of older versions hashed raw bytes differently
@@ -61,15 +62,9 @@ def check_made_from(artifact: str | Path, role: str, expected_input: str | Path)
     """
     artifact = Path(artifact)
     manifest = read_input_manifest(artifact) if artifact.is_dir() else None
-    inputs = (manifest or {}).get("inputs", {})
-    records = inputs.get(role) if isinstance(inputs, dict) else None
+    records = (manifest or {}).get("inputs", {}).get(role)
     if not records:
         return
-    if not isinstance(records, list) or not all(isinstance(r, dict) for r in records):
-        raise StageError(
-            f"{artifact / MANIFEST_NAME}: inputs.{role} is not a list of input records; "
-            "the manifest is damaged (rebuild the artifact)"
-        )
     expected = content_hash(expected_input)
     if expected not in {record.get("hash") for record in records}:
         made_from = ", ".join(str(record.get("path")) for record in records)
@@ -101,9 +96,42 @@ def read_input_manifest(directory: str | Path) -> dict | None:
     except (OSError, ValueError) as error:
         reason = error.strerror if isinstance(error, OSError) else str(error)[:120]
         raise StageError(f"{path}: not a dali manifest ({reason})", path=path) from None
-    if not isinstance(document, dict):
-        raise StageError(f"{path}: not a dali manifest (not a JSON object)", path=path)
+    problem = manifest_problem(document)
+    if problem is not None:
+        raise StageError(
+            f"{path}: not a dali manifest ({problem}); the manifest is damaged (rebuild the "
+            "artifact)",
+            path=path,
+        )
     return document
+
+
+def manifest_problem(document) -> str | None:
+    """What makes `document` no manifest dali could have written, None when nothing does: a
+    JSON object whose `inputs` (when present) maps roles to lists of {path, hash} records of
+    strings, and whose `outputs` (when present) holds a `files` count and a `counts` object."""
+    if not isinstance(document, dict):
+        return "not a JSON object"
+    inputs = document.get("inputs", {})
+    if not isinstance(inputs, dict):
+        return "inputs is not an object"
+    for role, records in inputs.items():
+        if not isinstance(records, list):
+            return f"inputs.{role} is not a list of input records"
+        for index, record in enumerate(records):
+            if not isinstance(record, dict) or not all(
+                isinstance(record.get(key), str) for key in ("path", "hash")
+            ):
+                return f"inputs.{role}[{index}] is not a record of a path and a hash (strings)"
+    outputs = document.get("outputs", {})
+    if not isinstance(outputs, dict):
+        return "outputs is not an object"
+    files = outputs.get("files", 0)
+    if isinstance(files, bool) or not isinstance(files, int) or files < 0:
+        return "outputs.files is not a count of files"
+    if not isinstance(outputs.get("counts", {}), dict):
+        return "outputs.counts is not an object"
+    return None
 
 
 def _normalized(value):
@@ -147,6 +175,9 @@ def why_stale(
     manifest = read_manifest(out)
     if manifest is None:
         return "no output yet" if not out.exists() else "output has no valid manifest"
+    problem = manifest_problem(manifest)
+    if problem is not None:
+        return f"output's manifest is damaged ({problem})"
     if manifest.get("hash_method") != HASH_METHOD:
         return "output was written by an older dali (content hashes are computed differently)"
     if manifest.get("content_hash") != hash_tree(out, (MANIFEST_NAME, *derived)):
@@ -167,6 +198,25 @@ def why_stale(
         changed = sorted(k for k in set(old) | set(params) if old.get(k) != params.get(k))
         return f"parameters changed: {', '.join(changed)}"
     return None
+
+
+def refuse_foreign_files(given: Path, out: Path, stage: str, derived: tuple[str, ...]) -> None:
+    """Before `out` is replaced: refuse (OutputPathError naming them) when it holds files its
+    stage did not write, which the replacement would delete (foreign_files)."""
+    manifest = read_manifest(out) if out.is_dir() else None
+    if manifest is None:
+        return  # nothing there, or (eval only) an older eval's files, checked by name
+    foreign = foreign_files(out, manifest, (MANIFEST_NAME, LEFTOVER_MARKER, *derived), HASH_METHOD)
+    if foreign:
+        shown = ", ".join(foreign[:5]) + (
+            f" and {len(foreign) - 5} more" if len(foreign) > 5 else ""
+        )
+        raise OutputPathError(
+            f"{given}: {shown} inside it {'was' if len(foreign) == 1 else 'were'} not written by "
+            f"{stage} (added or changed since); rerunning would delete "
+            f"{'it' if len(foreign) == 1 else 'them'}, and dali never deletes a file it did not "
+            f"write: move {'it' if len(foreign) == 1 else 'them'} out of {given}, then rerun"
+        )
 
 
 def _write_json_atomic(path: Path, document: dict) -> None:
@@ -202,6 +252,7 @@ def run_stage(
         if reason is None and not force:
             echo(f"{stage}: {given} is up to date (use --force to rerun)")
             return StageOutcome("skipped", "up to date", read_manifest(out))
+        refuse_foreign_files(given, out, stage, derived)
         echo(f"{stage}: would run -> {given} ({reason or 'forced'})")
         return StageOutcome("dry-run", reason or "forced")
     with OutputLock(out):
@@ -211,6 +262,7 @@ def run_stage(
         if reason is None and not force:
             echo(f"{stage}: {given} is up to date (use --force to rerun)")
             return StageOutcome("skipped", "up to date", read_manifest(out))
+        refuse_foreign_files(given, out, stage, derived)
         reason = reason or "forced"
         manifest, wall = _build_and_commit(stage, out, records, params, build, seed, derived)
     echo(f"{stage}: wrote {given} ({wall:.1f} s)")

@@ -15,6 +15,7 @@ import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
+from dali_cli import quantities
 from dali_cli.store.artifacts import ArtifactError, read_json
 from dali_cli.store.json_numbers import finite_number, finite_numbers
 
@@ -22,20 +23,37 @@ META_NAME = "model.json"
 SIZE_NORMS = ("none", "sn", "ros")
 
 
+def _of_kind(kind: quantities.Quantity, value, count: int) -> tuple[float, ...] | None:
+    """`count` numbers of `kind` (quantities) from a JSON list, else None."""
+    numbers = finite_numbers(value, count)
+    if numbers is None or any(kind.problem(n) is not None for n in numbers):
+        return None
+    return numbers
+
+
 def _size(value) -> tuple[float, float, float] | None:
-    """(l, w, h) in metres from a JSON list of three finite numbers (an SN delta may be
-    negative), else None."""
-    return finite_numbers(value, 3)
+    """(l, w, h) of a car in metres, else None."""
+    return _of_kind(quantities.CAR_SIZE_M, value, 3)
+
+
+def _delta(value) -> tuple[float, float, float] | None:
+    """An SN size offset (l, w, h) in metres (each may be negative), else None."""
+    return _of_kind(quantities.SIZE_DELTA_M, value, 3)
 
 
 def _pair(value) -> tuple[float, float] | None:
-    """(lo, hi) from a JSON list of two finite numbers 0 < lo <= hi, else None."""
-    pair = finite_numbers(value, 2, positive=True)
+    """(lo, hi) ROS scale factors, lo <= hi, else None."""
+    pair = _of_kind(quantities.SCALE, value, 2)
     return pair if pair is not None and pair[0] <= pair[1] else None
 
 
 def _text(value) -> str | None:
     return value if isinstance(value, str) and value else None
+
+
+def _profile(value) -> str | None:
+    """A sensor profile name (never a path), else None."""
+    return value if isinstance(value, str) and quantities.is_profile_name(value) else None
 
 
 @dataclass(frozen=True)
@@ -102,15 +120,16 @@ class ModelCard:
         return cls(
             detector=_text(card.get("detector")),
             stage=_text(card.get("stage")),
-            source_sensor=_text(card.get("source_sensor")),
+            source_sensor=_profile(card.get("source_sensor")),
             mount_height_m=mount
-            if (mount := finite_number(mount)) is not None and mount >= 0
+            if (mount := finite_number(mount)) is not None
+            and quantities.MOUNT_HEIGHT_M.problem(mount) is None
             else None,
             source_mean_lwh_m=_size(card.get("source_mean_lwh_m")),
             size_norm=size_norm if size_norm in SIZE_NORMS else "none",
-            sn_delta_lwh_m=_size(card.get("sn_delta_lwh_m")),
+            sn_delta_lwh_m=_delta(card.get("sn_delta_lwh_m")),
             ros_range=_pair(card.get("ros_range")),
-            target_profile=_text(card.get("target_profile")),
+            target_profile=_profile(card.get("target_profile")),
         )
 
 

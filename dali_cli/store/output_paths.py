@@ -42,6 +42,15 @@ def is_dali_artifact(path: Path) -> bool:
     return isinstance(manifest, dict) and "stage" in manifest and "dali_version" in manifest
 
 
+def artifact_stage(path: Path) -> str | None:
+    """The stage that wrote the dali artifact `path` (its manifest's `stage`), else None."""
+    manifest = read_json_quietly(path / MANIFEST_NAME)
+    if not isinstance(manifest, dict) or "dali_version" not in manifest:
+        return None
+    stage = manifest.get("stage")
+    return stage if isinstance(stage, str) else None
+
+
 def artifact_around(path: Path) -> Path | None:
     """The dali artifact `path` is or lies inside (the nearest), None when there is none."""
     for candidate in (path, *path.parents):
@@ -105,20 +114,32 @@ def check_output_path(
                 f"{option} {given} lies inside the {role} input {path}: writing there would change "
                 "that input; choose a path outside it"
             )
-    if (
-        directory
-        and target.exists()
-        and not (
-            target.is_dir()
-            and not target.is_symlink()
-            and (is_dali_artifact(target) or (stage == "eval" and is_unmanaged_eval_dir(target)))
-        )
+    if not directory:
+        return target
+    if target.exists() and not (
+        target.is_dir()
+        and not target.is_symlink()
+        and (is_dali_artifact(target) or (stage == "eval" and is_unmanaged_eval_dir(target)))
     ):
         what = "a file" if not target.is_dir() else "a directory without a dali manifest.json"
         raise OutputPathError(
             f"{option} {given} exists and is {what}. dali replaces its output as a whole, so it "
             "writes only to a new path or over an artifact it wrote itself; choose a new path, "
             "or move or delete it yourself"
+        )
+    owner = artifact_stage(target) if target.is_dir() else None
+    if stage is not None and owner is not None and owner != stage:
+        raise OutputPathError(
+            f"{option} {given} is an artifact of stage '{owner}': {stage} replaces only an "
+            f"artifact {stage} wrote (--force included); choose another --out, or move or "
+            "delete it yourself"
+        )
+    outer = artifact_around(target.parent)
+    if outer is not None:
+        raise OutputPathError(
+            f"{option} {given} lies inside the dali artifact {outer} (of stage "
+            f"'{artifact_stage(outer)}'): writing there would change it behind its manifest; "
+            "choose a path outside it"
         )
     return target
 
@@ -152,11 +173,39 @@ def check_metrics_output(
         check_file_output(
             target.parent / name,
             inputs,
-            lambda _path: is_dali_metrics_file(target, marker),
-            f"a file of an earlier dali eval ({target.name} beside it is not a dali metrics file)",
+            lambda path: is_eval_predictions(path, target),
+            f"a file dali eval wrote there with {target.name}",
             option=f"{name} beside --out",
         )
     return target
+
+
+# the Parquet metadata key and value that mark a predictions file `dali eval` wrote
+PREDICTIONS_MARK = (b"written_by", b"dali eval")
+
+
+def is_eval_predictions(path: Path, metrics: Path) -> bool:
+    """`path` is a predictions file `dali eval` wrote beside the metrics file `metrics`: it
+    carries PREDICTIONS_MARK in its Parquet metadata, or (written by an older dali, unmarked)
+    `metrics` is a dali metrics file of a model's evaluation and `path` was not written after
+    it (they were written together, the predictions first). A user's predictions file, say the
+    `--pred` of an earlier evaluation into that directory, is neither."""
+    if path.is_symlink() or not path.is_file():
+        return False
+    try:
+        import pyarrow.parquet as pq
+
+        metadata = pq.read_schema(path).metadata or {}
+    except Exception:  # not Parquet: not dali's
+        return False
+    if metadata.get(PREDICTIONS_MARK[0]) == PREDICTIONS_MARK[1]:
+        return True
+    document = read_json_quietly(metrics)
+    if not is_dali_metrics_file(metrics) or not isinstance(document, dict):
+        return False
+    sources = [block.get("source") for block in document.values() if isinstance(block, dict)]
+    from_model = any(isinstance(source, dict) and "model" in source for source in sources)
+    return from_model and path.stat().st_ctime_ns <= metrics.stat().st_ctime_ns
 
 
 # what `dali eval --out DIR/metrics.json` wrote into a directory before eval had a manifest
