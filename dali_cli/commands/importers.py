@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from dali_cli.commands.common import choice_option, import_options
-from dali_cli.commands.kinds import INTENSITY_MAX
+from dali_cli.commands.kinds import INTENSITY_MAX, VIEW_DEG
 
 
 @click.group(name="import")
@@ -113,7 +113,7 @@ def kitti_raw_command(
                    "SEQUENCE_DIR/../../poses/<NN>.txt (the devkit layout), when present.")  # fmt: skip
 @click.option("--crop-fov", is_flag=True,
               help="Keep only points that project into camera 2's image (needs the calib).")  # fmt: skip
-@click.option("--crop-front-deg", type=finite_range(0, 360, min_open=True), default=None,
+@click.option("--crop-front-deg", type=VIEW_DEG, default=None,
               metavar="DEG",
               help="Keep only points within ±DEG/2 of straight ahead in azimuth (for a sequence "
                    "without calib; KITTI's camera 2 sees about 82 degrees).")  # fmt: skip
