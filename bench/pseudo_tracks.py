@@ -31,6 +31,7 @@ import argparse
 import json
 import os
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -51,7 +52,8 @@ CUTS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8)
 
 def drive_poses(drive_dir: Path, frame_ids: list[str]) -> np.ndarray:
     """`(n, 4, 4)` LiDAR poses of a raw drive's scans from its OXTS records."""
-    from dali_cli.importers.oxts import drive_lidar_poses, read_imu_to_velo
+    from dali_cli.importers.kitti_raw import read_imu_to_velo
+    from dali_cli.importers.oxts import drive_lidar_poses
 
     imu_to_velo = read_imu_to_velo(drive_dir.resolve().parent / "calib_imu_to_velo.txt")
     return drive_lidar_poses(drive_dir / "oxts" / "data", imu_to_velo, frame_ids)
@@ -115,17 +117,6 @@ def curve(frame_ids, frame, boxes, scores, cut_by, truth_by_frame, truth_total, 
         if tight is None:
             tight = tightness(boxes[keep][hit], matched[hit])
     return {"curve": rows, "tightness_lowest_cut": tight}
-
-
-def parked_track(track, frame, world, params) -> np.ndarray:
-    """(N,) bool: the box's track is parked (tracks.is_parked)."""
-    out = np.zeros(len(track), bool)
-    for t in np.unique(track):
-        rows = np.flatnonzero(track == t)
-        rows = rows[np.argsort(frame[rows], kind="stable")]
-        span = int(frame[rows[-1]] - frame[rows[0]])
-        out[rows] = tracks.is_parked(span, world[rows], params)
-    return out
 
 
 def main() -> None:
@@ -214,22 +205,14 @@ def main() -> None:
             *common, filled_frame, filled, filled_mean, filled_mean, truth_by_frame,
             truth_total, args.iou, args.cuts,
         )  # fmt: skip
-    car, car_boxes, car_scores = tracks.parked_cars(track, frame, world, scores, params)
-    # boxes of moving tracks with enough hits (the parked cars' short fragments are dropped)
-    moving = (car < 0) & (hits >= params.min_hits) & ~parked_track(track, frame, world, params)
+    frames_points_of = lambda f: frames_points.frame(frame_ids[f])  # noqa: E731
     for min_points in args.place_points:
-        placed_frame, placed, placed_score = [frame[moving]], [boxes[moving]], [mean_score[moving]]
-        for f, frame_id in enumerate(frame_ids):
-            index, local_boxes, _ = tracks.place_in_scan(
-                car_boxes, poses[f], frames_points.frame(frame_id), min_points
-            )
-            placed_frame.append(np.full(len(index), f))
-            placed.append(local_boxes)
-            placed_score.append(car_scores[index])
-        placed_frame, placed = np.concatenate(placed_frame), np.concatenate(placed)
-        placed_score = np.concatenate(placed_score)
+        tracked = tracks.track_boxes(
+            frame, boxes, scores, np.asarray(pseudo["num_points"]), poses, frames_points_of,
+            replace(params, min_points=min_points),
+        )  # fmt: skip
         variants[f"parked (>= {min_points} points)"] = curve(
-            *common, placed_frame, placed, placed_score, placed_score, truth_by_frame,
+            *common, tracked.frame, tracked.boxes, tracked.score, tracked.score, truth_by_frame,
             truth_total, args.iou, args.cuts,
         )  # fmt: skip
     lengths = np.bincount(np.unique(track, return_inverse=True)[1])
@@ -239,8 +222,8 @@ def main() -> None:
         "truth_cars": truth_total,
         "pseudo_boxes": len(pseudo),
         "tracks": int(len(lengths)),
-        "parked_cars": len(car_boxes),
-        "boxes_in_moving_tracks": int(moving.sum()),
+        "parked_cars": int(len(np.unique(tracked.car[tracked.parked]))),
+        "moving_tracks": int(len(np.unique(tracked.car[~tracked.parked]))),
         "track_hits_histogram": np.bincount(lengths).tolist(),
         "params": {**vars(params), "iou": args.iou},
         "variants": variants,
@@ -255,7 +238,7 @@ def main() -> None:
         print(f"{name:34s} {cells}")
     for name, variant in variants.items():
         print(f"{name:34s} {variant['tightness_lowest_cut']}")
-    print({key: result[key] for key in ("tracks", "parked_cars", "boxes_in_moving_tracks")})
+    print({key: result[key] for key in ("tracks", "parked_cars", "moving_tracks")})
 
 
 if __name__ == "__main__":

@@ -88,21 +88,6 @@ def lidar_poses(imu_poses: np.ndarray, imu_to_velo: np.ndarray) -> np.ndarray:
     return imu_to_velo @ relative @ velo_to_imu
 
 
-def read_imu_to_velo(path: str | Path) -> np.ndarray:
-    """`(4, 4)` x_velo = M x_imu from a raw `calib_imu_to_velo.txt` (R: 9 values, T: 3)."""
-    from dali_cli.importers.kitti_raw import _matrix, _read_keyed
-
-    path = Path(path)
-    values = _read_keyed(path)
-    rotation = _matrix(path, values, "R", (3, 3))
-    translation = _matrix(path, values, "T", (3, 1))
-    if abs(np.linalg.det(rotation)) < 1e-6:
-        raise ImportFormatError(f"{path}, line {values['R'][0]}: 'R' is singular")
-    matrix = np.eye(4)
-    matrix[:3, :3], matrix[:3, 3] = rotation, translation[:, 0]
-    return matrix
-
-
 def drive_lidar_poses(oxts_dir: str | Path, imu_to_velo: np.ndarray, frame_ids: list[str]):
     """`(n, 4, 4)` LiDAR poses of the scans `frame_ids` (each `<oxts_dir>/<id>.txt`), in the
     Velodyne frame of the first of them."""

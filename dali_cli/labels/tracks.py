@@ -230,3 +230,79 @@ def place_in_scan(
     counts = count_points_in_boxes(points, local) if len(local) else np.zeros(0, np.int64)
     index = np.flatnonzero(counts >= min_points)
     return index, local[index], counts[index]
+
+
+def parked_tracks(track: np.ndarray, frame: np.ndarray, world: np.ndarray, params: TrackParams):
+    """`(N,)` bool per box: its track is parked (is_parked)."""
+    out = np.zeros(len(track), bool)
+    for t in np.unique(track):
+        rows = np.flatnonzero(track == t)
+        rows = rows[np.argsort(frame[rows], kind="stable")]
+        out[rows] = is_parked(int(frame[rows[-1]] - frame[rows[0]]), world[rows], params)
+    return out
+
+
+@dataclass
+class TrackedBoxes:
+    """The boxes of a sequence after tracking (M rows): frame (M,) int position of the scan;
+    boxes (M, 7) in the scan's LiDAR frame; score (M,) the car's median or the moving track's
+    mean score; num_points (M,) points of the scan in the box; car (M,) int64 id of the car
+    (parked cars 0..K-1, then the moving tracks); parked (M,) bool; source_row (M,) int64 the
+    input box a moving row is (-1 for a placed parked car)."""
+
+    frame: np.ndarray
+    boxes: np.ndarray
+    score: np.ndarray
+    num_points: np.ndarray
+    car: np.ndarray
+    parked: np.ndarray
+    source_row: np.ndarray
+
+
+def track_boxes(
+    frame: np.ndarray,
+    boxes: np.ndarray,
+    score: np.ndarray,
+    num_points: np.ndarray,
+    poses: np.ndarray,
+    points_of,
+    params: TrackParams = TrackParams(),
+) -> TrackedBoxes:
+    """Pseudo boxes of a sequence turned into tracked boxes: linked in the world frame
+    (link_tracks); each parked car (parked_cars, found in >= min_hits scans) as one world box
+    placed in every scan where it holds >= min_points points (place_in_scan); the boxes of
+    moving tracks with >= min_hits hits as they are; every other box (clutter that does not
+    persist) dropped.
+
+    frame : (N,) int scan position (0..F-1); boxes : (N, 7) LiDAR frames; score : (N,);
+    num_points : (N,) the points in each input box; poses : (F, 4, 4) LiDAR poses;
+    points_of : callable(f) -> (M, >=3) points of scan f.
+    """
+    world = np.empty_like(boxes, dtype=np.float64)
+    for f in np.unique(frame):
+        world[frame == f] = boxes_to_world(boxes[frame == f], poses[f])
+    track = link_tracks(frame, world, score, params)
+    car, car_boxes, car_scores = parked_cars(track, frame, world, score, params)
+    moving = (car < 0) & (track_lengths(track, frame) >= params.min_hits)
+    moving &= ~parked_tracks(track, frame, world, params)
+    parts = []
+    for f in range(len(poses)):
+        index, local, counts = place_in_scan(car_boxes, poses[f], points_of(f), params.min_points)
+        parts.append((np.full(len(index), f), local, car_scores[index], counts, index))
+    moving_rows = np.flatnonzero(moving)
+    _, moving_id = np.unique(track[moving_rows], return_inverse=True)
+    mean_score = track_mean(track, score)
+    placed = [np.concatenate(column) for column in zip(*parts, strict=True)] if parts else None
+    placed_frame, placed_boxes, placed_score, placed_points, placed_car = placed or [
+        np.zeros(0, np.int64), np.zeros((0, 7)), np.zeros(0), np.zeros(0, np.int64),
+        np.zeros(0, np.int64),
+    ]  # fmt: skip
+    return TrackedBoxes(
+        frame=np.concatenate([placed_frame, frame[moving_rows]]).astype(np.int64),
+        boxes=np.concatenate([placed_boxes.reshape(-1, 7), boxes[moving_rows]]),
+        score=np.concatenate([placed_score, mean_score[moving_rows]]),
+        num_points=np.concatenate([placed_points, num_points[moving_rows]]).astype(np.int64),
+        car=np.concatenate([placed_car, len(car_boxes) + moving_id]).astype(np.int64),
+        parked=np.r_[np.ones(len(placed_frame), bool), np.zeros(len(moving_rows), bool)],
+        source_row=np.r_[np.full(len(placed_frame), -1), moving_rows].astype(np.int64),
+    )
