@@ -21,7 +21,6 @@ from dali_cli.store.sequence import SequenceError, read_lidar_poses
 
 STAGE = "track_pseudo"
 SUMMARY_NAME = "summary.json"
-DEFAULT_SCORE_MIN = 0.5  # drive 2011_09_26_drive_0001: 0.80 precise at 0.79 recall (RESULTS.md)
 
 
 def track_pseudo(
@@ -29,21 +28,21 @@ def track_pseudo(
     target_dir: str | Path,
     out: str | Path,
     *,
-    score_min: float = DEFAULT_SCORE_MIN,
+    track_score_min: float = tracks.TRACK_SCORE_MIN,
     params: tracks.TrackParams = tracks.TrackParams(),
     force: bool = False,
     dry_run: bool = False,
 ) -> StageOutcome:
     """Track the pseudo boxes of `pseudo_dir` (a `dali pseudo-label` output) over the scans of
     `target_dir` (its sequence table's poses and its points, never its labels), keep the tracked
-    boxes scored >= `score_min` (a parked car: its boxes' median score; a moving track: its mean)."""
+    boxes scored >= `track_score_min` (a parked car: its boxes' median score; a moving track: its mean)."""
     pseudo_dir, target_dir = Path(pseudo_dir), Path(target_dir)
     for name, value in asdict(params).items():
         if not np.isfinite(value) or value < 0 or (name == "gate_m" and value == 0):
             raise ParameterError(name, f"must be finite and > 0 (>= 0 for counts), got {value}")
-    if not 0 <= score_min <= 1:
-        raise ParameterError("score_min", f"must be in [0, 1], got {score_min}")
-    stage_params = {"score_min": score_min, **asdict(params)}
+    if not 0 <= track_score_min <= 1:
+        raise ParameterError("track_score_min", f"must be in [0, 1], got {track_score_min}")
+    stage_params = {"track_score_min": track_score_min, **asdict(params)}
     inputs = {"pseudo": pseudo_dir, "target": target_dir}
 
     def build(directory: Path) -> BuildResult:
@@ -69,7 +68,7 @@ def track_pseudo(
             np.asarray(table["num_points"]), poses,
             lambda f: frames.frame(frame_ids[f]), params,
         )  # fmt: skip
-        keep = tracked.score >= score_min
+        keep = tracked.score >= track_score_min
         label = np.full(len(tracked.frame), "Car", dtype=object)
         moving = tracked.source_row >= 0
         label[moving] = np.asarray(table["label"], dtype=object)[tracked.source_row[moving]]

@@ -212,7 +212,7 @@ def test_track_pseudo_places_the_parked_car_in_every_scan_and_drops_clutter(tmp_
     assert (out / "scale.json").read_text() == (pseudo / "scale.json").read_text()
     # a score cut above the car's median score keeps nothing
     again = invoke(
-        "track-pseudo", "--pseudo", pseudo, "--target", target, "--score-min", "0.7",
+        "track-pseudo", "--pseudo", pseudo, "--target", target, "--track-score-min", "0.7",
         "--out", tmp_path / "strict",
     )  # fmt: skip
     assert again.exit_code == 0, again.output

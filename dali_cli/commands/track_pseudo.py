@@ -13,18 +13,18 @@ from dali_cli.commands.common import (
     tuning_option,
     with_tuning_note,
 )
-from dali_cli.labels.tracks import TrackParams
+from dali_cli.labels.tracks import TRACK_SCORE_MIN, TrackParams
 
 DEFAULTS = TrackParams()
 
 
 @click.command(name="track-pseudo", epilog=with_tuning_note())
 @input_dir_option("--pseudo", help="Pseudo labels of `dali pseudo-label` on TARGET (best made "
-                  "with a low --score-min, e.g. 0.1: the tracks do the filtering).")  # fmt: skip
+                  "with a low `pseudo-label --score-min`, e.g. 0.1: the tracks do the filtering).")  # fmt: skip
 @input_dir_option("--target", help="The target frame set the pseudo labels were made on, with "
                   "its scans' poses (sequence.parquet: `dali import kitti-raw --poses`).")  # fmt: skip
 @out_dir_option()
-@click.option("--score-min", type=FRACTION, default=0.5, show_default=True,
+@click.option("--track-score-min", type=FRACTION, default=TRACK_SCORE_MIN, show_default=True,
               help="Keep a parked car whose boxes' median score, a moving track whose mean "
                    "score, is at least this.")  # fmt: skip
 @tuning_option("--gate-m", type=finite_range(0, min_open=True), default=DEFAULTS.gate_m,
@@ -39,7 +39,7 @@ DEFAULTS = TrackParams()
                show_default=True, help="Points a scan must hold in a parked car's box for the "
                                        "box to be placed there.")  # fmt: skip
 @stage_options
-def command(pseudo, target, out, score_min, force, dry_run, **params):
+def command(pseudo, target, out, track_score_min, force, dry_run, **params):
     """Keep the pseudo boxes that persist over TARGET's scans: the boxes go into one world frame
     by the scans' poses and are linked scan by scan (nearest within --gate-m of where the
     track's velocity puts it); a parked car (its track moves < --parked-m-per-frame a scan; its
@@ -57,7 +57,7 @@ def command(pseudo, target, out, score_min, force, dry_run, **params):
     from stages.track_pseudo import track_pseudo
 
     outcome = track_pseudo(
-        pseudo, target, out, score_min=score_min, params=TrackParams(**params),
+        pseudo, target, out, track_score_min=track_score_min, params=TrackParams(**params),
         force=force, dry_run=dry_run,
     )  # fmt: skip
     if outcome.manifest and outcome.status == "ran":

@@ -14,6 +14,11 @@ import numpy as np
 
 from dali_cli.geometry import count_points_in_boxes, wrap_angle
 
+# a tracked car is kept when its score (a parked car's median, a moving track's mean) is at least
+# this: on drive 2011_09_26_drive_0001 the true cars' lie at 0.50-0.55, clutter's mostly < 0.45
+# (docs/RESULTS.md, "Pseudo labels that persist over a drive"); set by the detector's score scale
+TRACK_SCORE_MIN = 0.5
+
 
 @dataclass(frozen=True)
 class TrackParams:
