@@ -163,7 +163,7 @@ def main() -> None:
         rows = frame == f
         world[rows] = tracks.boxes_to_world(boxes[rows], poses[f])
     track = tracks.link_tracks(frame, world, scores, params)
-    hits = tracks.track_lengths(track, frame)
+    hits = tracks.track_lengths(track)
     mean_score = tracks.track_mean(track, scores)
 
     def local(world_boxes, frames):

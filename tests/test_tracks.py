@@ -64,7 +64,7 @@ def test_a_parked_car_under_ego_motion_is_one_track_and_one_car():
         [b[None] for b in seen], [np.array([0.5])] * len(seen), poses
     )
     assert len(np.unique(track)) == 1
-    assert tracks.track_lengths(track, frame).min() == len(seen)
+    assert tracks.track_lengths(track).min() == len(seen)
     car_of, boxes, scores = tracks.parked_cars(track, frame, world, score, PARAMS)
     assert (car_of == 0).all() and len(boxes) == 1
     assert np.linalg.norm(boxes[0, :2] - car[:2]) < 0.15
@@ -81,7 +81,7 @@ def test_a_one_scan_clutter_box_is_no_car():
     scores[4] = np.array([0.6, 0.9])  # scored above the car: the score alone would keep it
     frame, world, score, track = link_scans(per_scan, scores, poses)
     clutter_row = np.flatnonzero((frame == 4) & (score == 0.9))[0]
-    assert tracks.track_lengths(track, frame)[clutter_row] == 1
+    assert tracks.track_lengths(track)[clutter_row] == 1
     car_of, boxes, _ = tracks.parked_cars(track, frame, world, score, PARAMS)
     assert car_of[clutter_row] == -1
     assert len(boxes) == 1

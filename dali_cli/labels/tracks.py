@@ -1,6 +1,6 @@
 """Pseudo boxes over a scan sequence: boxes moved into one world frame by the scans' poses,
-linked into tracks frame by frame, and the track statistics that tell a car (it persists where
-ego motion puts it) from clutter (it comes and goes).
+linked into tracks scan by scan, parked cars made one box each and placed in every scan that
+holds them (the scans the detector missed them in included), and what does not persist dropped.
 
 Plain numpy. Boxes are `(N, 7)` float64 `x, y, z, l, w, h, yaw` (dali_cli.geometry); a pose is
 `(4, 4)` float64, a scan's LiDAR frame in the world frame (x_world = pose @ x_lidar).
@@ -100,7 +100,7 @@ def link_tracks(
     return track
 
 
-def track_lengths(track: np.ndarray, frame: np.ndarray) -> np.ndarray:
+def track_lengths(track: np.ndarray) -> np.ndarray:
     """`(N,)` per box: the number of frames its track was seen in (its hits)."""
     _, inverse, counts = np.unique(track, return_inverse=True, return_counts=True)
     return counts[inverse]
@@ -113,9 +113,9 @@ def track_mean(track: np.ndarray, values: np.ndarray) -> np.ndarray:
     return (sums / np.bincount(inverse, minlength=len(ids)))[inverse]
 
 
-def axis_median(yaw: np.ndarray) -> float:
-    """The heading axis (rad, modulo pi) of `(n,)` yaws: the mean of the doubled angles, so a
-    box turned by pi counts as the same axis."""
+def heading_axis(yaw: np.ndarray) -> float:
+    """The mean heading axis (rad, modulo pi) of `(n,)` yaws: the mean of the doubled angles,
+    so a box turned by pi counts as the same axis."""
     return 0.5 * float(np.arctan2(np.sin(2 * yaw).mean(), np.cos(2 * yaw).mean()))
 
 
@@ -149,7 +149,7 @@ def refine_tracks(
         span = int(frame[rows[-1]] - frame[rows[0]])
         if static and is_parked(span, world[rows], params):
             out[rows, :3] = np.median(world[rows, :3], axis=0)
-            axis = axis_median(world[rows, 6])
+            axis = heading_axis(world[rows, 6])
             flip = np.abs(wrap_angle(world[rows, 6] - axis)) > np.pi / 2
             out[rows, 6] = wrap_angle(axis + np.pi * flip)
     return out
@@ -183,7 +183,7 @@ def fill_gaps(
 def median_box(world: np.ndarray) -> np.ndarray:
     """`(7,)` one box of `(n, 7)` world boxes of one car: median centre and size, the mean
     heading axis pointed the way most of the boxes point."""
-    axis = axis_median(world[:, 6])
+    axis = heading_axis(world[:, 6])
     flipped = np.abs(wrap_angle(world[:, 6] - axis)) > np.pi / 2
     return np.r_[np.median(world[:, :6], axis=0), wrap_angle(axis + np.pi * (flipped.mean() > 0.5))]
 
@@ -288,7 +288,7 @@ def track_boxes(
         world[frame == f] = boxes_to_world(boxes[frame == f], poses[f])
     track = link_tracks(frame, world, score, params)
     car, car_boxes, car_scores = parked_cars(track, frame, world, score, params)
-    moving = (car < 0) & (track_lengths(track, frame) >= params.min_hits)
+    moving = (car < 0) & (track_lengths(track) >= params.min_hits)
     moving &= ~parked_tracks(track, frame, world, params)
     parts = []
     for f in range(len(poses)):
