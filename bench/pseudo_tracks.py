@@ -94,8 +94,8 @@ def tightness(boxes: np.ndarray, truth: np.ndarray) -> dict:
 
 
 def curve(frame_ids, frame, boxes, scores, cut_by, truth_by_frame, truth_total, iou, cuts):
-    """Precision / recall at every cut of `cut_by` `(N,)`, tightness at the lowest cut; box
-    counts only when `truth_by_frame` is None (an unlabelled sequence)."""
+    """Precision / recall and the true positives' tightness at every cut of `cut_by` `(N,)`;
+    box counts only when `truth_by_frame` is None (an unlabelled sequence)."""
     rows, tight = [], None
     for cut in cuts:
         keep = (cut_by >= cut) & in_grid(boxes)
@@ -112,10 +112,10 @@ def curve(frame_ids, frame, boxes, scores, cut_by, truth_by_frame, truth_total, 
                 "true_positives": int(hit.sum()),
                 "precision": round(float(hit.mean()), 4) if keep.any() else None,
                 "recall": round(float(truth_hit.sum() / truth_total), 4),
+                "tightness": tightness(boxes[keep][hit], matched[hit]),
             }
         )
-        if tight is None:
-            tight = tightness(boxes[keep][hit], matched[hit])
+        tight = tight or rows[-1]["tightness"]
     return {"curve": rows, "tightness_lowest_cut": tight}
 
 
@@ -237,7 +237,9 @@ def main() -> None:
         )
         print(f"{name:34s} {cells}")
     for name, variant in variants.items():
-        print(f"{name:34s} {variant['tightness_lowest_cut']}")
+        for row in variant["curve"]:
+            if row["cut"] in (min(args.cuts), 0.5):
+                print(f"{name:34s} {row['cut']:.2f} {row.get('tightness')}")
     print({key: result[key] for key in ("tracks", "parked_cars", "moving_tracks")})
 
 

@@ -180,12 +180,14 @@ def fill_gaps(
     )
 
 
-def median_box(world: np.ndarray) -> np.ndarray:
-    """`(7,)` one box of `(n, 7)` world boxes of one car: median centre and size, the mean
-    heading axis pointed the way most of the boxes point."""
-    axis = heading_axis(world[:, 6])
-    flipped = np.abs(wrap_angle(world[:, 6] - axis)) > np.pi / 2
-    return np.r_[np.median(world[:, :6], axis=0), wrap_angle(axis + np.pi * (flipped.mean() > 0.5))]
+def median_box(world: np.ndarray, score: np.ndarray) -> np.ndarray:
+    """`(7,)` one box of the `(n, 7)` world boxes of one car: of its boxes scored at least their
+    median score (the scans that saw the car best), the median centre and size and the mean
+    heading axis, pointed the way most of them point. score : (n,)."""
+    best = world[score >= np.median(score)]
+    axis = heading_axis(best[:, 6])
+    flipped = np.abs(wrap_angle(best[:, 6] - axis)) > np.pi / 2
+    return np.r_[np.median(best[:, :6], axis=0), wrap_angle(axis + np.pi * (flipped.mean() > 0.5))]
 
 
 def parked_cars(
@@ -220,7 +222,8 @@ def parked_cars(
     renumber = np.full(len(centres) + 1, -1, np.int64)  # index -1: the last slot, stays -1
     renumber[kept] = np.arange(len(kept))
     car = renumber[car]
-    boxes = np.array([median_box(world[car == k]) for k in range(len(kept))]).reshape(-1, 7)
+    boxes = [median_box(world[car == k], score[car == k]) for k in range(len(kept))]
+    boxes = np.array(boxes).reshape(-1, 7)
     scores = np.array([np.median(score[car == k]) for k in range(len(kept))], np.float64)
     return car, boxes, scores
 
