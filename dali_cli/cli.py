@@ -32,6 +32,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "pretrain": ("pretrain", "Stage 1: train the detector on the labeled source."),
     "ptsn-sweep": ("ptsn_sweep", "Stage 2: find the PTSN scale for the target."),
     "pseudo-label": ("pseudo_label", "Stage 3: pseudo-label the target at the PTSN scale."),
+    "track-pseudo": (
+        "track_pseudo",
+        "Optional: keep pseudo labels that persist over a scan sequence.",
+    ),
     "ppcg-rc": ("ppcg_rc", "Stage 4: ray-constrained pseudo point clouds."),
     "ppcg-cf": ("ppcg_cf", "Stage 5: constraint-free pseudo point clouds."),
     "retrain": ("retrain", "Stage 6: retrain on source + RC + CF frames."),

@@ -1,5 +1,6 @@
 """Stage import_kitti_raw: a KITTI raw synced drive (velodyne_points, the day's calib files,
-tracklet_labels.xml) -> a FrameSet with boxes (dali_cli.importers.kitti_raw)."""
+tracklet_labels.xml; with poses the OXTS records) -> a FrameSet with boxes and, with poses, its
+sequence table (dali_cli.importers.kitti_raw)."""
 
 from __future__ import annotations
 
@@ -19,9 +20,11 @@ def import_kitti_raw(
     labels: bool = True,
     crop_fov: bool = False,
     sensor: str = "kitti",
+    poses: bool = False,
     **run: Unpack[ImportRun],
 ) -> StageOutcome:
-    """Import the drive DRIVE_DIR into `out` (with its tracklets unless `labels` is False)."""
+    """Import the drive DRIVE_DIR into `out` (with its tracklets unless `labels` is False; with
+    the scans' LiDAR poses from the OXTS records when `poses`)."""
     from dali_cli.importers.kitti_raw import RawDrive, build_import
 
     check_sensor(sensor, run)  # an unknown profile fails before any work
@@ -33,11 +36,14 @@ def import_kitti_raw(
         "calib_velo_to_cam": drive.calib_dir / "calib_velo_to_cam.txt",
         "tracklets": drive.tracklets,
     }
+    if poses:  # recorded only when asked for: imports made without poses stay up to date
+        inputs.update({"oxts": drive.oxts_dir, "calib_imu_to_velo": drive.imu_to_velo_file})
     params = {
         "labels": drive.tracklets is not None,
         "crop_fov": crop_fov,
         "sensor": sensor,
         "frames": len(frame_ids),
+        **({"poses": "oxts"} if poses else {}),
     }
     return run_import(
         "import-kitti-raw",
@@ -51,6 +57,7 @@ def import_kitti_raw(
             crop_fov=crop_fov,
             sensor=sensor,
             progress=run.get("progress", True),
+            poses=poses,
         ),
         run,
     )

@@ -37,6 +37,7 @@ NO_BAR = {
     "report",
     "sensors",
     "size-norm",
+    "track-pseudo",
     "view",
 }
 # what a tqdm bar leaves in the output: a carriage return, "42%|" or a rate such as "3.1frame/s"

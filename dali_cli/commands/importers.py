@@ -81,9 +81,13 @@ def kitti_command(root, split, ids_path, label_dir, crop_fov, sensor, out, no_pr
               help="Import the scans only, without boxes (an unlabeled target).")  # fmt: skip
 @click.option("--crop-fov", is_flag=True,
               help="Keep only points that project into the left colour camera's image.")  # fmt: skip
+@click.option("--poses", is_flag=True,
+              help="Also keep each scan's LiDAR pose (from DRIVE_DIR/oxts/data and the calib "
+                   "folder's calib_imu_to_velo.txt) as OUT/sequence.parquet, for "
+                   "`dali track-pseudo`.")  # fmt: skip
 @import_options("kitti")
 def kitti_raw_command(
-    drive_dir, calib_dir, tracklets, no_labels, crop_fov, sensor, out, no_progress, **run
+    drive_dir, calib_dir, tracklets, no_labels, crop_fov, poses, sensor, out, no_progress, **run
 ):
     """Import a KITTI raw synced drive DRIVE_DIR (YYYY_MM_DD_drive_NNNN_sync).
 
@@ -93,13 +97,15 @@ def kitti_raw_command(
     tracklet pose (Velodyne frame, bottom centre, rz) on a frame of the drive becomes a box
     (label = objectType) with KITTI's label columns (2D box projected through P_rect_02 and
     R_rect_00, truncation, occlusion, alpha) and its in-box point count. Writes OUT/frames.zarr
-    and OUT/boxes.parquet.
+    and OUT/boxes.parquet; with --poses also OUT/sequence.parquet (frame_id, index and
+    lidar_pose_00..lidar_pose_23: each scan's 3 x 4 LiDAR pose in the first scan's LiDAR frame,
+    from its OXTS record by the raw devkit's convertOxtsToPose).
     """
     from stages.import_kitti_raw import import_kitti_raw
 
     outcome = import_kitti_raw(
         drive_dir, out, calib_dir=calib_dir, tracklets=tracklets, labels=not no_labels,
-        crop_fov=crop_fov, sensor=sensor, progress=not no_progress, **run,
+        crop_fov=crop_fov, sensor=sensor, progress=not no_progress, poses=poses, **run,
     )  # fmt: skip
     _summary(outcome)
 

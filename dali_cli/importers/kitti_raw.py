@@ -4,7 +4,9 @@ turned into per-frame boxes in the LiDAR frame with KITTI's label columns.
 A drive directory `YYYY_MM_DD_drive_NNNN_sync` holds `velodyne_points/data/<index>.bin`
 (float32 x, y, z, reflectance, 10-digit frame index) and, when labelled, `tracklet_labels.xml`;
 its parent (the date folder) holds `calib_cam_to_cam.txt` (R_rect_00, P_rect_02, S_rect_02) and
-`calib_velo_to_cam.txt` (R, T).
+`calib_velo_to_cam.txt` (R, T). With poses, `oxts/data/<index>.txt` (one GPS/IMU record a scan)
+and the date folder's `calib_imu_to_velo.txt` give each scan's LiDAR pose (dali_cli.importers.oxts),
+kept as the frame set's sequence table (dali_cli.store.sequence).
 
 Tracklets (the raw devkit's `cpp/tracklets.h`, `matlab/run_demoTracklets.m`) are in the Velodyne
 frame: a box of size h, w, l per object, and per frame from `first_frame` on a pose tx, ty, tz
@@ -45,6 +47,7 @@ from dali_cli.importers.kitti import (
 from dali_cli.labels import plausibility
 from dali_cli.store.artifacts import BoxTable
 from dali_cli.store.manifest import BuildResult
+from dali_cli.store.sequence import SEQUENCE_TABLE, write_sequence
 
 TRACKLET_FILE = "tracklet_labels.xml"
 MAX_TRACKLET_BYTES = 256 * 1024 * 1024  # the largest raw drive's tracklets are ~30 MB
@@ -80,6 +83,19 @@ def read_raw_calib(calib_dir: str | Path) -> tuple[Calibration, tuple[int, int]]
         size = (int(round(width)), int(round(height)))
     calib = Calibration(P2=p2, R0_rect=r0, Tr_velo_to_cam=np.c_[rotation, translation])
     return calib, size
+
+
+def read_imu_to_velo(path: str | Path) -> np.ndarray:
+    """`(4, 4)` x_velo = M x_imu from a raw `calib_imu_to_velo.txt` (R: 9 values, T: 3)."""
+    path = Path(path)
+    values = _read_keyed(path)
+    rotation = _matrix(path, values, "R", (3, 3))
+    translation = _matrix(path, values, "T", (3, 1))
+    if abs(np.linalg.det(rotation)) < 1e-6:
+        raise ImportFormatError(f"{path}, line {values['R'][0]}: 'R' is singular")
+    matrix = np.eye(4)
+    matrix[:3, :3], matrix[:3, 3] = rotation, translation[:, 0]
+    return matrix
 
 
 # ---------------------------------------------------------------------------------------------
@@ -268,6 +284,25 @@ class RawDrive:
                 found = None
         return cls(velodyne_dir=velodyne, calib_dir=calib, tracklets=found)
 
+    @property
+    def oxts_dir(self) -> Path:
+        return self.velodyne_dir.parent.parent / "oxts" / "data"
+
+    @property
+    def imu_to_velo_file(self) -> Path:
+        return self.calib_dir / "calib_imu_to_velo.txt"
+
+    def lidar_poses(self, frame_ids: list[str]) -> np.ndarray:
+        """`(n, 4, 4)` LiDAR pose of each scan in the first scan's LiDAR frame, from the OXTS
+        records; ImportFormatError naming the file (and field) that is missing or malformed."""
+        from dali_cli.importers.oxts import drive_lidar_poses
+
+        if not self.oxts_dir.is_dir():
+            raise ImportFormatError(f"{self.oxts_dir}: no OXTS records (needed for the poses)")
+        if not self.imu_to_velo_file.is_file():
+            raise ImportFormatError(f"{self.imu_to_velo_file}: calib file missing (the poses)")
+        return drive_lidar_poses(self.oxts_dir, read_imu_to_velo(self.imu_to_velo_file), frame_ids)
+
     def frame_ids(self) -> list[str]:
         """Every `velodyne_points/data/*.bin` stem (each a whole frame index), sorted."""
         return indexed_scan_ids(self.velodyne_dir, "frame index")
@@ -280,10 +315,13 @@ def build_import(
     crop_fov: bool = False,
     sensor: str = "kitti",
     progress: bool = True,
+    poses: bool = False,
 ) -> BuildResult:
     """Stage body of `dali import kitti-raw`: every scan, and its tracklet boxes when labelled
-    (`progress`: a progress bar on stderr)."""
+    (`progress`: a progress bar on stderr); `poses`: the scans' LiDAR poses from the drive's OXTS
+    records as OUT/sequence.parquet."""
     calib, image_size = read_raw_calib(drive.calib_dir)
+    lidar_poses = drive.lidar_poses(frame_ids) if poses else None  # read first: fail early
     poses = read_tracklets(drive.tracklets) if drive.tracklets is not None else None
     notes = ["points: velodyne_points/data scans (LiDAR frame)"]
     if poses is not None:
@@ -320,5 +358,11 @@ def build_import(
         description="import kitti-raw",
         progress=progress,
     )
+    if lidar_poses is not None:
+        write_sequence(out, frame_ids, lidar_poses)
+        travelled = np.linalg.norm(np.diff(lidar_poses[:, :3, 3], axis=0), axis=1).sum()
+        notes.append(
+            f"{SEQUENCE_TABLE}: each scan's LiDAR pose from its OXTS record ({travelled:.1f} m driven)"
+        )
     result.notes.extend(notes)
     return result

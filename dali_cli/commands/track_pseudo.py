@@ -1,0 +1,69 @@
+"""`dali track-pseudo`: pseudo labels kept where they persist over a scan sequence."""
+
+from __future__ import annotations
+
+import click
+
+from dali_cli.commands.common import (
+    FRACTION,
+    finite_range,
+    input_dir_option,
+    out_dir_option,
+    stage_options,
+    tuning_option,
+    with_tuning_note,
+)
+from dali_cli.labels.tracks import TRACK_SCORE_MIN, TrackParams
+
+DEFAULTS = TrackParams()
+
+
+@click.command(name="track-pseudo", epilog=with_tuning_note())
+@input_dir_option("--pseudo", help="Pseudo labels of `dali pseudo-label` on TARGET (best made "
+                  "with a low `pseudo-label --score-min`, e.g. 0.1: the tracks do the filtering).")  # fmt: skip
+@input_dir_option("--target", help="The target frame set the pseudo labels were made on, with "
+                  "its scans' poses (sequence.parquet: `dali import kitti-raw --poses`).")  # fmt: skip
+@out_dir_option()
+@click.option("--track-score-min", type=FRACTION, default=TRACK_SCORE_MIN, show_default=True,
+              help="Keep a parked car whose boxes' median score, a moving track whose mean "
+                   "score, is at least this.")  # fmt: skip
+@tuning_option("--gate-m", type=finite_range(0, min_open=True), default=DEFAULTS.gate_m,
+               show_default=True, help="BEV distance (m) within which a box joins a track.")  # fmt: skip
+@tuning_option("--max-gap", type=click.IntRange(min=0), default=DEFAULTS.max_gap,
+               show_default=True, help="Scans a track may miss before it ends.")  # fmt: skip
+@tuning_option("--parked-m-per-frame", type=finite_range(0), default=DEFAULTS.parked_m_per_frame,
+               show_default=True, help="A track moving less than this (m a scan) is parked.")  # fmt: skip
+@tuning_option("--min-hits", type=click.IntRange(min=1), default=DEFAULTS.min_hits,
+               show_default=True, help="Scans a car must be found in (else it is clutter).")  # fmt: skip
+@tuning_option("--min-points", type=click.IntRange(min=1), default=DEFAULTS.min_points,
+               show_default=True, help="Points a scan must hold in a parked car's box for the "
+                                       "box to be placed there.")  # fmt: skip
+@stage_options
+def command(pseudo, target, out, track_score_min, force, dry_run, **params):
+    """Keep the pseudo boxes that persist over TARGET's scans: the boxes go into one world frame
+    by the scans' poses and are linked scan by scan (nearest within --gate-m of where the
+    track's velocity puts it); a parked car (its track moves < --parked-m-per-frame a scan; its
+    fragments within --gate-m merged) found in >= --min-hits scans becomes one world box
+    (median centre and size, mean heading axis) placed in every scan where it holds
+    >= --min-points points, including the scans the detector missed it in; boxes of moving
+    tracks with >= --min-hits hits are kept as they are; every other box is dropped.
+
+    Reads PSEUDO/boxes.parquet and scale.json, TARGET/frames.zarr and TARGET/sequence.parquet
+    (never TARGET's labels). Writes OUT/boxes.parquet (pseudo-label's columns, score = the car's
+    or track's score, plus track = the car's id and parked), OUT/scale.json (PSEUDO's),
+    OUT/summary.json (counts) and manifest.json: ppcg-rc, ppcg-cf and self-train read OUT as
+    they read PSEUDO.
+    """
+    from stages.track_pseudo import track_pseudo
+
+    outcome = track_pseudo(
+        pseudo, target, out, track_score_min=track_score_min, params=TrackParams(**params),
+        force=force, dry_run=dry_run,
+    )  # fmt: skip
+    if outcome.manifest and outcome.status == "ran":
+        counts = outcome.manifest["outputs"]["counts"]
+        click.echo(
+            f"track-pseudo: {counts['input_boxes']} boxes -> {counts['boxes']} "
+            f"({counts['parked_cars']} parked cars placed {counts['boxes_placed']} times, "
+            f"{counts['moving_tracks']} moving tracks)"
+        )
