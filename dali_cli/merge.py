@@ -16,11 +16,11 @@ import numpy as np
 from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.store.frame_ids import name_problem
 from dali_cli.store.manifest import BuildResult
+from dali_cli.store.sequence import SEQUENCE_TABLE, merge_sequences, read_sequence, write_table
 
 SEPARATOR = "-"
 # importers whose fourth point value is the same quantity: the HDL-64E's reflectance in [0, 1]
 KITTI_REFLECTANCE = ("kitti", "kitti-raw", "kitti-odometry")
-SEQUENCE_TABLE = "sequence.parquet"  # per-frame times / poses an importer kept (kitti-odometry)
 
 
 @dataclass(frozen=True)
@@ -114,8 +114,6 @@ def build_merge(
 ) -> BuildResult:
     """Write the merged FrameSet (and boxes.parquet, sequence.parquet when the inputs have them)
     into `out`, the stage's temporary directory."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
     from tqdm import tqdm
 
     from dali_cli.store.artifacts import BoxTable, FrameSet, FrameSetWriter, read_boxes, write_boxes
@@ -147,9 +145,7 @@ def build_merge(
                 ids = np.array([merged_id(entry.name, f) for f in table.frame_id], dtype=object)
                 tables.append(table.with_columns(frame_id=ids))
             if (entry.directory / SEQUENCE_TABLE).is_file():
-                sequence = pq.read_table(entry.directory / SEQUENCE_TABLE)
-                ids = [merged_id(entry.name, f) for f in sequence["frame_id"].to_pylist()]
-                sequences.append(sequence.set_column(0, "frame_id", pa.array(ids, pa.string())))
+                sequences.append((entry.name, read_sequence(entry.directory)))
         bar.close()
     counts = {
         "frames": writer.count,
@@ -169,8 +165,9 @@ def build_merge(
         write_boxes(out, boxes)
         counts["boxes"] = len(boxes)
     if sequences:
-        pq.write_table(
-            pa.concat_tables(sequences, promote_options="default"), Path(out) / SEQUENCE_TABLE
+        write_table(out, merge_sequences(sequences, merged_id))
+        notes.append(
+            f"{SEQUENCE_TABLE}: the per-frame times / poses of the sets that had them, "
+            "recording = the set's name (each set's poses stay in its own world frame)"
         )
-        notes.append(f"{SEQUENCE_TABLE}: the per-frame times / poses of the sets that had them")
     return BuildResult(counts=counts, notes=notes)

@@ -45,7 +45,9 @@ def import_kitti_odometry(
     frame_ids = sequence.frame_ids()
     check_point_files([sequence.velodyne_dir / f"{frame_id}.bin" for frame_id in frame_ids])
     camera = read_odometry_calib(sequence.calib) if sequence.calib is not None else None
-    table = sequence.sequence_table(frame_ids)
+    table = sequence.sequence_table(
+        frame_ids, camera.Tr_velo_to_cam if camera is not None else None
+    )
     inputs = {
         "velodyne": sequence.velodyne_dir,
         "calib": sequence.calib,

@@ -17,10 +17,21 @@ from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.store.artifacts import BoxTable, FrameSet, read_boxes, write_boxes
 from dali_cli.store.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.store.scale_file import scale_path
-from dali_cli.store.sequence import SequenceError, read_lidar_poses
+from dali_cli.store.sequence import SequenceError, read_lidar_poses, read_recordings
 
 STAGE = "track_pseudo"
 SUMMARY_NAME = "summary.json"
+
+
+def recordings_of(target_dir: Path, attrs: dict, frame_ids: list[str]) -> list[str]:
+    """The recording (drive) of each scan: the sequence table's `recording` column; for a
+    merged set whose table predates it, the frame id's set name (`<name>-<id>`); else one."""
+    from dali_cli.merge import SEPARATOR
+
+    recordings = read_recordings(target_dir, frame_ids)
+    if not any(recordings) and attrs.get("source_format") == "merge":
+        recordings = [frame_id.partition(SEPARATOR)[0] for frame_id in frame_ids]
+    return recordings
 
 
 def track_pseudo(
@@ -50,6 +61,7 @@ def track_pseudo(
         frame_ids = list(frames.frame_ids)
         try:
             poses = read_lidar_poses(target_dir, frame_ids)
+            recordings = recordings_of(target_dir, frames.attrs, frame_ids)
         except SequenceError as error:
             raise StageError(
                 f"{error} (import the target with its poses: `dali import kitti-raw --poses`)"
@@ -63,8 +75,8 @@ def track_pseudo(
                 f"{target_dir} ({len(unknown)} such frames): pseudo labels of another target?"
             )
         frame = np.array([position[f] for f in table.frame_id], np.int64)
-        tracked = tracks.track_boxes(
-            frame, table.boxes, np.asarray(table["score"], np.float64),
+        tracked = tracks.track_recordings(
+            recordings, frame, table.boxes, np.asarray(table["score"], np.float64),
             np.asarray(table["num_points"]), poses,
             lambda f: frames.frame(frame_ids[f]), params,
         )  # fmt: skip
@@ -87,6 +99,7 @@ def track_pseudo(
             shutil.copyfile(source_scale, directory / source_scale.name)
         counts = {
             "frames": len(frame_ids),
+            "recordings": len(set(recordings)),
             "input_boxes": len(table),
             "boxes": len(out_table),
             "parked_cars": int(len(np.unique(tracked.car[keep & tracked.parked]))),

@@ -12,8 +12,13 @@ import pytest
 from click.testing import CliRunner
 
 from dali_cli.cli import main
-from dali_cli.importers.kitti_odometry import POSE_COLUMNS, SEQUENCE_TABLE
 from dali_cli.store.artifacts import FrameSet
+from dali_cli.store.sequence import (
+    CAMERA_POSE_COLUMNS,
+    SEQUENCE_TABLE,
+    SequenceError,
+    read_lidar_poses,
+)
 
 # camera 2's projection and the velodyne -> camera transform of an odometry calib.txt (sequence
 # 04's, rounded)
@@ -95,20 +100,68 @@ def test_scans_times_and_poses_of_every_scan(sequence, tmp_path):
     assert table["frame_id"] == frames.frame_ids and table["index"] == list(SCANS)
     # line i of times.txt and of the poses is scan i's, also past the missing scan 2
     np.testing.assert_allclose(table["time_s"], [0.1 * i for i in SCANS])
-    np.testing.assert_allclose(table["pose_23"], SCANS)
+    np.testing.assert_allclose(table["camera_pose_23"], SCANS)
     np.testing.assert_allclose(
-        np.c_[[table[name] for name in POSE_COLUMNS]].T[:, :11], poses(4)[list(SCANS), :11]
+        np.c_[[table[name] for name in CAMERA_POSE_COLUMNS]].T[:, :11], poses(4)[list(SCANS), :11]
     )
+    assert "lidar_pose_00" in table  # calib.txt: the LiDAR poses are derived
 
 
 def test_poses_beside_the_scans_win_and_an_explicit_file_wins_over_both(sequence, tmp_path):
     np.savetxt(sequence / "poses.txt", poses(4) * 2, fmt="%e")
     out = imported(sequence, tmp_path / "semantic")
-    np.testing.assert_allclose(pq.read_table(out / SEQUENCE_TABLE)["pose_00"].to_numpy(), 2.0)
+    np.testing.assert_allclose(
+        pq.read_table(out / SEQUENCE_TABLE)["camera_pose_00"].to_numpy(), 2.0
+    )
     other = tmp_path / "other.txt"
     np.savetxt(other, poses(4) * 3, fmt="%e")
     out = imported(sequence, tmp_path / "explicit", "--poses", other)
-    np.testing.assert_allclose(pq.read_table(out / SEQUENCE_TABLE)["pose_00"].to_numpy(), 3.0)
+    np.testing.assert_allclose(
+        pq.read_table(out / SEQUENCE_TABLE)["camera_pose_00"].to_numpy(), 3.0
+    )
+
+
+def rotation(rng) -> np.ndarray:
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+def rigid(rng, scale_m: float) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = rotation(rng), rng.normal(0, scale_m, 3)
+    return out
+
+
+def test_lidar_poses_map_a_fixed_world_point_to_one_first_scan_point(tmp_path):
+    """The devkit's convention: P_i takes camera 0 of scan i to camera 0 of scan 0, Tr takes
+    velodyne to camera 0; a point fixed in the world, seen by each scan, lands on one point of
+    scan 0's LiDAR frame through that scan's lidar pose (also for scans 1 and 3 of a part)."""
+    rng = np.random.default_rng(4)
+    tr = rigid(rng, 0.3)
+    camera = np.stack([np.eye(4)] + [rigid(rng, 5.0) for _ in range(4)])  # P_0 = I
+    sequence = write_dataset(tmp_path / "d", devkit_poses=False)
+    write_calib(sequence / "calib.txt", tr=tr[:3].reshape(-1).tolist())
+    np.savetxt(sequence / "poses.txt", camera[:, :3].reshape(5, 12), fmt="%.17g")
+    out = imported(sequence, tmp_path / "out")
+    frame_ids = [f"{i:06d}" for i in SCANS]
+    lidar = read_lidar_poses(out, frame_ids)
+    world_camera0 = np.array([3.0, -1.0, 12.0, 1.0])  # in camera 0 of scan 0
+    expected = np.linalg.inv(tr) @ world_camera0  # in the LiDAR frame of scan 0
+    for pose, i in zip(lidar, SCANS, strict=True):
+        seen = np.linalg.inv(tr) @ np.linalg.inv(camera[i]) @ world_camera0  # scan i's LiDAR
+        np.testing.assert_allclose(pose @ seen, expected, atol=1e-9)
+    table = pq.read_table(out / SEQUENCE_TABLE)
+    np.testing.assert_allclose(table["camera_pose_03"].to_numpy(), camera[list(SCANS), 0, 3])
+
+
+def test_without_calib_there_are_camera_poses_but_no_lidar_poses(tmp_path):
+    sequence = write_dataset(tmp_path / "d", calib=False)
+    out = imported(sequence, tmp_path / "out")
+    table = pq.read_table(out / SEQUENCE_TABLE)
+    assert "camera_pose_00" in table.column_names and "lidar_pose_00" not in table.column_names
+    with pytest.raises(SequenceError, match=r"sequence.parquet: column 'lidar_pose_00' missing"):
+        read_lidar_poses(out, [f"{i:06d}" for i in SCANS])
 
 
 def test_a_sequence_of_scans_only_has_no_sequence_table(tmp_path):

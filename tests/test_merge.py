@@ -104,6 +104,7 @@ def test_boxes_and_sequence_tables_follow_their_frames(tmp_path):
     np.testing.assert_array_equal(boxes["x"], [10, 11, 10])
     sequence = pq.read_table(out / "sequence.parquet").to_pydict()
     assert sequence["frame_id"] == ["b-0"] and sequence["time_s"] == [0.5]
+    assert sequence["recording"] == ["b"]  # each set's poses in its own world frame
     unlabeled = tmp_path / "unlabeled"
     result = invoke("merge", "--in", one, "--in", two, "--no-labels", "--out", unlabeled)
     assert result.exit_code == 0 and not (unlabeled / "boxes.parquet").exists()

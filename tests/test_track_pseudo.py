@@ -8,6 +8,8 @@ import re
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 import pytest
 from click.testing import CliRunner
 from fixture_copies import writable_copy
@@ -18,7 +20,12 @@ from dali_cli.geometry import bev_iou, wrap_angle
 from dali_cli.importers.kitti_raw import read_tracklets
 from dali_cli.labels import tracks
 from dali_cli.store.artifacts import BoxTable, FrameSet, read_boxes, write_boxes, write_frameset
-from dali_cli.store.sequence import SequenceError, read_lidar_poses, write_sequence
+from dali_cli.store.sequence import (
+    SequenceError,
+    read_lidar_poses,
+    sequence_table,
+    write_sequence,
+)
 
 DAY = Path(__file__).resolve().parent / "fixtures" / "kitti_raw" / "2011_09_26"
 DRIVE = DAY / "2011_09_26_drive_0001_sync"
@@ -74,6 +81,21 @@ def test_a_malformed_sequence_table_names_the_file_and_field(tmp_path):
     write_sequence(tmp_path, frame_ids, poses)
     with pytest.raises(SequenceError, match="frame '0000000002' are not a rotation"):
         read_lidar_poses(tmp_path, frame_ids)
+    path = tmp_path / "sequence.parquet"
+    good = pq.read_table(path)
+    for table, message in (
+        (good.drop_columns(["lidar_pose_12"]), r"column 'lidar_pose_12' missing \(the lidar_pose"),
+        (
+            pa.concat_tables([good, good.slice(0, 1)]),
+            r"field 'frame_id': frame '0000000000' appears twice",
+        ),
+        (good.append_column("time_s", pa.array(["a", "b", "c"])), r"column 'time_s' is string"),
+        (good.drop_columns(["index"]), r"column 'index' missing"),
+    ):
+        pq.write_table(table, path)
+        with pytest.raises(SequenceError, match=r"sequence.parquet: " + message) as error:
+            read_lidar_poses(tmp_path, frame_ids)
+        assert "\n" not in str(error.value)
 
 
 def test_oxts_poses_put_the_parked_cars_of_two_scans_in_one_place(tmp_path):
@@ -226,6 +248,69 @@ def test_track_pseudo_without_poses_says_how_to_get_them(tmp_path):
     assert result.exit_code == 1
     assert "sequence.parquet: no sequence table" in result.output
     assert "dali import kitti-raw --poses" in result.output
+
+
+def test_track_pseudo_without_lidar_poses_names_the_missing_column(tmp_path):
+    target, pseudo, _, frame_ids = sequence_target(tmp_path, frames=4)
+    table = sequence_table(frame_ids, camera_poses=ego_poses(4))  # odometry without calib.txt
+    pq.write_table(table, target / "sequence.parquet")
+    result = invoke("track-pseudo", "--pseudo", pseudo, "--target", target, "--out", tmp_path / "o")
+    assert result.exit_code == 1
+    assert "sequence.parquet: column 'lidar_pose_00' missing" in result.output
+    assert len(result.output.strip().splitlines()) == 1
+
+
+def merged_drives(tmp_path: Path):
+    """Two drives `a`, `b` of the same scans (sequence_target: the same poses, the car at the
+    same world place), merged, and their pseudo labels under the merged frame ids."""
+    drives = {name: sequence_target(tmp_path / name) for name in ("a", "b")}
+    merged = tmp_path / "merged"
+    args = [f"--in={name}={drive[0]}" for name, drive in drives.items()]
+    result = invoke("merge", *args, "--out", merged, "--no-progress")
+    assert result.exit_code == 0, result.output
+    tables = []
+    for name, (_, pseudo, _, _) in drives.items():
+        table = read_boxes(pseudo)
+        tables.append(
+            table.with_columns(
+                frame_id=np.array([f"{name}-{f}" for f in table.frame_id], dtype=object)
+            )
+        )
+    pseudo = tmp_path / "merged-pseudo"
+    pseudo.mkdir()
+    write_boxes(pseudo, BoxTable.concat(tables))
+    return drives, merged, pseudo
+
+
+def test_merge_keeps_each_drives_poses_and_track_pseudo_never_links_across_drives(tmp_path):
+    drives, merged, pseudo = merged_drives(tmp_path)
+    frame_ids = FrameSet(merged).frame_ids
+    table = pq.read_table(merged / "sequence.parquet").to_pydict()
+    assert table["recording"] == ["a"] * 12 + ["b"] * 12
+    np.testing.assert_allclose(
+        read_lidar_poses(merged, frame_ids), np.r_[ego_poses(12), ego_poses(12)]
+    )
+    out = tmp_path / "tracked"
+    result = invoke("track-pseudo", "--pseudo", pseudo, "--target", merged, "--out", out)
+    assert result.exit_code == 0, result.output
+    boxes = read_boxes(out)
+    # one car per drive (tracked as one over the 24 scans they would be one car, its parked
+    # box placed in both drives' scans): each placed in its own drive's 12 scans only
+    assert set(boxes["track"]) == {0, 1}
+    for track, name in ((0, "a"), (1, "b")):
+        ids = sorted(boxes.frame_id[boxes["track"] == track])
+        assert ids == [f"{name}-{f:010d}" for f in range(12)]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["recordings"] == 2 and summary["parked_cars"] == 2
+    # a merged set whose table has no recording column (an older merge): the frame ids' set
+    # names group the scans
+    pq.write_table(
+        pq.read_table(merged / "sequence.parquet").drop_columns(["recording"]),
+        merged / "sequence.parquet",
+    )
+    again = invoke("track-pseudo", "--pseudo", pseudo, "--target", merged, "--out", tmp_path / "t2")
+    assert again.exit_code == 0, again.output
+    assert set(read_boxes(tmp_path / "t2")["track"]) == {0, 1}
 
 
 def test_ppcg_reads_the_tracked_labels_as_it_reads_pseudo_labels(tmp_path):

@@ -134,7 +134,9 @@ def kitti_odometry_command(
     the poses (3 x 4 camera-0 poses, one a line) when present. Line i of times.txt and of the
     poses belongs to scan i, so a directory with part of a sequence's scans reads their lines.
     Writes OUT/frames.zarr and, with times or poses, OUT/sequence.parquet (frame_id, index,
-    time_s, pose_00 .. pose_23 row-major).
+    time_s, camera_pose_00 .. camera_pose_23: the poses as given, row-major; with calib.txt also
+    lidar_pose_00 .. lidar_pose_23 = inv(Tr) . pose . Tr, each scan's LiDAR pose in the LiDAR
+    frame of scan 0 of the sequence, which `dali track-pseudo` needs).
     """
     from stages.import_kitti_odometry import import_kitti_odometry
 

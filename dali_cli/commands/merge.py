@@ -26,7 +26,8 @@ def command(specs, no_labels, out, force, dry_run, no_progress):
     (KITTI's reflectance from kitti, kitti-raw and kitti-odometry imports); a mix is an error.
     Boxes are merged when every set has boxes.parquet (a mix of labelled and unlabeled sets is
     an error: --no-labels drops them all), the importers' per-frame sequence.parquet (times,
-    poses) when present. Writes OUT/frames.zarr, OUT/boxes.parquet, OUT/sequence.parquet and
+    poses) when present, with recording = NAME (each set's poses stay in its own world frame;
+    track-pseudo tracks each recording on its own). Writes OUT/frames.zarr, OUT/boxes.parquet, OUT/sequence.parquet and
     OUT/manifest.json (frames per set).
     """
     from stages.merge import merge

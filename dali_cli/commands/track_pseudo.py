@@ -22,7 +22,8 @@ DEFAULTS = TrackParams()
 @input_dir_option("--pseudo", help="Pseudo labels of `dali pseudo-label` on TARGET (best made "
                   "with a low `pseudo-label --score-min`, e.g. 0.1: the tracks do the filtering).")  # fmt: skip
 @input_dir_option("--target", help="The target frame set the pseudo labels were made on, with "
-                  "its scans' poses (sequence.parquet: `dali import kitti-raw --poses`).")  # fmt: skip
+                  "its scans' LiDAR poses (sequence.parquet: `dali import kitti-raw --poses`, or "
+                  "kitti-odometry with poses and calib.txt).")  # fmt: skip
 @out_dir_option()
 @click.option("--track-score-min", type=FRACTION, default=TRACK_SCORE_MIN, show_default=True,
               help="Keep a parked car whose boxes' median score, a moving track whose mean "
@@ -49,7 +50,8 @@ def command(pseudo, target, out, track_score_min, force, dry_run, **params):
     tracks with >= --min-hits hits are kept as they are; every other box is dropped.
 
     Reads PSEUDO/boxes.parquet and scale.json, TARGET/frames.zarr and TARGET/sequence.parquet
-    (never TARGET's labels). Writes OUT/boxes.parquet (pseudo-label's columns, score = the car's
+    (never TARGET's labels). A merged TARGET is tracked drive by drive (its sequence table's
+    recording): scans of different drives are never linked. Writes OUT/boxes.parquet (pseudo-label's columns, score = the car's
     or track's score, plus track = the car's id and parked), OUT/scale.json (PSEUDO's),
     OUT/summary.json (counts) and manifest.json: ppcg-rc, ppcg-cf and self-train read OUT as
     they read PSEUDO.

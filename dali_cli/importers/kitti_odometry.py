@@ -10,7 +10,10 @@ scan i in the coordinates of camera 0 of scan 0. They are in `sequences/NN/poses
 
 Line i of times.txt and of the poses belongs to scan i (the file name's index), so a directory
 holding only part of a sequence's scans reads the lines of the scans it has; a scan without its
-line is an error naming the file. Both are kept with the frames as `sequence.parquet`.
+line is an error naming the file. Both are kept with the frames as `sequence.parquet`
+(dali_cli.store.sequence): time_s, camera_pose_RC as given and, with calib.txt, each scan's
+LiDAR pose inv(Tr) @ P_i @ Tr in the LiDAR frame of scan 0 of the sequence (scan 0 even when
+the directory holds a later part of it).
 """
 
 from __future__ import annotations
@@ -37,10 +40,7 @@ from dali_cli.importers.kitti import (
     read_velodyne,
 )
 from dali_cli.store.manifest import BuildResult
-
-SEQUENCE_TABLE = "sequence.parquet"
-POSE_COLUMNS = tuple(f"pose_{row}{col}" for row in range(3) for col in range(4))
-
+from dali_cli.store.sequence import SEQUENCE_TABLE, lidar_from_camera_poses, sequence_table
 
 # ---------------------------------------------------------------------------------------------
 # Calibration, timestamps and poses
@@ -150,22 +150,28 @@ class OdometrySequence:
         """camera 2's image size from `image_2/000000.png` when present, else KITTI's default."""
         return png_size(self.velodyne_dir.parent / "image_2" / "000000.png") or DEFAULT_IMAGE_SIZE
 
-    def sequence_table(self, frame_ids: list[str]) -> pa.Table | None:
-        """frame_id, index, time_s (times.txt) and pose_RC (the 3 x 4 pose, row-major) per scan,
-        or None when the sequence has neither times nor poses. Reads and checks both files."""
+    def sequence_table(
+        self, frame_ids: list[str], velo_to_cam: np.ndarray | None = None
+    ) -> pa.Table | None:
+        """The sequence table (dali_cli.store.sequence) of the scans: frame_id, index, time_s
+        (times.txt), camera_pose_RC (the poses as given) and, with `velo_to_cam` (calib.txt's
+        Tr, 3 x 4), lidar_pose_RC; None when the sequence has neither times nor poses. Reads
+        and checks both files."""
         if self.times is None and self.poses is None:
             return None
         indices = np.array([int(frame_id) for frame_id in frame_ids], np.int64)
-        columns = {"frame_id": pa.array(frame_ids, pa.string()), "index": pa.array(indices)}
+        time_s = camera = lidar = None
         if self.times is not None:
             times = read_rows(self.times, "times.txt timestamp", 1)
-            columns["time_s"] = pa.array(
-                rows_of_scans(times, self.times, "timestamp", indices)[:, 0]
-            )
+            time_s = rows_of_scans(times, self.times, "timestamp", indices)[:, 0]
         if self.poses is not None:
-            poses = rows_of_scans(read_rows(self.poses, "pose", 12), self.poses, "pose", indices)
-            columns.update({name: pa.array(poses[:, i]) for i, name in enumerate(POSE_COLUMNS)})
-        return pa.table(columns)
+            rows = rows_of_scans(read_rows(self.poses, "pose", 12), self.poses, "pose", indices)
+            camera = rows.reshape(-1, 3, 4)
+            if velo_to_cam is not None:
+                lidar = lidar_from_camera_poses(camera, velo_to_cam)
+        return sequence_table(
+            frame_ids, index=indices, time_s=time_s, camera_poses=camera, lidar_poses=lidar
+        )
 
 
 def front_mask(points: np.ndarray, front_deg: float) -> np.ndarray:
@@ -189,7 +195,7 @@ def build_import(
     image through `calib` with `crop_fov`, to the front `crop_front_deg` degrees of azimuth), and
     `table` (`OdometrySequence.sequence_table`) as OUT/sequence.parquet (`progress`: a progress
     bar on stderr)."""
-    import pyarrow.parquet as pq
+    from dali_cli.store.sequence import write_table
 
     image_size = sequence.image_size()
     notes = ["points: velodyne scans (LiDAR frame), no labels"]
@@ -224,10 +230,16 @@ def build_import(
         progress=progress,
     )
     if table is not None:
-        pq.write_table(table, Path(out) / SEQUENCE_TABLE)
+        write_table(out, table)
         kept = [
             name for name, path in (("times", sequence.times), ("poses", sequence.poses)) if path
         ]
         notes.append(f"{SEQUENCE_TABLE}: the {' and '.join(kept)} of every scan (line i: scan i)")
+        if sequence.poses is not None:
+            notes.append(
+                f"{SEQUENCE_TABLE}: LiDAR poses inv(Tr) @ P_i @ Tr in scan 0's LiDAR frame"
+                if "lidar_pose_00" in table.column_names
+                else f"{SEQUENCE_TABLE}: camera poses only (no calib.txt: no LiDAR poses)"
+            )
     result.notes.extend(notes)
     return result

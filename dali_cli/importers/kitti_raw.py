@@ -88,9 +88,9 @@ def read_raw_calib(calib_dir: str | Path) -> tuple[Calibration, tuple[int, int]]
 def read_imu_to_velo(path: str | Path) -> np.ndarray:
     """`(4, 4)` x_velo = M x_imu from a raw `calib_imu_to_velo.txt` (R: 9 values, T: 3)."""
     path = Path(path)
-    values = _read_keyed(path)
-    rotation = _matrix(path, values, "R", (3, 3))
-    translation = _matrix(path, values, "T", (3, 1))
+    values = read_keyed(path)
+    rotation = keyed_matrix(path, values, "R", (3, 3))
+    translation = keyed_matrix(path, values, "T", (3, 1))
     if abs(np.linalg.det(rotation)) < 1e-6:
         raise ImportFormatError(f"{path}, line {values['R'][0]}: 'R' is singular")
     matrix = np.eye(4)

@@ -314,3 +314,41 @@ def track_boxes(
         parked=np.r_[np.ones(len(placed_frame), bool), np.zeros(len(moving_rows), bool)],
         source_row=np.r_[np.full(len(placed_frame), -1), moving_rows].astype(np.int64),
     )
+
+
+def track_recordings(
+    recording: list[str] | np.ndarray,
+    frame: np.ndarray,
+    boxes: np.ndarray,
+    score: np.ndarray,
+    num_points: np.ndarray,
+    poses: np.ndarray,
+    points_of,
+    params: TrackParams = TrackParams(),
+) -> TrackedBoxes:
+    """track_boxes on each recording (drive) of a set on its own: `recording` (F,) names the
+    recording of each scan; scans of different recordings (poses in different world frames)
+    are never linked, nor is a parked car placed in another recording's scans. Each
+    recording's scans keep their order in the set. Returns the rows of every recording, frame
+    positions (0..F-1), car ids (unique over the set) and source rows of the whole input."""
+    recording = np.asarray(recording, dtype=object)
+    parts, offset = [], 0
+    for name in dict.fromkeys(recording.tolist()):
+        positions = np.flatnonzero(recording == name)  # (Fr,) ascending
+        rows = np.flatnonzero(np.isin(frame, positions))
+        tracked = track_boxes(
+            np.searchsorted(positions, frame[rows]), boxes[rows], score[rows], num_points[rows],
+            poses[positions], lambda f, positions=positions: points_of(int(positions[f])), params,
+        )  # fmt: skip
+        moving = tracked.source_row >= 0
+        tracked.frame = positions[tracked.frame]
+        tracked.car = tracked.car + offset
+        tracked.source_row = np.where(moving, rows[np.where(moving, tracked.source_row, 0)], -1)
+        offset = int(tracked.car.max()) + 1 if len(tracked.car) else offset
+        parts.append(tracked)
+    fields = ("frame", "boxes", "score", "num_points", "car", "parked", "source_row")
+    if not parts:
+        return track_boxes(frame, boxes, score, num_points, poses, points_of, params)
+    return TrackedBoxes(
+        **{name: np.concatenate([getattr(part, name) for part in parts]) for name in fields}
+    )
