@@ -25,11 +25,10 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.evaluation.evaluate import check_ious
-from dali_cli.evaluation.kitti_label import read_box_source
-from dali_cli.labels import plausibility
+from dali_cli.importers.kitti_label import read_box_source
+from dali_cli.labels import SCORE_MIN, plausibility
 from dali_cli.runtime import console
 from dali_cli.runtime.errors import ParameterError, StageError
-from dali_cli.store import SCORE_MIN
 from dali_cli.store.artifacts import BOX_FIELDS, BoxTable, FrameSet
 from dali_cli.store.atomic_file import write_atomically, write_text_atomically
 from dali_cli.store.output_paths import DERIVED_FILES

@@ -15,12 +15,12 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from dali_cli import ptsn
+from dali_cli.labels import SCORE_MIN
 from dali_cli.ptsn import detections
 from dali_cli.runtime import console
 from dali_cli.runtime.device import InferenceOptions, inference_runtime, inference_setup, place
 from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.sensors import get_profile
-from dali_cli.store import SCORE_MIN
 from dali_cli.store.artifacts import FrameSet
 from dali_cli.store.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.store.model_card import ModelCard, read_card

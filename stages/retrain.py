@@ -9,9 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.runtime import console, training_stage
+from dali_cli.detector import training_stage
+from dali_cli.detector.training_stage import PreparedTraining, TrainingOptions
+from dali_cli.runtime import console
 from dali_cli.runtime.errors import ParameterError, StageError
-from dali_cli.runtime.training_stage import PreparedTraining, TrainingOptions
 from dali_cli.store.manifest import StageOutcome, content_hash
 
 INIT_FROM = ("previous", "scratch")

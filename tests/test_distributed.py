@@ -26,10 +26,10 @@ from dali_cli.detector.distributed import World, join, launched, leave
 from dali_cli.detector.infer import Detector
 from dali_cli.detector.model import PillarCenterNet
 from dali_cli.detector.train import TrainSettings, train
+from dali_cli.detector.training_stage import attach_database
 from dali_cli.runtime.device import DeviceError, parse_device_spec, resolve_device
 from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.runtime.machine import available_cores
-from dali_cli.runtime.training_stage import attach_database
 from dali_cli.sensors import get_profile
 
 TORCHRUN = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"]

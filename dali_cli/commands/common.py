@@ -347,7 +347,7 @@ def training_options(function):
 
 def score_min_option(dest: str = "score_min", help: str = "Box score cut."):
     """--score-min: the score from which a box counts as a car (default SCORE_MIN)."""
-    from dali_cli.store import SCORE_MIN
+    from dali_cli.labels import SCORE_MIN
 
     return click.option(
         "--score-min",
@@ -387,7 +387,7 @@ def target_scaling_options(function):
 def pop_training(options: dict):
     """The TrainingOptions of a training command's parsed `options` (training_options), which
     are removed from `options`; the rest are the stage's own."""
-    from dali_cli.runtime.training_stage import TrainingOptions
+    from dali_cli.detector.training_stage import TrainingOptions
 
     return TrainingOptions(
         epochs=options.pop("epochs"),

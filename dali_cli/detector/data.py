@@ -127,8 +127,8 @@ class FramePoints(Sequence):
             yield self._prepared(index, points)
 
     def _prepared(self, index: int, points: np.ndarray) -> np.ndarray:
+        from dali_cli.detector.size_norm import shift_frame
         from dali_cli.geometry import scale_ground_points
-        from dali_cli.size_norm import shift_frame
 
         points = clip_points(points, *self.clip)
         for kind, value, *rest in self.transforms:
@@ -320,7 +320,7 @@ def load_labeled(
 
 def size_normalize(frames: LabeledFrames, delta_lwh: np.ndarray) -> LabeledFrames:
     """SN (Wang et al. 2020): every box's l, w, h += delta_lwh, its points scaled with it."""
-    from dali_cli.size_norm import shift_frame
+    from dali_cli.detector.size_norm import shift_frame
 
     delta_lwh = np.asarray(delta_lwh, np.float64).reshape(3)
     if not isinstance(frames.points, list):  # read when asked: the boxes now, the points then

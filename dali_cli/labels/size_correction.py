@@ -21,8 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dali_cli.labels import SCORE_MIN
 from dali_cli.ptsn.stats import expected_prediction_by_frame
-from dali_cli.store import SCORE_MIN
 
 METHODS = ("per-dim", "none")
 

@@ -19,7 +19,7 @@ import argparse
 import numpy as np
 
 from dali_cli.evaluation.evaluate import in_st3d_region
-from dali_cli.evaluation.kitti_label import read_box_source
+from dali_cli.importers.kitti_label import read_box_source
 from dali_cli.geometry import bev_iou, iou_3d, wrap_angle
 
 BANDS = ((0, 30), (30, 50), (50, 80))

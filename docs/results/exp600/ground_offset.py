@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.evaluation.kitti_label import read_box_source as read_table
+from dali_cli.importers.kitti_label import read_box_source as read_table
 from dali_cli.store.artifacts import FrameSet
 
 

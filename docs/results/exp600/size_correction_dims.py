@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.evaluation.evaluate import evaluate
-from dali_cli.evaluation.kitti_label import read_box_source as read_table
+from dali_cli.importers.kitti_label import read_box_source as read_table
 from stages.eval import resized
 
 DIMENSIONS = {"none": (0, 0, 0), "l": (1, 0, 0), "w": (0, 1, 0), "h": (0, 0, 1),

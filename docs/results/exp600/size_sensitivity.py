@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.evaluation.evaluate import evaluate
-from dali_cli.evaluation.kitti_label import read_box_source
+from dali_cli.importers.kitti_label import read_box_source
 from dali_cli.geometry import iou_3d
 from stages.eval import resized
 
