@@ -129,7 +129,7 @@ PPCG_FLAGS     ?=
 RETRAIN_FLAGS  ?=
 # evaluation: all boxes and range bands of the front region (90 deg FOV, detection range, as ST3D
 # evaluates KITTI), AP at IoU 0.7 and 0.5
-EVAL_FLAGS     ?= --protocol range --front-only --iou 0.7 --iou 0.5 --score-min $(SCORE_MIN)
+EVAL_FLAGS     ?= --protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
 
 $(RUN)/data/source/manifest.json: | install
 	$(DALI) synth --sensor $(SOURCE_SENSOR) --cars $(SOURCE_SENSOR) --frames $(FRAMES) --seed $(SEED) $(SYNTH_FLAGS) --out $(@D)
@@ -238,7 +238,7 @@ $(RUN)/iter2_st/model/manifest.json: $(RUN)/iter3/pseudo/manifest.json $(TARGET)
 $(RUN)/iter2_st/eval/manifest.json: $(RUN)/iter2_st/model/manifest.json $(TARGET_VAL)/manifest.json
 	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter2_st/model --data $(TARGET_VAL) --scale-from $(RUN)/iter3/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 # KITTI easy / moderate / hard of the same predictions (synthetic labels carry KITTI's columns)
-KITTI_EVAL_FLAGS ?= --protocol kitti --iou 0.7 --iou 0.5 --score-min $(SCORE_MIN)
+KITTI_EVAL_FLAGS ?= --protocol kitti --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
 $(RUN)/%/metrics_kitti.json: $(RUN)/%/manifest.json
 	$(DALI) eval --pred $(RUN)/$*/predictions.parquet --gt $(TARGET_VAL) $(KITTI_EVAL_FLAGS) --out $@
 # cross-domain check: every model on the source validation set at s = 1
@@ -296,7 +296,7 @@ compare: $(RUN)/compare_r40.json $(RUN)/compare_r400.json
 
 # ---------------------------------------------------------------------------------------------
 # The real target: a KITTI raw drive (make real-kitti). The demo's source model (DEMO_FRAMES
-# synthetic Waymo-like frames, DEMO_EPOCHS epochs) adapted to the drive's scans as the unlabeled
+# synthetic Waymo-like frames, DEMO_EPOCHS epochs) adapted to the drive's scans as the unlabelled
 # target (imported without its tracklets; camera field of view); every row is evaluated with KITTI's
 # protocol on the drive's tracklets (transductive, TARGET_VAL) and on the labelled KITTI object
 # frames of REAL_OBJECTS (inductive, $(RUN)/objects/<row>, at the scale the row's drive evaluation
@@ -307,7 +307,7 @@ compare: $(RUN)/compare_r40.json $(RUN)/compare_r400.json
 REAL_DRIVE   ?= data/kitti_raw/2011_09_26/2011_09_26_drive_0001_sync
 REAL_OBJECTS ?= tests/fixtures/real/kitti/training
 REAL_RUN     ?= runs/real-kitti
-REAL_EVAL_FLAGS = --protocol kitti --iou 0.7 --iou 0.5 --score-min $(SCORE_MIN)
+REAL_EVAL_FLAGS = --protocol kitti --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
 REAL_VARS = RUN=$(REAL_RUN) FRAMES=$(DEMO_FRAMES) EPOCHS=$(DEMO_EPOCHS) EVAL_FLAGS="$(REAL_EVAL_FLAGS)" \
     TARGET=$(REAL_RUN)/data/drive TARGET_VAL=$(REAL_RUN)/data/drive_labels
 OBJECTS ?= $(RUN)/data/objects

@@ -1,4 +1,4 @@
-"""Synthetic labeled LiDAR frames: street scenes of procedural cars and clutter, scanned by a sensor
+"""Synthetic labelled LiDAR frames: street scenes of procedural cars and clutter, scanned by a sensor
 profile (the world: dali_cli.world — car pool, scene layout, scanning), written as a FrameSet with
 boxes.
 

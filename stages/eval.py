@@ -10,7 +10,7 @@ loop (`dali_cli.detector.predict_frameset`). Output, either:
 - a metrics file (`out` ending in .json): FILE and predictions.parquet beside it, each atomic.
 With `size_correction="per-dim"` the Car predictions are resized per dimension before they are
 evaluated (and saved) by the factors E_est / E_pred(ŝ) of the `scale_from` sweep
-(`dali_cli.labels.size_correction.factors_from_sweep`: label-free, from the unlabeled target training
+(`dali_cli.labels.size_correction.factors_from_sweep`: label-free, from the unlabelled target training
 frames), bottom face kept; metrics.json records them under
 "size_correction". It works on both routes: a model run at ŝ, or a prediction table (then
 `scale_from` gives only the factors).

@@ -1,4 +1,4 @@
-"""Stage: pretrain — train the detector on a labeled source frame set (optionally with SN or ROS)
+"""Stage: pretrain — train the detector on a labelled source frame set (optionally with SN or ROS)
 and write a checkpoint directory (model.pt, model.json, train_log.parquet, manifest.json).
 The training body it shares with retrain and self-train is dali_cli.detector.training_stage."""
 

@@ -1,4 +1,4 @@
-"""Stage size_norm: a labeled frame set with its cars shifted to a model's size convention
+"""Stage size_norm: a labelled frame set with its cars shifted to a model's size convention
 (dali_cli.detector.size_norm): OUT/frames.zarr, OUT/boxes.parquet (the input rows, shifted boxes' z, l, w,
 h replaced), OUT/manifest.json."""
 

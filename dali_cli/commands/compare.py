@@ -12,7 +12,6 @@ from dali_cli.commands.common import (
     SEED,
     no_progress_option,
     protocol_options,
-    with_tuning_note,
 )
 
 EPILOG = (
@@ -43,7 +42,7 @@ the row does not beat the reference. --out FILE.json writes it ({"bootstrap": {"
 )
 
 
-@click.command(name="compare", epilog=with_tuning_note(EPILOG))
+@click.command(name="compare", epilog=EPILOG)
 @click.option("--pred", "preds", multiple=True, required=True, metavar="NAME=PATH",
               help="A row: its name and its predictions; repeat (the first is the "
                    "reference). The name ends at the first '=', so it cannot hold one.")  # fmt: skip

@@ -6,7 +6,13 @@ import math
 
 import click
 
-from dali_cli.commands.common import SEED, no_progress_option, out_dir_option, stage_options
+from dali_cli.commands.common import (
+    SEED,
+    no_progress_option,
+    out_dir_option,
+    stage_options,
+    tuning_option,
+)
 
 
 @click.group(name="library")
@@ -46,13 +52,13 @@ def _parse_range(_ctx, _param, value: str | None) -> tuple[float, float] | None:
 @click.option(
     "--seed", type=SEED, default=0, show_default=True, help="Seed of the procedural cars."
 )
-@click.option("--lod", type=click.IntRange(1000, 200000), default=20000, show_default=True,
+@tuning_option("--lod", type=click.IntRange(1000, 200000), default=20000, show_default=True,
               help="Approximate triangles per procedural car (5,000-70,000 is the useful range).")  # fmt: skip
 @click.option("--points", "points_dir", type=click.Path(exists=True, file_okay=False),
               default=None,
-              help="Labeled FrameSet directory (frames.zarr + boxes.parquet) to take point "
+              help="Labelled FrameSet directory (frames.zarr + boxes.parquet) to take point "
                    "models from.")  # fmt: skip
-@click.option("--min-points", type=click.IntRange(min=1), default=300, show_default=True,
+@tuning_option("--min-points", type=click.IntRange(min=1), default=300, show_default=True,
               help="Point models: instances with at least this many points in their box.")  # fmt: skip
 @click.option("--label", default="Car", show_default=True, help="Point models: box label to use.")
 @out_dir_option("Output library directory.")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import sensors_option, stage_options, with_tuning_note
+from dali_cli.commands.common import sensors_option, stage_options, tuning_option
 from dali_cli.commands.ppcg_rc import ppcg_options
 
 
@@ -17,9 +17,9 @@ def parse_range(text: str) -> tuple[float, float]:
     return low, high
 
 
-@click.command(name="ppcg-cf", epilog=with_tuning_note())
+@click.command(name="ppcg-cf")
 @ppcg_options
-@click.option("--range-m", default="20:50", show_default=True,
+@tuning_option("--range-m", default="20:50", show_default=True,
               help="LOW:HIGH: each box is moved radially to a range drawn uniformly from it (m).")  # fmt: skip
 @sensors_option
 @stage_options

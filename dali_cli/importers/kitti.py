@@ -314,7 +314,7 @@ def camera_fov_mask(
 
 @dataclass(frozen=True)
 class KittiLayout:
-    """Where one split's files live. label_dir may not exist (testing split, unlabeled target)."""
+    """Where one split's files live. label_dir may not exist (testing split, unlabelled target)."""
 
     velodyne_dir: Path
     label_dir: Path

@@ -270,7 +270,7 @@ class RawDrive:
 
     velodyne_dir: Path
     calib_dir: Path
-    tracklets: Path | None  # None: unlabeled
+    tracklets: Path | None  # None: unlabelled
 
     @classmethod
     def of(

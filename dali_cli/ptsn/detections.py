@@ -13,7 +13,7 @@ only, computed exactly as the sweep computes its own (the per-frame or pooled me
 The table (`detections.parquet` of a ptsn-sweep directory): one row per box, columns
 scale float64 (the evaluated scale, rounded as the cache keys it), frame int64 (index in the target
 frame set), l, w, h float64 (metres, de-scaled), score float32. Label-free: it holds only what the
-detector predicted on the unlabeled target frames.
+detector predicted on the unlabelled target frames.
 """
 
 from __future__ import annotations

@@ -11,4 +11,4 @@ D=${DALI:-.venv/bin/dali}
 O=runs/bf16-oracle-s$SEED
 $D pretrain --source runs/experiment-s$SEED/data/target --seed $SEED --epochs 12 --precision bf16 --out $O/model
 $D eval --precision bf16 --model $O/model --data runs/val800/data-s$SEED --scale 1.0 --protocol range \
-  --front-only --iou 0.7 --iou 0.5 --score-min 0.3 --workers 1 --no-progress --out $O/eval_val800
+  --front-only --iou 0.7 --iou 0.5 --size-score-min 0.3 --workers 1 --no-progress --out $O/eval_val800

@@ -17,6 +17,6 @@ $D retrain --init $R/iter0/model --source $R/data/source --ppcg $R/data/target -
 $D ptsn-sweep --model $V/x1_long/model --target $R/data/target --expected-size sn --score-min 0.3 \
     --seed $SEED --out $V/x1_long/ptsn
 $D eval --model $V/x1_long/model --data $R/data/target_val --scale-from $V/x1_long/ptsn \
-    --protocol range --front-only --iou 0.7 --iou 0.5 --score-min 0.3 --out $V/x1_long/eval
+    --protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min 0.3 --out $V/x1_long/eval
 $D eval --pred $V/x1_long/eval/predictions.parquet --gt $R/data/target_val --protocol kitti \
-    --iou 0.7 --iou 0.5 --score-min 0.3 --out $V/x1_long/eval/metrics_kitti.json
+    --iou 0.7 --iou 0.5 --size-score-min 0.3 --out $V/x1_long/eval/metrics_kitti.json

@@ -12,7 +12,7 @@
 set -uo pipefail
 D=${DALI:-.venv/bin/dali}
 X=${EVAL_FLAGS:-}
-P="--protocol range --front-only --iou 0.7 --iou 0.5 --score-min 0.3"
+P="--protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min 0.3"
 for run in ${RUNS:-experiment-s0 experiment-s1 experiment-s2 experiment-nuscenes-s0 experiment-nuscenes-s1 experiment-nuscenes-s2}; do
   R=runs/$run; O=runs/val800/$run
   [ -f $R/baselines/oracle_x2_budget/eval/manifest.json ] || { echo "$run: not finished"; continue; }
