@@ -30,11 +30,17 @@ LIBRARY    ?= $(RUN)/library
 .PHONY: help install test demo bench pareto pareto-quick lint format clean-runs
 
 help:
-	@echo "make demo    - install and run a small synthetic adaptation end to end"
-	@echo "make test    - install and run the test suite"
-	@echo "make bench   - run the benchmarks (results in bench/results/*.json)"
-	@echo "make pareto  - run time vs error of every stage's speed knobs (docs/pareto.md; pareto-quick: smoke test)"
-	@echo "make lint    - ruff check + format check"
+	@echo "make demo        - install and run a small synthetic adaptation end to end"
+	@echo "make test        - install and run the test suite"
+	@echo "make tiny        - one DALI iteration on 16 synthetic frames (runs/tiny), with what each step kept"
+	@echo "make iter0 ... iter5 RUN=DIR - the pipeline's iterations (variables: top of the Makefile)"
+	@echo "make x1-long, controls, baselines, iter2-st, cross-domain, compare RUN=DIR - the rows DALI is read against"
+	@echo "make report RUN=DIR - the AP table, sizes and plots of a run"
+	@echo "make experiment  - the full synthetic benchmark (docs/RESULTS.md)"
+	@echo "make real-kitti  - adapt to a real KITTI raw drive (docs/data.md)"
+	@echo "make bench       - run the benchmarks (results in bench/results/*.json)"
+	@echo "make pareto      - run time vs error of every stage's speed knobs (docs/pareto.md; pareto-quick: smoke test)"
+	@echo "make lint        - ruff check + format check"
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -85,7 +91,7 @@ MINUTES        ?=
 RETRAIN_EPOCHS ?= $(EPOCHS)
 # per-iteration retraining budgets: 2 x RETRAIN_EPOCHS in all, a quarter in iteration 1 (half of
 # RETRAIN_EPOCHS, at least 1) and the rest in iteration 2, on iteration 2's better labels
-# (docs/results/history.md); e.g. RETRAIN_EPOCHS_1=6 RETRAIN_EPOCHS_2=6 for the paper's even split
+# (docs/RESULTS.md); e.g. RETRAIN_EPOCHS_1=6 RETRAIN_EPOCHS_2=6 for the paper's even split
 ifneq ($(shell echo '$(RETRAIN_EPOCHS)' | grep -Exc '[1-9][0-9]*'),1)
 $(error RETRAIN_EPOCHS must be a whole number of epochs >= 1, got '$(RETRAIN_EPOCHS)')
 endif
@@ -154,8 +160,7 @@ $(RUN)/iter0/eval_ptsn/manifest.json: $(RUN)/iter1/ptsn/manifest.json $(TARGET_V
 iter0: $(RUN)/iter0/eval/manifest.json $(RUN)/iter0/eval_ptsn/manifest.json
 
 # SOURCE_SIZE=sn (default): retraining shifts the source cars to the sweep's label-free E_est,
-# so source and PPCG labels agree on the target's size (demo scale, docs/results/history.md:
-# +3.8 ± 1.7 AP_3D@0.7 for x2 over 3 seeds); SOURCE_SIZE=init keeps the initial model's sizes (the paper's).
+# so source and PPCG labels agree on the target's size (docs/method.md); SOURCE_SIZE=init keeps the initial model's sizes (the paper's).
 SOURCE_SIZE ?= sn
 SOURCE_SIZE_FLAGS = --source-size $(SOURCE_SIZE)$(if $(filter sn,$(SOURCE_SIZE)), --target-size-from $(RUN)/iter$(1)/ptsn)
 
@@ -183,8 +188,8 @@ $(foreach n,1 2 3 4 5,$(eval $(call ITER,$(n),$(shell echo $$(( $(n) - 1 ))),$(s
 
 # x1 long: one retraining of x2's retraining frames (RETRAIN_EPOCHS_1 + RETRAIN_EPOCHS_2 epochs)
 # on iteration 1's PPCG frames, then its own sweep; the same budget as x2 and its control. On an
-# equal budget the better use of the frames than a second iteration (demo scale, docs/results/history.md:
-# +3.8 ± 1.6 AP_3D@0.7 over the control on four seeds, x2 +1.6 ± 0.9)
+# equal budget the better use of the frames than a second iteration (docs/RESULTS.md, "Does a
+# second iteration pay on an equal budget?")
 X1_LONG_BUDGET = $(if $(MINUTES),--minutes $$(( 2 * $(MINUTES) )),--epochs $$(( $(RETRAIN_EPOCHS_1) + $(RETRAIN_EPOCHS_2) )))
 $(RUN)/x1_long/model/manifest.json: $(RUN)/iter1/rc/manifest.json $(RUN)/iter1/cf/manifest.json $(SOURCE)/manifest.json
 	$(TRAIN_DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/rc $(RUN)/iter1/cf $(call SOURCE_SIZE_FLAGS,1) --seed $(SEED) $(X1_LONG_BUDGET) $(RETRAIN_FLAGS) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
@@ -262,8 +267,7 @@ cross-domain: $(RUN)/iter0/eval_source/manifest.json $(RUN)/iter2/eval_source/ma
     $(if $(filter sn,$(SOURCE_SIZE)),$(RUN)/iter2/eval_source_sized/manifest.json)
 # equal-budget controls (standard rows of `make experiment`; "gap closed" is measured against
 # them): source only with x1's and with x2's training frames + test-time PTSN, each also with the
-# test-time size correction (eval_ptsn_sized), oracle with x2's frames (at demo scale x1 beats
-# its control, x2 is level with its own: docs/results/history.md)
+# test-time size correction (eval_ptsn_sized), oracle with x2's frames (docs/RESULTS.md)
 controls: controls-x1 controls-x2
 controls-x1: $(RUN)/baselines/source_x1_budget/eval_ptsn/manifest.json \
     $(RUN)/baselines/source_x1_budget/eval_ptsn_sized/manifest.json
@@ -364,6 +368,19 @@ demo: install
 	$(DALI) report runs/demo
 	@echo
 	@echo "This was the small demo (runs/demo). The full synthetic benchmark: make experiment"
+
+# the tiny run: one DALI iteration on TINY_FRAMES frames, enough training that PTSN finds a scale,
+# pseudo-label keeps boxes (at a 0.1 score cut: a model this small scores its cars low) and RC and
+# CF replace them; then what each step kept
+TINY_RUN    ?= runs/tiny
+TINY_FRAMES ?= 16
+TINY_EPOCHS ?= 4
+tiny: install
+	$(MAKE) $(SUBMAKE_FLAGS) iter1 RUN=$(TINY_RUN) FRAMES=$(TINY_FRAMES) VAL_FRAMES=8 \
+	    EPOCHS=$(TINY_EPOCHS) LIBRARY_MODELS=8 SCORE_MIN=0.1
+	@$(BIN)/python bench/tools/run_counts.py $(TINY_RUN)
+	@echo "next: dali report $(TINY_RUN)"
+.PHONY: tiny
 
 # the full synthetic benchmark (docs/RESULTS.md): 600 frames per training set, 200 validation frames,
 # 4 epochs of pretraining (2,400 frames seen) and 2 x 2 of retraining (source + PPCG 1:1, 1,200

@@ -116,7 +116,8 @@ def pseudo_label(
         "scale": scale, "score_min": score_min, "nms_iou": nms_iou,
         "target_profile": target_profile, "mount_height_m": mount_height_m,
         "size_correction": method,
-        # recorded only when not the default: earlier runs stay up to date
+        # recorded only when not the default: an option whose default changes nothing leaves
+        # the parameters, and so the up-to-date check of every existing artifact, as they are
         **({"precision": precision} if precision != "fp32" else {}),
         **({"fit_points": point_fit.record()} if point_fit is not None else {}),
     }  # fmt: skip

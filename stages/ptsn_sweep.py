@@ -176,7 +176,8 @@ def ptsn_sweep(
         "mount_height_m": mount_height_m, "plot": plot,
     }  # fmt: skip
     # recorded only when not the default: outputs of sweeps that found detections do not
-    # depend on no_detections, and fp32 is the default precision: earlier runs stay up to date
+    # depend on no_detections, and fp32 is the default precision: an option whose default
+    # changes nothing leaves the parameters, and so existing sweeps' up-to-date check, as they are
     params.update(
         {"no_detections": no_detections} if no_detections != "identity" else {},
         **({"precision": precision} if precision != "fp32" else {}),

@@ -35,8 +35,8 @@ from dali_cli.commands.common import (
 @tuning_option("--fit-points/--no-fit-points", default=True, show_default=True,
               help="Move and turn each pseudo box (its size kept) so its sides hug the target "
                    "points it holds: shifts up to 1 m along the car and 0.2 m across, turns "
-                   "up to 8 degrees (dali_cli.labels.box_fit). Target points only, no label. Matched "
-                   "boxes at 3D IoU >= 0.7: 0.48-0.57 -> 0.67-0.71 (docs/results/history.md).")  # fmt: skip
+                   "up to 8 degrees (dali_cli.labels.box_fit). Target points only, no label "
+                   "(docs/ppcg.md).")  # fmt: skip
 @workers_option("1")
 @executor_options
 @target_scaling_options

@@ -1,5 +1,5 @@
 #!/bin/bash
-# Session 22: the x2-budget oracle of a seed trained in bf16 (7,200 target frames, as
+# a later run: the x2-budget oracle of a seed trained in bf16 (7,200 target frames, as
 # RUN/baselines/oracle_x2_budget in fp32) and evaluated in bf16 on that seed's 800 fresh
 # validation frames (runs/val800/data-s<SEED>, val800_job.sh): is the bf16 oracle's -1.9 of
 # seed 0 a training draw? From the repository root, where the runs are; resumable (pretrain

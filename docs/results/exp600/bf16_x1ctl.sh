@@ -1,5 +1,5 @@
 #!/bin/bash
-# training precision check (session 19): the x1-budget control of seed 0 trained with bf16 autocast,
+# training precision check: the x1-budget control of seed 0 trained with bf16 autocast,
 # swept and evaluated in fp32 as the fp32 control was (runs/experiment-s0/baselines/source_x1_budget)
 set -euo pipefail
 R=runs/experiment-s0; V=$R/variants/control-x1-bf16

@@ -1,4 +1,4 @@
-# Sourced by the session-23/24 jobs (target_share_job.sh, oracle_budget_job.sh,
+# Sourced by the jobs (target_share_job.sh, oracle_budget_job.sh,
 # oracle_restart_job.sh, short_pretrain_job.sh, long_retrain_job.sh). Needs D (the dali command,
 # e.g. "taskset -c 1 .venv/bin/dali"), R (RUN) and SEED set; every output is an artifact,
 # skipped when up to date.

@@ -1,5 +1,4 @@
-"""Where the oracle's 3D lead on far cars comes from (session 23; a diagnostic that reads the
-target validation labels, never a stage).
+"""Where the oracle's 3D lead on far cars comes from.
 
 For each row's saved predictions (eval predictions.parquet) against the validation labels: every
 true Car in the evaluation's front region (90 deg), per range band, paired with the prediction of

@@ -4,7 +4,7 @@
 # with the raw target training frames and ALL their true labels in place of the PPCG frames. Against
 # x1 long with PPCG from the true boxes (truth_job.sh, 86.0) and the x2-budget oracle (89.0): does
 # the oracle's lead come from PPCG's synthetic car points, or from the schedule (2,400 source
-# pretraining frames, then half the batches from the source)? At demo scale (session 11) the two
+# pretraining frames, then half the batches from the source)? At demo scale the two
 # were level (+6.1 ± 3.2 and +5.3 ± 0.7 over the control).
 #   bash docs/results/exp600/rawtrue_job.sh     # row V/x1_long/eval; resumable (stage manifests)
 set -euo pipefail

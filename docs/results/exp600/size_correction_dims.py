@@ -1,5 +1,4 @@
-"""Where the per-dimension size correction of an equal-budget control gains or loses (session 19;
-a diagnostic that reads the target validation labels, never a stage).
+"""Where the per-dimension size correction of an equal-budget control gains or loses.
 
 For RUN/baselines/source_<budget>_budget: AP_3D / AP_BEV @0.7 (range protocol, front region) of its
 saved eval_ptsn predictions with each dimension's factor E_est / E_pred(ŝ) of its own sweep applied

@@ -1,5 +1,4 @@
-"""How finely AP_3D@0.7 resolves a size change at 200 validation frames (session 20; a diagnostic
-that reads the target validation labels, never a stage).
+"""How finely AP_3D@0.7 resolves a size change at 200 validation frames.
 
 For RUN/baselines/source_<budget>_budget (its saved eval_ptsn predictions): AP_3D @0.7 (range
 protocol, front region; all and 0-30 / 30-50 / 50-80 m) with one dimension of every predicted car

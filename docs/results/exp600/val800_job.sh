@@ -1,5 +1,5 @@
 #!/bin/bash
-# Session 21: the main rows of the 600-frame runs re-evaluated on 800 fresh validation frames per
+# a later run: the main rows of the 600-frame runs re-evaluated on 800 fresh validation frames per
 # seed (synthesized like RUN/data/target_val but with seed SEED + 5000; 4x the 200 frames the
 # runs were measured on, so the frames' share of a one-seed difference halves), each model at its
 # own PTSN scale as in the Makefile; the sized control from the control's predictions; then a
@@ -8,7 +8,7 @@
 # artifact directory, skipped when up to date):
 #   bash docs/results/exp600/val800_job.sh                    # all runs below that are finished
 #   RUNS="experiment-s0" bash docs/results/exp600/val800_job.sh
-#   EVAL_FLAGS="--precision bf16" RUNS=...   # options of every model eval (session 22: bf16 rows)
+#   EVAL_FLAGS="--precision bf16" RUNS=...   # options of every model eval
 set -uo pipefail
 D=${DALI:-.venv/bin/dali}
 X=${EVAL_FLAGS:-}
