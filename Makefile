@@ -34,7 +34,8 @@ help:
 	@echo "make test        - install and run the test suite"
 	@echo "make tiny        - one DALI iteration on 16 synthetic frames (runs/tiny), with what each step kept"
 	@echo "make iter0 ... iter5 RUN=DIR - the pipeline's iterations (variables: top of the Makefile)"
-	@echo "make x1-long, controls, baselines, iter2-st, cross-domain, compare RUN=DIR - the rows DALI is read against"
+	@echo "make x1-long, iter2-st, controls (controls-x1, controls-x2), baselines (baseline-sn, baseline-ros,"
+	@echo "     baseline-oracle, ablation-rc, ablation-cf), cross-domain, compare RUN=DIR - the rows DALI is read against"
 	@echo "make report RUN=DIR - the AP table, sizes and plots of a run"
 	@echo "make experiment  - the full synthetic benchmark (docs/RESULTS.md)"
 	@echo "make real-kitti  - adapt to a real KITTI raw drive (docs/data.md)"
@@ -370,14 +371,14 @@ demo: install
 	@echo "This was the small demo (runs/demo). The full synthetic benchmark: make experiment"
 
 # the tiny run: one DALI iteration on TINY_FRAMES frames, enough training that PTSN finds a scale,
-# pseudo-label keeps boxes (at a 0.1 score cut: a model this small scores its cars low) and RC and
-# CF replace them; then what each step kept
+# pseudo-label keeps boxes at the default score cut and RC and CF replace them; then what each
+# step kept
 TINY_RUN    ?= runs/tiny
 TINY_FRAMES ?= 16
 TINY_EPOCHS ?= 4
 tiny: install
 	$(MAKE) $(SUBMAKE_FLAGS) iter1 RUN=$(TINY_RUN) FRAMES=$(TINY_FRAMES) VAL_FRAMES=8 \
-	    EPOCHS=$(TINY_EPOCHS) LIBRARY_MODELS=8 SCORE_MIN=0.1
+	    EPOCHS=$(TINY_EPOCHS) LIBRARY_MODELS=8
 	@$(BIN)/python bench/tools/run_counts.py $(TINY_RUN)
 	@echo "next: dali report $(TINY_RUN)"
 .PHONY: tiny
