@@ -27,11 +27,12 @@ TARGET     ?= $(RUN)/data/target
 TARGET_VAL ?= $(RUN)/data/target_val
 LIBRARY    ?= $(RUN)/library
 
-.PHONY: help install test demo bench pareto pareto-quick lint format clean-runs
+.PHONY: help install test test-slow demo bench pareto pareto-quick lint format clean-runs
 
 help:
 	@echo "make demo        - install and run a small synthetic adaptation end to end"
-	@echo "make test        - install and run the test suite"
+	@echo "make test        - install and run the test suite but its slow end-to-end cases"
+	@echo "make test-slow   - the slow end-to-end tests (CI runs both: make -j2 test test-slow)"
 	@echo "make tiny        - one DALI iteration on 16 synthetic frames (runs/tiny), with what each step kept"
 	@echo "make iter0 ... iter5 RUN=DIR - the pipeline's iterations (variables: top of the Makefile)"
 	@echo "make x1-long, iter2-st, controls (controls-x1, controls-x2), baselines (baseline-sn, baseline-ros,"
@@ -53,8 +54,12 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
+# the suite but its slow end-to-end cases (marker `slow`: the pipeline through make, torchrun,
+# Ray); test-slow runs those. CI runs both side by side: make -j2 --output-sync=target test test-slow
 test: install
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -m "not slow"
+test-slow: install
+	$(BIN)/python -m pytest -m slow
 
 lint: install
 	$(BIN)/ruff check dali_cli stages tests bench

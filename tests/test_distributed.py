@@ -212,6 +212,7 @@ def small_config(tmp_path: Path) -> Path:
     return path
 
 
+@pytest.mark.slow  # two torchrun ranks, end to end
 def test_torchrun_pretrain_writes_one_model_that_eval_reads(toy_dir, tmp_path):
     out = tmp_path / "model"
     run = subprocess.run(
@@ -239,6 +240,7 @@ def test_torchrun_pretrain_writes_one_model_that_eval_reads(toy_dir, tmp_path):
     assert "Car" in document and document["runtime"]["device"] == "cpu"
 
 
+@pytest.mark.slow  # two torchrun ranks, end to end
 def test_a_failing_rank_fails_the_stage_with_no_artifact(toy_dir, tmp_path):
     script = tmp_path / "flaky_dali.py"
     script.write_text(
