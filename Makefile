@@ -1,6 +1,6 @@
 # dali: set-up, tests, benchmarks and the pipeline's iterations.
 #   make demo   create the venv, install, run a small synthetic source -> target adaptation
-#   make test   create the venv, install, run the test suite
+#   make test   create the venv, install, run the test suite (its slow end-to-end cases: make test-slow)
 SHELL := /bin/bash
 # the recursive makes' flags: this file, so that `make -f PATH/Makefile` run from another
 # directory keeps using it ($(MAKE) stays literal in each recipe, so `make -n` still recurses)
