@@ -34,7 +34,7 @@ help:
 	@echo "make test        - install and run the test suite but its slow end-to-end cases"
 	@echo "make test-slow   - the slow end-to-end tests (CI runs both: make -j2 test test-slow)"
 	@echo "make tiny        - one DALI iteration on 16 synthetic frames (runs/tiny), with what each step kept"
-	@echo "make iter0 ... iter5 RUN=DIR - the pipeline's iterations (variables: top of the Makefile)"
+	@echo "make iter0, iter1, iter2 ... iter5 RUN=DIR - the pipeline's iterations (variables: top of the Makefile)"
 	@echo "make x1-long, iter2-st, controls (controls-x1, controls-x2), baselines (baseline-sn, baseline-ros,"
 	@echo "     baseline-oracle, ablation-rc, ablation-cf), cross-domain, compare RUN=DIR - the rows DALI is read against"
 	@echo "make report RUN=DIR - the AP table, sizes and plots of a run"
