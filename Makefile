@@ -55,11 +55,14 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 # the suite but its slow end-to-end cases (marker `slow`: the pipeline through make, torchrun,
-# Ray); test-slow runs those. CI runs both side by side: make -j2 --output-sync=target test test-slow
+# Ray, training to convergence); test-slow runs those. CI runs both side by side: make -j2
+# --output-sync=target test test-slow. pytest runs without this make's flags (MAKEFLAGS), so the
+# tests' own `make` calls plan and run as from a shell, not inside a -j2 job server
+PYTEST = env -u MAKEFLAGS -u MFLAGS -u MAKELEVEL $(BIN)/python -m pytest
 test: install
-	$(BIN)/python -m pytest -m "not slow"
+	$(PYTEST) -m "not slow"
 test-slow: install
-	$(BIN)/python -m pytest -m slow
+	$(PYTEST) -m slow
 
 lint: install
 	$(BIN)/ruff check dali_cli stages tests bench
