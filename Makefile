@@ -57,8 +57,9 @@ install: $(STAMP)
 # the suite but its slow end-to-end cases (marker `slow`: the pipeline through make, torchrun,
 # Ray, training to convergence); test-slow runs those. CI runs both side by side: make -j2
 # --output-sync=target test test-slow. Measured on a 2-core VM shared with other jobs (load 7-11):
-# make test 4.5 min of pytest (190 CPU seconds), the whole suite 8.6 min (405). pytest runs without this make's flags (MAKEFLAGS), so the
-# tests' own `make` calls plan and run as from a shell, not inside a -j2 job server
+# make test 4.5 min of pytest (190 CPU seconds), the whole suite 8.6 min (405). pytest runs
+# without this make's flags (MAKEFLAGS), so the tests' own `make` calls plan and run as from a
+# shell, not inside a -j2 job server
 PYTEST = env -u MAKEFLAGS -u MFLAGS -u MAKELEVEL $(BIN)/python -m pytest
 test: install
 	$(PYTEST) -m "not slow"
