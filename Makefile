@@ -1,6 +1,6 @@
 # dali: set-up, tests, benchmarks and the pipeline's iterations.
 #   make demo   create the venv, install, run a small synthetic source -> target adaptation
-#   make test   create the venv, install, run the test suite
+#   make test   create the venv, install, run the test suite (its slow end-to-end cases: make test-slow)
 SHELL := /bin/bash
 # the recursive makes' flags: this file, so that `make -f PATH/Makefile` run from another
 # directory keeps using it ($(MAKE) stays literal in each recipe, so `make -n` still recurses)
@@ -27,14 +27,22 @@ TARGET     ?= $(RUN)/data/target
 TARGET_VAL ?= $(RUN)/data/target_val
 LIBRARY    ?= $(RUN)/library
 
-.PHONY: help install test demo bench pareto pareto-quick lint format clean-runs
+.PHONY: help install test test-slow demo bench pareto pareto-quick lint format clean-runs
 
 help:
-	@echo "make demo    - install and run a small synthetic adaptation end to end"
-	@echo "make test    - install and run the test suite"
-	@echo "make bench   - run the benchmarks (results in bench/results/*.json)"
-	@echo "make pareto  - run time vs error of every stage's speed knobs (docs/pareto.md; pareto-quick: smoke test)"
-	@echo "make lint    - ruff check + format check"
+	@echo "make demo        - install and run a small synthetic adaptation end to end"
+	@echo "make test        - install and run the test suite but its slow end-to-end cases"
+	@echo "make test-slow   - the slow end-to-end tests (CI runs both: make -j2 test test-slow)"
+	@echo "make tiny        - one DALI iteration on 16 synthetic frames (runs/tiny), with what each step kept"
+	@echo "make iter0, iter1, iter2 ... iter5 RUN=DIR - the pipeline's iterations (variables: top of the Makefile)"
+	@echo "make x1-long, iter2-st, controls (controls-x1, controls-x2), baselines (baseline-sn, baseline-ros,"
+	@echo "     baseline-oracle, ablation-rc, ablation-cf), cross-domain, compare RUN=DIR - the rows DALI is read against"
+	@echo "make report RUN=DIR - the AP table, sizes and plots of a run"
+	@echo "make experiment  - the full synthetic benchmark (docs/RESULTS.md)"
+	@echo "make real-kitti  - adapt to a real KITTI raw drive (docs/data.md)"
+	@echo "make bench       - run the benchmarks (results in bench/results/*.json)"
+	@echo "make pareto      - run time vs error of every stage's speed knobs (docs/pareto.md; pareto-quick: smoke test)"
+	@echo "make lint        - ruff check + format check"
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -46,8 +54,17 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
+# the suite but its slow end-to-end cases (marker `slow`: the pipeline through make, torchrun,
+# Ray, training to convergence); test-slow runs those. CI runs both side by side: make -j2
+# --output-sync=target test test-slow. Measured on a 2-core VM shared with other jobs (load 7-11):
+# make test 4.5 min of pytest (190 CPU seconds), the whole suite 8.6 min (405). pytest runs
+# without this make's flags (MAKEFLAGS), so the tests' own `make` calls plan and run as from a
+# shell, not inside a -j2 job server
+PYTEST = env -u MAKEFLAGS -u MFLAGS -u MAKELEVEL $(BIN)/python -m pytest
 test: install
-	$(BIN)/python -m pytest
+	$(PYTEST) -m "not slow"
+test-slow: install
+	$(PYTEST) -m slow
 
 lint: install
 	$(BIN)/ruff check dali_cli stages tests bench
@@ -85,7 +102,7 @@ MINUTES        ?=
 RETRAIN_EPOCHS ?= $(EPOCHS)
 # per-iteration retraining budgets: 2 x RETRAIN_EPOCHS in all, a quarter in iteration 1 (half of
 # RETRAIN_EPOCHS, at least 1) and the rest in iteration 2, on iteration 2's better labels
-# (docs/results/history.md); e.g. RETRAIN_EPOCHS_1=6 RETRAIN_EPOCHS_2=6 for the paper's even split
+# (docs/RESULTS.md); e.g. RETRAIN_EPOCHS_1=6 RETRAIN_EPOCHS_2=6 for the paper's even split
 ifneq ($(shell echo '$(RETRAIN_EPOCHS)' | grep -Exc '[1-9][0-9]*'),1)
 $(error RETRAIN_EPOCHS must be a whole number of epochs >= 1, got '$(RETRAIN_EPOCHS)')
 endif
@@ -129,7 +146,7 @@ PPCG_FLAGS     ?=
 RETRAIN_FLAGS  ?=
 # evaluation: all boxes and range bands of the front region (90 deg FOV, detection range, as ST3D
 # evaluates KITTI), AP at IoU 0.7 and 0.5
-EVAL_FLAGS     ?= --protocol range --front-only --iou 0.7 --iou 0.5 --score-min $(SCORE_MIN)
+EVAL_FLAGS     ?= --protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
 
 $(RUN)/data/source/manifest.json: | install
 	$(DALI) synth --sensor $(SOURCE_SENSOR) --cars $(SOURCE_SENSOR) --frames $(FRAMES) --seed $(SEED) $(SYNTH_FLAGS) --out $(@D)
@@ -154,8 +171,7 @@ $(RUN)/iter0/eval_ptsn/manifest.json: $(RUN)/iter1/ptsn/manifest.json $(TARGET_V
 iter0: $(RUN)/iter0/eval/manifest.json $(RUN)/iter0/eval_ptsn/manifest.json
 
 # SOURCE_SIZE=sn (default): retraining shifts the source cars to the sweep's label-free E_est,
-# so source and PPCG labels agree on the target's size (demo scale, docs/results/history.md:
-# +3.8 ± 1.7 AP_3D@0.7 for x2 over 3 seeds); SOURCE_SIZE=init keeps the initial model's sizes (the paper's).
+# so source and PPCG labels agree on the target's size (docs/method.md); SOURCE_SIZE=init keeps the initial model's sizes (the paper's).
 SOURCE_SIZE ?= sn
 SOURCE_SIZE_FLAGS = --source-size $(SOURCE_SIZE)$(if $(filter sn,$(SOURCE_SIZE)), --target-size-from $(RUN)/iter$(1)/ptsn)
 
@@ -183,8 +199,8 @@ $(foreach n,1 2 3 4 5,$(eval $(call ITER,$(n),$(shell echo $$(( $(n) - 1 ))),$(s
 
 # x1 long: one retraining of x2's retraining frames (RETRAIN_EPOCHS_1 + RETRAIN_EPOCHS_2 epochs)
 # on iteration 1's PPCG frames, then its own sweep; the same budget as x2 and its control. On an
-# equal budget the better use of the frames than a second iteration (demo scale, docs/results/history.md:
-# +3.8 ± 1.6 AP_3D@0.7 over the control on four seeds, x2 +1.6 ± 0.9)
+# equal budget the better use of the frames than a second iteration (docs/RESULTS.md, "Does a
+# second iteration pay on an equal budget?")
 X1_LONG_BUDGET = $(if $(MINUTES),--minutes $$(( 2 * $(MINUTES) )),--epochs $$(( $(RETRAIN_EPOCHS_1) + $(RETRAIN_EPOCHS_2) )))
 $(RUN)/x1_long/model/manifest.json: $(RUN)/iter1/rc/manifest.json $(RUN)/iter1/cf/manifest.json $(SOURCE)/manifest.json
 	$(TRAIN_DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/rc $(RUN)/iter1/cf $(call SOURCE_SIZE_FLAGS,1) --seed $(SEED) $(X1_LONG_BUDGET) $(RETRAIN_FLAGS) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
@@ -247,7 +263,7 @@ $(RUN)/baselines/%/pseudo/manifest.json: $(RUN)/baselines/%/ptsn/manifest.json
 	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --target $(TARGET) --scale-from $(RUN)/baselines/$*/ptsn --score-min $(SCORE_MIN) $(PSEUDO_FLAGS) $(EXEC_FLAGS) --out $(@D)
 $(eval $(call SELF_TRAIN,baselines/source_x2_budget_st,baselines/source_x2_budget/model,baselines/source_x2_budget/pseudo,baselines/source_x2_budget/ptsn))
 # KITTI easy / moderate / hard of the same predictions (synthetic labels carry KITTI's columns)
-KITTI_EVAL_FLAGS ?= --protocol kitti --iou 0.7 --iou 0.5 --score-min $(SCORE_MIN)
+KITTI_EVAL_FLAGS ?= --protocol kitti --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
 $(RUN)/%/metrics_kitti.json: $(RUN)/%/manifest.json
 	$(DALI) eval --pred $(RUN)/$*/predictions.parquet --gt $(TARGET_VAL) $(KITTI_EVAL_FLAGS) --out $@
 # cross-domain check: every model on the source validation set at s = 1
@@ -271,8 +287,7 @@ cross-domain: $(RUN)/iter0/eval_source/manifest.json $(RUN)/iter2/eval_source/ma
     $(if $(filter sn,$(SOURCE_SIZE)),$(RUN)/iter2/eval_source_sized/manifest.json)
 # equal-budget controls (standard rows of `make experiment`; "gap closed" is measured against
 # them): source only with x1's and with x2's training frames + test-time PTSN, each also with the
-# test-time size correction (eval_ptsn_sized), oracle with x2's frames (at demo scale x1 beats
-# its control, x2 is level with its own: docs/results/history.md)
+# test-time size correction (eval_ptsn_sized), oracle with x2's frames (docs/RESULTS.md)
 controls: controls-x1 controls-x2
 controls-x1: $(RUN)/baselines/source_x1_budget/eval_ptsn/manifest.json \
     $(RUN)/baselines/source_x1_budget/eval_ptsn_sized/manifest.json
@@ -338,7 +353,7 @@ REAL_FRONT_DEG ?= 82
 REAL_RUN     ?= runs/real-kitti
 REAL_DATA    ?= $(REAL_RUN)-data
 REAL_REPORT  ?= $(REAL_RUN)-report
-REAL_EVAL_FLAGS = --protocol kitti --iou 0.7 --iou 0.5 --score-min $(SCORE_MIN)
+REAL_EVAL_FLAGS = --protocol kitti --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
 REAL_VARS = FRAMES=$(DEMO_FRAMES) EPOCHS=$(DEMO_EPOCHS) EVAL_FLAGS="$(REAL_EVAL_FLAGS)" REAL_DATA=$(REAL_DATA) \
     TARGET=$(REAL_DATA)/target TARGET_VAL=$(REAL_DATA)/drive_labels
 # KITTI odometry devkit: the raw drive of each sequence (for the object frames' split)
@@ -443,6 +458,19 @@ demo: install
 	$(DALI) report runs/demo
 	@echo
 	@echo "This was the small demo (runs/demo). The full synthetic benchmark: make experiment"
+
+# the tiny run: one DALI iteration on TINY_FRAMES frames, enough training that PTSN finds a scale,
+# pseudo-label keeps boxes at the default score cut and RC and CF replace them; then what each
+# step kept
+TINY_RUN    ?= runs/tiny
+TINY_FRAMES ?= 16
+TINY_EPOCHS ?= 4
+tiny: install
+	$(MAKE) $(SUBMAKE_FLAGS) iter1 RUN=$(TINY_RUN) FRAMES=$(TINY_FRAMES) VAL_FRAMES=8 \
+	    EPOCHS=$(TINY_EPOCHS) LIBRARY_MODELS=8
+	@$(BIN)/python bench/tools/run_counts.py $(TINY_RUN)
+	@echo "next: dali report $(TINY_RUN)"
+.PHONY: tiny
 
 # the full synthetic benchmark (docs/RESULTS.md): 600 frames per training set, 200 validation frames,
 # 4 epochs of pretraining (2,400 frames seen) and 2 x 2 of retraining (source + PPCG 1:1, 1,200

@@ -21,7 +21,7 @@ from pareto.common import best_seconds
 
 from dali_cli import geometry
 from dali_cli.evaluation.evaluate import evaluate
-from dali_cli.evaluation.kitti_label import write_label_dir
+from dali_cli.importers.kitti_label import write_label_dir
 from dali_cli.store.artifacts import BoxTable, write_boxes
 
 RESULTS = Path(__file__).resolve().parent / "results" / "eval.json"

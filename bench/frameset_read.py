@@ -1,8 +1,8 @@
 """Benchmark: the cost of verifying what FrameSet reads (chunk presence + CRC-32C per chunk).
 
 Writes FRAMES KITTI-sized frames (120 k points each) twice, Zstd-compressed and raw: once with
-dali's writer (a CRC-32C per chunk) and once with the same layout but no checksum (as frame sets
-written before 2026-11-24), then times `FrameSet.iter_frames` over all frames and `frame()` of
+dali's writer (a CRC-32C per chunk) and once with the same layout but no checksum (as a frame set
+without checksums), then times `FrameSet.iter_frames` over all frames and `frame()` of
 every tenth frame with the same reader (best of REPEATS). The difference is the checksum; the
 presence check (one stat per chunk per FrameSet) is in both. Writes
 bench/results/frameset_read.json.

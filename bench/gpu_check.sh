@@ -17,24 +17,26 @@ OUT=${1:?usage: bash bench/gpu_check.sh OUT_DIR}
 mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1
 exec > >(tee "$OUT/log.txt") 2>&1
+# scratch outside the checkout: installed wheels, a venv-shaped folder and the demo run
+SCRATCH=$(mktemp -d)
 date -u; nvidia-smi -L; nproc; lscpu | grep 'Model name'
 if ls .whl/*.whl > /dev/null 2>&1; then
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-        --target /tmp/site .whl/*.whl || exit 1
-    export PYTHONPATH=/tmp/site:$PWD
+        --target "$SCRATCH/site" .whl/*.whl || exit 1
+    export PYTHONPATH=$SCRATCH/site:$PWD
 else
     export PYTHONPATH=$PWD
 fi
 python3 -c 'import torch; print("torch", torch.__version__, "cuda", torch.version.cuda, torch.cuda.get_device_name(0))'
 # a venv-shaped folder for the Makefile: its dali, python and torchrun are this python3's
-V=/tmp/gpuvenv
+V=$SCRATCH/venv
 mkdir -p $V/bin
 printf '#!%s\nfrom dali_cli.cli import main\nif __name__ == "__main__":\n    main()\n' "$(command -v python3)" > $V/bin/dali
 ln -sf "$(command -v python3)" $V/bin/python
 printf '#!/bin/sh\nexec python3 -m torch.distributed.run "$@"\n' > $V/bin/torchrun
 chmod +x $V/bin/dali $V/bin/torchrun
 touch $V/.installed
-RUN=/tmp/gpu-demo
+RUN=$SCRATCH/demo
 status=0
 start=$(date +%s)
 make --no-print-directory iter2 VENV=$V RUN=$RUN FRAMES=48 EPOCHS=6 SEED=0 DEVICE=cuda \

@@ -37,7 +37,7 @@ try:
     from dali_cli.runtime.machine import available_cores, cpu_model
 except ImportError:  # a checkout from before runtime.machine
     from dali_cli.detector.runtime import available_cores, cpu_model
-from dali_cli.runtime.training_stage import attach_database
+from dali_cli.detector.training_stage import attach_database
 
 RESULT = Path(__file__).parent / "results" / "input_pipeline.json"
 

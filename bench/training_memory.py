@@ -107,7 +107,7 @@ def measure(command: list[str], interval_s: float, env: dict) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", action="append", required=True, help="NAME=FRAMESET_DIR")
-    parser.add_argument("--work", type=Path, default=Path("/tmp/dali-training-memory"))
+    parser.add_argument("--work", type=Path, default=Path("runs/bench_training_memory"))
     parser.add_argument("--loader-workers", type=int, default=2)
     parser.add_argument("--batch-size", type=int, default=2)
     parser.add_argument("--threads", type=int, default=None, help="torch threads (--threads)")

@@ -17,7 +17,7 @@ import torch
 
 from dali_cli.detector import Augmentation, DetectorConfig, PillarCenterNet, TrainSettings, train
 from dali_cli.detector.data import load_labeled
-from dali_cli.runtime.training_stage import attach_database
+from dali_cli.detector.training_stage import attach_database
 
 PARTS = {
     "augmented_sample", "frame", "sample_ground_truth", "object_noise", "collate",

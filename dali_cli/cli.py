@@ -16,7 +16,7 @@ from dali_cli.runtime.errors import ParameterError, StageError
 # command name -> module under dali_cli.commands (each defines `command`)
 COMMANDS: dict[str, tuple[str, str]] = {
     "sensors": ("sensors", "List the LiDAR sensor profiles of sensors.toml."),
-    "synth": ("synth", "Synthesize a labeled LiDAR frame set (a domain)."),
+    "synth": ("synth", "Synthesize a labelled LiDAR frame set (a domain)."),
     "library": ("library", "Build a 3D model library (CAD, procedural, point models)."),
     "eval": ("evaluate", "KITTI-protocol AP of predictions against labels."),
     "compare": ("compare", "AP of several prediction tables with a paired frame bootstrap."),
@@ -24,21 +24,24 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "compare_domains",
         "Point and car statistics of frame sets side by side (real vs synthetic).",
     ),
-    "import": ("importers", "Import KITTI, nuScenes or OpenPCDet data."),
+    "import": (
+        "importers",
+        "Import real data: kitti, kitti-raw, kitti-odometry, nuscenes, openpcdet, waymo.",
+    ),
     "merge": ("merge", "One frame set from several (e.g. a target of several drives)."),
     "export": ("export", "Export boxes to other formats (KITTI label_2)."),
     "view": ("view", "Draw a frame with boxes as a PNG."),
-    "size-norm": ("size_norm", "A labeled frame set with cars resized to a model's SN size."),
-    "pretrain": ("pretrain", "Stage 1: train the detector on the labeled source."),
-    "ptsn-sweep": ("ptsn_sweep", "Stage 2: find the PTSN scale for the target."),
-    "pseudo-label": ("pseudo_label", "Stage 3: pseudo-label the target at the PTSN scale."),
+    "size-norm": ("size_norm", "A labelled frame set with cars resized to a model's SN size."),
+    "pretrain": ("pretrain", "Step 1: train the detector on the labelled source."),
+    "ptsn-sweep": ("ptsn_sweep", "Step 2: find the PTSN scale for the target."),
+    "pseudo-label": ("pseudo_label", "Step 3: pseudo-label the target at the PTSN scale."),
     "track-pseudo": (
         "track_pseudo",
-        "Optional: keep pseudo labels that persist over a scan sequence.",
+        "Optional after step 3: keep pseudo labels that persist over a scan sequence.",
     ),
-    "ppcg-rc": ("ppcg_rc", "Stage 4: ray-constrained pseudo point clouds."),
-    "ppcg-cf": ("ppcg_cf", "Stage 5: constraint-free pseudo point clouds."),
-    "retrain": ("retrain", "Stage 6: retrain on source + RC + CF frames."),
+    "ppcg-rc": ("ppcg_rc", "Step 4: ray-constrained pseudo point clouds."),
+    "ppcg-cf": ("ppcg_cf", "Step 5: constraint-free pseudo point clouds."),
+    "retrain": ("retrain", "Step 6: retrain on source + RC + CF frames."),
     "self-train": ("self_train", "Optional: fine-tune on the target with its own pseudo labels."),
     "report": ("report", "Tables and plots of a run."),
 }
@@ -54,7 +57,9 @@ class LazyGroup(click.Group):
         if name not in COMMANDS:
             return None
         module = importlib.import_module(f"dali_cli.commands.{COMMANDS[name][0]}")
-        return module.command
+        from dali_cli.commands.common import stage_command_class
+
+        return stage_command_class(module.command)
 
     def invoke(self, ctx: click.Context):
         """Run the subcommand; the one place a stage's plain errors become click errors."""
@@ -111,7 +116,7 @@ def as_click_error(error: StageError, command: click.Command | None) -> click.Cl
 @click.group(cls=LazyGroup)
 @click.version_option(__version__, prog_name="dali")
 def main() -> None:
-    """dali: adapt a LiDAR car detector from a labeled source domain to an unlabeled target.
+    """dali: adapt a LiDAR car detector from a labelled source domain to an unlabelled target.
 
     The DALI method (Lu & Radha, T-RO 2024): pretrain -> ptsn-sweep -> pseudo-label -> ppcg-rc ->
     ppcg-cf -> retrain, iterated. Every stage reads and writes artifact directories with a

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.evaluation import kitti_label
+from dali_cli.importers import kitti_label
 from dali_cli.importers.common import ImportFormatError
 from dali_cli.importers.kitti import (
     DEFAULT_IMAGE_SIZE,

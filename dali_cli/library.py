@@ -1,7 +1,7 @@
 """The 3D model library: car meshes (procedural or CAD) and point models, and its on-disk artifact.
 
 Meshes are normalized to the unit box centered at the origin (l along +x, w along +y, up +z) and
-keep their native l/w/h. Point models are labeled source instances with enough points, stored in
+keep their native l/w/h. Point models are labelled source instances with enough points, stored in
 box-normalized coordinates (x/l, y/w, z/h in the box frame, so they lie in [-0.5, 0.5]^3) with
 their viewing angle.
 
@@ -275,7 +275,7 @@ def load_cad_directory(
 
 @dataclass
 class PointModels:
-    """Point models of labeled instances, stored column-wise.
+    """Point models of labelled instances, stored column-wise.
 
     points: `(P, 4)` float32 x, y, z in box-normalized coordinates ([-0.5, 0.5] in the box frame:
     x along l, y along w, z up) and intensity; offsets: `(K + 1,)` int64, model k is
@@ -366,7 +366,7 @@ def point_models_from_frame(
     min_points: int = 300,
     origin: np.ndarray | None = None,
 ) -> PointModels:
-    """Point models of one labeled frame: boxes `(N, 7)` holding >= `min_points` of `points` `(n, 4)`.
+    """Point models of one labelled frame: boxes `(N, 7)` holding >= `min_points` of `points` `(n, 4)`.
 
     Coordinates are box-normalized (local / (l, w, h)); the viewing angle is the azimuth of the
     sensor `origin` (default 0) seen from the box, in the box frame.
@@ -404,7 +404,7 @@ def point_models_from_frame(
 def point_models_from_frameset(
     data_dir: str | Path, min_points: int = 300, label: str | None = "Car", progress: bool = True
 ) -> PointModels:
-    """Point models of every labeled instance of a FrameSet + boxes.parquet directory."""
+    """Point models of every labelled instance of a FrameSet + boxes.parquet directory."""
     from tqdm import tqdm
 
     frames = FrameSet(data_dir)

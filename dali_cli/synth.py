@@ -1,4 +1,4 @@
-"""Synthetic labeled LiDAR frames: street scenes of procedural cars and clutter, scanned by a sensor
+"""Synthetic labelled LiDAR frames: street scenes of procedural cars and clutter, scanned by a sensor
 profile (the world: dali_cli.world — car pool, scene layout, scanning), written as a FrameSet with
 boxes.
 
@@ -103,7 +103,7 @@ def iter_frames(
 
 def frame_table(frame: SynthFrame):
     """One frame's labels as a BoxTable: every car with >= 1 point, its KITTI label fields."""
-    from dali_cli.evaluation.camera import kitti_label_columns
+    from dali_cli.importers.camera import kitti_label_columns
     from dali_cli.store.artifacts import BoxTable
 
     return BoxTable.from_arrays(
@@ -235,7 +235,7 @@ def build_synth(
         "point",
         "occlusion = share of a car's rays blocked by something nearer (0 = fully visible)",
         "KITTI label fields (truncated, occluded level, alpha, bbox_*) from a virtual KITTI left "
-        "colour camera at the sensor (dali_cli.evaluation.camera), so `dali eval --protocol kitti` gives "
+        "colour camera at the sensor (dali_cli.importers.camera), so `dali eval --protocol kitti` gives "
         "easy/moderate/hard",
     ]
     extra = {"executor": executor.report()} if executor is not None else {}

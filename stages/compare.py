@@ -77,7 +77,7 @@ def run_compare(
     rows, the IoU and the output path before any evaluation."""
     from dali_cli.evaluation.bootstrap import paired_bootstrap
     from dali_cli.evaluation.evaluate import check_ious
-    from dali_cli.evaluation.kitti_label import read_box_source
+    from dali_cli.importers.kitti_label import read_box_source
 
     rows = parse_rows(tuple(preds))
     check_ious((settings.iou,))

@@ -10,7 +10,7 @@ loop (`dali_cli.detector.predict_frameset`). Output, either:
 - a metrics file (`out` ending in .json): FILE and predictions.parquet beside it, each atomic.
 With `size_correction="per-dim"` the Car predictions are resized per dimension before they are
 evaluated (and saved) by the factors E_est / E_pred(ŝ) of the `scale_from` sweep
-(`dali_cli.labels.size_correction.factors_from_sweep`: label-free, from the unlabeled target training
+(`dali_cli.labels.size_correction.factors_from_sweep`: label-free, from the unlabelled target training
 frames), bottom face kept; metrics.json records them under
 "size_correction". metrics.json's "errors" holds the error breakdown of the same boxes
 (dali_cli.evaluation.errors); it is not a parameter, so artifacts written before it stay up to
@@ -27,11 +27,10 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.evaluation.evaluate import check_ious
-from dali_cli.evaluation.kitti_label import read_box_source
-from dali_cli.labels import plausibility
+from dali_cli.importers.kitti_label import read_box_source
+from dali_cli.labels import SCORE_MIN, plausibility
 from dali_cli.runtime import console
 from dali_cli.runtime.errors import ParameterError, StageError
-from dali_cli.store import SCORE_MIN
 from dali_cli.store.artifacts import BOX_FIELDS, BoxTable, FrameSet
 from dali_cli.store.atomic_file import write_atomically, write_text_atomically
 from dali_cli.store.output_paths import DERIVED_FILES

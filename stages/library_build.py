@@ -1,6 +1,6 @@
 """Stage library_build: a model library artifact (library.zarr, meshes.parquet,
 point_models.parquet, manifest.json) from CAD meshes, procedural cars and/or point models of a
-labeled frame set (dali_cli.library)."""
+labelled frame set (dali_cli.library)."""
 
 from __future__ import annotations
 

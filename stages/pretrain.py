@@ -1,6 +1,6 @@
-"""Stage: pretrain — train the detector on a labeled source frame set (optionally with SN or ROS)
+"""Stage: pretrain — train the detector on a labelled source frame set (optionally with SN or ROS)
 and write a checkpoint directory (model.pt, model.json, train_log.parquet, manifest.json).
-The training body it shares with retrain and self-train is dali_cli.runtime.training_stage."""
+The training body it shares with retrain and self-train is dali_cli.detector.training_stage."""
 
 from __future__ import annotations
 
@@ -8,8 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.runtime.errors import ParameterError, StageError
-from dali_cli.runtime.training_stage import (
+from dali_cli.detector.training_stage import (
     PreparedTraining,
     TrainingOptions,
     attach_database,
@@ -17,6 +16,7 @@ from dali_cli.runtime.training_stage import (
     seeded_network,
     target_car_size,
 )
+from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.store.manifest import StageOutcome, content_hash
 from dali_cli.store.model_card import ModelCard
 

@@ -19,13 +19,12 @@ import numpy as np
 
 from dali_cli import ptsn
 from dali_cli.executors import make_executor, run_on
-from dali_cli.labels import box_fit, size_correction
+from dali_cli.labels import SCORE_MIN, box_fit, size_correction
 from dali_cli.labels.pseudo_labeler import FrameLabeler, label_frame  # noqa: F401 (public here)
 from dali_cli.runtime import console
 from dali_cli.runtime.device import InferenceOptions, inference_runtime, inference_setup
 from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.sensors import get_profile
-from dali_cli.store import SCORE_MIN
 from dali_cli.store.artifacts import BOX_FIELDS, BoxTable, FrameSet, write_boxes
 from dali_cli.store.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.store.scale_file import ScaleResult, read_scale, write_scale
@@ -117,7 +116,8 @@ def pseudo_label(
         "scale": scale, "score_min": score_min, "nms_iou": nms_iou,
         "target_profile": target_profile, "mount_height_m": mount_height_m,
         "size_correction": method,
-        # recorded only when not the default: earlier runs stay up to date
+        # recorded only when not the default: an option whose default changes nothing leaves
+        # the parameters, and so the up-to-date check of every existing artifact, as they are
         **({"precision": precision} if precision != "fp32" else {}),
         **({"fit_points": point_fit.record()} if point_fit is not None else {}),
     }  # fmt: skip

@@ -15,12 +15,12 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from dali_cli import ptsn
+from dali_cli.labels import SCORE_MIN
 from dali_cli.ptsn import detections
 from dali_cli.runtime import console
 from dali_cli.runtime.device import InferenceOptions, inference_runtime, inference_setup, place
 from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.sensors import get_profile
-from dali_cli.store import SCORE_MIN
 from dali_cli.store.artifacts import FrameSet
 from dali_cli.store.manifest import BuildResult, StageOutcome, run_stage
 from dali_cli.store.model_card import ModelCard, read_card
@@ -176,7 +176,8 @@ def ptsn_sweep(
         "mount_height_m": mount_height_m, "plot": plot,
     }  # fmt: skip
     # recorded only when not the default: outputs of sweeps that found detections do not
-    # depend on no_detections, and fp32 is the default precision: earlier runs stay up to date
+    # depend on no_detections, and fp32 is the default precision: an option whose default
+    # changes nothing leaves the parameters, and so existing sweeps' up-to-date check, as they are
     params.update(
         {"no_detections": no_detections} if no_detections != "identity" else {},
         **({"precision": precision} if precision != "fp32" else {}),

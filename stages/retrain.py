@@ -1,4 +1,4 @@
-"""Stage: retrain — train on the labeled source plus PPCG frame sets (pseudo points + pseudo boxes),
+"""Stage: retrain — train on the labelled source plus PPCG frame sets (pseudo points + pseudo boxes),
 alternating source and PPCG batches, from the previous model or from scratch (paper Alg. 1).
 Raw target frames are never read. Same checkpoint format as pretrain."""
 
@@ -9,9 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.runtime import console, training_stage
+from dali_cli.detector import training_stage
+from dali_cli.detector.training_stage import PreparedTraining, TrainingOptions
+from dali_cli.runtime import console
 from dali_cli.runtime.errors import ParameterError, StageError
-from dali_cli.runtime.training_stage import PreparedTraining, TrainingOptions
 from dali_cli.store.manifest import StageOutcome, content_hash
 
 INIT_FROM = ("previous", "scratch")
@@ -66,7 +67,7 @@ def expected_size_of(ptsn_dir: str | Path) -> tuple[float, float, float]:
 
 
 def pool(sets: list, name: str):
-    """Concatenate labeled sets into one (frame ids prefixed by their set's index)."""
+    """Concatenate labelled sets into one (frame ids prefixed by their set's index)."""
     from dali_cli.detector import LabeledFrames
     from dali_cli.detector.data import chain_points
 
@@ -225,7 +226,7 @@ def shift_size(
 
 
 def load_source(source: Path, card, load: dict, training: TrainingOptions, shift=None):
-    """The labeled source, sized as the retrained model expects; returns (data, augmentation,
+    """The labelled source, sized as the retrained model expects; returns (data, augmentation,
     the card to carry forward). `shift` None: the initial model's size normalization (SN delta
     applied to the boxes and their points, or ROS as the augmentation's object scaling).
     `shift` (target size l, w, h in m, target profile): the boxes shifted to that mean size

@@ -17,14 +17,14 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.runtime.errors import StageError
-from dali_cli.runtime.training_stage import (
+from dali_cli.detector.training_stage import (
     PreparedTraining,
     TrainingOptions,
     attach_database,
     run_training_stage,
     seeded_network,
 )
+from dali_cli.runtime.errors import StageError
 from dali_cli.store.manifest import StageOutcome, check_made_from, content_hash
 
 

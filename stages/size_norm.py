@@ -1,5 +1,5 @@
-"""Stage size_norm: a labeled frame set with its cars shifted to a model's size convention
-(dali_cli.size_norm): OUT/frames.zarr, OUT/boxes.parquet (the input rows, shifted boxes' z, l, w,
+"""Stage size_norm: a labelled frame set with its cars shifted to a model's size convention
+(dali_cli.detector.size_norm): OUT/frames.zarr, OUT/boxes.parquet (the input rows, shifted boxes' z, l, w,
 h replaced), OUT/manifest.json."""
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ def size_norm(
 ) -> StageOutcome:
     """`data`'s boxes of `labels` shifted by `delta_lwh` (m), or by the SN shift `like_model`
     was trained with; every other row and point as it was."""
-    from dali_cli.size_norm import model_delta
+    from dali_cli.detector.size_norm import model_delta
 
     if (delta_lwh is None) == (like_model is None):
         raise ParameterError(("delta_lwh", "like_model"), "give exactly one: a delta or a model")
@@ -41,7 +41,7 @@ def size_norm(
 def build(data: Path, out: Path, delta: np.ndarray, labels: tuple[str, ...]) -> BuildResult:
     """Write the shifted frame set into `out`; StageError naming the frame and row of a box the
     shift would leave without a positive size (nothing is written then)."""
-    from dali_cli.size_norm import shift_frame, too_small
+    from dali_cli.detector.size_norm import shift_frame, too_small
     from dali_cli.store.artifacts import FrameSet, FrameSetWriter, read_boxes, write_boxes
 
     frames, table = FrameSet(data), read_boxes(data)

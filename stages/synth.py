@@ -1,4 +1,4 @@
-"""Stage synth: a labeled synthetic LiDAR domain (frames.zarr, boxes.parquet, manifest.json) of
+"""Stage synth: a labelled synthetic LiDAR domain (frames.zarr, boxes.parquet, manifest.json) of
 street scenes scanned with a sensor profile's pattern (dali_cli.synth)."""
 
 from __future__ import annotations

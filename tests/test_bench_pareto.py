@@ -50,6 +50,7 @@ def test_raycast_front_default_is_the_accurate_robust_float64_point():
     assert all(p["rays_per_cpu_second"] > 0 for p in points)
 
 
+@pytest.mark.slow  # a whole PTSN front
 def test_ptsn_front_runs_and_its_reference_has_no_error(tiny_model_and_frames):
     model, target = tiny_model_and_frames
     result = ptsn_front.measure(model, target, "kitti", quick=True, frames=2)

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dali_cli.evaluation import camera
 from dali_cli.evaluation.evaluate import evaluate
+from dali_cli.importers import camera
 from dali_cli.importers.kitti import read_calib
 from dali_cli.store.artifacts import BoxTable
 

@@ -63,3 +63,62 @@ def test_tuning_options_stay_out_of_the_default_help_but_work_and_show_on_reques
     # a hidden option is parsed like any other: a bad value is refused naming it
     bad = CliRunner().invoke(main, ["ptsn-sweep", "--model", ".", "--target", ".", "--noise", "x"])
     assert bad.exit_code == 2 and "--noise" in bad.output
+
+
+def leaf_commands():
+    """(name, click command) of every command that runs, group members by their full name."""
+    import click
+
+    pending = [(name, main.get_command(click.Context(main), name)) for name in COMMANDS]
+    while pending:
+        name, command = pending.pop(0)
+        if isinstance(command, click.Group):
+            pending += [(f"{name} {sub}", command.commands[sub]) for sub in command.commands]
+        else:
+            yield name, command
+
+
+def visible_options(command) -> list:
+    import click
+
+    return [p for p in command.params if isinstance(p, click.Option) and not p.hidden]
+
+
+def test_the_default_help_stays_short_and_every_option_has_help():
+    """What `--help` shows a user: at most 250 options over every command, each explained
+    (the tuning group, DALI_HELP=all, holds the rest; docs/INTERFACES.md has the table)."""
+    if os.environ.get("DALI_HELP") == "all":
+        return
+    commands = dict(leaf_commands())
+    assert len(commands) >= 20
+    total = sum(len(visible_options(command)) for command in commands.values())
+    assert total <= 250, total
+    import click
+
+    bare = [
+        f"{name} {option.opts[0]}"
+        for name, command in commands.items()
+        for option in command.params
+        if isinstance(option, click.Option) and not option.help
+    ]
+    assert not bare, bare
+
+
+def test_engine_options_have_their_own_help_section():
+    result = CliRunner().invoke(main, ["pseudo-label", "--help"])
+    options, engine = result.output.split("Engine options:")
+    assert "--device" in engine and "--executor" in engine and "--device" not in options
+    assert "--score-min" in options and "DALI_HELP=all" in engine
+
+
+def test_the_import_summary_names_every_importer():
+    importers = main.get_command(None, "import").commands
+    assert len(importers) >= 5
+    for name in importers:
+        assert name in COMMANDS["import"][1], name
+
+
+def test_step_numbers_follow_the_pipeline():
+    steps = ["pretrain", "ptsn-sweep", "pseudo-label", "ppcg-rc", "ppcg-cf", "retrain"]
+    for number, name in enumerate(steps, 1):
+        assert COMMANDS[name][1].startswith(f"Step {number}:"), name

@@ -189,17 +189,30 @@ def test_ptsn_scaling_keeps_cars_near_the_range_end(kitti):
     assert maps["heatmap"].shape[-2:] == grown.head_size != config.head_size
 
 
-@pytest.fixture(scope="module")
-def overfit(toy_dir):
+def trained(toy_dir, epochs: float):
+    """(data, net, result) of the small detector trained `epochs` on the toy frames."""
     config = DetectorConfig(**SMALL)
     data = load_labeled(toy_dir, config)
     torch.manual_seed(0)
     net = PillarCenterNet(config)
-    settings = TrainSettings(epochs=40, batch_size=2, lr=5e-3, seed=0, log_every=1)
+    settings = TrainSettings(epochs=epochs, batch_size=2, lr=5e-3, seed=0, log_every=1)
     result = train(net, [data], [Augmentation.none()], settings, progress=False)
     return data, net, result
 
 
+@pytest.fixture(scope="module")
+def overfit(toy_dir):
+    return trained(toy_dir, epochs=40)
+
+
+@pytest.fixture(scope="module")
+def briefly_trained(toy_dir):
+    """A net whose weights training has moved (what a checkpoint round trip compares), without
+    the cost of training it to convergence (`overfit`, a slow test)."""
+    return trained(toy_dir, epochs=3)
+
+
+@pytest.mark.slow  # trains the detector to convergence
 def test_overfit_tiny_set(overfit):
     data, net, result = overfit
     losses = [row["loss"] for row in result.log]
@@ -225,8 +238,8 @@ def test_overfit_tiny_set(overfit):
     assert outranked <= 1  # ... and ranked above (almost) every false positive: AP ~ 100
 
 
-def test_checkpoint_round_trip(overfit, tmp_path, toy_dir):
-    _, net, _ = overfit
+def test_checkpoint_round_trip(briefly_trained, tmp_path, toy_dir):
+    _, net, _ = briefly_trained
     save_checkpoint(tmp_path, net, {"provenance": {"stage": "test"}})
     loaded = Detector.load(tmp_path)  # on the CPU; `net` where it trained (a GPU under auto):
     # compare on one device, where equal weights must give bit-equal boxes (a GPU's and the

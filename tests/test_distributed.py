@@ -26,10 +26,10 @@ from dali_cli.detector.distributed import World, join, launched, leave
 from dali_cli.detector.infer import Detector
 from dali_cli.detector.model import PillarCenterNet
 from dali_cli.detector.train import TrainSettings, train
+from dali_cli.detector.training_stage import attach_database
 from dali_cli.runtime.device import DeviceError, parse_device_spec, resolve_device
 from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.runtime.machine import available_cores
-from dali_cli.runtime.training_stage import attach_database
 from dali_cli.sensors import get_profile
 
 TORCHRUN = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"]
@@ -212,6 +212,7 @@ def small_config(tmp_path: Path) -> Path:
     return path
 
 
+@pytest.mark.slow  # two torchrun ranks, end to end
 def test_torchrun_pretrain_writes_one_model_that_eval_reads(toy_dir, tmp_path):
     out = tmp_path / "model"
     run = subprocess.run(
@@ -239,6 +240,7 @@ def test_torchrun_pretrain_writes_one_model_that_eval_reads(toy_dir, tmp_path):
     assert "Car" in document and document["runtime"]["device"] == "cpu"
 
 
+@pytest.mark.slow  # two torchrun ranks, end to end
 def test_a_failing_rank_fails_the_stage_with_no_artifact(toy_dir, tmp_path):
     script = tmp_path / "flaky_dali.py"
     script.write_text(

@@ -258,7 +258,7 @@ def test_dali_eval_writes_and_prints_the_breakdown(tmp_path):
             block = errors["false_positives"][iou][metric]
             assert block["ap"] == metrics[key][metric]["all"]
     # the same breakdown written for a KITTI label directory as predictions
-    from dali_cli.evaluation.kitti_label import write_label_dir
+    from dali_cli.importers.kitti_label import write_label_dir
 
     write_label_dir(tmp_path / "labels", pred)
     again = CliRunner().invoke(main, [*args[:2], str(tmp_path / "labels"), *args[3:-3],

@@ -22,7 +22,7 @@ from dali_cli.evaluation.evaluate import (
     evaluate,
     format_table,
 )
-from dali_cli.evaluation.kitti_label import read_label_dir, read_label_file, write_label_dir
+from dali_cli.importers.kitti_label import read_label_dir, read_label_file, write_label_dir
 from dali_cli.store.artifacts import BoxTable, read_boxes, write_boxes, write_frameset
 
 CAR = (3.9, 1.6, 1.5)
@@ -558,7 +558,7 @@ def test_pseudo_lidar_conversion_preserves_iou():
     rng = np.random.default_rng(7)
     a = np.c_[rng.uniform(-10, 10, (200, 3)), rng.uniform(1, 5, (200, 3)), rng.uniform(-3, 3, 200)]
     b = a + np.c_[rng.normal(0, 0.5, (200, 3)), np.zeros((200, 3)), rng.normal(0, 0.2, 200)]
-    from dali_cli.evaluation.kitti_label import camera_to_pseudo_lidar, pseudo_lidar_to_camera
+    from dali_cli.importers.kitti_label import camera_to_pseudo_lidar, pseudo_lidar_to_camera
 
     def converted(boxes):
         # read the LiDAR boxes as if they were camera labels: another rigid frame

@@ -103,6 +103,7 @@ def test_plan_shards_cover_every_frame_once_in_batch_multiples():
     assert len(plan_shards(ids, 2, max_frames=64)) >= 8  # about 4 per worker: load balance
 
 
+@pytest.mark.slow  # a local Ray cluster, end to end
 def test_synth_on_ray_and_local_pool_equals_serial(data, ray_session, tmp_path):
     args = ["synth", "--sensor", "kitti", "--frames", FRAMES, "--seed", 5]
     dali(*args, "--executor", "ray", "--workers", 2, "--out", tmp_path / "ray")
@@ -118,6 +119,7 @@ def test_synth_on_ray_and_local_pool_equals_serial(data, ray_session, tmp_path):
 
 
 @pytest.mark.parametrize("stage", ["ppcg-rc", "ppcg-cf"])
+@pytest.mark.slow  # a local Ray cluster, end to end
 def test_ppcg_on_ray_equals_serial_and_loads_the_library_once_per_actor(
     data, ray_session, tmp_path, stage
 ):
@@ -134,6 +136,7 @@ def test_ppcg_on_ray_equals_serial_and_loads_the_library_once_per_actor(
         assert np.array_equal(serial[name], ray_boxes[name]), name
 
 
+@pytest.mark.slow  # a local Ray cluster, end to end
 def test_pseudo_label_on_ray_equals_serial_at_the_same_torch_threads(data, ray_session, tmp_path):
     """Each worker runs torch on one thread; the serial reference does too (torch's results
     differ in the last bits between thread counts, whatever the engine)."""
@@ -153,6 +156,7 @@ def test_pseudo_label_on_ray_equals_serial_at_the_same_torch_threads(data, ray_s
     check_workers(same_artifact(tmp_path / "serial", tmp_path / "pool"), "local", 2, "detector")
 
 
+@pytest.mark.slow  # a local Ray cluster, end to end
 def test_eval_on_ray_equals_serial(data, ray_session, tmp_path, monkeypatch):
     import dali_cli.runtime.machine as runtime
 
@@ -183,6 +187,7 @@ def damaged_copy(target: Path, where: Path, frame: int) -> Path:
     return where
 
 
+@pytest.mark.slow  # a local Ray cluster, end to end
 def test_a_failing_frame_on_ray_leaves_no_artifact_and_is_named(data, ray_session, tmp_path):
     target = damaged_copy(data / "target", tmp_path / "target", frame=4)
     out = tmp_path / "rc"
@@ -199,6 +204,7 @@ def test_a_failing_frame_on_ray_leaves_no_artifact_and_is_named(data, ray_sessio
     assert sorted(p.name for p in tmp_path.iterdir()) == ["target"]  # no temporary leftovers
 
 
+@pytest.mark.slow  # a local Ray cluster, end to end
 def test_shards_are_written_by_workers_into_the_temporary_directory_and_merged_one_by_one(
     data, ray_session, tmp_path, monkeypatch
 ):
@@ -263,6 +269,7 @@ def test_local_executor_stops_at_a_failing_frame_and_names_it(tmp_path):
     assert merged == [0]  # shard 1 holds frame 4: nothing after it is handed to the merge
 
 
+@pytest.mark.slow  # a local Ray cluster, end to end
 def test_lost_ray_workers_are_restarted_and_their_shards_retried(
     data, ray_session, tmp_path, monkeypatch
 ):

@@ -229,7 +229,7 @@ def test_export_openpcdet_refuses_a_split_name_outside_imagesets(tmp_path):
 
 @pytest.mark.parametrize("frame_id", ESCAPING)
 def test_label_dir_writer_writes_nothing_outside(tmp_path, frame_id):
-    from dali_cli.evaluation.kitti_label import write_label_dir
+    from dali_cli.importers.kitti_label import write_label_dir
 
     frame_id = escaping(frame_id, tmp_path)
     out = tmp_path / "runs" / "labels"
@@ -248,7 +248,7 @@ def test_absolute_id_would_land_outside_without_the_guard(tmp_path):
 
 
 def test_label_dir_reader_refuses_a_file_name_that_is_no_frame_id(tmp_path):
-    from dali_cli.evaluation.kitti_label import read_label_dir
+    from dali_cli.importers.kitti_label import read_label_dir
 
     line = "Car 0.00 0 -1.57 600 150 650 200 1.5 1.6 3.9 1.0 1.7 10.0 0.0\n"
     (tmp_path / "000001.txt").write_text(line)

@@ -12,9 +12,9 @@ from click.testing import CliRunner
 from fixture_copies import writable_copy
 
 from dali_cli.cli import main
-from dali_cli.evaluation.kitti_label import BBOX_COLUMNS
 from dali_cli.geometry import box_corners, count_points_in_boxes, point_box_indices, wrap_angle
 from dali_cli.importers import kitti, kitti_raw
+from dali_cli.importers.kitti_label import BBOX_COLUMNS
 from dali_cli.store.artifacts import FrameSet, read_boxes
 
 DAY = Path(__file__).resolve().parent / "fixtures" / "kitti_raw" / "2011_09_26"

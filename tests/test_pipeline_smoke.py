@@ -21,10 +21,11 @@ REPO = Path(__file__).resolve().parents[1]
 VENV = Path(sys.prefix)
 
 pytestmark = [
+    pytest.mark.slow,  # every stage through make, end to end
     pytest.mark.skipif(shutil.which("make") is None, reason="make is not installed"),
     pytest.mark.skipif(
         not (VENV / ".installed").is_file() or not (VENV / "bin" / "dali").is_file(),
-        reason="run through `make test` (needs the venv the Makefile installs)",
+        reason="run through `make test-slow` (needs the venv the Makefile installs)",
     ),
 ]
 

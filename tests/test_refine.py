@@ -69,6 +69,7 @@ def test_point_features_gather_every_point_in_the_grown_box():
         assert np.allclose(faces[:, :3] + faces[:, 3:], boxes[k, 3:6], atol=1e-4)
 
 
+@pytest.mark.slow  # trains the refiner to convergence
 def test_refiner_learns_to_correct_disturbed_boxes():
     """Trained on toy scans of box-shaped cars with disturbed ground truth as proposals, the
     refiner raises the 3D IoU of new disturbed boxes and its IoU head ranks them."""

@@ -9,7 +9,7 @@ import pytest
 from click.testing import CliRunner
 
 from dali_cli.cli import main
-from dali_cli.size_norm import shift_frame
+from dali_cli.detector.size_norm import shift_frame
 from dali_cli.store.artifacts import BoxTable, FrameSet, read_boxes, write_boxes, write_frameset
 
 DELTA = np.array([-0.6, -0.4, -0.2])

@@ -10,7 +10,7 @@ from click.testing import CliRunner
 
 from dali_cli import geometry, synth
 from dali_cli.cli import main
-from dali_cli.evaluation.camera import kitti_label_columns
+from dali_cli.importers.camera import kitti_label_columns
 from dali_cli.raycast import cast_into_box
 from dali_cli.sensors import get_profile
 from dali_cli.store.artifacts import FrameSet, read_boxes

@@ -51,10 +51,10 @@ def train_and_evaluate(
         _dali(["pretrain", "--source", target, "--epochs", epochs, "--seed", seed,
                "--threads", threads, "--no-progress", "--detector-config", config, "--out", model]),
         _dali(["eval", "--model", model, "--data", target_val, "--scale", 1.0, "--protocol",
-               "range", "--front-only", "--iou", 0.7, "--iou", 0.5, "--score-min", 0.3, "--workers", 1,
-               "--out", evaluation]),
+               "range", "--front-only", "--iou", 0.7, "--iou", 0.5, "--size-score-min", 0.3,
+               "--workers", 1, "--out", evaluation]),
         _dali(["eval", "--pred", evaluation / "predictions.parquet", "--gt", target_val,
-               "--protocol", "kitti", "--iou", 0.7, "--score-min", 0.3,
+               "--protocol", "kitti", "--iou", 0.7, "--size-score-min", 0.3,
                "--out", evaluation / "metrics_kitti.json"]),
     ]  # fmt: skip
     training = _manifest(model)

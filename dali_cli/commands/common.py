@@ -35,14 +35,23 @@ def choice_option(
 
 
 # Tuning options: settings of an algorithm whose defaults were measured (docs/RESULTS.md,
-# docs/ptsn.md, docs/ppcg.md) and that only research changes. They work like any option but stay
-# out of `--help` unless the environment has DALI_HELP=all; each such command says so below its
-# options (TUNING_NOTE).
+# docs/ptsn.md, docs/ppcg.md) and that only research changes, and the engine's fine controls
+# (threads, batch sizes, loader processes, a Ray cluster's address, another sensors.toml). They
+# work like any option but stay out of `--help` unless the environment has DALI_HELP=all, so that
+# a command's help shows what running the pipeline needs; each such command says so below its
+# options (TUNING_NOTE, added by StageCommand).
 SHOW_TUNING = os.environ.get("DALI_HELP", "") == "all"
 TUNING_NOTE = (
-    "Tuning options (measured defaults, for research) are listed with: DALI_HELP=all dali "
-    "COMMAND --help"
+    "Tuning options (the algorithm's measured defaults, for research) and the engine's fine "
+    "controls (threads, batch sizes, Ray address, another sensors.toml) are listed with: "
+    "DALI_HELP=all dali COMMAND --help"
 )
+# the options that say where and how a command runs, not what it computes: listed in their own
+# section of --help ("Engine options"); each is defined once, below
+ENGINE_PARAMS = {
+    "device", "precision", "executor", "workers", "ray_address", "threads", "batch_size",
+    "loader_workers", "no_progress", "sensors_path",
+}  # fmt: skip
 
 
 def tuning_option(*decls: str, **kwargs):
@@ -50,9 +59,38 @@ def tuning_option(*decls: str, **kwargs):
     return click.option(*decls, hidden=not SHOW_TUNING, **kwargs)
 
 
-def with_tuning_note(epilog: str = "") -> str:
-    """A command's epilog followed by TUNING_NOTE."""
-    return f"{epilog}\n\n\b\n{TUNING_NOTE}" if epilog else f"\b\n{TUNING_NOTE}"
+class StageCommand(click.Command):
+    """A command whose --help lists its engine options (ENGINE_PARAMS) in a section of their
+    own after the others, and ends with TUNING_NOTE when some of its options are hidden.
+    dali_cli.cli gives every subcommand this class."""
+
+    def format_options(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        own, engine = [], []
+        for param in self.get_params(ctx):
+            record = param.get_help_record(ctx)
+            if record is not None:
+                (engine if param.name in ENGINE_PARAMS else own).append(record)
+        for title, records in (("Options", own), ("Engine options", engine)):
+            if records:
+                with formatter.section(title):
+                    formatter.write_dl(records)
+
+    def format_epilog(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        super().format_epilog(ctx, formatter)
+        if any(getattr(param, "hidden", False) for param in self.params):
+            formatter.write_paragraph()
+            with formatter.indentation():
+                formatter.write_text(TUNING_NOTE)
+
+
+def stage_command_class(command: click.Command) -> click.Command:
+    """`command` and, for a group, each of its subcommands, as StageCommands (help layout only)."""
+    if isinstance(command, click.Group):
+        for sub in command.commands.values():
+            stage_command_class(sub)
+    elif type(command) is click.Command:
+        command.__class__ = StageCommand
+    return command
 
 
 class FiniteFloat(click.FloatRange):
@@ -128,8 +166,11 @@ def stage_options(function):
     return function
 
 
-def sensors_option(function):
-    return click.option(
+def sensors_option(function, *, shown: bool = False):
+    """--sensors FILE: another sensors.toml (an engine control, listed with DALI_HELP=all unless
+    `shown`: `dali sensors` lists the file's profiles)."""
+    option = click.option if shown else tuning_option
+    return option(
         "--sensors",
         "sensors_path",
         type=click.Path(exists=True, dir_okay=False),
@@ -183,7 +224,7 @@ def import_options(default_sensor: str | None):
             return click.option(
                 "--sensor", required=True, help="Sensor profile of the data (a sensors.toml name)."
             )(function)
-        return click.option(
+        return tuning_option(
             "--sensor",
             default=default_sensor,
             show_default=True,
@@ -229,7 +270,7 @@ def workers_option(local_default: str):
 def executor_options(function):
     """--executor local|ray and --ray-address: the engine that runs a per-frame stage's shards
     (dali_cli.executors; docs/scale-out.md)."""
-    function = click.option(
+    function = tuning_option(
         "--ray-address",
         default=None,
         metavar="ADDR",
@@ -278,22 +319,28 @@ def training_options(function):
             show_default=True,
             help="Seed of initialization, sampling and augmentation.",
         ),
-        click.option("--batch-size", type=BATCH, default=1, show_default=True),
-        click.option(
+        tuning_option(
+            "--batch-size",
+            type=BATCH,
+            default=1,
+            show_default=True,
+            help="Frames per training step (per process under torchrun).",
+        ),
+        tuning_option(
             "--lr",
             type=LEARNING_RATE,
             default=5e-3,
             show_default=True,
             help="Peak learning rate of the one-cycle schedule (AdamW).",
         ),
-        click.option(
+        tuning_option(
             "--threads",
             type=BATCH,
             default=None,
             help="torch threads per process (default: every core this process may use, divided "
             "by the processes torchrun starts on this machine; recorded in the manifest).",
         ),
-        click.option(
+        tuning_option(
             "--loader-workers",
             type=LOCAL_WORKERS,
             default=None,
@@ -302,7 +349,7 @@ def training_options(function):
             "most 8; on the CPU 0: in the training process, whose step uses every core). The batches do not depend on it; recorded in the "
             "manifest's runtime.",
         ),
-        click.option(
+        tuning_option(
             "--no-augment",
             "no_augment",
             is_flag=True,
@@ -313,12 +360,15 @@ def training_options(function):
     return apply_options(function, [device_options, *options, sensors_option, stage_options])
 
 
-def score_min_option(dest: str = "score_min", help: str = "Box score cut."):
-    """--score-min: the score from which a box counts as a car (default SCORE_MIN)."""
-    from dali_cli.store import SCORE_MIN
+def score_min_option(
+    dest: str = "score_min", help: str = "Drop boxes scored below this.", flag: str = "--score-min"
+):
+    """--score-min: the score from which a box counts as a car (default SCORE_MIN); boxes below
+    it are dropped. `flag` names a cut with another use (eval's --size-score-min)."""
+    from dali_cli.labels import SCORE_MIN
 
     return click.option(
-        "--score-min",
+        flag,
         dest,
         type=FRACTION,
         default=SCORE_MIN,
@@ -343,7 +393,13 @@ def target_scaling_options(function):
     about the ground (ptsn-sweep, pseudo-label; the pivot is the target profile's mount height),
     with --device/--precision, --sensors and the stage switches."""
     options = [
-        click.option("--batch-size", type=BATCH, default=8, show_default=True),
+        tuning_option(
+            "--batch-size",
+            type=BATCH,
+            default=8,
+            show_default=True,
+            help="Frames per detector pass (the output does not depend on it).",
+        ),
         no_progress_option,
         device_options,
         sensors_option,
@@ -355,7 +411,7 @@ def target_scaling_options(function):
 def pop_training(options: dict):
     """The TrainingOptions of a training command's parsed `options` (training_options), which
     are removed from `options`; the rest are the stage's own."""
-    from dali_cli.runtime.training_stage import TrainingOptions
+    from dali_cli.detector.training_stage import TrainingOptions
 
     return TrainingOptions(
         epochs=options.pop("epochs"),
@@ -408,7 +464,7 @@ def protocol_options(function):
                            "computation without R40's 2-point steps (not a KITTI metric)."),
         choice_option("--protocol", choices=["auto", "kitti", "range", "st3d"], default="auto",
                       help="Difficulty filters (see below)."),
-        click.option("--front-only", "front_only", is_flag=True,
+        tuning_option("--front-only", "front_only", is_flag=True,
                      help="Keep only ground truth and predictions centred in the front 90 deg "
                           "FOV and the detection range (x 0..70.4, |y| <= 40 m), as on KITTI's "
                           "FOV-cropped clouds; for 360-degree frames such as dali synth's."),

@@ -12,7 +12,7 @@ from dali_cli.commands.common import (
     SEED,
     no_progress_option,
     protocol_options,
-    with_tuning_note,
+    tuning_option,
 )
 
 EPILOG = (
@@ -43,7 +43,7 @@ the row does not beat the reference. --out FILE.json writes it ({"bootstrap": {"
 )
 
 
-@click.command(name="compare", epilog=with_tuning_note(EPILOG))
+@click.command(name="compare", epilog=EPILOG)
 @click.option("--pred", "preds", multiple=True, required=True, metavar="NAME=PATH",
               help="A row: its name and its predictions; repeat (the first is the "
                    "reference). The name ends at the first '=', so it cannot hold one.")  # fmt: skip
@@ -52,7 +52,7 @@ the row does not beat the reference. --out FILE.json writes it ({"bootstrap": {"
 @click.option("--iou", type=FRACTION, default=0.7, show_default=True,
               help="IoU threshold (a match needs IoU > this).")  # fmt: skip
 @protocol_options
-@click.option("--samples", type=click.IntRange(min=2), default=1000, show_default=True,
+@tuning_option("--samples", type=click.IntRange(min=2), default=1000, show_default=True,
               help="Bootstrap draws (about 0.1 s each per row on 200 frames).")  # fmt: skip
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the draws.")
 @click.option("--out", type=click.Path(path_type=Path),

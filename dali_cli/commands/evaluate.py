@@ -16,7 +16,6 @@ from dali_cli.commands.common import (
     protocol_options,
     score_min_option,
     stage_options,
-    with_tuning_note,
     workers_option,
 )
 from dali_cli.commands.kinds import SCALE
@@ -36,7 +35,7 @@ truth unless --gt is given.
 Size correction (--size-correction per-dim --scale-from PTSN_DIR): one isotropic PTSN scale
 matches the volume of the mean predicted car, not each dimension; the bias left per dimension
 (measured: w +0.07, h -0.06 m at 600 frames) costs AP at IoU 0.7. The factors E_est / E_pred at
-the chosen scale, both from PTSN_DIR/scale.json (the sweep's own numbers on the unlabeled target
+the chosen scale, both from PTSN_DIR/scale.json (the sweep's own numbers on the unlabelled target
 training frames, no target label), resize every predicted car, bottom face kept. With --pred
 instead of --model, --scale-from gives only these factors (correcting saved predictions).
 E_pred is the mean of every prediction above the sweep's --score-min, false ones included: where
@@ -48,7 +47,7 @@ docs/RESULTS.md).
 Output: the AP table on stdout; --out FILE writes metrics.json
 ({"Car": {"iou", "recall_positions", "bev": {...}, "3d": {...}, "counts": {...}, "curves"}},
 one more block "Car@<iou>" per further --iou, "sizes": {"pred", "gt"} mean l/w/h in metres of
-the class (predictions: score >= --score-min), "scale" (with --model; with --pred the
+the class (predictions: score >= --size-score-min), "scale" (with --model; with --pred the
 scale of the eval that saved them, when its metrics.json says), with a size
 correction "size_correction" (factors, E_est, E_pred and the scale.json they came from),
 "errors": the error breakdown (box errors of the matches, false positives by kind and the AP
@@ -57,7 +56,7 @@ each kind costs; docs/evaluation.md).
 )
 
 
-@click.command(name="eval", epilog=with_tuning_note(EPILOG))
+@click.command(name="eval", epilog=EPILOG)
 @click.option("--pred", "pred_path", type=click.Path(exists=True, path_type=Path),
               help="Predictions (box table or label_2 dir).")  # fmt: skip
 @click.option("--gt", "gt_path", type=click.Path(exists=True, path_type=Path),
@@ -75,9 +74,9 @@ each kind costs; docs/evaluation.md).
                    "--iou 0.5).")  # fmt: skip
 @score_min_option("size_score_min", "Predictions with at least this score enter the mean "
                                     "predicted size in metrics.json (AP counts every "
-                                    "prediction).")  # fmt: skip
+                                    "prediction).", flag="--size-score-min")  # fmt: skip
 @protocol_options
-@choice_option("--size-correction", choices=["none", "per-dim"], default="none",
+@choice_option("--size-correction", choices=["none", "per-dim"], default="none", tuning=True,
                help="per-dim: resize the predicted cars per dimension (bottom face kept) by "
                     "E_est / E_pred(ŝ) of --scale-from's sweep before evaluating: the test-time "
                     "half of PTSN's size bias, label-free (see below).")  # fmt: skip

@@ -12,6 +12,7 @@ from dali_cli.commands.common import (
     no_progress_option,
     out_dir_option,
     stage_options,
+    tuning_option,
 )
 
 
@@ -44,7 +45,7 @@ def _parse_image_size(_ctx, _param, value: str | None) -> tuple[int, int] | None
               help="FrameSet whose frames all get a file (frames without boxes an empty one). "
                    "Default: BOXES_DIR when it holds frames.zarr, else the frames of the box "
                    "table.")  # fmt: skip
-@click.option("--image-size", default=None, callback=_parse_image_size,
+@tuning_option("--image-size", default=None, callback=_parse_image_size,
               help="WIDTHxHEIGHT for clipping 2D boxes. Default: each frame's image_2 PNG, else "
                    "1242x375.")  # fmt: skip
 @click.option(

@@ -55,7 +55,7 @@ def kitti_command(root, split, ids_path, label_dir, crop_fov, sensor, out, no_pr
     R0_rect, Tr_velo_to_cam). Writes OUT/frames.zarr and, when any frame has labels,
     OUT/boxes.parquet: LiDAR-frame boxes through the calib, with label (the KITTI type, DontCare
     and Van kept as rows for the evaluation to ignore), truncated, occluded, alpha, the 2D bbox
-    and the in-box point count. Frames without a label file are allowed (an unlabeled target);
+    and the in-box point count. Frames without a label file are allowed (an unlabelled target);
     a frame with labels needs its calib file.
     """
     from stages.import_kitti import import_kitti
@@ -78,7 +78,7 @@ def kitti_command(root, split, ids_path, label_dir, crop_fov, sensor, out, no_pr
 @click.option("--tracklets", type=click.Path(exists=True, dir_okay=False), default=None,
               help="Tracklet file. Default: DRIVE_DIR/tracklet_labels.xml when present.")  # fmt: skip
 @click.option("--no-labels", is_flag=True,
-              help="Import the scans only, without boxes (an unlabeled target).")  # fmt: skip
+              help="Import the scans only, without boxes (an unlabelled target).")  # fmt: skip
 @click.option("--crop-fov", is_flag=True,
               help="Keep only points that project into the left colour camera's image.")  # fmt: skip
 @click.option("--poses", is_flag=True,

@@ -7,7 +7,13 @@ import math
 import click
 
 from dali_cli import quantities
-from dali_cli.commands.common import SEED, no_progress_option, out_dir_option, stage_options
+from dali_cli.commands.common import (
+    SEED,
+    no_progress_option,
+    out_dir_option,
+    stage_options,
+    tuning_option,
+)
 
 
 @click.group(name="library")
@@ -34,14 +40,14 @@ def _parse_range(_ctx, _param, value: str | None) -> tuple[float, float] | None:
 @click.option("--cad", "cad_dir", type=click.Path(file_okay=False), default=None,
               help="Directory of OBJ/PLY/STL/GLB/GLTF/OFF car meshes (searched recursively; "
                    "materials and textures are ignored).")  # fmt: skip
-@click.option("--up", default="z", show_default=True,
+@tuning_option("--up", default="z", show_default=True,
               help="Up axis of the CAD files (x, y, z, -x, -y, -z).")  # fmt: skip
-@click.option("--forward", default="x", show_default=True,
+@tuning_option("--forward", default="x", show_default=True,
               help="Forward (length) axis of the CAD files.")  # fmt: skip
 @click.option("--length-m", "length_range", default=None, callback=_parse_range,
               help="Keep CAD models whose native length lies in LOW:HIGH (file units; the paper "
                    "kept 2:8).")  # fmt: skip
-@click.option("--skip-bad", is_flag=True,
+@tuning_option("--skip-bad", is_flag=True,
               help="Skip unreadable, degenerate or mis-oriented CAD files (listed in the "
                    "manifest) instead of failing.")  # fmt: skip
 @click.option("--procedural", "procedural_count", type=click.IntRange(0, 100_000), default=0,
@@ -50,13 +56,13 @@ def _parse_range(_ctx, _param, value: str | None) -> tuple[float, float] | None:
 @click.option(
     "--seed", type=SEED, default=0, show_default=True, help="Seed of the procedural cars."
 )
-@click.option("--lod", type=click.IntRange(1000, 200000), default=20000, show_default=True,
+@tuning_option("--lod", type=click.IntRange(1000, 200000), default=20000, show_default=True,
               help="Approximate triangles per procedural car (5,000-70,000 is the useful range).")  # fmt: skip
 @click.option("--points", "points_dir", type=click.Path(exists=True, file_okay=False),
               default=None,
-              help="Labeled FrameSet directory (frames.zarr + boxes.parquet) to take point "
+              help="Labelled FrameSet directory (frames.zarr + boxes.parquet) to take point "
                    "models from.")  # fmt: skip
-@click.option("--min-points", type=click.IntRange(min=1), default=300, show_default=True,
+@tuning_option("--min-points", type=click.IntRange(min=1), default=300, show_default=True,
               help="Point models: instances with at least this many points in their box.")  # fmt: skip
 @click.option("--label", default="Car", show_default=True, help="Point models: box label to use.")
 @out_dir_option("Output library directory.")

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import sensors_option, stage_options, with_tuning_note
+from dali_cli.commands.common import sensors_option, stage_options, tuning_option
 from dali_cli.commands.kinds import DISTANCE_RANGE
 from dali_cli.commands.ppcg_rc import ppcg_options
 
 
-@click.command(name="ppcg-cf", epilog=with_tuning_note())
+@click.command(name="ppcg-cf")
 @ppcg_options
-@click.option("--range-m", type=DISTANCE_RANGE, default="20:50", show_default=True,
+@tuning_option("--range-m", type=DISTANCE_RANGE, default="20:50", show_default=True,
               help="LOW:HIGH: each box is moved radially to a range drawn uniformly from it (m).")  # fmt: skip
 @sensors_option
 @stage_options

@@ -15,7 +15,6 @@ from dali_cli.commands.common import (
     stage_options,
     target_profile_option,
     tuning_option,
-    with_tuning_note,
     workers_option,
 )
 from dali_cli.commands.kinds import MARGIN_M
@@ -32,7 +31,7 @@ def ppcg_options(function):
         input_dir_option("--library", "library_dir", help="Model library of `dali library build`."),
         out_dir_option(),
         target_profile_option("sensor"),
-        click.option("--models", type=click.Choice(["cad", "points"]), default=None,
+        tuning_option("--models", type=click.Choice(["cad", "points"]), default=None,
                      help="Model kind to fit  [default: cad if the library has meshes, else points]"),
         tuning_option("--top-k", type=click.IntRange(min=1), default=1, show_default=True,
                      help="Pick at random among the K best models (per-box seed); 1 = the best."),
@@ -41,7 +40,7 @@ def ppcg_options(function):
                      show_default=True,
                      help="Points of a box below max(box bottom, -mount height) + this are "
                           "ground: kept."),
-        click.option("--orient-models/--no-orient-models", default=None,
+        tuning_option("--orient-models/--no-orient-models", default=None,
                      help="Turn a box round when its car model fits the box's points better "
                           "facing the other way (the detector's headings are right only up to "
                           "a half turn; dali_cli.ppcg.orient). Mesh models only  [default: on "
@@ -61,11 +60,11 @@ def ppcg_options(function):
     return apply_options(function, decorators)
 
 
-@click.command(name="ppcg-rc", epilog=with_tuning_note())
+@click.command(name="ppcg-rc")
 @ppcg_options
-@click.option("--max-points", type=click.IntRange(min=2), default=300, show_default=True,
+@tuning_option("--max-points", type=click.IntRange(min=2), default=300, show_default=True,
               help="Boxes with this many points or more are dense: skipped.")  # fmt: skip
-@click.option("--min-points", type=click.IntRange(min=1), default=3, show_default=True,
+@tuning_option("--min-points", type=click.IntRange(min=1), default=3, show_default=True,
               help="Boxes with fewer points are skipped; fewer hits keep the raw points.")  # fmt: skip
 @sensors_option
 @stage_options

@@ -1,4 +1,4 @@
-"""`dali pretrain`: train the detector on a labeled source frame set."""
+"""`dali pretrain`: train the detector on a labelled source frame set."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from dali_cli.commands.common import (
     run_training_command,
     target_size_options,
     training_options,
+    tuning_option,
 )
 from dali_cli.commands.kinds import SCALE_PAIR
 
@@ -30,7 +31,7 @@ def read_json_option(path: str | None) -> dict | None:
 
 
 @click.command(name="pretrain")
-@input_dir_option("--source", help="Labeled source: a FrameSet directory with boxes.parquet.")
+@input_dir_option("--source", help="Labelled source: a FrameSet directory with boxes.parquet.")
 @click.option("--boxes", type=click.Path(exists=True), default=None,
               help="Labels to train on, if not SOURCE/boxes.parquet.")  # fmt: skip
 @out_dir_option("Checkpoint directory to write (e.g. RUN/iter0/model).")
@@ -39,11 +40,11 @@ def read_json_option(path: str | None) -> dict | None:
                     "ros: random object scaling U(--ros-range) per object, as augmentation.")  # fmt: skip
 @target_size_options("Sensor profile whose car_mean_lwh_m is the SN target (e.g. kitti).",
                      "SN target mean size 'l,w,h' in m (overrides the profile).")  # fmt: skip
-@click.option("--ros-range", type=SCALE_PAIR, default="0.75,1.0", show_default=True,
+@tuning_option("--ros-range", type=SCALE_PAIR, default="0.75,1.0", show_default=True,
               help="ROS scale range 'lo,hi'.")  # fmt: skip
-@choice_option("--features", choices=["xyz", "xyzi"], default="xyz",
+@choice_option("--features", choices=["xyz", "xyzi"], default="xyz", tuning=True,
                help="Point features fed to the pillar encoder.")  # fmt: skip
-@click.option("--detector-config", "config_overrides",
+@tuning_option("--detector-config", "config_overrides",
               type=click.Path(exists=True, dir_okay=False), default=None,
               callback=lambda _ctx, _param, path: read_json_option(path),
               help="JSON file of DetectorConfig fields to override (ranges, pillar size, widths; "
@@ -52,7 +53,7 @@ def read_json_option(path: str | None) -> dict | None:
               help="Box labels to train on (repeatable).")  # fmt: skip
 @training_options
 def command(source, out, labels, **options):
-    """Train the CPU detector (pillars + CenterPoint heads + IoU score) on a labeled source.
+    """Train the CPU detector (pillars + CenterPoint heads + IoU score) on a labelled source.
 
     Reads SOURCE/frames.zarr and SOURCE/boxes.parquet (or --boxes). Writes OUT/model.pt (weights),
     OUT/model.json (config, provenance, metrics), OUT/train_log.parquet (step, loss terms, lr,

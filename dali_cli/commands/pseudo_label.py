@@ -13,13 +13,12 @@ from dali_cli.commands.common import (
     target_profile_option,
     target_scaling_options,
     tuning_option,
-    with_tuning_note,
     workers_option,
 )
 from dali_cli.commands.kinds import SCALE
 
 
-@click.command(name="pseudo-label", epilog=with_tuning_note())
+@click.command(name="pseudo-label")
 @model_target_out_options("Trained model directory (model.pt + model.json).")
 @click.option("--scale-from", type=click.Path(exists=True), default=None,
               help="PTSN directory (or scale.json) of `dali ptsn-sweep`: its 'scale' is ŝ.")  # fmt: skip
@@ -29,16 +28,16 @@ from dali_cli.commands.kinds import SCALE
 @tuning_option("--nms-iou", type=finite_range(0, 1), default=0.1, show_default=True,
               help="BEV NMS IoU threshold after de-scaling.")  # fmt: skip
 @target_profile_option()
-@choice_option("--size-correction", "size_correction_method", choices=["per-dim", "none"],
+@choice_option("--size-correction", "size_correction_method", choices=["per-dim", "none"], tuning=True,
                default="per-dim",
                help="per-dim: multiply l, w, h by E_est / mean pseudo-box size per dimension "
                     "(bottom face kept), removing the bias one isotropic ŝ leaves; E_est from "
                     "--scale-from's scale.json.")  # fmt: skip
-@click.option("--fit-points/--no-fit-points", default=True, show_default=True,
+@tuning_option("--fit-points/--no-fit-points", default=True, show_default=True,
               help="Move and turn each pseudo box (its size kept) so its sides hug the target "
                    "points it holds: shifts up to 1 m along the car and 0.2 m across, turns "
-                   "up to 8 degrees (dali_cli.labels.box_fit). Target points only, no label. Matched "
-                   "boxes at 3D IoU >= 0.7: 0.48-0.57 -> 0.67-0.71 (docs/results/history.md).")  # fmt: skip
+                   "up to 8 degrees (dali_cli.labels.box_fit). Target points only, no label "
+                   "(docs/ppcg.md).")  # fmt: skip
 @workers_option("1")
 @executor_options
 @target_scaling_options

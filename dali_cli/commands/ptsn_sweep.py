@@ -1,4 +1,4 @@
-"""`dali ptsn-sweep`: find the PTSN scale ŝ of a trained model on an unlabeled target."""
+"""`dali ptsn-sweep`: find the PTSN scale ŝ of a trained model on an unlabelled target."""
 
 from __future__ import annotations
 
@@ -13,7 +13,6 @@ from dali_cli.commands.common import (
     target_profile_option,
     target_scaling_options,
     tuning_option,
-    with_tuning_note,
 )
 from dali_cli.commands.kinds import TOLERANCE
 from dali_cli.ptsn import ScaleRange, parse_scale_range
@@ -36,9 +35,9 @@ class ScaleRangeType(click.ParamType):
 SCALE_RANGE = ScaleRangeType()
 
 
-@click.command(name="ptsn-sweep", epilog=with_tuning_note())
+@click.command(name="ptsn-sweep")
 @model_target_out_options("Trained model directory (model.pt + model.json), e.g. RUN/iter0/model.")
-@click.option("--scales", "scale_range", type=SCALE_RANGE, default="0.8:1.4", show_default=True,
+@tuning_option("--scales", "scale_range", type=SCALE_RANGE, default="0.8:1.4", show_default=True,
               help="Swept scales LOW:HIGH[:STEP] (STEP default 0.01; the grid and the confirm "
                    "resolution).")  # fmt: skip
 @click.option("--expected-size", "expected_size", default="sn", show_default=True,
@@ -47,8 +46,8 @@ SCALE_RANGE = ScaleRangeType()
 @choice_option("--search", choices=["bracket", "grid"], tuning=True, default="bracket",
                help="bracket: secant on a frame subsample, confirmed on all frames; grid: every "
                     "scale.")  # fmt: skip
-@click.option("--frames", type=click.IntRange(min=1), default=None, help="Use N seeded frames.")
-@click.option("--frame-fraction", type=finite_range(0, 1, min_open=True), default=None,
+@tuning_option("--frames", type=click.IntRange(min=1), default=None, help="Use N seeded frames.")
+@tuning_option("--frame-fraction", type=finite_range(0, 1, min_open=True), default=None,
               help="Use this fraction of the frames (seeded).")  # fmt: skip
 @score_min_option()
 @choice_option("--no-detections", choices=["identity", "error"], tuning=True, default="identity",

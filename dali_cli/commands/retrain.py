@@ -11,6 +11,7 @@ from dali_cli.commands.common import (
     run_training_command,
     target_size_options,
     training_options,
+    tuning_option,
 )
 
 
@@ -40,15 +41,15 @@ class GreedyOption(click.Option):
 @input_dir_option("--init",
                   help="Previous model directory (RUN/iterN/model): its config and, by default, "
                        "weights.")  # fmt: skip
-@input_dir_option("--source", help="Labeled source FrameSet directory with boxes.parquet.")
+@input_dir_option("--source", help="Labelled source FrameSet directory with boxes.parquet.")
 @click.option("--ppcg", cls=GreedyOption, multiple=True, required=True,
               type=click.Path(exists=True, file_okay=False),
               help="PPCG frame set directories (each a FrameSet + boxes.parquet): --ppcg RC CF.")  # fmt: skip
 @out_dir_option("Checkpoint directory to write.")
-@choice_option("--init-from", choices=["previous", "scratch"], default="previous",
+@choice_option("--init-from", choices=["previous", "scratch"], default="previous", tuning=True,
                help="Start from the --init weights (paper) or from a fresh network (the authors' "
                     "code).")  # fmt: skip
-@click.option("--mix", default="1:1", show_default=True,
+@tuning_option("--mix", default="1:1", show_default=True,
               help="Batches source:PPCG (PPCG sets pooled), or source:set1:set2 for separate "
                    "weights.")  # fmt: skip
 @choice_option("--source-size", choices=["init", "sn"], default="init",
@@ -67,7 +68,7 @@ class GreedyOption(click.Option):
               help="Box labels to train on.")  # fmt: skip
 @training_options
 def command(init, source, ppcg, out, labels, **options):
-    """Retrain on the labeled source plus PPCG frame sets, alternating source and PPCG batches.
+    """Retrain on the labelled source plus PPCG frame sets, alternating source and PPCG batches.
 
     Reads INIT/model.pt + model.json, SOURCE (frames.zarr + boxes.parquet) and each PPCG directory
     (frames.zarr + boxes.parquet); raw target frames are not used. The source keeps INIT's size

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import click
 
 from dali_cli.commands.common import sensors_option
@@ -9,7 +11,7 @@ from dali_cli.sensors import load_profiles
 
 
 @click.command(name="sensors")
-@sensors_option
+@functools.partial(sensors_option, shown=True)
 def command(sensors_path: str | None) -> None:
     """List the LiDAR profiles of sensors.toml (or --sensors PATH): beams, elevation range,
     points per beam, mount height, range, noise, dropout and mean car size."""

@@ -1,4 +1,4 @@
-"""`dali size-norm`: a labeled frame set with its cars shifted to a model's size convention."""
+"""`dali size-norm`: a labelled frame set with its cars shifted to a model's size convention."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from dali_cli.commands.kinds import SIZE_DELTA
 
 
 @click.command(name="size-norm")
-@input_dir_option("--data", "data", help="Labeled frame set (frames.zarr + boxes.parquet).")
+@input_dir_option("--data", "data", help="Labelled frame set (frames.zarr + boxes.parquet).")
 @click.option("--like-model", type=click.Path(exists=True, file_okay=False), default=None,
               help="Shift by the SN delta this model's training applied to its source (a model "
                    "of `retrain --source-size sn` or `pretrain --size-norm sn`).")  # fmt: skip

@@ -1,4 +1,4 @@
-"""`dali synth`: a synthetic labeled domain (FrameSet + boxes.parquet) from a sensor and a car-size profile."""
+"""`dali synth`: a synthetic labelled domain (FrameSet + boxes.parquet) from a sensor and a car-size profile."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from dali_cli.commands.common import (
     out_dir_option,
     sensors_option,
     stage_options,
+    tuning_option,
     workers_option,
 )
 
@@ -28,7 +29,7 @@ from dali_cli.commands.common import (
               help="Run seed; frame k depends only on (seed, k).")  # fmt: skip
 @workers_option("the cores available")
 @executor_options
-@click.option("--threads", type=BATCH, default=1, show_default=True,
+@tuning_option("--threads", type=BATCH, default=1, show_default=True,
               help="Ray casting threads per worker (embreex releases the GIL). The output does "
                    "not depend on it.")  # fmt: skip
 @out_dir_option()
@@ -50,7 +51,7 @@ def command(
     force,
     dry_run,
 ):
-    """Synthesize a labeled LiDAR domain: street scenes of 2-15 procedural cars with clutter
+    """Synthesize a labelled LiDAR domain: street scenes of 2-15 procedural cars with clutter
     (walls, sidewalks, fences, hedges, poles, trees, bushes, containers), scanned with the full
     --sensor pattern.
 

@@ -6,19 +6,18 @@ import click
 
 from dali_cli.commands.common import (
     FRACTION,
-    finite_range,
     input_dir_option,
     out_dir_option,
     stage_options,
     tuning_option,
-    with_tuning_note,
 )
+from dali_cli.commands.kinds import DISTANCE_M, MARGIN_M
 from dali_cli.labels.tracks import TRACK_SCORE_MIN, TrackParams
 
 DEFAULTS = TrackParams()
 
 
-@click.command(name="track-pseudo", epilog=with_tuning_note())
+@click.command(name="track-pseudo")
 @input_dir_option("--pseudo", help="Pseudo labels of `dali pseudo-label` on TARGET (best made "
                   "with a low `pseudo-label --score-min`, e.g. 0.1: the tracks do the filtering).")  # fmt: skip
 @input_dir_option("--target", help="The target frame set the pseudo labels were made on, with "
@@ -28,11 +27,11 @@ DEFAULTS = TrackParams()
 @click.option("--track-score-min", type=FRACTION, default=TRACK_SCORE_MIN, show_default=True,
               help="Keep a parked car whose boxes' median score, a moving track whose mean "
                    "score, is at least this.")  # fmt: skip
-@tuning_option("--gate-m", type=finite_range(0, min_open=True), default=DEFAULTS.gate_m,
+@tuning_option("--gate-m", type=DISTANCE_M, default=DEFAULTS.gate_m,
                show_default=True, help="BEV distance (m) within which a box joins a track.")  # fmt: skip
 @tuning_option("--max-gap", type=click.IntRange(min=0), default=DEFAULTS.max_gap,
                show_default=True, help="Scans a track may miss before it ends.")  # fmt: skip
-@tuning_option("--parked-m-per-frame", type=finite_range(0), default=DEFAULTS.parked_m_per_frame,
+@tuning_option("--parked-m-per-frame", type=MARGIN_M, default=DEFAULTS.parked_m_per_frame,
                show_default=True, help="A track moving less than this (m a scan) is parked.")  # fmt: skip
 @tuning_option("--min-hits", type=click.IntRange(min=1), default=DEFAULTS.min_hits,
                show_default=True, help="Scans a car must be found in (else it is clutter).")  # fmt: skip

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import FRACTION, choice_option
+from dali_cli.commands.common import FRACTION, choice_option, tuning_option
 from dali_cli.commands.kinds import DISTANCE_M
 
 
@@ -35,8 +35,8 @@ def _parse_boxes(value: str) -> tuple[str, Path]:
 @click.option("--range-m", type=DISTANCE_M, default=None,
               help="Show x, y in [-R, R]. Default: fitted to the points and boxes.")  # fmt: skip
 @choice_option("--colour-by", choices=["z", "intensity"], default="z", help="Point colour.")  # fmt: skip
-@click.option("--annotate", is_flag=True, help="Write each box's score (or label) at its centre.")
-@click.option("--width-px", type=click.IntRange(min=200, max=8000), default=1200,
+@tuning_option("--annotate", is_flag=True, help="Write each box's score (or label) at its centre.")
+@tuning_option("--width-px", type=click.IntRange(min=200, max=8000), default=1200,
               show_default=True, help="Image width in pixels.")  # fmt: skip
 @click.option("--out", "out", type=click.Path(dir_okay=False), required=True,
               help="PNG file to write.")  # fmt: skip

@@ -111,7 +111,7 @@ def object_noise(
 
 @dataclass
 class ObjectDatabase:
-    """Labeled instances for ground-truth sampling: boxes (k, 7) ground frame and their points,
+    """Labelled instances for ground-truth sampling: boxes (k, 7) ground frame and their points,
     concatenated (p, 4) with offsets (k + 1,)."""
 
     boxes: np.ndarray

@@ -1,4 +1,4 @@
-"""Training data: labeled frame sets (ground frame), their points held in memory or read from
+"""Training data: labelled frame sets (ground frame), their points held in memory or read from
 frames.zarr when a sample needs them (`FramePoints`), and the augmentation pipeline that turns
 a frame into one training sample."""
 
@@ -127,8 +127,8 @@ class FramePoints(Sequence):
             yield self._prepared(index, points)
 
     def _prepared(self, index: int, points: np.ndarray) -> np.ndarray:
+        from dali_cli.detector.size_norm import shift_frame
         from dali_cli.geometry import scale_ground_points
-        from dali_cli.size_norm import shift_frame
 
         points = clip_points(points, *self.clip)
         for kind, value, *rest in self.transforms:
@@ -224,7 +224,7 @@ def boxes_hash(arrays) -> str:
 
 @dataclass
 class LabeledFrames:
-    """A labeled training set. points[i]: (n_i, 4) float32 and boxes[i]: (m_i, 7) float64, both in
+    """A labelled training set. points[i]: (n_i, 4) float32 and boxes[i]: (m_i, 7) float64, both in
     the ground frame (sensor z + mount_height_m); `points` a list in memory or a FramePoints /
     ChainedPoints that reads frame i from frames.zarr when asked."""
 
@@ -320,7 +320,7 @@ def load_labeled(
 
 def size_normalize(frames: LabeledFrames, delta_lwh: np.ndarray) -> LabeledFrames:
     """SN (Wang et al. 2020): every box's l, w, h += delta_lwh, its points scaled with it."""
-    from dali_cli.size_norm import shift_frame
+    from dali_cli.detector.size_norm import shift_frame
 
     delta_lwh = np.asarray(delta_lwh, np.float64).reshape(3)
     if not isinstance(frames.points, list):  # read when asked: the boxes now, the points then
@@ -339,7 +339,7 @@ def size_normalize(frames: LabeledFrames, delta_lwh: np.ndarray) -> LabeledFrame
 
 
 def scale_about_ground(frames: LabeledFrames, scale: float) -> LabeledFrames:
-    """PTSN's view of a labeled set: points (x, y, z) and boxes (centres and l, w, h) multiplied
+    """PTSN's view of a labelled set: points (x, y, z) and boxes (centres and l, w, h) multiplied
     by `scale` in the ground frame (the ground plane stays put; intensity and yaw unchanged).
     This is the cloud `Detector.predict(..., scale=scale)` feeds the network."""
     from dali_cli.geometry import scale_ground_boxes, scale_ground_points

@@ -1,4 +1,4 @@
-"""The training loop: AdamW with a one-cycle learning rate, batches drawn from one or more labeled
+"""The training loop: AdamW with a one-cycle learning rate, batches drawn from one or more labelled
 sets in a fixed interleaving (e.g. source, pseudo, source, ...), an epoch or wall-clock budget,
 a resumable state file, and a log row per logged step."""
 

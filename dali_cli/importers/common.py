@@ -175,7 +175,7 @@ def write_imported(
     (`progress`: a progress bar of `total` frames on stderr, named `description`).
 
     A frame whose table is None has no labels; when no frame has labels, no box table is written
-    (an unlabeled set). Returns the manifest's BuildResult (counts, notes). `out` is the stage's
+    (an unlabelled set). Returns the manifest's BuildResult (counts, notes). `out` is the stage's
     temporary directory.
     """
     from tqdm import tqdm

@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.columns import Columns
-from dali_cli.evaluation import kitti_label
 from dali_cli.geometry import count_points_in_boxes, wrap_angle
+from dali_cli.importers import kitti_label
 from dali_cli.importers.common import (
     ImportFormatError,
     check_id,
@@ -187,7 +187,7 @@ class CameraObjects(Columns):
 
 def parse_label_file(path: str | Path) -> CameraObjects:
     """Read one label_2 file (15 fields per line, or 16 with a detection score) as raw camera
-    fields. Parsing is `dali_cli.evaluation.kitti_label`'s: malformed lines raise ArtifactError naming the
+    fields. Parsing is `dali_cli.importers.kitti_label`'s: malformed lines raise ArtifactError naming the
     file and line (`path:line: ...`); DontCare's placeholder size -1 becomes 0."""
     table = kitti_label.read_label_file(path)
     hwl, location, rotation_y = kitti_label.pseudo_lidar_to_camera(table.boxes)
@@ -314,7 +314,7 @@ def camera_fov_mask(
 
 @dataclass(frozen=True)
 class KittiLayout:
-    """Where one split's files live. label_dir may not exist (testing split, unlabeled target)."""
+    """Where one split's files live. label_dir may not exist (testing split, unlabelled target)."""
 
     velodyne_dir: Path
     label_dir: Path

@@ -14,7 +14,7 @@ frame: a box of size h, w, l per object, and per frame from `first_frame` on a p
 along its length), a truncation state (-1 unset, 0 in the image, 1 truncated, 2 out of the
 image, 99 behind it) and an occlusion state (-1 unset, 0 visible, 1 partly, 2 fully). A dali box
 is then (tx, ty, tz + h/2, l, w, h, rz). KITTI's label columns come from the box projected with
-the drive's P_rect_02 and R_rect_00 (`dali_cli.evaluation.camera.kitti_label_columns`): the
+the drive's P_rect_02 and R_rect_00 (`dali_cli.importers.camera.kitti_label_columns`): the
 clipped 2D box, alpha and the truncated share of the 2D box; a pose marked out of or behind the
 image gets truncation 1 (KITTI's evaluation then ignores it at every difficulty), and the
 occlusion state is KITTI's occluded level (unset -> 3, unknown).
@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.columns import Columns
-from dali_cli.evaluation.camera import kitti_label_columns
 from dali_cli.geometry import count_points_in_boxes, wrap_angle
+from dali_cli.importers.camera import kitti_label_columns
 from dali_cli.importers.common import (
     ImportFormatError,
     indexed_scan_ids,
@@ -255,7 +255,7 @@ class RawDrive:
 
     velodyne_dir: Path
     calib_dir: Path
-    tracklets: Path | None  # None: unlabeled
+    tracklets: Path | None  # None: unlabelled
 
     @classmethod
     def of(

@@ -205,7 +205,7 @@ def _field(rows: list[dict], index: int, name: str, path: Path):
 
 def _annotation_index(table_dir: Path) -> tuple[dict[str, list[dict]] | None, dict[str, str]]:
     """(sample token -> its sample_annotation records, or None when the table is absent or
-    empty (the test split: an unlabeled set); instance token -> category name)."""
+    empty (the test split: an unlabelled set); instance token -> category name)."""
     annotations_rows = _load_table(table_dir, "sample_annotation", required=False)
     if not annotations_rows:
         return None, {}

@@ -3,7 +3,7 @@ kept, so its sides hug the target points it holds. Target points only, no label.
 
 Why: retraining on the PPCG frames of the true boxes of the very cars the pseudo labels found
 gains +5.6 AP_3D@0.7 over the equal-budget control, on the pseudo boxes themselves +0.3
-(demo scale, docs/results/history.md): the fit of the found cars' boxes (0.27-0.31 m off along the car,
+(demo scale, docs/RESULTS.md): the fit of the found cars' boxes (0.27-0.31 m off along the car,
 yaw 5-6 degrees) is the whole gap. A LiDAR sees a car's near faces, so the points lie on, not
 inside, the true box's sides; a box pushed 0.3 m along the car leaves its rear face's points
 outside and its front side empty.
@@ -131,7 +131,7 @@ def pose_costs(uv: np.ndarray, half_lw: np.ndarray, fit: PointFit, chunk: int = 
     turned by t minus the shift turned by t, so the points are turned once per turn `(T, n)`
     and each shift only subtracts; float32 elementwise (the sums in float64), `chunk` shifts at
     a time (the work stays in cache): 7-9 times the plain float64 grid's speed, the same poses
-    on the demo-scale labels of three seeds (docs/results/history.md)."""
+    on the demo-scale labels of three seeds."""
     shifts, turns = fit.axes()
     cos, sin = np.cos(turns).astype(np.float32), np.sin(turns).astype(np.float32)  # (T,)
     u, v = (np.asarray(uv, np.float32)[:, i] for i in (0, 1))

@@ -21,8 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dali_cli.labels import SCORE_MIN
 from dali_cli.ptsn.stats import expected_prediction_by_frame
-from dali_cli.store import SCORE_MIN
 
 METHODS = ("per-dim", "none")
 
@@ -116,7 +116,7 @@ def correct_sizes(
 
 def factors_from_sweep(e_est, e_pred, where: str) -> np.ndarray:
     """Test-time factors (3,) l, w, h = E_est / E_pred(ŝ) of one ptsn-sweep (its scale.json's
-    "E_est" and "E_pred_at_scale": the sweep's own label-free numbers on the unlabeled target
+    "E_est" and "E_pred_at_scale": the sweep's own label-free numbers on the unlabelled target
     training frames, so the correction reads no target label). ValueError naming `where` when
     either is missing or not three positive sizes."""
     values = {}

@@ -15,7 +15,7 @@ import numpy as np
 from dali_cli.ppcg.inbox import points_per_box
 
 # the stages' point margin (ppcg-rc/ppcg-cf --point-margin-m): 42 % of the true cars' points lay
-# outside their pseudo boxes (demo scale, docs/results/history.md)
+# outside their pseudo boxes (demo scale, docs/ppcg.md)
 DEFAULT_POINT_MARGIN_M = 0.3
 
 # ppcg column values and reasons recorded per box

@@ -11,7 +11,7 @@ at the ranges the points were measured at wins:
            RESIDUAL_CAP_M)²     (a ray that misses the model costs RESIDUAL_CAP_M²)
 
 A box with fewer than MIN_POINTS points keeps its heading, as does a tie. Measured on the demo
-scale's target (docs/results/history.md): on the true boxes the right heading wins for 93 %
+scale's target: on the true boxes the right heading wins for 93 %
 of the cars (seed 0); on point-fitted pseudo boxes matched to a car 82 % (seed 0; after ppcg-cf,
 boxes under MIN_POINTS included, 77-79 % over three seeds; as detected: 45-50 %).
 Mesh models only: point models are chosen by viewing angle, which the heading changes.

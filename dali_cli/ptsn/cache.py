@@ -8,21 +8,20 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from dali_cli.ptsn.spec import SCALE_DECIMALS, Predictor, PTSNError
-from dali_cli.store import SCORE_MIN
 
 
 class DetectionCache:
     """Detections per (frame index, scale), computed at most once.
 
     frames: indexable `frames[i] -> (n, 4) float32` (a list, or a lazy FrameSet reader).
-    Keeps only boxes with score >= score_min. `frame_passes` counts detector runs on one frame.
+    Keeps only boxes with score >= score_min (the caller's cut: the sweep's --score-min). `frame_passes` counts detector runs on one frame.
     """
 
     def __init__(
         self,
         detector: Predictor,
         frames,
-        score_min: float = SCORE_MIN,
+        score_min: float,
         mount_height_m: float | None = None,
         batch_size: int = 8,
         progress: Callable[[int], None] | None = None,

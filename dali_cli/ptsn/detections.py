@@ -5,7 +5,7 @@ stricter score cut without a detector pass.
 Why: E_pred(ŝ) of scale.json is the mean over every box above the sweep's cut, false ones
 included. The test-time size correction (`dali eval --size-correction per-dim`) divides E_est by
 it; where low-score false boxes have another mean size than the found cars, the factors move true
-boxes off (docs/results/history.md). `e_pred_at` gives E_pred(ŝ) over the confident boxes
+boxes off (docs/evaluation.md). `e_pred_at` gives E_pred(ŝ) over the confident boxes
 only, computed exactly as the sweep computes its own (the per-frame or pooled mean of
 `stats.expected_prediction` at each all-frames scale, linear between them as
 `search._Evaluator.lwh_at`): at the sweep's own cut it reproduces "E_pred_at_scale".
@@ -13,7 +13,7 @@ only, computed exactly as the sweep computes its own (the per-frame or pooled me
 The table (`detections.parquet` of a ptsn-sweep directory): one row per box, columns
 scale float64 (the evaluated scale, rounded as the cache keys it), frame int64 (index in the target
 frame set), l, w, h float64 (metres, de-scaled), score float32. Label-free: it holds only what the
-detector predicted on the unlabeled target frames.
+detector predicted on the unlabelled target frames.
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.store import SCORE_MIN
+from dali_cli.labels import SCORE_MIN
 from dali_cli.store.scale_file import read_scale
 
 

@@ -1,9 +1,9 @@
 """The runtime: where and how code runs.
 
 Owns the error types, console output and progress bars, core counts and worker pools, the
-torch device choice, and the shared driver of the training stages.
+torch device choice.
 
 The leaf modules (errors, console, cores, workers) import nothing from dali_cli; ``device``
-may import ``dali_cli.runtime.machine``; ``training_stage`` (the driver of pretrain, retrain
-and self-train) may import every library layer, but no stage or command.
+may import ``dali_cli.runtime.machine``. Nothing here imports a layer above it
+(tests/test_layers.py); the training stages' driver is ``dali_cli.detector.training_stage``.
 """

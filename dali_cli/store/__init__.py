@@ -7,8 +7,3 @@ content hashes, frame ids, the scale file and the model card.
 May import: the standard library, numpy, zarr, pyarrow, and ``dali_cli.runtime`` (errors,
 console). Nothing else in dali_cli: every other layer builds on this one.
 """
-
-# The default score cut of a box table's `score` column: a box scored at least this counts as a
-# car (the pseudo labels, the PTSN sweep's E_pred, the size correction, the mean predicted sizes
-# eval reports). Here, with no import, so the commands' --score-min can show it cheaply.
-SCORE_MIN = 0.3

@@ -738,8 +738,8 @@ def read_boxes(directory: str | Path) -> BoxTable:
     for name in table.column_names:
         arrow_type = table.schema.field(name).type
         if pa.types.is_null(arrow_type) and table.num_rows == 0 and name not in _BASE_TYPES:
-            # an empty extra string column as written before 2026-11-24 (type null): read it as
-            # the empty string column it was
+            # an empty extra string column stored with Arrow type null (a writer with no value
+            # to type it by): read it as the empty string column it is
             table = table.set_column(
                 table.column_names.index(name), name, pa.array([], type=pa.string())
             )

@@ -62,9 +62,9 @@ class ModelCard:
 
     detector: str | None = None  # network name, e.g. pillar-centerpoint-iou-refine
     stage: str | None = None  # pretrain | retrain | self-train: the stage that wrote it
-    source_sensor: str | None = None  # sensor profile of the labeled source frames
+    source_sensor: str | None = None  # sensor profile of the labelled source frames
     mount_height_m: float | None = None  # the source sensor's height above the ground
-    source_mean_lwh_m: tuple[float, float, float] | None = None  # mean labeled source car
+    source_mean_lwh_m: tuple[float, float, float] | None = None  # mean labelled source car
     size_norm: str = "none"  # none | sn | ros
     sn_delta_lwh_m: tuple[float, float, float] | None = None  # SN: size offset added to labels
     ros_range: tuple[float, float] | None = None  # ROS: object scale factors trained with

@@ -1,4 +1,4 @@
-"""Training-step and inference time of the detector in fp32 and bf16 autocast (session 22).
+"""Training-step and inference time of the detector in fp32 and bf16 autocast.
 
     .venv/bin/python docs/results/exp600/bf16_speed.py RUN [--threads 1]
 

@@ -1,6 +1,6 @@
 """Diagnostic (reads the target's labels: never a DALI stage): which part of the pseudo boxes
 keeps them under 3D IoU 0.7? Pairs each pseudo box with its true car as
-docs/results/demo7/label_quality.py does, then, per range band of the true car (0-30, 30-50,
+docs/results/exp600/label_quality.py does, then, per range band of the true car (0-30, 30-50,
 50-80 m from the sensor), prints the share of pairs at 3D IoU >= 0.7 as they are and with one part
 of each box replaced by the truth's: the centre along the car, across it, its height z, the
 length, width, height and yaw (up to a half turn, the detector's 2-yaw regression), and all sizes.

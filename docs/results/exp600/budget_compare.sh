@@ -1,24 +1,22 @@
 #!/bin/bash
-# Sessions 25/26 (issue 18), seed 0 unless SEED: the paired bootstrap (`dali compare`, 400 draws,
+# a later run (the benchmark's target), seed 0 unless SEED: the paired bootstrap (`dali compare`, 400 draws,
 # R40 and R400) of the 12,000-step rows on the 800 fresh frames, against the control: x1 long and
 # the control's rows of budget_job.sh, x2 of x2_long_job.sh, and the diagnostics that read target
 # labels, PPCG from the true boxes (truth_job.sh RETRAIN_EPOCHS=4) and the raw target frames with
-# all true labels at its ŝ and at s = 1 (target_share_job.sh SET=rawtrue MIX=1:1 EPOCHS=8; session
-# 27: MIX=1:7 EPOCHS=2, with and without INIT_FROM=scratch), and x1 long with less of the source
+# all true labels at its ŝ and at s = 1 (target_share_job.sh SET=rawtrue MIX=1:1 EPOCHS=8; also
+# MIX=1:7 EPOCHS=2, with and without INIT_FROM=scratch), and x1 long with less of the source
 # on iteration 1's PPCG frames (SET=ppcg MIX=1:3 EPOCHS=4, MIX=1:7 EPOCHS=2; label-free) and on
 # the true boxes' and the found cars' pseudo boxes' (SET=truth-matched|pseudo-matched MIX=1:7
-# EPOCHS=2), and (session 28) the raw target frames with iteration 1's pseudo boxes instead of
+# EPOCHS=2), and the raw target frames with iteration 1's pseudo boxes instead of
 # PPCG (SET=rawpseudo MIX=1:7 EPOCHS=2) and PPCG from `pseudo-label --tta` boxes (LABELS=tta
-# SET=ppcg MIX=1:7 EPOCHS=2), both label-free, and (session 29) PPCG with `--occlusion` (PPCG=occ
+# SET=ppcg MIX=1:7 EPOCHS=2), both label-free, and PPCG with `--occlusion` (PPCG=occ
 # SET=ppcg, MIX=1:7 EPOCHS=2 and MIX=1:1 EPOCHS=8) and from `pseudo-label --fit-ground` boxes
-# (LABELS=ground, with and without PPCG=occ, 1:7), and (session 30) with the boxes scored 0.3-0.6
+# (LABELS=ground, with and without PPCG=occ, 1:7), and with the boxes scored 0.3-0.6
 # as ignore regions (LABELS=ignore SET=ppcg, MIX=1:7 EPOCHS=2 and MIX=1:1 EPOCHS=8) and with the
 # 0.6 cut alone (LABELS=cut06, 1:7), each where finished. ONLY (an extended regex)
 # keeps the rows whose names match it, the control always (TAG names the output then, e.g.
 # ONLY='^x1 long$|PPCG 1:7|occlusion' TAG=compare29).
-# Writes runs/val800/experiment-s$SEED/budget-re$RE/${TAG:-compare27}_r{40,400}.json (session 26's run of
-# it, without the 1:7 rows, wrote compare26_r*; the bootstrap draws frames, so each pair's figure
-# does not depend on which other rows are present).
+# Writes runs/val800/experiment-s$SEED/budget-re$RE/${TAG:-compare27}_r{40,400}.json.
 #   taskset -c 0 bash docs/results/exp600/budget_compare.sh     # from the directory holding runs/
 set -euo pipefail
 SEED=${SEED:-0}; RE=${RETRAIN_EPOCHS:-4}; D=${DALI:-.venv/bin/dali}

@@ -1,6 +1,6 @@
 #!/bin/bash
-# Sessions 23/25 (issue 18), seed 0 unless SEED: the benchmark's main comparison on a larger budget.
-# Session 23 found x1 long within 0.7 AP_3D@0.7 of labelled target training of its own retraining
+# a later run (the benchmark's target), seed 0 unless SEED: the benchmark's main comparison on a larger budget.
+# a later run found x1 long within 0.7 AP_3D@0.7 of labelled target training of its own retraining
 # length, and the equal-budget oracle's lead to be the 2,400 pretraining steps. If so, the
 # retraining's gain over the control should grow with the budget, as the pretraining becomes a
 # smaller share of it. Same data, library, pretrained model (EPOCHS=4: 2,400 steps) and iteration-1

@@ -1,4 +1,4 @@
-"""Sessions 23/25-29: the rows of budget_job.sh (a 12,000-step budget) and of the session-26/27 jobs
+"""a later run: the rows of budget_job.sh (a 12,000-step budget) and of the jobs
 on that budget (x2_long_job.sh; truth_job.sh with RETRAIN_EPOCHS; target_share_job.sh with
 SET=rawtrue), one line per seed and row.
 
@@ -65,42 +65,42 @@ def rows(re: int) -> list[tuple[str, str, str, str]]:
         ("x1 long, PPCG from the true boxes (diagnostic)",
          f"variants/x1long-truth-matched-re{re}/x1_long/eval", f"x1long-truth-matched-re{re}",
          x1_long),
-        # target_share_job.sh SET=rawtrue: reads target labels, diagnostics; 1:1 (session 26) and
-        # 1:7 with and without INIT_FROM=scratch (session 27)
+        # target_share_job.sh SET=rawtrue: reads target labels, diagnostics; 1:1 and
+        # 1:7 with and without INIT_FROM=scratch
         *target_share_rows(re, "x1 long, raw target frames with all true labels (diagnostic), at its ŝ",
                            "rawtrue", "1:1", x1_long, at_s1=True),
         *target_share_rows(re, "x1 long, raw target, 1:7 (diagnostic), at its ŝ", "rawtrue",
                            "1:7", x1_long, at_s1=True),
         *target_share_rows(re, "raw target, 1:7, from scratch (diagnostic), at its ŝ", "rawtrue",
                            "1:7", retrain, scratch=True, at_s1=True),
-        # SET=truth-matched|pseudo-matched at 1:7 (session 27): truth_job.sh's PPCG frames
+        # SET=truth-matched|pseudo-matched at 1:7: truth_job.sh's PPCG frames
         # (MODE=truth-matched, pseudo-matched); diagnostics
         *target_share_rows(re, "x1 long, PPCG from the true boxes, 1:7 (diagnostic)",
                            "truth-matched", "1:7", x1_long),
         *target_share_rows(re, "x1 long, the found cars' pseudo boxes only (false ones dropped), "
                            "1:7 (diagnostic)", "pseudo-matched", "1:7", x1_long),
-        # SET=ppcg (session 27): x1 long with less of the source on iteration 1's PPCG frames;
+        # SET=ppcg: x1 long with less of the source on iteration 1's PPCG frames;
         # label-free, DALI variants
         *target_share_rows(re, "x1 long, PPCG 1:3", "ppcg", "1:3", x1_long),
         *target_share_rows(re, "x1 long, PPCG 1:7", "ppcg", "1:7", x1_long),
-        # SET=rawpseudo (session 28): the same pseudo boxes on the raw target frames, no PPCG
+        # SET=rawpseudo: the same pseudo boxes on the raw target frames, no PPCG
         *target_share_rows(re, "x1 long, raw target frames with the pseudo boxes (no PPCG), 1:7",
                            "rawpseudo", "1:7", x1_long),
-        # SET=ppcg LABELS=tta (session 28): PPCG from `pseudo-label --tta` boxes; label-free
+        # SET=ppcg LABELS=tta: PPCG from `pseudo-label --tta` boxes; label-free
         *target_share_rows(re, "x1 long, PPCG from --tta pseudo boxes, 1:7", "ppcg", "1:7", x1_long,
                            variant="tta"),
-        # SET=ppcg PPCG=occ (session 29): `ppcg-rc/ppcg-cf --occlusion`; label-free
+        # SET=ppcg PPCG=occ: `ppcg-rc/ppcg-cf --occlusion`; label-free
         *target_share_rows(re, "x1 long, PPCG with --occlusion, 1:7", "ppcg", "1:7", x1_long,
                            variant="occ"),
         *target_share_rows(re, "x1 long, PPCG with --occlusion (1:1)", "ppcg", "1:1", x1_long,
                            variant="occ"),
-        # SET=ppcg LABELS=ground [PPCG=occ] (session 29): PPCG from `pseudo-label --fit-ground`
+        # SET=ppcg LABELS=ground [PPCG=occ]: PPCG from `pseudo-label --fit-ground`
         # boxes, without and with --occlusion; label-free
         *target_share_rows(re, "x1 long, PPCG from --fit-ground boxes, 1:7", "ppcg", "1:7",
                            x1_long, variant="ground"),
         *target_share_rows(re, "x1 long, PPCG from --fit-ground boxes with --occlusion, 1:7",
                            "ppcg", "1:7", x1_long, variant="ground-occ"),
-        # SET=ppcg LABELS=ignore (session 30): `pseudo-label --score-min 0.6 --ignore-min 0.3`,
+        # SET=ppcg LABELS=ignore: `pseudo-label --score-min 0.6 --ignore-min 0.3`,
         # `retrain --ignore-label DontCare` (the boxes scored 0.3-0.6 as ignore regions); label-free
         *target_share_rows(re, "x1 long, PPCG from boxes >= 0.6, 0.3-0.6 ignored, 1:7", "ppcg",
                            "1:7", x1_long, variant="ignore"),

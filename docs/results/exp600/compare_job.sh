@@ -1,5 +1,5 @@
 #!/bin/bash
-# Session 20: a paired bootstrap over the validation frames (dali compare) of the main rows against
+# a later run: a paired bootstrap over the validation frames (dali compare) of the main rows against
 # the x2-budget control (and the x2-budget oracle, for the gap), per run:
 # RUN/compare_x2_budget_r40.json (POSITIONS=400: the fine recall grid, _r400). From the repository root:
 #   bash docs/results/exp600/compare_job.sh; POSITIONS=400 bash docs/results/exp600/compare_job.sh

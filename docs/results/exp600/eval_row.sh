@@ -1,4 +1,4 @@
-# Sourced by the session-23/24 jobs (target_share_job.sh, oracle_budget_job.sh,
+# Sourced by the jobs (target_share_job.sh, oracle_budget_job.sh,
 # oracle_restart_job.sh, short_pretrain_job.sh, long_retrain_job.sh). Needs D (the dali command,
 # e.g. "taskset -c 1 .venv/bin/dali"), R (RUN) and SEED set; every output is an artifact,
 # skipped when up to date.
@@ -7,10 +7,10 @@
 #     KITTI -> OUT/metrics_kitti.json) and on val800_job.sh's 800 fresh frames (-> VAL800_OUT)
 #   kitti_row EVAL_DIR: KITTI easy / moderate / hard of EVAL_DIR's predictions on the 200 frames
 #   val800_row MODEL OUT SCALE_OPTION...: the 800 fresh frames alone (synthesized if absent)
-RANGE_PROTOCOL="--protocol range --front-only --iou 0.7 --iou 0.5 --score-min 0.3"
+RANGE_PROTOCOL="--protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min 0.3"
 kitti_row() {
   $D eval --pred $1/predictions.parquet --gt $R/data/target_val --protocol kitti \
-      --iou 0.7 --iou 0.5 --score-min 0.3 --out $1/metrics_kitti.json
+      --iou 0.7 --iou 0.5 --size-score-min 0.3 --out $1/metrics_kitti.json
 }
 val800_row() {
   local model=$1 out=$2 frames=runs/val800/data-s$SEED; shift 2

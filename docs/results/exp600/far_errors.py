@@ -1,5 +1,4 @@
-"""Where the oracle's 3D lead on far cars comes from (session 23; a diagnostic that reads the
-target validation labels, never a stage).
+"""Where the oracle's 3D lead on far cars comes from.
 
 For each row's saved predictions (eval predictions.parquet) against the validation labels: every
 true Car in the evaluation's front region (90 deg), per range band, paired with the prediction of
@@ -19,7 +18,7 @@ import argparse
 import numpy as np
 
 from dali_cli.evaluation.evaluate import in_st3d_region
-from dali_cli.evaluation.kitti_label import read_box_source
+from dali_cli.importers.kitti_label import read_box_source
 from dali_cli.geometry import bev_iou, iou_3d, wrap_angle
 
 BANDS = ((0, 30), (30, 50), (50, 80))

@@ -1,4 +1,4 @@
-"""Label-free: how far the x2-budget control's boxes sit above the local ground (session 19).
+"""Label-free: how far the x2-budget control's boxes sit above the local ground.
 
 For the first 100 validation frames of RUN: per box (predictions at score >= 0.5 of
 RUN/baselines/source_x2_budget/eval_ptsn, and, as the estimator's check, the true cars), the box
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.evaluation.kitti_label import read_box_source as read_table
+from dali_cli.importers.kitti_label import read_box_source as read_table
 from dali_cli.store.artifacts import FrameSet
 
 

@@ -1,6 +1,6 @@
 #!/bin/bash
-# The 600-frame benchmark, seed 0, with the defaults of session 14 (issue 18; docs/RESULTS.md,
-# session 15). What it runs is `make experiment SEEDS=0` with every goal; the rows come in this
+# The 600-frame benchmark, seed 0, with the defaults of a later run (the benchmark's target; docs/RESULTS.md,
+# a later run). What it runs is `make experiment SEEDS=0` with every goal; the rows come in this
 # order (main rows first), two 1-thread training jobs at a time on a 2-core VM.
 #   bash docs/results/exp600/job.sh        # from the repository root; resumable (make skips
 #                                          # every stage whose manifest is up to date)
@@ -20,7 +20,7 @@ T='TRAIN_FLAGS=--threads 1'
 if [ "$SEED" != 0 ] || [ "$SOURCE_SENSOR" != waymo ]; then
     # the other seeds and the other task: main rows, forgetting and KITTI protocol only
     # x2's chain and the x2-budget control (which needs none of it) side by side, then x1 long
-    # and the x2-budget oracle side by side (session 16 ran seed 1 this way, by hand)
+    # and the x2-budget oracle side by side
     make data $V "$T"  # first: both would synthesize it, and a FrameSet has one writer
     make iter2 $V "$T" & chain=$!
     make $RUN/baselines/source_x2_budget/eval_ptsn/manifest.json $V "$T"
@@ -38,7 +38,7 @@ if [ "$SEED" != 0 ] || [ "$SOURCE_SENSOR" != waymo ]; then
 fi
 make iter2 $V "$T"
 make -j2 x1-long controls-x2 $V "$T"
-# seed 0 only (issue 18 allows it): x1's control, SN, ROS, oracle at the pretraining budget, RC
+# seed 0 only (the benchmark's target allows it): x1's control, SN, ROS, oracle at the pretraining budget, RC
 # only, CF only, the forgetting check; `make experiment` then adds KITTI easy/moderate/hard of
 # every row and writes the reports (every finished stage is skipped)
 make -j2 controls baselines cross-domain $V "$T"

@@ -1,5 +1,5 @@
 #!/bin/bash
-# Session 24 (issue 18, item 3), seed 0 unless SEED: x1 long with a longer retraining on the
+# a later run (the benchmark's target, item 3), seed 0 unless SEED: x1 long with a longer retraining on the
 # default pseudo labels. short_pretrain_job.sh moved 1,200 steps from pretraining to retraining
 # (x1 long 6,000 retraining steps from a 1,200-step pseudo-labeller) and gained nothing; this
 # separates the two changes: the default run's iteration 0 and iteration-1 PPCG frames (4

@@ -1,8 +1,8 @@
 #!/bin/bash
-# Ablation (issue 18 item 3, seed 0 unless SEED): x1 long with more PPCG in each retraining batch
+# Ablation (the benchmark's target item 3, seed 0 unless SEED): x1 long with more PPCG in each retraining batch
 # pattern, --mix 1:3 (source:PPCG) instead of 1:1, on the same 4,800 retraining frames (an epoch
 # under 1:3 is 600 x 4 = 2,400 frames, so 2 epochs: RETRAIN_EPOCHS=1 gives x1 long 1 + 1). At demo
-# scale, with poor pseudo boxes, 1:3 lost 4.1 ± 1.9 AP_3D@0.7 (docs/RESULTS.md, session 9); at
+# scale, with poor pseudo boxes, 1:3 lost 4.1 ± 1.9 AP_3D@0.7 (docs/RESULTS.md, a later run); at
 # 600 frames the boxes are good (0.84 at 3D IoU >= 0.7), and x1 long with exact boxes gains little
 # (truth_job.sh), which leaves the share of target-like frames as a lever. A variant RUN links the
 # seed's data, library, pretrained model and iteration 1 (sweep, pseudo labels, RC, CF).

@@ -1,5 +1,5 @@
 #!/bin/bash
-# Session 23 (issue 18, item 3), seed 0 unless SEED: the oracle on x1 long's retraining budget.
+# a later run (the benchmark's target, item 3), seed 0 unless SEED: the oracle on x1 long's retraining budget.
 # Target-only training from scratch with all true labels (reads target labels: a baseline, never
 # a DALI stage), EPOCHS passes over the 600 target frames (default 8 = 4,800 steps, the steps x1
 # long's retraining takes after its 2,400 pretraining steps), evaluated like the x2-budget oracle

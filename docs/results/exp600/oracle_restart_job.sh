@@ -1,5 +1,5 @@
 #!/bin/bash
-# Session 23 (issue 18, item 3), seed 0 unless SEED: does a restarted learning-rate schedule waste
+# a later run (the benchmark's target, item 3), seed 0 unless SEED: does a restarted learning-rate schedule waste
 # the steps before it? The oracle on the pretraining budget (RUN/baselines/oracle: 2,400 steps on
 # the labelled target frames, one one-cycle schedule) retrained for 4,800 more steps on the same
 # frames with a fresh one-cycle schedule, as `retrain` runs after `pretrain` (`--source` and

@@ -1,4 +1,4 @@
-"""Every row of two runs of the same seed side by side (session 22: fp32 against bf16 autocast):
+"""Every row of two runs of the same seed side by side:
 AP_3D / AP_BEV @0.7 (front region, all boxes), KITTI moderate AP_3D@0.7, the PTSN scale and the
 mean predicted size, from each run's `dali report` (RUN/report/report.json).
 

@@ -1,5 +1,4 @@
-"""How much of a paired AP_R40 difference is the last recall positions (session 20; reads the
-metrics.json of two evaluations, no labels).
+"""How much of a paired AP_R40 difference is the last recall positions.
 
 AP_R40 = Σ_k p(k/40) / 40 over the recall positions k = 1..40, p the interpolated precision, 0 at
 positions above the row's maximum recall. Δ = AP(b) − AP(a) splits into the positions both rows

@@ -1,4 +1,4 @@
-"""Shared by the session-24/25 table scripts (short_pretrain_table.py, budget_table.py): one
+"""Shared by the table scripts (short_pretrain_table.py, budget_table.py): one
 row's figures from its metrics files, as markdown cells."""
 
 import json

@@ -1,5 +1,5 @@
 #!/bin/bash
-# x1 long or x2 with a higher pseudo-label score cut (issue 18, session 16: at 600 frames 858 of
+# x1 long or x2 with a higher pseudo-label score cut (the benchmark's target, a later run: at 600 frames 858 of
 # iteration 1's 4,960 pseudo boxes lie >= 2 m from any car, score median 0.46 against 0.76 for
 # the true ones; bench/pseudo_labels.py). The Makefile's own chain in a variant RUN that links
 # the seed's data, library, pretrained model and first sweep; only pseudo-label gets
@@ -7,8 +7,7 @@
 #   SCORE=0.5 ROW=x1long bash docs/results/exp600/score_job.sh      # from the repository root
 #   SCORE=0.5 ROW=x2 SEED=1 bash docs/results/exp600/score_job.sh   # resumable like any make run
 # Rows: V/x1_long/eval (ROW=x1long); V/iter1/eval (x1) and V/iter2/eval (x2) (ROW=x2).
-# (Session 16 ran the same dali commands from an earlier form of this script, which wrote
-# x1 long to V/{pseudo,rc,cf,model,ptsn,eval} and x2's iterations to V/iter1, V/iter2.)
+#
 set -euo pipefail
 SEED=${SEED:-0}; SCORE=${SCORE:-0.5}; ROW=${ROW:-x1long}
 R=runs/experiment-s$SEED

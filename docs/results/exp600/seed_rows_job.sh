@@ -1,12 +1,12 @@
 #!/bin/bash
-# Session 31 (issue 18, item 3): session 30's one label-free 1:7 gain on a second seed. Builds the
+# a later run (the benchmark's target, item 3): a later run one label-free 1:7 gain on a second seed. Builds the
 # seed's iteration-1 chain as `make experiment` would (600/600/200 frames, EPOCHS=4: iter0/model,
 # iter1/ptsn, iter1/pseudo, iter1/rc, iter1/cf), then runs target_share_job.sh's two rows side by
 # side, one core each: SET=ppcg MIX=1:7 EPOCHS=2 (PPCG from the default 0.3 boxes) and the same
 # with LABELS=cut06 (`pseudo-label --score-min 0.6`). Then `dali compare` of the pair on the seed's
 # 800 fresh validation frames, R40 and R400 -> runs/val800/experiment-s<SEED>/direct31_cut17_r*.json.
 # Resumable: every step is an artifact directory. From the directory holding runs/:
-#   SEED=1 bash /work/main/docs/results/exp600/seed_rows_job.sh
+#   SEED=1 bash docs/results/exp600/seed_rows_job.sh
 # Start it unpinned (no taskset around it): the cut row's pseudo labels, RC and CF run in its
 # subshell without a taskset of their own, and would share the other row's core.
 set -euo pipefail

@@ -1,6 +1,6 @@
 #!/bin/bash
-# Session 24 (issue 18, item 3), seed 0 unless SEED: spend less of the equal budget on pretraining.
-# Session 23 found the final model about as good as its last learning-rate schedule is long (the
+# a later run (the benchmark's target, item 3), seed 0 unless SEED: spend less of the equal budget on pretraining.
+# a later run found the final model about as good as its last learning-rate schedule is long (the
 # oracle pretrained 2,400 steps and retrained 4,800 with a fresh schedule = 4,800 from scratch),
 # and x1 long's retraining about as good as labelled target training of its own length. So with
 # the budget fixed (12 epochs = 7,200 steps, the x2-budget control's), the retraining should get

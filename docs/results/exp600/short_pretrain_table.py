@@ -1,4 +1,4 @@
-"""Session 24: the rows of short_pretrain_job.sh, one line per seed and row.
+"""a later run: the rows of short_pretrain_job.sh, one line per seed and row.
 
     python docs/results/exp600/short_pretrain_table.py [--pre 2] [--seeds 0 1 2]
 

@@ -1,5 +1,4 @@
-"""Where the per-dimension size correction of an equal-budget control gains or loses (session 19;
-a diagnostic that reads the target validation labels, never a stage).
+"""Where the per-dimension size correction of an equal-budget control gains or loses.
 
 For RUN/baselines/source_<budget>_budget: AP_3D / AP_BEV @0.7 (range protocol, front region) of its
 saved eval_ptsn predictions with each dimension's factor E_est / E_pred(ŝ) of its own sweep applied
@@ -19,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.evaluation.evaluate import evaluate
-from dali_cli.evaluation.kitti_label import read_box_source as read_table
+from dali_cli.importers.kitti_label import read_box_source as read_table
 from stages.eval import resized
 
 DIMENSIONS = {"none": (0, 0, 0), "l": (1, 0, 0), "w": (0, 1, 0), "h": (0, 0, 1),

@@ -1,5 +1,4 @@
-"""How finely AP_3D@0.7 resolves a size change at 200 validation frames (session 20; a diagnostic
-that reads the target validation labels, never a stage).
+"""How finely AP_3D@0.7 resolves a size change at 200 validation frames.
 
 For RUN/baselines/source_<budget>_budget (its saved eval_ptsn predictions): AP_3D @0.7 (range
 protocol, front region; all and 0-30 / 30-50 / 50-80 m) with one dimension of every predicted car
@@ -17,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.evaluation.evaluate import evaluate
-from dali_cli.evaluation.kitti_label import read_box_source
+from dali_cli.importers.kitti_label import read_box_source
 from dali_cli.geometry import iou_3d
 from stages.eval import resized
 

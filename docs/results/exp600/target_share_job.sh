@@ -1,5 +1,5 @@
 #!/bin/bash
-# Session 23 (issue 18, item 3), seed 0 unless SEED: is the oracle's lead over every retraining
+# a later run (the benchmark's target, item 3), seed 0 unless SEED: is the oracle's lead over every retraining
 # the share of target frames in the batches? x1 long's schedule (init iter0, source sized to
 # E_est, 4,800 steps, fp32) but `--mix 1:7`: 7 of every 8 batches from the target side, one
 # epoch = 600 source frames x 8 = 4,800 steps, the same budget. SET picks the target side:
@@ -15,15 +15,14 @@
 #                links data/target's frames.zarr and copies iter1/pseudo's boxes.parquet)
 # INIT_FROM=scratch starts from a fresh network instead of iter0's weights (the oracle's start).
 # EPOCHS (default 1) sets the budget, 600 x (1 + 7) steps per epoch at 1:7, 600 x 2 at 1:1; a row
-# with EPOCHS other than 1 gets an -ep<EPOCHS> suffix (session 26: SET=rawtrue MIX=1:1 EPOCHS=8,
-# x1 long's 9,600 steps on the 12,000-step budget). SET=rawtrue is also evaluated at s = 1 on the
+# with EPOCHS other than 1 gets an -ep<EPOCHS> suffix. SET=rawtrue is also evaluated at s = 1 on the
 # 800 fresh frames (<name>-s1): its frames are the target's own, at s = 1.
-# Session 27 (12,000-step budget): SET=rawtrue MIX=1:7 EPOCHS=2, with and without INIT_FROM=scratch
+# a later run (12,000-step budget): SET=rawtrue MIX=1:7 EPOCHS=2, with and without INIT_FROM=scratch
 # (which of the retraining's source share, initialisation and restarted schedule caps it), then
 # SET=ppcg MIX=1:7 EPOCHS=2 and SET=ppcg MIX=1:3 EPOCHS=4 (the label-free retraining, less source).
-# Session 28: SET=rawpseudo MIX=1:7 EPOCHS=2 (does PPCG beat the same pseudo boxes on the raw
-# frames?) beside session 27's truth-matched / pseudo-matched 1:7 rows.
-# Session 30: LABELS=cut06 SET=ppcg: `pseudo-label --score-min 0.6` (boxes scored 0.3-0.6 are 63 %
+# a later run: SET=rawpseudo MIX=1:7 EPOCHS=2 (does PPCG beat the same pseudo boxes on the raw
+# frames?) beside a later run truth-matched / pseudo-matched 1:7 rows.
+# a later run: LABELS=cut06 SET=ppcg: `pseudo-label --score-min 0.6` (boxes scored 0.3-0.6 are 63 %
 # false on seed 0; their cars left as background; the make chain in variants/labels-cut06, which
 # links the seed's data, library, iter0 and first sweep).
 # The boxes' quality is worth little at 1:1 and much at 1:7 (true boxes of the found cars against

@@ -1,5 +1,5 @@
 #!/bin/bash
-# Issue 18, item 6: one seed of the full synthetic benchmark with ALL its rows (x2, x1 long, both
+# the benchmark's target, item 6: one seed of the full synthetic benchmark with ALL its rows (x2, x1 long, both
 # equal-budget controls, the x2-budget oracle, SN, ROS, the pretraining-budget oracle, RC only,
 # CF only, forgetting, KITTI protocol, compare, reports), timed from data synthesis to the
 # report: `make experiment` with two core-pinned lanes (EXPERIMENT_LANES=2) and bf16 autocast in

@@ -2,13 +2,12 @@
 # Diagnostic, reads the target labels (never a DALI default): how much would x1 long gain if the
 # boxes of the cars it finds were exact? Its PPCG is built from the true boxes of the cars that
 # iteration 1's pseudo labels found (paired one to one at BEV IoU > 0.3; the false boxes dropped,
-# the missed cars still missed: docs/results/demo6/hybrid_boxes.py --mode truth-matched). At demo
-# scale this gained +5.6 ± 0.9 AP_3D@0.7 over the equal-budget control (docs/RESULTS.md, session
-# 12). The Makefile's own chain (ppcg-rc, ppcg-cf, retrain, ptsn-sweep, eval) in a variant RUN that
+# the missed cars still missed). At demo scale this gained +5.6 ± 0.9 AP_3D@0.7 over the
+# equal-budget control. The Makefile's own chain (ppcg-rc, ppcg-cf, retrain, ptsn-sweep, eval) in a variant RUN that
 # links the seed's data, library, pretrained model and first sweep, as score_job.sh does.
 #   bash docs/results/exp600/truth_job.sh            # seed 0; SEED=1 for another; resumable
 #   MODE=pseudo-matched bash docs/results/exp600/truth_job.sh  # the found pseudo boxes as they are
-#   RETRAIN_EPOCHS=4 bash docs/results/exp600/truth_job.sh     # session 26: 9,600 retraining steps
+#   RETRAIN_EPOCHS=4 bash docs/results/exp600/truth_job.sh     # a later run: 9,600 retraining steps
 #     (V gets a -re4 suffix; also evaluated on val800_job.sh's 800 fresh frames)
 # Rows: V/x1_long/eval with V = runs/experiment-s<SEED>/variants/x1long-<MODE>.
 set -euo pipefail
@@ -19,7 +18,7 @@ V=$R/variants/x1long-$MODE$([ $RE = 2 ] || echo -re$RE)
 source "$HERE/variant_links.sh"; link_variant $V ptsn
 if [ ! -e $V/iter1/pseudo/manifest.json ]; then  # the box set, written whole or not at all
     rm -rf $V/iter1/pseudo.tmp
-    .venv/bin/python "$HERE/../demo6/hybrid_boxes.py" --truth $R/data/target \
+    .venv/bin/python "$HERE/hybrid_boxes.py" --truth $R/data/target \
         --pseudo $R/iter1/pseudo --mode $MODE --out $V/iter1/pseudo.tmp
     cp $R/iter1/pseudo/scale.json $V/iter1/pseudo.tmp/
     # no "inputs": ppcg-rc/cf accept a hand-made box table (manifest.check_made_from); the file

@@ -1,5 +1,5 @@
 #!/bin/bash
-# Session 21: the main rows of the 600-frame runs re-evaluated on 800 fresh validation frames per
+# a later run: the main rows of the 600-frame runs re-evaluated on 800 fresh validation frames per
 # seed (synthesized like RUN/data/target_val but with seed SEED + 5000; 4x the 200 frames the
 # runs were measured on, so the frames' share of a one-seed difference halves), each model at its
 # own PTSN scale as in the Makefile; the sized control from the control's predictions; then a
@@ -8,11 +8,11 @@
 # artifact directory, skipped when up to date):
 #   bash docs/results/exp600/val800_job.sh                    # all runs below that are finished
 #   RUNS="experiment-s0" bash docs/results/exp600/val800_job.sh
-#   EVAL_FLAGS="--precision bf16" RUNS=...   # options of every model eval (session 22: bf16 rows)
+#   EVAL_FLAGS="--precision bf16" RUNS=...   # options of every model eval
 set -uo pipefail
 D=${DALI:-.venv/bin/dali}
 X=${EVAL_FLAGS:-}
-P="--protocol range --front-only --iou 0.7 --iou 0.5 --score-min 0.3"
+P="--protocol range --front-only --iou 0.7 --iou 0.5 --size-score-min 0.3"
 for run in ${RUNS:-experiment-s0 experiment-s1 experiment-s2 experiment-nuscenes-s0 experiment-nuscenes-s1 experiment-nuscenes-s2}; do
   R=runs/$run; O=runs/val800/$run
   [ -f $R/baselines/oracle_x2_budget/eval/manifest.json ] || { echo "$run: not finished"; continue; }

@@ -1,4 +1,4 @@
-"""Aggregate val800_job.sh's compare files (session 21): per task, each run's Δ to the x2-budget
+"""Aggregate val800_job.sh's compare files: per task, each run's Δ to the x2-budget
 control ± the frames' std, and mean ± std over the runs, R400 and R40, as `dali report` does for
 RUN/compare_r*.json. From the repository root:
     python docs/results/exp600/val800_report.py runs/val800 > docs/results/exp600/val800.md

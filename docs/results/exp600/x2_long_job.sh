@@ -1,6 +1,6 @@
 #!/bin/bash
-# Session 26 (issue 18, item 3), seed 0 unless SEED: does iterating pay on a larger budget?
-# Session 25 found x1 long saturating at about 85.5 AP_3D@0.7 (800 fresh frames) however long it
+# a later run (the benchmark's target, item 3), seed 0 unless SEED: does iterating pay on a larger budget?
+# a later run found x1 long saturating at about 85.5 AP_3D@0.7 (800 fresh frames) however long it
 # retrains on iteration 1's PPCG frames, while the control and labelled training keep climbing:
 # the retraining's ceiling is its data. The method's own remedy is a second iteration: new pseudo
 # labels from the better model, new PPCG frames, a second retraining. This is `make iter2` with

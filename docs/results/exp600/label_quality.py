@@ -5,7 +5,7 @@ and across the true car (m), mean yaw error up to a half turn (deg), the share w
 the mean 3D IoU, and the share whose heading is right (cos of the yaw difference > 0; PPCG places
 its car model that way round).
 
-    python docs/results/demo7/label_quality.py --truth RUN/data/target --boxes DIR [DIR ...]
+    python docs/results/exp600/label_quality.py --truth RUN/data/target --boxes DIR [DIR ...]
 """
 
 from __future__ import annotations

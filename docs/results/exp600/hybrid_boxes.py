@@ -5,12 +5,12 @@ stage). Pairs each frame's pseudo boxes with its true cars one to one (greedy by
   pseudo-matched: the matched pseudo boxes (the false ones dropped; the pseudo placement kept)
   truth-matched:  the true boxes of the same cars (placement and size exact; the same cars missed)
   truth-pose:     the same cars at their true pose (centre, heading, bottom) with the pseudo
-                  box's size (session 13, docs/results/demo7/truthpose_job.sh)
+                  box's size
   truth-all:      every true car with at least --min-points points in the detector's grid (x 0 to
                   70.4, |y| <= 40 m: DetectorConfig), found or missed, score 1 (the labels a
                   perfect detector would give: the ceiling of PPCG's retraining)
 
-    python docs/results/demo6/hybrid_boxes.py --truth RUN/data/target --pseudo RUN/iter1/pseudo \
+    python docs/results/exp600/hybrid_boxes.py --truth RUN/data/target --pseudo RUN/iter1/pseudo \
         --mode truth-matched --out DIR
 """
 

@@ -1,7 +1,7 @@
 """The training body the pretrain, retrain and self-train stages share: resume handling, the
 checkpoint's metadata and training summary, the training log, and `run_training_stage` (the
 manifest contract around one training run, on a device, under torchrun with DDP when launched
-so). torch is imported only when a model is trained."""
+so). It lives with the detector: importing it imports the detector package (and torch)."""
 
 from __future__ import annotations
 

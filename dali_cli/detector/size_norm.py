@@ -1,4 +1,4 @@
-"""A labeled frame set seen with a model's size convention (SN): every car box's l, w, h shifted
+"""A labelled frame set seen with a model's size convention (SN): every car box's l, w, h shifted
 by a fixed delta (its bottom centre and yaw kept) and the points inside it moved with it.
 
 This is the view `dali pretrain --size-norm sn` and `dali retrain --source-size sn` train on

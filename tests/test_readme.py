@@ -1,0 +1,47 @@
+"""The README is the front door: short, and every `make` goal it names is one `make help` lists."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+README = (ROOT / "README.md").read_text(encoding="utf-8")
+
+
+def test_the_readme_fits_a_screenful_of_pages():
+    assert len(README.splitlines()) <= 150
+
+
+def goals_named(text: str) -> set[str]:
+    """The goals of every `make GOAL ...` in `text` (quoted, or a command line of a code block),
+    and of the backquoted goal list after 'Goals:'."""
+    goals = set(re.findall(r"(?:`|^)make(?: -n)? ([a-z][a-z0-9-]*)", text, re.M))
+    listed = re.search(r"Goals: (.*?)\(`make help`\)", text, re.S)
+    if listed:
+        goals |= set(re.findall(r"`([a-z][a-z0-9-]*)`", listed.group(1)))
+    return goals - {"help"}
+
+
+@pytest.mark.skipif(shutil.which("make") is None, reason="make is not installed")
+def test_make_help_lists_every_goal_the_readme_names():
+    listed = subprocess.run(
+        ["make", "--no-print-directory", "-C", str(ROOT), "help"],
+        capture_output=True, text=True, check=True,
+    ).stdout  # fmt: skip
+    named = goals_named(README)
+    assert {"demo", "test", "tiny", "experiment", "real-kitti"} <= named
+    missing = [
+        goal for goal in sorted(named) if not re.search(rf"(?<![\w-]){goal}(?![\w-])", listed)
+    ]
+    assert not missing, f"README names goals `make help` does not list: {missing}"
+
+
+def test_the_goal_scan_sees_what_it_must():
+    text = "run `make iter2 RUN=x` then `make -n tiny`. Goals: `iter0`, `x1-long` (`make help`)"
+    assert goals_named(text) == {"iter2", "tiny", "iter0", "x1-long"}
+    assert goals_named("```\nmake demo    # all\n```") == {"demo"}
