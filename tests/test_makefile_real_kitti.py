@@ -15,8 +15,8 @@ from make_plans import dali_commands, make
 
 pytestmark = pytest.mark.skipif(shutil.which("make") is None, reason="make is not installed")
 
-LABELLED = "/data/raw/2011_09_26/2011_09_26_drive_0001_sync"
-RAW = "/data/scans/2011_09_26/2011_09_26_drive_0005_sync"
+LABELLED = "data/raw/2011_09_26/2011_09_26_drive_0001_sync"
+RAW = "data/scans/2011_09_26/2011_09_26_drive_0005_sync"
 SEEDS = ("0", "1")
 # the object frames' raw drives: 0005 and odometry 04's (2011_09_30_drive_0016) are in the target
 TABLE = [
