@@ -170,18 +170,28 @@ def _input_records(inputs: Mapping[str, str | Path | list]) -> dict:
 
 def why_stale(
     out: Path, stage: str, inputs: dict, params: dict, derived: tuple[str, ...] = ()
-) -> str | None:
-    """Why `out` must be (re)built, or None when its manifest matches exactly."""
+) -> tuple[str | None, bool]:
+    """Why `out` must be (re)built (None when its manifest matches exactly), and whether its
+    files still match the manifest's content hash: then it holds no file its stage did not
+    write, and a rebuild need not look for them (refuse_foreign_files hashes the tree again)."""
     manifest = read_manifest(out)
     if manifest is None:
-        return "no output yet" if not out.exists() else "output has no valid manifest"
+        return ("no output yet" if not out.exists() else "output has no valid manifest"), False
     problem = manifest_problem(manifest)
     if problem is not None:
-        return f"output's manifest is damaged ({problem})"
+        return f"output's manifest is damaged ({problem})", False
     if manifest.get("hash_method") != HASH_METHOD:
-        return "output was written by an older dali (content hashes are computed differently)"
+        return (
+            "output was written by an older dali (content hashes are computed differently)",
+            False,
+        )
     if manifest.get("content_hash") != hash_tree(out, (MANIFEST_NAME, *derived)):
-        return "output files were changed since the stage wrote them"
+        return "output files were changed since the stage wrote them", False
+    return _why_changed(manifest, stage, inputs, params), True
+
+
+def _why_changed(manifest: dict, stage: str, inputs: dict, params: dict) -> str | None:
+    """Why an intact artifact (its files match its manifest) must be rebuilt, or None."""
     if manifest.get("stage") != stage:
         return f"output was written by stage '{manifest.get('stage')}'"
     if manifest.get("dali_version") != __version__:
@@ -248,21 +258,23 @@ def run_stage(
     out = check_output_path(given, inputs, stage=stage)
     params = _normalized(params)
     if dry_run:
-        reason = why_stale(out, stage, _input_records(inputs), params, derived)
+        reason, intact = why_stale(out, stage, _input_records(inputs), params, derived)
         if reason is None and not force:
             echo(f"{stage}: {given} is up to date (use --force to rerun)")
             return StageOutcome("skipped", "up to date", read_manifest(out))
-        refuse_foreign_files(given, out, stage, derived)
+        if not intact:
+            refuse_foreign_files(given, out, stage, derived)
         echo(f"{stage}: would run -> {given} ({reason or 'forced'})")
         return StageOutcome("dry-run", reason or "forced")
     with OutputLock(out):
         recover_interrupted(out, echo)
         records = _input_records(inputs)
-        reason = why_stale(out, stage, records, params, derived)
+        reason, intact = why_stale(out, stage, records, params, derived)
         if reason is None and not force:
             echo(f"{stage}: {given} is up to date (use --force to rerun)")
             return StageOutcome("skipped", "up to date", read_manifest(out))
-        refuse_foreign_files(given, out, stage, derived)
+        if not intact:
+            refuse_foreign_files(given, out, stage, derived)
         reason = reason or "forced"
         manifest, wall = _build_and_commit(stage, out, records, params, build, seed, derived)
     echo(f"{stage}: wrote {given} ({wall:.1f} s)")
