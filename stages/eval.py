@@ -326,7 +326,7 @@ def keeps_predictions(save_predictions: bool, model, size_correction: str) -> bo
 def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
     """(the metrics document, the predictions evaluated) of one evaluation."""
     from dali_cli.evaluation.errors import breakdown
-    from dali_cli.evaluation.evaluate import EvaluationError, evaluate
+    from dali_cli.evaluation.evaluate import EvaluationError, evaluate, scored_boxes
 
     pred, gt, frame_ids, source, gt_path, runtime = predictions_and_truth(**routes)
     for table, where in ((pred, routes["pred_path"] or "the predictions"), (gt, gt_path)):
@@ -335,26 +335,35 @@ def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
     correction = source.pop("size_correction", None)
     class_name = options["class_name"]
     metrics: dict = {}
-    for index, iou in enumerate(options["ious"]):
-        try:
-            result = evaluate(
-                pred, gt, iou=iou, recall_positions=options["recall_positions"],
-                protocol=options["protocol"], class_name=class_name,
-                min_gt_points=options["min_gt_points"], frame_ids=frame_ids,
-                front_only=options["front_only"],
+    boxes = dict(
+        protocol=options["protocol"], class_name=class_name,
+        min_gt_points=options["min_gt_points"], frame_ids=frame_ids,
+        front_only=options["front_only"],
+    )  # fmt: skip
+    try:
+        scored = scored_boxes(pred, gt, **boxes)  # every pair's overlaps, for every threshold
+        results = [
+            evaluate(
+                pred,
+                gt,
+                iou=iou,
+                recall_positions=options["recall_positions"],
+                scored=scored,
+                **boxes,
             )  # fmt: skip
-        except EvaluationError as error:
-            raise StageError(
-                f"cannot evaluate {source.get('pred', routes['model'])} against {gt_path}: {error}"
-            ) from None
+            for iou in options["ious"]
+        ]
+    except EvaluationError as error:
+        raise StageError(
+            f"cannot evaluate {source.get('pred', routes['model'])} against {gt_path}: {error}"
+        ) from None
+    for index, (iou, result) in enumerate(zip(options["ious"], results, strict=True)):
         block = result[class_name]
         block["source"] = source
         metrics[class_name if index == 0 else f"{class_name}@{iou:g}"] = block
     metrics[ERRORS_KEY] = breakdown(
         pred, gt, ious=options["ious"], recall_positions=options["recall_positions"],
-        protocol=options["protocol"], class_name=class_name,
-        min_gt_points=options["min_gt_points"], frame_ids=frame_ids,
-        front_only=options["front_only"],
+        scored=scored, **boxes,
     )  # fmt: skip
     metrics["sizes"] = {
         "pred": mean_box_size(pred, class_name, score_min=options["size_score_min"]),

@@ -162,15 +162,18 @@ def breakdown(
     min_gt_points: int = 0,
     frame_ids: list[str] | None = None,
     front_only: bool = False,
+    scored: Scored | None = None,
 ) -> dict:
     """The error breakdown of `pred` against `gt` under the same protocol as `evaluate` (same
     arguments): box errors of the true positives at TP_IOU in the headline group (KITTI moderate,
     or "all" of the range bands); per threshold in `ious` and overlap kind, the false positives
     of every group split into KINDS with the misses, and the headline group's AP with each of
-    FIXES applied alone. A JSON-ready dict (docs/evaluation.md, "Error breakdown")."""
-    scored = scored_boxes(
-        pred, gt, protocol, class_name, min_gt_points, frame_ids, front_only
-    )  # fmt: skip
+    FIXES applied alone. A JSON-ready dict (docs/evaluation.md, "Error breakdown"). `scored`:
+    `scored_boxes` of the same arguments when the caller has it."""
+    if scored is None:
+        scored = scored_boxes(
+            pred, gt, protocol, class_name, min_gt_points, frame_ids, front_only
+        )  # fmt: skip
     group = next(key for key in ("moderate", "all", *scored.flags) if key in scored.flags)
     ignored_gt, ignored_pred = scored.flags[group]
     matched = matched_ground_truth(scored, TP_OVERLAP, group, TP_IOU)

@@ -569,6 +569,7 @@ def evaluate(
     st3d_fov_deg: float = ST3D_FOV_DEG,
     st3d_range_m: tuple = ST3D_RANGE_M,
     front_only: bool = False,
+    scored: Scored | None = None,
 ) -> dict:
     """AP_BEV and AP_3D (percent) of `pred` against `gt`, in the metrics.json shape.
 
@@ -581,12 +582,15 @@ def evaluate(
     `front_only`: drop ground truth and predictions centred outside the st3d region (front FOV
     and detection range) before any protocol, as if the clouds were FOV-cropped like KITTI's; with
     "range" this gives the bands of the front region, with "st3d" it also drops predictions there.
+    `scored`: `scored_boxes` of the same arguments when the caller has it (the overlaps do not
+    depend on `iou`: several thresholds and the error breakdown share one computation).
     """
     protocol = _checked_protocol(gt, iou, recall_positions, protocol)
-    scored = scored_boxes(
-        pred, gt, protocol, class_name, min_gt_points, frame_ids, front_only, st3d_fov_deg,
-        st3d_range_m,
-    )  # fmt: skip
+    if scored is None:
+        scored = scored_boxes(
+            pred, gt, protocol, class_name, min_gt_points, frame_ids, front_only, st3d_fov_deg,
+            st3d_range_m,
+        )  # fmt: skip
     pred_boxes, gt_boxes, pairs = scored.pred, scored.gt, scored.pairs
     bev, volume = scored.overlap["bev"], scored.overlap["3d"]
     result = {
