@@ -19,6 +19,7 @@ from dali_cli.evaluation.errors import (
     box_errors,
     breakdown,
     summarize,
+    turned_around,
 )
 from dali_cli.evaluation.evaluate import evaluate
 from dali_cli.store.artifacts import BoxTable, write_boxes
@@ -83,14 +84,18 @@ def test_sizes_height_and_yaw_errors():
     errors = box_errors(changed, truth)
     assert np.allclose(errors[:, 2:6], [0.1, -0.2, 0.05, 0.15])
     assert np.allclose(errors[:, 6], 3.0)
-    # a box turned around overlaps as well but is another box: the raw wrapped difference
+    # a box turned around has the right axis (what the overlap sees) but faces backwards
     flipped = truth.copy()
-    flipped[:, 6] += np.pi
-    assert np.allclose(np.abs(box_errors(flipped, truth)[:, 6]), 180.0)
-    # the wrap: 359 deg apart is 1 deg apart
+    flipped[:, 6] += np.pi + np.radians(2)
+    assert np.allclose(box_errors(flipped, truth)[:, 6], 2.0)
+    assert turned_around(flipped, truth).all() and not turned_around(changed, truth).any()
+    # the wrap: 359 deg apart is 1 deg apart; 91 deg apart is an axis 89 deg off the other way
     across = truth.copy()
     across[:, 6] = truth[:, 6] + np.radians(359)
     assert np.allclose(box_errors(across, truth)[:, 6], -1.0)
+    across[:, 6] = truth[:, 6] + np.radians(91)
+    assert np.allclose(box_errors(across, truth)[:, 6], -89.0)
+    assert turned_around(across, truth).all()
 
 
 def test_a_box_at_the_sensor_takes_the_x_axis_as_its_ray():
@@ -141,7 +146,7 @@ def test_breakdown_of_a_constructed_scene():
     for key in ("median", "mean", "p16", "p84"):
         assert matched["radial_m"][key] == pytest.approx(0.3, abs=1e-6)
         assert matched["tangential_m"][key] == pytest.approx(0.0, abs=1e-6)
-        assert matched["yaw_deg"][key] == pytest.approx(0.0, abs=1e-6)
+        assert matched["yaw_axis_deg"][key] == pytest.approx(0.0, abs=1e-6)
     distance = np.hypot(truth[:45, 0], truth[:45, 1])
     for band, (low, high) in ERROR_BANDS_M.items():
         inside = int(np.sum((distance >= low) & (distance < high)))
@@ -151,6 +156,19 @@ def test_breakdown_of_a_constructed_scene():
             counts = result["false_positives"][iou][metric]["counts"]["all"]
             assert counts == {"tp": 45, "fp": 3, "fn": 15, "background": 1,
                               "mislocalized": 1, "duplicate": 1, "missed": 14}  # fmt: skip
+
+
+def test_boxes_facing_backwards_are_counted_not_mixed_into_the_axis_error():
+    """12 of the 45 matches turned by 180 deg + 1 deg: they match as well, their axis is 1 deg
+    off, and `flipped` counts exactly them."""
+    _, gt, pred = scene()
+    boxes = pred.boxes.copy()
+    boxes[:12, 6] += np.pi + np.radians(1)
+    turned = pred.with_columns(yaw=boxes[:, 6])
+    matched = breakdown(turned, gt, ious=(0.7,))["true_positives"]["all"]
+    assert matched["count"] == 45 and matched["flipped"] == 12
+    assert matched["yaw_axis_deg"]["median"] == pytest.approx(0.0, abs=1e-6)
+    assert matched["yaw_axis_deg"]["p84"] == pytest.approx(1.0, abs=1e-6)
 
 
 def test_the_ap_each_fix_gains_is_the_ap_of_the_fixed_boxes():

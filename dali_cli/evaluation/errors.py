@@ -29,7 +29,7 @@ ERROR_BANDS_M = {"all": (0.0, math.inf), "0-20": (0.0, 20.0), "20-40": (20.0, 40
 TP_IOU = 0.5  # true positives whose errors are summarized: BEV IoU above this
 TP_OVERLAP = "bev"  # BEV matching keeps boxes with a poor z or h, so their errors show
 BACKGROUND_IOU = 0.1  # a false positive overlapping no ground truth by this much is background
-QUANTITIES = ("radial_m", "tangential_m", "z_m", "l_m", "w_m", "h_m", "yaw_deg")
+QUANTITIES = ("radial_m", "tangential_m", "z_m", "l_m", "w_m", "h_m", "yaw_axis_deg")
 KINDS = ("background", "mislocalized", "duplicate")  # false-positive kinds, codes 1, 2, 3
 FIXES = ("mislocalized", "duplicate", "background", "missed")  # what dAP fixes, one at a time
 
@@ -42,8 +42,9 @@ def box_errors(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
       ground-truth centre; positive = the box lies too far from the sensor;
     - tangential_m: the offset across it, positive counter-clockwise (towards +yaw of the ray);
     - z_m, l_m, w_m, h_m: prediction minus ground truth;
-    - yaw_deg: the raw wrapped difference in [-180, 180) degrees. A car's box turned by 180 deg
-      overlaps as well as the right one but is a different box: it shows as about ±180, not 0.
+    - yaw_axis_deg: the error of the box's heading axis, the wrapped difference modulo 180 deg in
+      [-90, 90): what the overlap sees. A box turned by 180 deg overlaps as well as the right one
+      and has an axis error near 0; `turned_around` tells it apart.
 
     A ground truth at the sensor's own position (range 0) takes the +x axis as its ray."""
     pred = np.asarray(pred, dtype=np.float64).reshape(-1, 7)
@@ -55,8 +56,16 @@ def box_errors(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     offset = pred[:, :2] - gt[:, :2]  # (n, 2)
     radial = np.sum(offset * ray, axis=1)
     tangential = ray[:, 0] * offset[:, 1] - ray[:, 1] * offset[:, 0]
-    yaw = np.degrees(geometry.wrap_angle(pred[:, 6] - gt[:, 6]))
-    return np.column_stack([radial, tangential, pred[:, 2:6] - gt[:, 2:6], yaw])  # (n, 7)
+    axis = np.degrees(geometry.wrap_angle(2 * (pred[:, 6] - gt[:, 6]))) / 2  # [-90, 90)
+    return np.column_stack([radial, tangential, pred[:, 2:6] - gt[:, 2:6], axis])  # (n, 7)
+
+
+def turned_around(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """`(n,)` bool: the predicted heading `pred (n, 7)` points more than 90 deg away from the
+    ground truth's `gt (n, 7)` (the box faces backwards; its axis may still be right)."""
+    pred = np.asarray(pred, dtype=np.float64).reshape(-1, 7)
+    gt = np.asarray(gt, dtype=np.float64).reshape(-1, 7)
+    return np.abs(geometry.wrap_angle(pred[:, 6] - gt[:, 6])) > np.pi / 2
 
 
 def summarize(values: np.ndarray) -> dict:
@@ -75,13 +84,16 @@ def summarize(values: np.ndarray) -> dict:
     }
 
 
-def errors_by_band(errors: np.ndarray, distance_m: np.ndarray, bands: dict = ERROR_BANDS_M) -> dict:
+def errors_by_band(
+    errors: np.ndarray, distance_m: np.ndarray, turned: np.ndarray, bands: dict = ERROR_BANDS_M
+) -> dict:
     """Per band of `bands` (name -> [low, high) metres of `distance_m (n,)`): the count, the boxes
-    turned by more than 90 deg ("flipped") and `summarize` of each column of `errors (n, 7)`."""
+    facing backwards ("flipped": `turned (n,)` bool, `turned_around`) and `summarize` of each
+    column of `errors (n, 7)`."""
     summary = {}
     for name, (low, high) in bands.items():
         inside = (distance_m >= low) & (distance_m < high)
-        block = {"count": int(inside.sum()), "flipped": int(np.sum(np.abs(errors[inside, 6]) > 90))}
+        block = {"count": int(inside.sum()), "flipped": int(np.sum(turned[inside]))}
         for column, quantity in enumerate(QUANTITIES):
             block[quantity] = summarize(errors[inside, column])
         summary[name] = block
@@ -180,7 +192,8 @@ def breakdown(
     true = (matched >= 0) & (ignored_pred == 0)
     true[true] = ignored_gt[matched[true]] == 0
     truth = scored.gt.boxes[matched[true]]  # (n, 7)
-    errors = box_errors(scored.pred.boxes[true], truth)
+    predicted = scored.pred.boxes[true]  # (n, 7)
+    errors = box_errors(predicted, truth)
     result = {
         "class": class_name,
         "protocol": scored.protocol,
@@ -193,7 +206,9 @@ def breakdown(
                 name: [low, None if math.isinf(high) else high]
                 for name, (low, high) in ERROR_BANDS_M.items()
             },
-            **errors_by_band(errors, np.hypot(truth[:, 0], truth[:, 1])),
+            **errors_by_band(
+                errors, np.hypot(truth[:, 0], truth[:, 1]), turned_around(predicted, truth)
+            ),
         },
         "false_positives": {},
     }

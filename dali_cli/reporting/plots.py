@@ -283,8 +283,8 @@ def plot_error_breakdown(run: Path, out: Path) -> Path | None:
         shift = (index - (len(rows) - 1) / 2) * width
         matches = row.errors["true_positives"]
         for axis, quantity in zip(axes.flat, QUANTITIES, strict=False):
-            stats = [matches[band][quantity] for band in bands]
-            at = [k for k, entry in enumerate(stats) if entry["median"] is not None]
+            stats = [matches[band].get(quantity, {}) for band in bands]
+            at = [k for k, entry in enumerate(stats) if entry.get("median") is not None]
             median = np.array([stats[k]["median"] for k in at])
             spread = np.array([[median[j] - stats[k]["p16"], stats[k]["p84"] - median[j]]
                                for j, k in enumerate(at)]).reshape(-1, 2).T  # fmt: skip

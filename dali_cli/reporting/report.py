@@ -429,7 +429,8 @@ def breakdown_section(rows: list[Row]) -> list[str]:
         "## Error breakdown",
         f"Box errors of the matches ({matches['overlap'].upper()} IoU > {matches['iou']:g}, "
         f"{first['protocol']} {first['group']}, prediction − truth; radial > 0: too far from the "
-        "sensor; yaw: raw wrapped difference): median [16 %, 84 %]",
+        "sensor; yaw_axis: the heading axis, modulo 180°; turned > 90°: boxes facing backwards): "
+        "median [16 %, 84 %]",
         "",
         "| method | matches | " + " | ".join(QUANTITIES) + " |",
         "|---|---|" + "---|" * len(QUANTITIES),
@@ -437,7 +438,7 @@ def breakdown_section(rows: list[Row]) -> list[str]:
     for row in shown:
         block = row.errors["true_positives"]["all"]
         cells = [
-            "—" if block[q]["median"] is None
+            "—" if block.get(q, {}).get("median") is None
             else f"{_signed(block[q]['median'])} [{_signed(block[q]['p16'])}, "
                  f"{_signed(block[q]['p84'])}]"
             for q in QUANTITIES
