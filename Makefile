@@ -262,6 +262,26 @@ $(eval $(call SELF_TRAIN,iter2_st,iter2/model,iter3/pseudo,iter3/ptsn))
 $(RUN)/baselines/%/pseudo/manifest.json: $(RUN)/baselines/%/ptsn/manifest.json
 	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --target $(TARGET) --scale-from $(RUN)/baselines/$*/ptsn --score-min $(SCORE_MIN) $(PSEUDO_FLAGS) $(EXEC_FLAGS) --out $(@D)
 $(eval $(call SELF_TRAIN,baselines/source_x2_budget_st,baselines/source_x2_budget/model,baselines/source_x2_budget/pseudo,baselines/source_x2_budget/ptsn))
+# tracked self-training (docs/tracks.md): the same self-training on labels that persist over the
+# target's scans. The model pseudo-labels the target with a low cut (TRACK_PSEUDO_MIN: the tracks
+# do the filtering), `dali track-pseudo` keeps one box per parked car in every scan that holds it
+# and the moving tracks, in the world frame of the scans' LiDAR poses by scan registration
+# (`dali register`, once per target: TARGET_POSES); x2 + tracked ST and control + tracked ST
+TRACK_PSEUDO_MIN ?= 0.1
+TARGET_POSES = $(TARGET)_poses
+$(TARGET_POSES)/manifest.json: $(TARGET)/manifest.json
+	$(DALI) register --target $(TARGET) --out $(@D)
+# tracked labels in (1) by the model (2) at its PTSN scale (3)
+define TRACKED_LABELS
+$(RUN)/$(1)/pseudo_low/manifest.json: $(RUN)/$(3)/manifest.json
+	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(RUN)/$(2) --target $(TARGET) --scale-from $(RUN)/$(3) --score-min $(TRACK_PSEUDO_MIN) $(PSEUDO_FLAGS) $(EXEC_FLAGS) --out $$(@D)
+$(RUN)/$(1)/tracked/manifest.json: $(RUN)/$(1)/pseudo_low/manifest.json $(TARGET_POSES)/manifest.json
+	$(DALI) track-pseudo --pseudo $(RUN)/$(1)/pseudo_low --target $(TARGET) --poses $(TARGET_POSES) --out $$(@D)
+endef
+$(eval $(call TRACKED_LABELS,iter3,iter2/model,iter3/ptsn))
+$(eval $(call TRACKED_LABELS,baselines/source_x2_budget,baselines/source_x2_budget/model,baselines/source_x2_budget/ptsn))
+$(eval $(call SELF_TRAIN,iter2_tst,iter2/model,iter3/tracked,iter3/ptsn))
+$(eval $(call SELF_TRAIN,baselines/source_x2_budget_tst,baselines/source_x2_budget/model,baselines/source_x2_budget/tracked,baselines/source_x2_budget/ptsn))
 # KITTI easy / moderate / hard of the same predictions (synthetic labels carry KITTI's columns)
 KITTI_EVAL_FLAGS ?= --protocol kitti --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
 $(RUN)/%/metrics_kitti.json: $(RUN)/%/manifest.json
@@ -337,9 +357,11 @@ compare: $(RUN)/compare_r40.json $(RUN)/compare_r400.json
 # drives (REAL_DATA/objects_adapted, transductive) and of other drives (objects_other, inductive);
 # without one, all of them (objects). Rows: source only, PTSN only, x1, x2, x2 + ST, the x2-budget
 # control (source only + test-time PTSN), control + ST (the control pseudo-labelling the target at
-# its own PTSN scale and self-trained like x2 + ST) and the sim oracle (labelled synthetic
-# KITTI-like frames, x2's budget); x2 against the control and x2 + ST against control + ST also
-# with `dali compare` (a paired bootstrap over each set's frames). REAL_REPORT/real-kitti.md: the
+# its own PTSN scale and self-trained like x2 + ST), x2 + tracked ST and control + tracked ST
+# (the same self-training on `dali track-pseudo`'s labels) and the sim oracle (labelled synthetic
+# KITTI-like frames, x2's budget); x2 against the control, x2 + ST against control + ST and x2 +
+# tracked ST against control + tracked ST also with `dali compare` (a paired bootstrap over each
+# set's frames). REAL_REPORT/real-kitti.md: the
 # mean ± std over the seeds per row and set, each row minus the control paired by seed
 # (bench/real_kitti_table.py). The source trainings (iter0, the control, the sim oracle) are
 # the targets of `make RUN=REAL_RUN-s<seed> SEED=<seed> FRAMES=48 EPOCHS=6` as well: those built
@@ -403,6 +425,8 @@ REAL_ROWS = source:iter0/model:iter0/eval:--scale=1.0 \
     x2_st:iter2_st/model:iter2_st/eval:--scale-from=$(RUN)/iter3/ptsn \
     control:baselines/source_x2_budget/model:baselines/source_x2_budget/eval_ptsn:--scale-from=$(RUN)/baselines/source_x2_budget/ptsn \
     control_st:baselines/source_x2_budget_st/model:baselines/source_x2_budget_st/eval:--scale-from=$(RUN)/baselines/source_x2_budget/ptsn \
+    x2_tst:iter2_tst/model:iter2_tst/eval:--scale-from=$(RUN)/iter3/ptsn \
+    control_tst:baselines/source_x2_budget_tst/model:baselines/source_x2_budget_tst/eval:--scale-from=$(RUN)/baselines/source_x2_budget/ptsn \
     oracle:baselines/sim_oracle_x2_budget/model:baselines/sim_oracle_x2_budget/eval:--scale=1.0
 row_field = $(word $(2),$(subst :, ,$(1)))
 # a row (1) on an object set (2): the row's model at the scale its drive evaluation used
@@ -413,7 +437,7 @@ endef
 $(foreach set,$(REAL_OBJECT_SETS),$(foreach row,$(REAL_ROWS),$(eval $(call OBJECTS_ROW,$(row),$(set)))))
 # x2 against the control and x2 + ST against control + ST on each set: a paired bootstrap over its
 # frames (KITTI R40, IoU 0.7); the predictions are the rows' evaluations'
-REAL_PAIRS = x2:control x2_st:control_st
+REAL_PAIRS = x2:control x2_st:control_st x2_tst:control_tst
 real_eval_dir = $(if $(filter drive,$(2)),$(call row_field,$(filter $(1):%,$(REAL_ROWS)),3),$(2)/$(1))
 real_truth = $(if $(filter drive,$(1)),$(TARGET_VAL),$(REAL_DATA)/$(1))
 define REAL_COMPARE
@@ -430,7 +454,8 @@ real-kitti-rows: $(foreach row,$(REAL_ROWS),$(RUN)/$(call row_field,$(row),3)/ma
     $(foreach set,$(REAL_OBJECT_SETS),$(foreach row,$(REAL_ROWS),$(RUN)/$(set)/$(call row_field,$(row),1)/manifest.json)) \
     $(foreach set,drive $(REAL_OBJECT_SETS),$(foreach pair,$(REAL_PAIRS),$(RUN)/compare_real/$(set)-$(call row_field,$(pair),1).json))
 # pseudo-label quality on the drive's frames (cars with >= 5 points, BEV IoU >= 0.5)
-REAL_PSEUDO = iter1/pseudo iter2/pseudo iter3/pseudo baselines/source_x2_budget/pseudo
+REAL_PSEUDO = iter1/pseudo iter2/pseudo iter3/pseudo baselines/source_x2_budget/pseudo \
+    iter3/tracked baselines/source_x2_budget/tracked
 real-kitti-pseudo: $(foreach dir,$(REAL_PSEUDO),$(RUN)/$(dir)/manifest.json) $(TARGET_VAL)/manifest.json
 	$(BIN)/python bench/pseudo_labels.py --target $(TARGET_VAL) --pseudo $(foreach dir,$(REAL_PSEUDO),$(RUN)/$(dir)) \
 	    --iou 0.5 --min-points 5 --out $(RUN)/pseudo_labels.json

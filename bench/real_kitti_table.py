@@ -41,11 +41,13 @@ ROWS = (
     ("DALI x2 + ST", "iter2_st/eval", "x2_st"),
     ("control (source, x2 budget, PTSN)", "baselines/source_x2_budget/eval_ptsn", "control"),
     ("control + ST", "baselines/source_x2_budget_st/eval", "control_st"),
+    ("DALI x2 + tracked ST", "iter2_tst/eval", "x2_tst"),
+    ("control + tracked ST", "baselines/source_x2_budget_tst/eval", "control_tst"),
     ("sim oracle (x2 budget)", "baselines/sim_oracle_x2_budget/eval", "oracle"),
 )
 CONTROL = "control"
 # `dali compare` files (RUN/compare_real/<set>-<row>.json): the row against its reference
-PAIRS = (("x2", "control"), ("x2_st", "control_st"))
+PAIRS = (("x2", "control"), ("x2_st", "control_st"), ("x2_tst", "control_tst"))
 # (metric key, IoU key in metrics.json, header)
 METRICS = (
     ("bev", "Car", "BEV@0.7"),

@@ -33,8 +33,11 @@ ROWS = {  # row -> (model, drive evaluation)
     "x2_st": ("iter2_st/model", "iter2_st/eval"),
     "control": ("baselines/source_x2_budget/model", "baselines/source_x2_budget/eval_ptsn"),
     "control_st": ("baselines/source_x2_budget_st/model", "baselines/source_x2_budget_st/eval"),
+    "x2_tst": ("iter2_tst/model", "iter2_tst/eval"),
+    "control_tst": ("baselines/source_x2_budget_tst/model", "baselines/source_x2_budget_tst/eval"),
     "oracle": ("baselines/sim_oracle_x2_budget/model", "baselines/sim_oracle_x2_budget/eval"),
 }
+PAIRS = (("x2", "control"), ("x2_st", "control_st"), ("x2_tst", "control_tst"))
 SOURCE_TRAININGS = (
     "data/source",
     "data/target",
@@ -190,6 +193,36 @@ def test_control_st_is_pseudo_labelled_and_self_trained_like_x2_st(setup):
     assert option(control_st, "--epochs") == option(x2_st, "--epochs") is not None
 
 
+def test_tracked_rows_self_train_like_st_on_labels_tracked_over_registered_scans(setup):
+    data, commands = setup["data"], setup["commands"]
+    registers = [w for w in named(commands, "register")]
+    # one registration of the target, shared by every seed and row
+    assert registers and all(w == registers[0] for w in registers)
+    assert option(registers[0], "--target") == f"{data}/target"
+    poses = option(registers[0], "--out")
+    for seed in SEEDS:
+        run = f"{setup['run']}-s{seed}"
+        pseudo = {option(w, "--out"): w for w in named(commands, "pseudo-label")}
+        tracks = {option(w, "--out"): w for w in named(commands, "track-pseudo")}
+        train = {option(w, "--out"): w for w in named(commands, "self-train")}
+        for labels, row, plain in (
+            ("iter3", "iter2_tst", "iter2_st"),
+            ("baselines/source_x2_budget", "baselines/source_x2_budget_tst",
+             "baselines/source_x2_budget_st"),
+        ):  # fmt: skip
+            low, cut = pseudo[f"{run}/{labels}/pseudo_low"], pseudo[f"{run}/{labels}/pseudo"]
+            # the same model and scale as the plain row's labels, a lower cut for the tracks
+            assert options(low, ("--score-min", "--out")) == options(cut, ("--score-min", "--out"))
+            assert float(option(low, "--score-min")) < float(option(cut, "--score-min"))
+            tracked = tracks[f"{run}/{labels}/tracked"]
+            assert option(tracked, "--pseudo") == f"{run}/{labels}/pseudo_low"
+            assert option(tracked, "--target") == f"{data}/target"
+            assert option(tracked, "--poses") == poses
+            mine, theirs = train[f"{run}/{row}/model"], train[f"{run}/{plain}/model"]
+            assert option(mine, "--pseudo") == f"{run}/{labels}/tracked"
+            assert options(mine, ("--pseudo", "--out")) == options(theirs, ("--pseudo", "--out"))
+
+
 def test_the_pairs_are_compared_on_every_set_with_a_paired_bootstrap(setup):
     data, commands = setup["data"], setup["commands"]
     compares = {option(w, "--out"): w for w in named(commands, "compare")}
@@ -198,7 +231,7 @@ def test_the_pairs_are_compared_on_every_set_with_a_paired_bootstrap(setup):
     for seed in SEEDS:
         run = f"{setup['run']}-s{seed}"
         for set_name, gt in truth.items():
-            for row, reference in (("x2", "control"), ("x2_st", "control_st")):
+            for row, reference in PAIRS:
                 words = compares[f"{run}/compare_real/{set_name}-{row}.json"]
                 assert option(words, "--gt") == gt and option(words, "--seed") == seed
                 preds = values(words, "--pred")
