@@ -18,6 +18,7 @@ from dali_cli.evaluation.errors import (
     QUANTITIES,
     box_errors,
     breakdown,
+    format_breakdown,
     summarize,
     turned_around,
 )
@@ -169,6 +170,18 @@ def test_boxes_facing_backwards_are_counted_not_mixed_into_the_axis_error():
     assert matched["count"] == 45 and matched["flipped"] == 12
     assert matched["yaw_axis_deg"]["median"] == pytest.approx(0.0, abs=1e-6)
     assert matched["yaw_axis_deg"]["p84"] == pytest.approx(1.0, abs=1e-6)
+
+
+def test_an_older_breakdown_without_the_axis_error_still_prints():
+    """An evaluation written before yaw_axis_deg existed (it had yaw_deg) prints without it."""
+    _, gt, pred = scene()
+    result = breakdown(pred, gt, ious=(0.7,))
+    for band in ERROR_BANDS_M:
+        result["true_positives"][band]["yaw_deg"] = result["true_positives"][band].pop(
+            "yaw_axis_deg"
+        )
+    text = format_breakdown(result)
+    assert "radial_m" in text and "yaw_axis_deg" not in text and "0 facing backwards" in text
 
 
 def test_the_ap_each_fix_gains_is_the_ap_of_the_fixed_boxes():

@@ -275,16 +275,20 @@ def largest_loss(block: dict) -> tuple[str, float] | None:
 
 def format_breakdown(result: dict) -> str:
     """Plain-text summary for `dali eval`: box errors (all ranges) and the false positives with
-    the AP each fix gains, per threshold, in the headline group."""
+    the AP each fix gains, per threshold, in the headline group. A quantity an older breakdown
+    lacks is left out."""
     tps = result["true_positives"]
     group = result["group"]
     lines = [
         f"Error breakdown ({result['protocol']} {group}): {tps['all']['count']} true positives "
-        f"at {tps['overlap'].upper()} IoU > {tps['iou']:g}, prediction - truth",
+        f"at {tps['overlap'].upper()} IoU > {tps['iou']:g} ({tps['all']['flipped']} facing "
+        "backwards), prediction - truth",
         f"{'':<14}{'median':>9}{'bias':>9}{'med|e|':>9}{'16%':>9}{'84%':>9}",
     ]
     for quantity in QUANTITIES:
-        stats = tps["all"][quantity]
+        stats = tps["all"].get(quantity)
+        if stats is None:
+            continue
         cells = "".join(
             f"{stats[k]:9.3f}" if stats[k] is not None else f"{'-':>9}"
             for k in ("median", "mean", "median_abs", "p16", "p84")
