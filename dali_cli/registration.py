@@ -9,9 +9,10 @@ Per scan: points nearer than `min_range_m` (the ego car) or beyond `max_range_m`
 rest are thinned to one point per `voxel_m / 2` voxel (what enters the map) and again per
 `1.5 voxel_m` voxel (what is registered). The scan's pose is predicted by constant velocity (the
 last step repeated) and refined by Gauss-Newton on point-to-plane residuals to the nearest map
-point (a point-to-point residual where that point's map voxel is not planar), each weighted by a
-Geman-McClure kernel; it stops when an update moves less than `tolerance` (metres + radians) or
-after `max_iterations`. The map is a voxel hash (`voxel_m`, at most `max_points_per_voxel` points
+point (point-to-point where the map around that point is no surface; none where it is a line or
+too sparse to tell), each weighted by a Geman-McClure kernel that narrows from
+`max_correspondence_m` to `kernel_m`; it stops when an update moves less than `tolerance`
+(metres + radians) at the final kernel, or after `max_iterations`. The map is a voxel hash (`voxel_m`, at most `max_points_per_voxel` points
 each, the oldest kept) of the registered scans, cut to `max_range_m` around the latest pose; its
 nearest-neighbour search looks in the 27 voxels around a point (sorted keys + searchsorted).
 """
@@ -53,7 +54,8 @@ class RegistrationParams:
     """voxel_m: map voxel edge (m); the scan is kept at half of it and registered at 1.5 times
     it. min_range_m / max_range_m: points nearer / farther from the sensor are dropped.
     max_correspondence_m: a point farther than this from its nearest map point has no
-    residual. kernel_m: the Geman-McClure scale (m) of the residuals. max_iterations /
+    residual, and the first kernel scale. kernel_m: the final Geman-McClure scale (m) of the
+    residuals. max_iterations /
     tolerance: ICP stops after this many updates, or at an update smaller than tolerance
     (translation m + rotation rad). max_points_per_voxel: map points a voxel keeps.
     motion_prior: start each scan at the constant-velocity prediction (else at the last pose)."""
