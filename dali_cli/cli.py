@@ -35,6 +35,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "pretrain": ("pretrain", "Step 1: train the detector on the labelled source."),
     "ptsn-sweep": ("ptsn_sweep", "Step 2: find the PTSN scale for the target."),
     "pseudo-label": ("pseudo_label", "Step 3: pseudo-label the target at the PTSN scale."),
+    "register": (
+        "register",
+        "Optional before track-pseudo: scan poses of a target without them (registration).",
+    ),
     "track-pseudo": (
         "track_pseudo",
         "Optional after step 3: keep pseudo labels that persist over a scan sequence.",

@@ -41,31 +41,40 @@ def track_pseudo(
     *,
     track_score_min: float = tracks.TRACK_SCORE_MIN,
     params: tracks.TrackParams = tracks.TrackParams(),
+    poses_dir: str | Path | None = None,
     force: bool = False,
     dry_run: bool = False,
 ) -> StageOutcome:
     """Track the pseudo boxes of `pseudo_dir` (a `dali pseudo-label` output) over the scans of
     `target_dir` (its sequence table's poses and its points, never its labels), keep the tracked
-    boxes scored >= `track_score_min` (a parked car: its boxes' median score; a moving track: its mean)."""
+    boxes scored >= `track_score_min` (a parked car: its boxes' median score; a moving track: its mean).
+    `poses_dir`: read the poses and recordings from its sequence.parquet (`dali register`'s
+    output) instead of the target's."""
     pseudo_dir, target_dir = Path(pseudo_dir), Path(target_dir)
+    sequence_dir = Path(poses_dir) if poses_dir is not None else target_dir
     for name, value in asdict(params).items():
         if not np.isfinite(value) or value < 0 or (name == "gate_m" and value == 0):
             raise ParameterError(name, f"must be finite and > 0 (>= 0 for counts), got {value}")
     if not 0 <= track_score_min <= 1:
         raise ParameterError("track_score_min", f"must be in [0, 1], got {track_score_min}")
     stage_params = {"track_score_min": track_score_min, **asdict(params)}
-    inputs = {"pseudo": pseudo_dir, "target": target_dir}
+    # the poses are an input (hashed) only when given: runs without them keep their manifests
+    inputs = {"pseudo": pseudo_dir, "target": target_dir, "poses": poses_dir}
 
     def build(directory: Path) -> BuildResult:
         frames = FrameSet(target_dir)
         frame_ids = list(frames.frame_ids)
         try:
-            poses = read_lidar_poses(target_dir, frame_ids)
-            recordings = recordings_of(target_dir, frames.attrs, frame_ids)
+            poses = read_lidar_poses(sequence_dir, frame_ids)
+            recordings = recordings_of(sequence_dir, frames.attrs, frame_ids)
         except SequenceError as error:
-            raise StageError(
-                f"{error} (import the target with its poses: `dali import kitti-raw --poses`)"
-            ) from None
+            how = (
+                f"--poses must cover the scans of {target_dir}"
+                if poses_dir is not None
+                else "import the target with its poses, `dali import kitti-raw --poses`, or "
+                "register its scans, `dali register`"
+            )
+            raise StageError(f"{error} ({how})") from None
         table = read_boxes(pseudo_dir)
         position = {frame_id: i for i, frame_id in enumerate(frame_ids)}
         unknown = sorted(set(table.frame_id) - set(position))

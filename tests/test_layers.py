@@ -21,6 +21,7 @@ ORDER = [
     "quantities",  # the kinds of number (and profile names): plain checks, no imports
     "store",  # artifacts on disk: manifests, frame sets, box tables
     "geometry",
+    "registration",  # scan poses by ICP (dali register): numpy only
     "columns",
     "sensors",
     "raycast",

@@ -461,7 +461,8 @@ def protocol_options(function):
     return apply_options(function, [
         choice_option("--recall-positions", choices=["40", "11", "400"], default="40",
                       help="R40 (KITTI's) or R11 AP; 400: a fine recall grid, the same "
-                           "computation without R40's 2-point steps (not a KITTI metric)."),
+                           "computation without R40's 2-point steps (not a KITTI metric).",
+                      tuning=True),
         choice_option("--protocol", choices=["auto", "kitti", "range", "st3d"], default="auto",
                       help="Difficulty filters (see below)."),
         tuning_option("--front-only", "front_only", is_flag=True,

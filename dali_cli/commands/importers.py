@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import choice_option, import_options
+from dali_cli.commands.common import choice_option, import_options, tuning_option
 from dali_cli.commands.kinds import INTENSITY_MAX, VIEW_DEG
 
 
@@ -119,7 +119,7 @@ def kitti_raw_command(
                    "SEQUENCE_DIR/../../poses/<NN>.txt (the devkit layout), when present.")  # fmt: skip
 @click.option("--crop-fov", is_flag=True,
               help="Keep only points that project into camera 2's image (needs the calib).")  # fmt: skip
-@click.option("--crop-front-deg", type=VIEW_DEG, default=None,
+@tuning_option("--crop-front-deg", type=VIEW_DEG, default=None,
               metavar="DEG",
               help="Keep only points within ±DEG/2 of straight ahead in azimuth (for a sequence "
                    "without calib; KITTI's camera 2 sees about 82 degrees).")  # fmt: skip
@@ -163,7 +163,7 @@ def kitti_odometry_command(
                    "frames.")  # fmt: skip
 @click.option("--max-frames", type=click.IntRange(min=1), default=None,
               help="Import only the first N key frames (in time order per scene).")  # fmt: skip
-@click.option("--lidar-frame", is_flag=True,
+@tuning_option("--lidar-frame", is_flag=True,
               help="Keep nuScenes' LiDAR axes (x right, y forward) instead of turning them to "
                    "dali's x forward, y left.")  # fmt: skip
 @import_options("nuscenes")

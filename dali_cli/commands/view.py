@@ -34,7 +34,8 @@ def _parse_boxes(value: str) -> tuple[str, Path]:
 @click.option("--side", is_flag=True, help="Add a side view (x-z) under the bird's-eye view.")
 @click.option("--range-m", type=DISTANCE_M, default=None,
               help="Show x, y in [-R, R]. Default: fitted to the points and boxes.")  # fmt: skip
-@choice_option("--colour-by", choices=["z", "intensity"], default="z", help="Point colour.")  # fmt: skip
+@choice_option("--colour-by", choices=["z", "intensity"], default="z", help="Point colour.",
+               tuning=True)  # fmt: skip
 @tuning_option("--annotate", is_flag=True, help="Write each box's score (or label) at its centre.")
 @tuning_option("--width-px", type=click.IntRange(min=200, max=8000), default=1200,
               show_default=True, help="Image width in pixels.")  # fmt: skip

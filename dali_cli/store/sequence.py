@@ -246,3 +246,61 @@ def merge_sequences(parts: list[tuple[str, pa.Table]], rename) -> pa.Table:
         )
         tables.append(table.append_column(RECORDING_COLUMN, pa.array(recording, pa.string())))
     return pa.concat_tables(tables, promote_options="default")
+
+
+def read_sequence_if_any(directory: str | Path) -> pa.Table | None:
+    """`directory/sequence.parquet` checked (read_sequence), None when there is none."""
+    return read_sequence(directory) if (Path(directory) / SEQUENCE_TABLE).is_file() else None
+
+
+def scan_order(
+    frame_ids: list[str], table: pa.Table | None, fallback_recordings: list[str]
+) -> tuple[np.ndarray, list[str]]:
+    """`(n,)` int64 index and the recording of each of `frame_ids`: the table's `index` and
+    `recording` where it has the frame (and the column); else `fallback_recordings` (a merged
+    set's names) and the integer the frame id ends with (after a `NAME-` prefix), or the frame
+    id's rank in sorted order."""
+    rows: dict[str, int] = {}
+    index_column, recording_column = [], []
+    if table is not None:
+        rows = {f: i for i, f in enumerate(table.column("frame_id").to_pylist())}
+        index_column = table.column("index").to_pylist()
+        if RECORDING_COLUMN in table.column_names:
+            recording_column = table.column(RECORDING_COLUMN).to_pylist()
+    rank = {f: i for i, f in enumerate(sorted(frame_ids))}
+    index = np.zeros(len(frame_ids), np.int64)
+    recordings = list(fallback_recordings)
+    for position, frame_id in enumerate(frame_ids):
+        row = rows.get(frame_id)
+        tail = frame_id.rpartition("-")[2]
+        if row is not None:
+            index[position] = index_column[row]
+        else:
+            index[position] = int(tail) if tail.isdigit() else rank[frame_id]
+        if row is not None and recording_column and recording_column[row] is not None:
+            recordings[position] = str(recording_column[row])
+    return index, recordings
+
+
+def registered_table(
+    frame_ids: list[str],
+    index: np.ndarray,
+    recordings: list[str],
+    lidar_poses: np.ndarray,
+    source: pa.Table | None = None,
+) -> pa.Table:
+    """The sequence table of `frame_ids` with `(n, 4, 4)` `lidar_poses` (e.g. from scan
+    registration), `(n,)` index, and recording (the column only when some recording is named);
+    `source` (the frame set's own table, or None): its time_s and camera poses are kept for the
+    frames it holds (nulls for the others), its LiDAR poses replaced."""
+    table = sequence_table(frame_ids, index=index, lidar_poses=lidar_poses)
+    if source is not None:
+        rows = {f: i for i, f in enumerate(source.column("frame_id").to_pylist())}
+        at = pa.array([rows.get(f) for f in frame_ids], pa.int64())
+        for name in (TIME_COLUMN, *CAMERA_POSE_COLUMNS):
+            if name in source.column_names:
+                values = source.column(name).cast(pa.float64()).take(at)
+                table = table.append_column(name, values)
+    if any(recordings):
+        table = table.append_column(RECORDING_COLUMN, pa.array(recordings, pa.string()))
+    return table
