@@ -244,7 +244,14 @@ def pct(value) -> str:
     return "-" if value is None else f"{100 * value:.0f} %"
 
 
-PSEUDO_SETS = ("iter1/pseudo", "iter2/pseudo", "iter3/pseudo", "baselines/source_x2_budget/pseudo")
+PSEUDO_SETS = (
+    "iter1/pseudo",
+    "iter2/pseudo",
+    "iter3/pseudo",
+    "baselines/source_x2_budget/pseudo",
+    "iter3/tracked",
+    "baselines/source_x2_budget/tracked",
+)
 
 
 def pseudo_section(

@@ -1,0 +1,236 @@
+"""A shipped model's directory (models/<name>/): the trained model's weights and config, its
+test-time scale, card.json and README.md (the model card) saying what the model is, what made
+it (every stage that led to it, from the manifests: command parameters, frames seen, wall time,
+machine) and how well it does (its own evaluations; the recipe's mean ± std over seeds).
+
+    .venv/bin/python bench/model_card.py --model RUN/<row>/model [--scale-from RUN/<ptsn>] \\
+        --name kitti-hdl64e --title "..." --eval SET=EVAL_DIR ... \\
+        [--recipe SET=EVAL_DIR,EVAL_DIR,...] [--fixture-eval EVAL_DIR] --out models/kitti-hdl64e
+
+--eval: this model's evaluations (a `dali eval` output: metrics.json), one per set; --recipe: the
+same recipe's evaluations over several seeds (this model's among them), per set; --fixture-eval:
+an evaluation on the repository's own test frames, which the tests rerun (tests/test_models.py).
+The card is written next to a copy of model.pt and model.json (and scale.json): the directory
+is staged beside --out and renamed into place; an --out this script did not write (no card.json)
+is refused, never replaced.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+
+CARD_NAME = "card.json"
+COPIED = ("model.pt", "model.json")
+# (metrics.json block, overlap kind, header)
+METRICS = (("Car", "bev", "AP_BEV@0.7"), ("Car", "3d", "AP_3D@0.7"),
+           ("Car@0.5", "bev", "AP_BEV@0.5"), ("Car@0.5", "3d", "AP_3D@0.5"))  # fmt: skip
+COUNTS_SHOWN = (
+    "frames",
+    "frames_without_labels",
+    "frames_seen",
+    "steps",
+    "boxes",
+    "pseudo_boxes",
+    "labels",
+)
+PARAMS_SHOWN = ("frames", "epochs", "minutes", "lr", "scale", "score_min", "seed", "cars",
+                "sensor", "expected_size", "crop_fov", "track_score_min")  # fmt: skip
+
+
+def read_json(path: Path):
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def headline(metrics: dict, block: str, kind: str) -> float | None:
+    """KITTI moderate AP (or the range protocol's all-range AP) of one block, in %."""
+    entry = metrics.get(block, {}).get(kind, {})
+    value = entry.get("moderate", entry.get("all"))
+    return None if value is None else round(float(value), 2)
+
+
+def evaluation(directory: Path) -> dict:
+    """The AP figures, frames and protocol of one `dali eval` output."""
+    metrics = read_json(directory / "metrics.json")
+    if metrics is None:
+        raise SystemExit(
+            f"model_card: {directory}/metrics.json not found (is it a dali eval output?)"
+        )
+    car = metrics.get("Car", {})
+    return {
+        "protocol": car.get("protocol"),
+        "frames": car.get("frames"),
+        "scale": metrics.get("scale"),
+        **{header: headline(metrics, block, kind) for block, kind, header in METRICS},
+    }
+
+
+def provenance(model_dir: Path) -> list[dict]:
+    """Every stage that led to `model_dir`, inputs first (depth-first over the manifests'
+    inputs; each directory once): stage, directory name, shown params, counts, wall seconds,
+    machine."""
+    seen, order = set(), []
+
+    def visit(directory: Path) -> None:
+        if directory in seen:
+            return
+        seen.add(directory)
+        manifest = read_json(directory / "manifest.json")
+        if manifest is None:
+            return
+        for records in manifest.get("inputs", {}).values():
+            for record in records if isinstance(records, list) else [records]:
+                path = record.get("path") if isinstance(record, dict) else record
+                if path:
+                    visit(Path(path))
+        runtime = manifest.get("runtime") or {}
+        order.append({
+            "stage": manifest.get("stage"),
+            "directory": "/".join(directory.parts[-3:]),
+            "params": {k: v for k, v in manifest.get("params", {}).items() if k in PARAMS_SHOWN},
+            "counts": {k: v for k, v in ((manifest.get("outputs") or {}).get("counts") or {}).items()
+                       if k in COUNTS_SHOWN},
+            "wall_seconds": (manifest.get("timings") or {}).get("wall_seconds"),
+            "machine": " · ".join(str(runtime[k]) for k in ("cpu_model", "device", "threads")
+                                  if k in runtime),
+            "created": manifest.get("created"),
+        })  # fmt: skip
+
+    visit(model_dir)
+    return order
+
+
+def mean_std(values: list[float]) -> str:
+    if not values:
+        return "-"
+    if len(values) == 1:
+        return f"{values[0]:.1f}"
+    return f"{np.mean(values):.1f} ± {np.std(values, ddof=1):.1f}"
+
+
+def named_dirs(pairs: list[str], option: str) -> dict[str, list[Path]]:
+    result = {}
+    for pair in pairs:
+        name, _, dirs = pair.partition("=")
+        if not name or not dirs:
+            raise SystemExit(f"model_card: {option} takes SET=DIR[,DIR...], got {pair!r}")
+        result[name] = [Path(d) for d in dirs.split(",")]
+    return result
+
+
+def card_text(card: dict) -> str:
+    """README.md of the model directory."""
+    lines = [f"# {card['name']}: {card['title']}", "", card["summary"], ""]
+    lines += ["## Use", "", "    " + card["use"], ""]
+    headers = [header for _, _, header in METRICS]
+    lines += ["## Accuracy", "",
+              "Car, R40; KITTI moderate where the set has KITTI's columns (else all ranges), %.",
+              "", "| set | frames | " + " | ".join(headers) + " |",
+              "|---|---|" + "---|" * len(headers)]  # fmt: skip
+    for name, entry in card["evaluations"].items():
+        cells = ["-" if entry[h] is None else f"{entry[h]:.1f}" for h in headers]
+        lines.append(f"| {name} | {entry['frames']} | " + " | ".join(cells) + " |")
+    if card["recipe"]:
+        lines += ["", f"The recipe over {card['recipe_seeds']} seeds (mean ± std; this model is one "
+                  "of them):", "", "| set | seeds | " + " | ".join(headers) + " |",
+                  "|---|---|" + "---|" * len(headers)]  # fmt: skip
+        for name, entries in card["recipe"].items():
+            cells = [mean_std([e[h] for e in entries if e[h] is not None]) for h in headers]
+            lines.append(f"| {name} | {len(entries)} | " + " | ".join(cells) + " |")
+    if card["fixture"]:
+        entry = card["fixture"]
+        lines += ["", f"On the repository's test frame (tests/fixtures/real/kitti, {entry['frames']} "
+                  f"frame): AP_BEV / AP_3D@0.7 {entry['AP_BEV@0.7']} / {entry['AP_3D@0.7']}; "
+                  "tests/test_models.py reruns it."]  # fmt: skip
+    lines += ["", "## How it was made", "",
+              "Every stage that led to the weights, inputs first (from the manifests; `make models` "
+              "reruns them):", "", "| stage | output | parameters | counts | wall s | machine |",
+              "|---|---|---|---|---|---|"]  # fmt: skip
+    for step in card["provenance"]:
+        params = ", ".join(f"{k}={v}" for k, v in step["params"].items())
+        counts = ", ".join(f"{k}={v}" for k, v in step["counts"].items())
+        wall = "-" if step["wall_seconds"] is None else f"{step['wall_seconds']:.0f}"
+        lines.append(f"| {step['stage']} | {step['directory']} | {params} | {counts} | {wall} | "
+                     f"{step['machine']} |")  # fmt: skip
+    lines += ["", "## Limits", "", *[f"- {limit}" for limit in card["limits"]], ""]
+    return "\n".join(lines)
+
+
+def publish(staging: Path, out: Path) -> None:
+    """Rename `staging` into `out`; an `out` without card.json is someone else's: refused."""
+    if out.exists():
+        if not (out / CARD_NAME).is_file():
+            shutil.rmtree(staging)
+            raise SystemExit(f"model_card: {out} exists and was not written by model_card "
+                             f"(no {CARD_NAME}): not replaced")  # fmt: skip
+        old = out.with_name(f".{out.name}.old-{os.getpid()}")
+        out.rename(old)
+        staging.rename(out)
+        shutil.rmtree(old)
+    else:
+        staging.rename(out)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--model", type=Path, required=True)
+    parser.add_argument("--scale-from", type=Path, help="the ptsn-sweep whose scale.json it uses")
+    parser.add_argument("--name", required=True)
+    parser.add_argument("--title", required=True)
+    parser.add_argument("--summary", required=True, help="what the model is, in a paragraph")
+    parser.add_argument("--limit", action="append", default=[], help="a limit (repeatable)")
+    parser.add_argument("--eval", action="append", default=[], metavar="SET=DIR")
+    parser.add_argument("--recipe", action="append", default=[], metavar="SET=DIR,DIR,...")
+    parser.add_argument("--fixture-eval", type=Path)
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args(argv)
+
+    for name in COPIED:
+        if not (args.model / name).is_file():
+            raise SystemExit(f"model_card: {args.model / name} not found (is it a dali model?)")
+    scale_file = args.scale_from / "scale.json" if args.scale_from else None
+    if scale_file is not None and not scale_file.is_file():
+        raise SystemExit(f"model_card: {scale_file} not found (is it a ptsn-sweep output?)")
+    evaluations = {
+        name: evaluation(dirs[0]) for name, dirs in named_dirs(args.eval, "--eval").items()
+    }
+    recipe = {name: [evaluation(d) for d in dirs if (d / "metrics.json").is_file()]
+              for name, dirs in named_dirs(args.recipe, "--recipe").items()}  # fmt: skip
+    scale = read_json(scale_file)["scale"] if scale_file else 1.0
+    use = f"dali eval --model {args.out} --data DATA" + (
+        f" --scale-from {args.out}" if scale_file else "") + " --out OUT"  # fmt: skip
+    card = {
+        "name": args.name,
+        "title": args.title,
+        "summary": args.summary,
+        "use": use,
+        "scale": scale,
+        "model_bytes": (args.model / "model.pt").stat().st_size,
+        "evaluations": evaluations,
+        "recipe": recipe,
+        "recipe_seeds": max((len(v) for v in recipe.values()), default=0),
+        "fixture": evaluation(args.fixture_eval) if args.fixture_eval else None,
+        "provenance": provenance(args.model.resolve()),
+        "limits": args.limit,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    staging = args.out.with_name(f".{args.out.name}.tmp-{os.getpid()}")
+    staging.mkdir()
+    for name in COPIED:
+        shutil.copy2(args.model / name, staging / name)
+    if scale_file:
+        shutil.copy2(scale_file, staging / "scale.json")
+    (staging / CARD_NAME).write_text(json.dumps(card, indent=1) + "\n")
+    (staging / "README.md").write_text(card_text(card))
+    publish(staging, args.out)
+    print(f"model_card: wrote {args.out} ({card['model_bytes'] / 1e6:.1f} MB weights)")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

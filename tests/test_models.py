@@ -1,0 +1,133 @@
+"""The shipped models (models/<name>/, `make models`): each is a dali model directory small
+enough to ship with a card whose figures reproduce, and bench/model_card.py, which writes them,
+never replaces a directory it did not write."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from dali_cli.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+MODELS = ROOT / "models"
+SHIPPED = ("waymo-like-source", "kitti-hdl64e")
+FIXTURE = ROOT / "tests" / "fixtures" / "real" / "kitti" / "training"
+MAX_BYTES = 20 * 1024 * 1024
+CARD_SCRIPT = ROOT / "bench" / "model_card.py"
+
+
+def card_of(name: str) -> dict:
+    return json.loads((MODELS / name / "card.json").read_text())
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_a_shipped_model_is_a_small_dali_model_with_its_card(name):
+    directory = MODELS / name
+    assert (directory / "model.pt").stat().st_size <= MAX_BYTES
+    config = json.loads((directory / "model.json").read_text())
+    assert config["detector"] and config["config"]["x_range_m"]
+    card = card_of(name)
+    assert card["name"] == name and card["model_bytes"] == (directory / "model.pt").stat().st_size
+    assert card["evaluations"] and card["provenance"]
+    readme = (directory / "README.md").read_text()
+    assert f"# {name}:" in readme and "## How it was made" in readme
+    if (directory / "scale.json").is_file():
+        assert json.loads((directory / "scale.json").read_text())["scale"] == card["scale"]
+
+
+def test_no_real_label_went_into_the_adapted_model():
+    """Every stage that made kitti-hdl64e read scans only: each real import holds no label."""
+    stages = card_of("kitti-hdl64e")["provenance"]
+    imports = [step for step in stages if step["stage"].startswith("import")]
+    assert imports
+    for step in imports:
+        assert step["counts"]["frames_without_labels"] == step["counts"]["frames"] > 0
+    assert not any(step["stage"] in ("eval", "compare") for step in stages)
+
+
+def test_the_adapted_model_reproduces_its_cards_figure_on_the_test_frame(tmp_path):
+    """`dali eval` of models/kitti-hdl64e with its own scale on the repository's KITTI frame gives
+    the AP its card states, within 0.1."""
+    runner = CliRunner()
+    data, out = tmp_path / "frame", tmp_path / "eval"
+    result = runner.invoke(main, ["import", "kitti", str(FIXTURE), "--crop-fov", "--no-progress",
+                                  "--out", str(data)])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    model = MODELS / "kitti-hdl64e"
+    result = runner.invoke(main, ["eval", "--model", str(model), "--data", str(data), "--scale-from",
+                                  str(model), "--protocol", "kitti", "--iou", "0.7", "--iou", "0.5",
+                                  "--no-progress", "--out", str(out)])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    stated = card_of("kitti-hdl64e")["fixture"]
+    for block, kind, header in (("Car", "bev", "AP_BEV@0.7"), ("Car", "3d", "AP_3D@0.7"),
+                                ("Car@0.5", "bev", "AP_BEV@0.5"), ("Car@0.5", "3d", "AP_3D@0.5")):  # fmt: skip
+        assert metrics[block][kind]["moderate"] == pytest.approx(stated[header], abs=0.1)
+
+
+def fake_model(directory: Path) -> Path:
+    """A directory with the files a card copies and a manifest naming one input."""
+    directory.mkdir(parents=True)
+    (directory / "model.pt").write_bytes(b"weights")
+    (directory / "model.json").write_text(json.dumps({"detector": "x", "config": {}}))
+    source = directory.parent / "source"
+    source.mkdir()
+    (source / "manifest.json").write_text(json.dumps({"stage": "synth", "params": {"frames": 3}}))
+    manifest = {"stage": "pretrain", "params": {"epochs": 2.0, "lr": 0.1, "batch_size": 1},
+                "inputs": {"source": [{"path": str(source), "hash": "0"}]},
+                "outputs": {"counts": {"frames_seen": 6, "steps": 6}},
+                "timings": {"wall_seconds": 12.0},
+                "runtime": {"cpu_model": "CPU", "device": "cpu", "threads": 1}}  # fmt: skip
+    (directory / "manifest.json").write_text(json.dumps(manifest))
+    return directory
+
+
+def fake_eval(directory: Path, bev: float) -> Path:
+    directory.mkdir(parents=True)
+    block = {"protocol": "kitti", "frames": 2, "bev": {"moderate": bev}, "3d": {"moderate": 1.0}}
+    (directory / "metrics.json").write_text(json.dumps({"Car": block, "Car@0.5": block}))
+    return directory
+
+
+def run_card(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(CARD_SCRIPT), *args], capture_output=True, text=True)
+
+
+def test_the_card_names_every_stage_and_the_recipes_spread(tmp_path):
+    model = fake_model(tmp_path / "run" / "model")
+    evals = [fake_eval(tmp_path / f"eval{i}", bev) for i, bev in enumerate((50.0, 60.0, 70.0))]
+    out = tmp_path / "models" / "m"
+    args = ["--model", str(model), "--name", "m", "--title", "t", "--summary", "s",
+            "--eval", f"set={evals[0]}", "--recipe", f"set={','.join(map(str, evals))}",
+            "--limit", "one", "--out", str(out)]  # fmt: skip
+    done = run_card(*args)
+    assert done.returncode == 0, done.stderr
+    card = json.loads((out / "card.json").read_text())
+    assert [step["stage"] for step in card["provenance"]] == ["synth", "pretrain"]
+    assert card["provenance"][1]["params"] == {"epochs": 2.0, "lr": 0.1}
+    assert card["recipe_seeds"] == 3 and card["evaluations"]["set"]["AP_BEV@0.7"] == 50.0
+    readme = (out / "README.md").read_text()
+    assert "| set | 3 | 60.0 ± 10.0 |" in readme and "- one" in readme
+    assert (out / "model.pt").read_bytes() == b"weights"
+    # rewriting its own directory replaces it; nothing is left beside it
+    assert run_card(*args).returncode == 0
+    assert sorted(p.name for p in out.parent.iterdir()) == ["m"]
+
+
+def test_a_directory_the_card_did_not_write_is_never_replaced(tmp_path):
+    model = fake_model(tmp_path / "run" / "model")
+    evaluation = fake_eval(tmp_path / "eval", 50.0)
+    out = tmp_path / "models" / "m"
+    out.mkdir(parents=True)
+    (out / "notes.txt").write_text("mine")
+    done = run_card("--model", str(model), "--name", "m", "--title", "t", "--summary", "s",
+                    "--eval", f"set={evaluation}", "--out", str(out))  # fmt: skip
+    assert done.returncode != 0 and "not replaced" in done.stderr
+    assert sorted(p.name for p in out.parent.iterdir()) == ["m"]
+    assert (out / "notes.txt").read_text() == "mine"
