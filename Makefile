@@ -27,7 +27,7 @@ TARGET     ?= $(RUN)/data/target
 TARGET_VAL ?= $(RUN)/data/target_val
 LIBRARY    ?= $(RUN)/library
 
-.PHONY: help install test test-slow demo bench pareto pareto-quick lint format clean-runs
+.PHONY: help install test test-slow demo bench pareto pareto-quick lint format clean-runs models
 
 help:
 	@echo "make demo        - install and run a small synthetic adaptation end to end"
@@ -39,7 +39,8 @@ help:
 	@echo "     baseline-oracle, ablation-rc, ablation-cf), cross-domain, compare RUN=DIR - the rows DALI is read against"
 	@echo "make report RUN=DIR - the AP table, sizes and plots of a run"
 	@echo "make experiment  - the full synthetic benchmark (docs/RESULTS.md)"
-	@echo "make real-kitti  - adapt to a real KITTI raw drive (docs/data.md)"
+	@echo "make real-kitti  - adapt to real KITTI drives over seeds: every row on labelled real frames (docs/data.md)"
+	@echo "make models      - rebuild models/waymo-like-source and models/kitti-hdl64e with their cards"
 	@echo "make bench       - run the benchmarks (results in bench/results/*.json)"
 	@echo "make pareto      - run time vs error of every stage's speed knobs (docs/pareto.md; pareto-quick: smoke test)"
 	@echo "make lint        - ruff check + format check"
@@ -480,10 +481,14 @@ real-kitti: install
 # over the seeds of SEEDS that `make real-kitti` has evaluated. Builds what is missing of the
 # benchmark's seed MODELS_SEED (resumable like it), then writes the two directories.
 MODELS_SEED   ?= 0
-MODELS_ROW    ?= control_st
+MODELS_ROW    ?= control_tst
 MODELS_SOURCE ?= baselines/source_x2_budget
 MODELS_FIXTURE = tests/fixtures/real/kitti/training
 models_row = $(filter $(MODELS_ROW):%,$(REAL_ROWS))
+recipe_control_st = the equal-budget control (the source trained as long as x2, at its PTSN scale) self-trained on its own pseudo labels (control + ST)
+recipe_control_tst = the equal-budget control (the source trained as long as x2, at its PTSN scale) self-trained on its pseudo labels kept by dali track-pseudo over the registered scans (control + tracked ST)
+recipe_x2_st = two DALI iterations then self-training on x2's pseudo labels (x2 + ST)
+recipe_x2_tst = two DALI iterations then self-training on x2's pseudo labels kept by dali track-pseudo (x2 + tracked ST)
 models_sets = $(REAL_OBJECT_SETS)
 models_evals = drive=$(RUN)/$(call row_field,$(models_row),3) \
     $(foreach set,$(models_sets),$(set)=$(RUN)/$(set)/$(MODELS_ROW))
@@ -495,19 +500,19 @@ $(REAL_DATA)/fixture/manifest.json: | install
 	$(DALI) import kitti $(MODELS_FIXTURE) --crop-fov --out $(@D)
 $(RUN)/fixture/$(MODELS_ROW)/manifest.json: $(RUN)/$(call row_field,$(models_row),3)/manifest.json $(REAL_DATA)/fixture/manifest.json
 	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/$(call row_field,$(models_row),2) --data $(REAL_DATA)/fixture $(subst =, ,$(call row_field,$(models_row),4)) $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
-models/waymo-like-source/card.json: $(RUN)/$(MODELS_SOURCE)/eval_source/manifest.json
+models/waymo-like-source/card.json: $(RUN)/$(MODELS_SOURCE)/eval_source/manifest.json bench/model_card.py
 	$(BIN)/python bench/model_card.py --model $(RUN)/$(MODELS_SOURCE)/model --name waymo-like-source \
 	    --title "a car detector trained on the calibrated synthetic Waymo-like world" \
 	    --summary "A dali detector (pillars, CenterPoint head, IoU refinement; Car) trained on $(FRAMES) synthetic frames of the Waymo-like world (dali synth, seed $(SEED)); no real data. The source that models/kitti-hdl64e was adapted from." \
 	    --eval synthetic_waymo_like_val=$(RUN)/$(MODELS_SOURCE)/eval_source \
 	    --limit "Trained on $(FRAMES) frames on a 2-core CPU: where more frames stop helping was not measured." \
 	    --out $(@D)
-models/kitti-hdl64e/card.json: $(foreach set,$(models_sets),$(RUN)/$(set)/$(MODELS_ROW)/manifest.json) \
+models/kitti-hdl64e/card.json: bench/model_card.py $(foreach set,$(models_sets),$(RUN)/$(set)/$(MODELS_ROW)/manifest.json) \
     $(RUN)/$(call row_field,$(models_row),3)/manifest.json $(RUN)/fixture/$(MODELS_ROW)/manifest.json
 	$(BIN)/python bench/model_card.py --model $(RUN)/$(call row_field,$(models_row),2) \
 	    --scale-from $(lastword $(subst =, ,$(call row_field,$(models_row),4))) --name kitti-hdl64e \
 	    --title "a KITTI HDL-64E car detector no real label went into" \
-	    --summary "models/waymo-like-source adapted by dali's recipe $(MODELS_ROW) (make real-kitti) to $(words $(REAL_DRIVES)) unlabeled real KITTI drives ($(REAL_DRIVE_NAMES)); no stage that made it read a real label. Point clouds: KITTI HDL-64E scans in the LiDAR frame, camera field of view; it expects them scaled by its test-time scale (scale.json)." \
+	    --summary "models/waymo-like-source adapted by $(recipe_$(MODELS_ROW)) to $(words $(REAL_DRIVES)) unlabeled real KITTI drives ($(REAL_DRIVE_NAMES)); no stage that made it read a real label. Point clouds: KITTI HDL-64E scans in the LiDAR frame, camera field of view; it expects them scaled by its test-time scale (scale.json)." \
 	    $(foreach pair,$(models_evals),--eval $(pair)) $(foreach pair,$(models_recipe),--recipe $(pair)) \
 	    --fixture-eval $(RUN)/fixture/$(MODELS_ROW) \
 	    --limit "Other drives' frames are harder than the adapted drives': see the accuracy table and docs/RESULTS.md." \
