@@ -71,6 +71,15 @@ def evaluation(directory: Path) -> dict:
     }
 
 
+def prediction_digest(directory: Path) -> dict:
+    """The boxes an evaluation scored: their count and the sum of their scores (a rerun that
+    predicts anything else shows in these, even where AP does not move)."""
+    import pyarrow.parquet as pq
+
+    scores = pq.read_table(directory / "predictions.parquet", columns=["score"]).column(0)
+    return {"boxes": len(scores), "score_sum": round(float(np.sum(scores.to_numpy())), 4)}
+
+
 def provenance(model_dir: Path) -> list[dict]:
     """Every stage that led to `model_dir`, inputs first (depth-first over the manifests'
     inputs; each directory once): stage, directory name, shown params, counts, wall seconds,
@@ -215,7 +224,11 @@ def main(argv: list[str] | None = None) -> None:
         "evaluations": evaluations,
         "recipe": recipe,
         "recipe_seeds": max((len(v) for v in recipe.values()), default=0),
-        "fixture": evaluation(args.fixture_eval) if args.fixture_eval else None,
+        "fixture": (
+            {**evaluation(args.fixture_eval), "predictions": prediction_digest(args.fixture_eval)}
+            if args.fixture_eval
+            else None
+        ),
         "provenance": provenance(args.model.resolve()),
         "limits": args.limit,
     }

@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pyarrow.parquet as pq
 import pytest
 from click.testing import CliRunner
 
@@ -69,6 +70,9 @@ def test_the_adapted_model_reproduces_its_cards_figure_on_the_test_frame(tmp_pat
     for block, kind, header in (("Car", "bev", "AP_BEV@0.7"), ("Car", "3d", "AP_3D@0.7"),
                                 ("Car@0.5", "bev", "AP_BEV@0.5"), ("Car@0.5", "3d", "AP_3D@0.5")):  # fmt: skip
         assert metrics[block][kind]["moderate"] == pytest.approx(stated[header], abs=0.1)
+    scores = pq.read_table(out / "predictions.parquet", columns=["score"]).column(0).to_numpy()
+    assert len(scores) == stated["predictions"]["boxes"]
+    assert scores.sum() == pytest.approx(stated["predictions"]["score_sum"], abs=1e-3)
 
 
 def fake_model(directory: Path) -> Path:
