@@ -4,11 +4,13 @@ targets recorded without poses; writes the sequence table `dali track-pseudo --p
 from __future__ import annotations
 
 import json
+import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from dali_cli.registration import RegistrationError, RegistrationParams, register_scans
 from dali_cli.runtime import console
@@ -49,9 +51,11 @@ def register(
     params: RegistrationParams = RegistrationParams(),
     force: bool = False,
     dry_run: bool = False,
+    progress: bool = True,
 ) -> StageOutcome:
     """Register the scans of `target_dir` recording by recording (each from its own first
-    scan, in its index order) into `out`/sequence.parquet and summary.json."""
+    scan, in its index order) into `out`/sequence.parquet and summary.json; `progress`: a bar
+    over the scans on stderr."""
     target_dir = Path(target_dir)
     check_params(params)
 
@@ -77,15 +81,21 @@ def register(
         poses = np.tile(np.eye(4), (len(frame_ids), 1, 1))
         cache = ChunkCache(4)
         summary = {}
+        bar = tqdm(total=len(frame_ids), desc="register", unit="scan", file=sys.stderr,
+                   disable=not progress, leave=False)  # fmt: skip
+
+        def scan_points(ids: list[str], k: int) -> np.ndarray:
+            bar.update(1)
+            return frames.frame(ids[k], cache)
+
         for name, positions in groups.items():
             ids = [frame_ids[p] for p in positions]
             label = f"recording '{name}'" if name else "the frame set"
             started = time.perf_counter()
             try:
-                result = register_scans(
-                    len(ids), lambda k, ids=ids: frames.frame(ids[k], cache), params
-                )
+                result = register_scans(len(ids), lambda k, ids=ids: scan_points(ids, k), params)
             except RegistrationError as error:
+                bar.close()
                 message = str(error).partition(": ")[2]
                 raise StageError(
                     f"{target_dir / 'frames.zarr'}, frame '{ids[error.scan]}': {message}"
@@ -105,6 +115,7 @@ def register(
                 f"register: {label}: {len(ids)} scans, {steps.sum():.1f} m, "
                 f"{len(summary[name]['not_converged'])} not converged"
             )
+        bar.close()
         write_table(directory, registered_table(frame_ids, index, recordings, poses, source))
         (directory / SUMMARY_NAME).write_text(json.dumps({"recordings": summary}, indent=2) + "\n")
         counts = {

@@ -16,6 +16,7 @@ from dali_cli.commands.common import (
     protocol_options,
     score_min_option,
     stage_options,
+    tuning_option,
     workers_option,
 )
 from dali_cli.commands.kinds import SCALE
@@ -84,7 +85,7 @@ each kind costs; docs/evaluation.md).
               help="A metrics file (FILE.json), or an artifact directory (any other path): "
                    "DIR/metrics.json, DIR/predictions.parquet and DIR/manifest.json, skipped "
                    "when up to date (what make uses).")  # fmt: skip
-@click.option("--save-predictions/--no-save-predictions", default=True, show_default=True,
+@tuning_option("--save-predictions/--no-save-predictions", default=True, show_default=True,
               help="With --model and --out: also write the predictions (all scores) as "
                    "predictions.parquet beside metrics.json (read by `dali report` for size "
                    "plots).")  # fmt: skip

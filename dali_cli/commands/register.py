@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import input_dir_option, out_dir_option, stage_options, tuning_option
+from dali_cli.commands.common import (
+    input_dir_option,
+    no_progress_option,
+    out_dir_option,
+    stage_options,
+    tuning_option,
+)
 from dali_cli.commands.kinds import DISTANCE_M, MARGIN_M, TOLERANCE
 from dali_cli.registration import RegistrationParams
 
@@ -37,7 +43,8 @@ DEFAULTS = RegistrationParams()
                default=DEFAULTS.max_points_per_voxel, show_default=True,
                help="Map points a voxel keeps (the oldest).")  # fmt: skip
 @stage_options
-def command(target, out, force, dry_run, **params):
+@no_progress_option
+def command(target, out, force, dry_run, no_progress, **params):
     """Estimate each scan's LiDAR pose by registering it to a local map of the scans before it
     (point-to-plane ICP with a constant-velocity motion prior and a robust kernel, on points
     3-80 m from the sensor), for a target recorded without GPS/IMU poses.
@@ -54,7 +61,12 @@ def command(target, out, force, dry_run, **params):
     from stages.register import register
 
     outcome = register(
-        target, out, params=RegistrationParams(**params), force=force, dry_run=dry_run
+        target,
+        out,
+        params=RegistrationParams(**params),
+        force=force,
+        dry_run=dry_run,
+        progress=not no_progress,
     )
     if outcome.manifest and outcome.status == "ran":
         counts = outcome.manifest["outputs"]["counts"]
