@@ -12,9 +12,10 @@ last step repeated) and refined by Gauss-Newton on point-to-plane residuals to t
 point (point-to-point where the map around that point is no surface; none where it is a line or
 too sparse to tell), each weighted by a Geman-McClure kernel that narrows from
 `max_correspondence_m` to `kernel_m`; it stops when an update moves less than `tolerance`
-(metres + radians) at the final kernel, or after `max_iterations`. The map is a voxel hash (`voxel_m`, at most `max_points_per_voxel` points
-each, the oldest kept) of the registered scans, cut to `max_range_m` around the latest pose; its
-nearest-neighbour search looks in the 27 voxels around a point (sorted keys + searchsorted).
+(metres + radians) at the final kernel, or after `max_iterations`. The map is a voxel hash
+(`voxel_m`, at most `max_points_per_voxel` points each, the oldest kept) of the registered
+scans, cut to `max_range_m` around the latest pose; its nearest-neighbour search looks in the 27
+voxels around a point (sorted keys + searchsorted).
 """
 
 from __future__ import annotations
@@ -55,9 +56,8 @@ class RegistrationParams:
     it. min_range_m / max_range_m: points nearer / farther from the sensor are dropped.
     max_correspondence_m: a point farther than this from its nearest map point has no
     residual, and the first kernel scale. kernel_m: the final Geman-McClure scale (m) of the
-    residuals. max_iterations /
-    tolerance: ICP stops after this many updates, or at an update smaller than tolerance
-    (translation m + rotation rad). max_points_per_voxel: map points a voxel keeps.
+    residuals. max_iterations / tolerance: ICP stops after this many updates, or at an update
+    smaller than tolerance (translation m + rotation rad). max_points_per_voxel: map points a voxel keeps.
     motion_prior: start each scan at the constant-velocity prediction (else at the last pose)."""
 
     voxel_m: float = 1.0
