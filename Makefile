@@ -507,8 +507,11 @@ models/waymo-like-source/card.json: $(RUN)/$(MODELS_SOURCE)/eval_source/manifest
 	    --eval synthetic_waymo_like_val=$(RUN)/$(MODELS_SOURCE)/eval_source \
 	    --limit "Trained on $(FRAMES) frames on a 2-core CPU: where more frames stop helping was not measured." \
 	    --out $(@D)
+# the other seeds' evaluations of the recipe that exist: their card line follows them
+models_recipe_done = $(wildcard $(foreach seed,$(SEEDS),$(REAL_RUN)-s$(seed)/$(call row_field,$(models_row),3)/manifest.json \
+    $(foreach set,$(models_sets),$(REAL_RUN)-s$(seed)/$(set)/$(MODELS_ROW)/manifest.json)))
 models/kitti-hdl64e/card.json: bench/model_card.py $(foreach set,$(models_sets),$(RUN)/$(set)/$(MODELS_ROW)/manifest.json) \
-    $(RUN)/$(call row_field,$(models_row),3)/manifest.json $(RUN)/fixture/$(MODELS_ROW)/manifest.json
+    $(RUN)/$(call row_field,$(models_row),3)/manifest.json $(RUN)/fixture/$(MODELS_ROW)/manifest.json $(models_recipe_done)
 	$(BIN)/python bench/model_card.py --model $(RUN)/$(call row_field,$(models_row),2) \
 	    --scale-from $(lastword $(subst =, ,$(call row_field,$(models_row),4))) --name kitti-hdl64e \
 	    --title "a KITTI HDL-64E car detector no real label went into" \

@@ -157,9 +157,11 @@ def card_text(card: dict) -> str:
         lines += ["", f"On the repository's test frame (tests/fixtures/real/kitti, {entry['frames']} "
                   f"frame): AP_BEV / AP_3D@0.7 {entry['AP_BEV@0.7']} / {entry['AP_3D@0.7']}; "
                   "tests/test_models.py reruns it."]  # fmt: skip
+    total = sum(step["wall_seconds"] or 0 for step in card["provenance"])
     lines += ["", "## How it was made", "",
               "Every stage that led to the weights, inputs first (from the manifests; `make models` "
-              "reruns them):", "", "| stage | output | parameters | counts | wall s | machine |",
+              f"reruns them): {total / 3600:.1f} h of stage wall time on the machines named.", "",
+              "| stage | output | parameters | counts | wall s | machine |",
               "|---|---|---|---|---|---|"]  # fmt: skip
     for step in card["provenance"]:
         params = ", ".join(f"{k}={v}" for k, v in step["params"].items())
