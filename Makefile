@@ -489,11 +489,10 @@ recipe_control_st = the equal-budget control (the source trained as long as x2, 
 recipe_control_tst = the equal-budget control (the source trained as long as x2, at its PTSN scale) self-trained on its pseudo labels kept by dali track-pseudo over the registered scans (control + tracked ST)
 recipe_x2_st = two DALI iterations then self-training on x2's pseudo labels (x2 + ST)
 recipe_x2_tst = two DALI iterations then self-training on x2's pseudo labels kept by dali track-pseudo (x2 + tracked ST)
-models_sets = $(REAL_OBJECT_SETS)
-models_evals = drive=$(RUN)/$(call row_field,$(models_row),3) \
-    $(foreach set,$(models_sets),$(set)=$(RUN)/$(set)/$(MODELS_ROW))
-models_recipe = drive=$(subst $(space),$(comma),$(foreach seed,$(SEEDS),$(REAL_RUN)-s$(seed)/$(call row_field,$(models_row),3))) \
-    $(foreach set,$(models_sets),$(set)=$(subst $(space),$(comma),$(foreach seed,$(SEEDS),$(REAL_RUN)-s$(seed)/$(set)/$(MODELS_ROW))))
+# the recipe's evaluation directories, relative to a run: on the drive, then on each object set
+models_eval_dirs = $(foreach set,drive $(REAL_OBJECT_SETS),$(call real_eval_dir,$(MODELS_ROW),$(set)))
+models_evals = $(foreach set,drive $(REAL_OBJECT_SETS),$(set)=$(RUN)/$(call real_eval_dir,$(MODELS_ROW),$(set)))
+models_recipe = $(foreach set,drive $(REAL_OBJECT_SETS),$(set)=$(subst $(space),$(comma),$(foreach seed,$(SEEDS),$(REAL_RUN)-s$(seed)/$(call real_eval_dir,$(MODELS_ROW),$(set)))))
 comma := ,
 space := $(subst ,, )
 $(REAL_DATA)/fixture/manifest.json: | install
@@ -508,10 +507,9 @@ models/waymo-like-source/card.json: $(RUN)/$(MODELS_SOURCE)/eval_source/manifest
 	    --limit "Trained on $(FRAMES) frames on a 2-core CPU: where more frames stop helping was not measured." \
 	    --out $(@D)
 # the other seeds' evaluations of the recipe that exist: their card line follows them
-models_recipe_done = $(wildcard $(foreach seed,$(SEEDS),$(REAL_RUN)-s$(seed)/$(call row_field,$(models_row),3)/manifest.json \
-    $(foreach set,$(models_sets),$(REAL_RUN)-s$(seed)/$(set)/$(MODELS_ROW)/manifest.json)))
-models/kitti-hdl64e/card.json: bench/model_card.py models-always $(foreach set,$(models_sets),$(RUN)/$(set)/$(MODELS_ROW)/manifest.json) \
-    $(RUN)/$(call row_field,$(models_row),3)/manifest.json $(RUN)/fixture/$(MODELS_ROW)/manifest.json $(models_recipe_done)
+models_recipe_done = $(wildcard $(foreach seed,$(SEEDS),$(foreach dir,$(models_eval_dirs),$(REAL_RUN)-s$(seed)/$(dir)/manifest.json)))
+models/kitti-hdl64e/card.json: bench/model_card.py models-always $(foreach dir,$(models_eval_dirs),$(RUN)/$(dir)/manifest.json) \
+    $(RUN)/fixture/$(MODELS_ROW)/manifest.json $(models_recipe_done)
 	$(BIN)/python bench/model_card.py --model $(RUN)/$(call row_field,$(models_row),2) \
 	    --scale-from $(lastword $(subst =, ,$(call row_field,$(models_row),4))) --name kitti-hdl64e \
 	    --title "a KITTI HDL-64E car detector no real label went into" \

@@ -25,6 +25,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from real_kitti_table import read_json, spread  # the benchmark table's mean ± std
 
 CARD_NAME = "card.json"
 COPIED = ("model.pt", "model.json")
@@ -42,10 +43,6 @@ COUNTS_SHOWN = (
 )
 PARAMS_SHOWN = ("frames", "epochs", "minutes", "lr", "scale", "score_min", "seed", "cars",
                 "sensor", "expected_size", "crop_fov", "track_score_min")  # fmt: skip
-
-
-def read_json(path: Path):
-    return json.loads(path.read_text()) if path.is_file() else None
 
 
 def headline(metrics: dict, block: str, kind: str) -> float | None:
@@ -115,14 +112,6 @@ def provenance(model_dir: Path) -> list[dict]:
     return order
 
 
-def mean_std(values: list[float]) -> str:
-    if not values:
-        return "-"
-    if len(values) == 1:
-        return f"{values[0]:.1f}"
-    return f"{np.mean(values):.1f} ± {np.std(values, ddof=1):.1f}"
-
-
 def named_dirs(pairs: list[str], option: str) -> dict[str, list[Path]]:
     result = {}
     for pair in pairs:
@@ -150,7 +139,7 @@ def card_text(card: dict) -> str:
                   "of them):", "", "| set | seeds | " + " | ".join(headers) + " |",
                   "|---|---|" + "---|" * len(headers)]  # fmt: skip
         for name, entries in card["recipe"].items():
-            cells = [mean_std([e[h] for e in entries if e[h] is not None]) for h in headers]
+            cells = [spread([e[h] for e in entries if e[h] is not None]) for h in headers]
             lines.append(f"| {name} | {len(entries)} | " + " | ".join(cells) + " |")
     if card["fixture"]:
         entry = card["fixture"]

@@ -58,6 +58,14 @@ def merged_id(name: str, frame_id: str) -> str:
     return f"{name}{SEPARATOR}{frame_id}"
 
 
+def set_names(attrs: dict, frame_ids: list[str]) -> list[str]:
+    """The set NAME of each `NAME-<id>` frame id of a merged frame set (`attrs`: its frames.zarr
+    attributes, source_format 'merge'); '' for every frame of any other set (one recording)."""
+    if attrs.get("source_format") != "merge":
+        return [""] * len(frame_ids)
+    return [frame_id.partition(SEPARATOR)[0] for frame_id in frame_ids]
+
+
 def point_features(attrs: dict) -> str:
     """What a frame set's points hold, from its attrs: the KITTI importers' reflectance, else the
     set's source format (a merged set records the kind it merged)."""

@@ -60,14 +60,12 @@ def register(
     check_params(params)
 
     def build(directory: Path) -> BuildResult:
-        from dali_cli.merge import SEPARATOR
+        from dali_cli.merge import set_names
 
         frames = FrameSet(target_dir)
         frame_ids = list(frames.frame_ids)
         source = read_sequence_if_any(target_dir)
-        merged = frames.attrs.get("source_format") == "merge"
-        fallback = [f.partition(SEPARATOR)[0] if merged else "" for f in frame_ids]
-        index, recordings = scan_order(frame_ids, source, fallback)
+        index, recordings = scan_order(frame_ids, source, set_names(frames.attrs, frame_ids))
         groups = {}  # recording -> (scans,) positions in index order
         for name in dict.fromkeys(recordings):
             positions = np.array([i for i, r in enumerate(recordings) if r == name], np.int64)

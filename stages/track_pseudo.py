@@ -26,12 +26,10 @@ SUMMARY_NAME = "summary.json"
 def recordings_of(target_dir: Path, attrs: dict, frame_ids: list[str]) -> list[str]:
     """The recording (drive) of each scan: the sequence table's `recording` column; for a
     merged set whose table predates it, the frame id's set name (`<name>-<id>`); else one."""
-    from dali_cli.merge import SEPARATOR
+    from dali_cli.merge import set_names
 
     recordings = read_recordings(target_dir, frame_ids)
-    if not any(recordings) and attrs.get("source_format") == "merge":
-        recordings = [frame_id.partition(SEPARATOR)[0] for frame_id in frame_ids]
-    return recordings
+    return recordings if any(recordings) else set_names(attrs, frame_ids)
 
 
 def track_pseudo(
