@@ -1,7 +1,9 @@
 """The real-target table of `make real-kitti` (markdown) over one run per seed: every row's KITTI
 AP (Car, R40, moderate) on each evaluation set as mean ± std over the seeds, every row minus the
-equal-budget control paired by seed, `dali compare`'s paired bootstrap over the frames (x2 against
-the control, x2 + ST against control + ST), the pseudo labels' precision and recall on the
+equal-budget control paired by seed, each DALI row minus its own control paired by seed (x2 − control,
+x2 + ST − control + ST, x2 + tracked ST − control + tracked ST), where each row loses AP@0.7
+(`dali eval`'s error breakdown: the AP with each kind of error fixed), `dali compare`'s paired
+bootstrap over the frames for the same pairs, the pseudo labels' precision and recall on the
 labelled drive (by score band, and where the false boxes lie) and each stage's wall time.
 
     .venv/bin/python bench/real_kitti_table.py RUN-s0 RUN-s1 RUN-s2 --data REAL_DATA \
@@ -136,6 +138,72 @@ def paired_table(runs: list[Path], set_name: str) -> list[str]:
                     per_seed.append("-" if delta is None else f"{delta:+.1f}")
             cells.append(spread(deltas, sign="+"))
         lines.append(f"| {row[0]} | " + " | ".join(cells) + f" | {' · '.join(per_seed)} |")
+    return lines
+
+
+def dali_pairs_table(runs: list[Path], set_name: str) -> list[str]:
+    """Each DALI row minus its own control (`PAIRS`), seed by seed: mean ± std of Δ AP@0.7."""
+    by_name = {row[2]: row for row in ROWS}
+    lines = [
+        "| DALI row − its control | Δ BEV@0.7 | Δ 3D@0.7 | per seed Δ BEV / Δ 3D |",
+        "|---|---|---|---|",
+    ]
+    for name, reference in PAIRS:
+        deltas: dict[str, list[float]] = {"bev": [], "3d": []}
+        per_seed = []
+        for run in runs:
+            mine = metrics_of(run, set_name, by_name[name])
+            theirs = metrics_of(run, set_name, by_name[reference])
+            seed_cells = []
+            for kind in ("bev", "3d"):
+                a, b = moderate(mine, kind, "Car"), moderate(theirs, kind, "Car")
+                if a is None or b is None:
+                    seed_cells.append("-")
+                    continue
+                deltas[kind].append(a - b)
+                seed_cells.append(f"{a - b:+.1f}")
+            per_seed.append(" / ".join(seed_cells))
+        lines.append(
+            f"| {by_name[name][0]} − {by_name[reference][0]} | {spread(deltas['bev'], '+')} | "
+            f"{spread(deltas['3d'], '+')} | {' · '.join(per_seed)} |"
+        )
+    return lines
+
+
+FIXES = ("mislocalized", "background", "duplicate", "missed")
+
+
+def loss_table(runs: list[Path], set_name: str) -> list[str]:
+    """Where each row loses AP@0.7 (moderate): the AP gained with each kind of error fixed alone
+    (`dali eval`'s breakdown, `ap_fixed` − `ap`), mean over the seeds, BEV / 3D, and the largest."""
+    lines = [
+        "| row | AP BEV / 3D@0.7 | "
+        + " | ".join(f"+ {fix} fixed" for fix in FIXES)
+        + " | largest loss (3D) |",
+        "|---|---|" + "---|" * (len(FIXES) + 1),
+    ]
+    for row in ROWS:
+        blocks = []
+        for run in runs:
+            errors = (metrics_of(run, set_name, row) or {}).get("errors") or {}
+            block = (errors.get("false_positives") or {}).get("0.7")
+            if block is not None:
+                blocks.append(block)
+        if not blocks:
+            continue
+        ap = {kind: np.mean([b[kind]["ap"] for b in blocks]) for kind in ("bev", "3d")}
+        gain = {
+            (fix, kind): np.mean([b[kind]["ap_fixed"][fix] - b[kind]["ap"] for b in blocks])
+            for fix in FIXES
+            for kind in ("bev", "3d")
+        }
+        largest = max(FIXES, key=lambda fix: gain[(fix, "3d")])
+        cells = [f"{gain[(fix, 'bev')]:+.1f} / {gain[(fix, '3d')]:+.1f}" for fix in FIXES]
+        lines.append(
+            f"| {row[0]} | {ap['bev']:.1f} / {ap['3d']:.1f} | "
+            + " | ".join(cells)
+            + f" | {largest} ({gain[(largest, '3d')]:+.1f}) |"
+        )
     return lines
 
 
@@ -342,6 +410,14 @@ def main() -> None:
         title = SET_TITLES.get(set_name, set_name)
         lines += ["", f"## On {title} ({set_name})", ""] + ap_table(args.runs, set_name)
         lines += ["", "Paired by seed:", ""] + paired_table(args.runs, set_name)
+        lines += ["", "DALI against its own control, paired by seed:", ""]
+        lines += dali_pairs_table(args.runs, set_name)
+        lines += [
+            "",
+            "Where AP@0.7 is lost (each error kind fixed alone; mean over the seeds):",
+            "",
+        ]
+        lines += loss_table(args.runs, set_name)
     lines += ["", "## Paired bootstrap over the frames (`dali compare`, per seed)", ""]
     lines += bootstrap_table(args.runs, args.sets)
     lines += ["", "## Pseudo labels on the drive", ""]
