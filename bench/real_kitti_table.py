@@ -114,6 +114,20 @@ def ap_table(runs: list[Path], set_name: str) -> list[str]:
     return lines
 
 
+def seed_deltas(runs: list[Path], set_name: str, row, reference, kind: str, block: str):
+    """`row` minus `reference` in each run (moderate AP), None where either was not evaluated."""
+    deltas = []
+    for run in runs:
+        mine = moderate(metrics_of(run, set_name, row), kind, block)
+        theirs = moderate(metrics_of(run, set_name, reference), kind, block)
+        deltas.append(None if mine is None or theirs is None else mine - theirs)
+    return deltas
+
+
+def signed(delta: float | None) -> str:
+    return "-" if delta is None else f"{delta:+.1f}"
+
+
 def paired_table(runs: list[Path], set_name: str) -> list[str]:
     """Every row minus the control, seed by seed (only seeds where both were evaluated)."""
     control = next(row for row in ROWS if row[2] == CONTROL)
@@ -125,18 +139,11 @@ def paired_table(runs: list[Path], set_name: str) -> list[str]:
     for row in ROWS:
         if row is control:
             continue
-        cells, per_seed = [], []
+        cells = []
         for kind, block, _ in METRICS:
-            deltas = []
-            for run in runs:
-                mine = moderate(metrics_of(run, set_name, row), kind, block)
-                theirs = moderate(metrics_of(run, set_name, control), kind, block)
-                delta = None if mine is None or theirs is None else mine - theirs
-                if delta is not None:
-                    deltas.append(delta)
-                if (kind, block) == ("bev", "Car"):
-                    per_seed.append("-" if delta is None else f"{delta:+.1f}")
-            cells.append(spread(deltas, sign="+"))
+            deltas = seed_deltas(runs, set_name, row, control, kind, block)
+            cells.append(spread([d for d in deltas if d is not None], sign="+"))
+        per_seed = [signed(d) for d in seed_deltas(runs, set_name, row, control, "bev", "Car")]
         lines.append(f"| {row[0]} | " + " | ".join(cells) + f" | {' · '.join(per_seed)} |")
     return lines
 
@@ -149,24 +156,12 @@ def dali_pairs_table(runs: list[Path], set_name: str) -> list[str]:
         "|---|---|---|---|",
     ]
     for name, reference in PAIRS:
-        deltas: dict[str, list[float]] = {"bev": [], "3d": []}
-        per_seed = []
-        for run in runs:
-            mine = metrics_of(run, set_name, by_name[name])
-            theirs = metrics_of(run, set_name, by_name[reference])
-            seed_cells = []
-            for kind in ("bev", "3d"):
-                a, b = moderate(mine, kind, "Car"), moderate(theirs, kind, "Car")
-                if a is None or b is None:
-                    seed_cells.append("-")
-                    continue
-                deltas[kind].append(a - b)
-                seed_cells.append(f"{a - b:+.1f}")
-            per_seed.append(" / ".join(seed_cells))
-        lines.append(
-            f"| {by_name[name][0]} − {by_name[reference][0]} | {spread(deltas['bev'], '+')} | "
-            f"{spread(deltas['3d'], '+')} | {' · '.join(per_seed)} |"
-        )
+        row, control = by_name[name], by_name[reference]
+        bev = seed_deltas(runs, set_name, row, control, "bev", "Car")
+        d3d = seed_deltas(runs, set_name, row, control, "3d", "Car")
+        per_seed = " · ".join(f"{signed(a)} / {signed(b)}" for a, b in zip(bev, d3d, strict=True))
+        cells = [spread([d for d in deltas if d is not None], "+") for deltas in (bev, d3d)]
+        lines.append(f"| {row[0]} − {control[0]} | {cells[0]} | {cells[1]} | {per_seed} |")
     return lines
 
 
