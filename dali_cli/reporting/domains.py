@@ -1,6 +1,7 @@
 """How alike two LiDAR domains look: per-frame-set statistics of points (count in view, intensity,
-height, range) and of labelled cars (per frame, beyond 40 m, points per car by range band), over
-the points in a camera-like view in front of the sensor. Pure functions over arrays."""
+height, range) and of labelled cars (per frame, beyond 40 m, points per car by range band, how far
+their surface sits inside their boxes), over the points in a camera-like view in front of the
+sensor. Pure functions over arrays."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dali_cli.geometry import count_points_in_boxes
+from dali_cli.reporting.surface_inset import surface_insets
 
 CAR_BANDS_M = ((10.0, 20.0), (20.0, 30.0), (30.0, 40.0), (40.0, 60.0))
 FAR_CAR_M = 40.0
@@ -32,7 +34,8 @@ def in_view(xy: np.ndarray, view_deg: float | None) -> np.ndarray:
 @dataclass
 class FrameStats:
     """One frame's raw material: per point in view intensity, z, range `(n,)`; per car in view
-    (>= 1 point) its range `(k,)` and points `(k,)`."""
+    (>= 1 point) its range `(k,)`, points `(k,)` and end- and side-face insets `(k, 2)` (m, NaN
+    where not measured; `surface_inset.surface_insets`)."""
 
     points: int
     intensity: np.ndarray
@@ -40,6 +43,7 @@ class FrameStats:
     range_m: np.ndarray
     car_range_m: np.ndarray
     car_points: np.ndarray
+    car_insets: np.ndarray
 
 
 def frame_stats(
@@ -67,6 +71,7 @@ def frame_stats(
         range_m=np.hypot(kept_sample[:, 0], kept_sample[:, 1]).astype(np.float64),
         car_range_m=np.hypot(cars[seen, 0], cars[seen, 1]),
         car_points=per_car[seen].astype(np.int64),
+        car_insets=surface_insets(kept, cars[seen]),
     )
 
 
@@ -98,7 +103,9 @@ def summarize(frames: list[FrameStats]) -> DomainStats:
     m), median range (m, in the ground plane): over all points in view, each frame's sample
     weighted by its full count; cars_per_frame: mean cars in view with >= 1 point;
     cars_beyond_40m / cars: how many of them lie beyond 40 m; points_per_car_<band>: median
-    points of the cars in each range band (None when the band holds no car), with their count.
+    points of the cars in each range band (None when the band holds no car), with their count;
+    end_face_inset_m / side_face_inset_m: median depth of the car surface inside its box's end
+    and side faces (None when no car's face was measured), with the count of cars measured.
     """
     counts = np.array([f.points for f in frames], np.float64)
     values = np.concatenate([f.intensity for f in frames]) if frames else np.zeros(0)
@@ -111,6 +118,9 @@ def summarize(frames: list[FrameStats]) -> DomainStats:
     )
     car_range = np.concatenate([f.car_range_m for f in frames]) if frames else np.zeros(0)
     car_points = np.concatenate([f.car_points for f in frames]) if frames else np.zeros(0)
+    car_insets = (
+        np.concatenate([f.car_insets for f in frames]) if frames else np.zeros((0, 2))
+    ).reshape(-1, 2)
     mean_intensity = (
         float(np.average(values, weights=weights)) if weights.sum() > 0 else float("nan")
     )
@@ -132,6 +142,10 @@ def summarize(frames: list[FrameStats]) -> DomainStats:
         key = f"points_per_car_{low:.0f}_{high:.0f}m"
         stats[key] = float(np.median(car_points[band])) if band.any() else None
         stats[f"cars_{low:.0f}_{high:.0f}m"] = int(band.sum())
+    for column, face in enumerate(("end", "side")):
+        measured = car_insets[:, column][np.isfinite(car_insets[:, column])]
+        stats[f"{face}_face_inset_m"] = float(np.median(measured)) if measured.size else None
+        stats[f"cars_{face}_face"] = int(measured.size)
     samples = {
         "intensity": values,
         "height": heights,
@@ -159,6 +173,10 @@ TABLE_ROWS = (
          (f"points_per_car_{low:.0f}_{high:.0f}m", f"cars_{low:.0f}_{high:.0f}m"), "{:.0f}")
         for low, high in CAR_BANDS_M
     ),
+    ("car surface inside its box, end face (median m, n)", ("end_face_inset_m", "cars_end_face"),
+     "{:.3f}"),
+    ("car surface inside its box, side face (median m, n)",
+     ("side_face_inset_m", "cars_side_face"), "{:.3f}"),
 )  # fmt: skip
 
 
@@ -168,6 +186,8 @@ def _cell(values: dict, keys: tuple[str, ...], form: str) -> str:
         value = values.get(key)
         if value is None or (isinstance(value, float) and np.isnan(value)):
             parts.append("-")
+        elif isinstance(value, (int, np.integer)):
+            parts.append(str(value))  # counts stay whole whatever the row's format
         else:
             parts.append(form.format(value))
     return " / ".join(parts)
