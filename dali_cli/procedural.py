@@ -70,6 +70,12 @@ _NOMINAL = {
     "van": ((5.05, 1.95, 1.98), (0.05, 0.03, 0.04)),
     "pickup": ((5.40, 1.95, 1.82), (0.06, 0.03, 0.04)),
 }
+# Real car ends bulge: the bumper's middle leads, its corners, the bonnet and the bottom trail.
+# Ranges of the recess at the corners in plan and at the top/bottom in profile (metres), over a
+# blend length that fades it out along the body.
+END_BOW_M = (0.12, 0.28)
+END_BOW_VERTICAL_M = (0.06, 0.16)
+END_BOW_REACH_M = 0.9
 _BELTLINE = {"sedan": 0.66, "hatchback": 0.64, "suv": 0.68, "van": 0.58, "pickup": 0.66}
 
 
@@ -88,6 +94,8 @@ class CarShape:
     beltline: float  # height of the beltline
     roof_taper: float  # roof half-width / body half-width
     end_radius: float  # plan-view rounding radius at the bumpers
+    end_bow: float  # how far the bumpers' corners sit behind their middle, in plan (m)
+    end_bow_vertical: float  # how far the ends' top and bottom sit behind their middle (m)
     top_profile: np.ndarray  # (K, 2) x fraction from the front, z fraction of height
     detail_amplitude: float
 
@@ -121,6 +129,8 @@ def sample_shape(rng: np.random.Generator, kind: str | None = None) -> CarShape:
         beltline=float(height * (_BELTLINE[kind] + rng.normal(0.0, 0.015))),
         roof_taper=float(rng.uniform(0.78, 0.90)),
         end_radius=float(rng.uniform(0.25, 0.45)),
+        end_bow=float(rng.uniform(END_BOW_M[0], END_BOW_M[1])),
+        end_bow_vertical=float(rng.uniform(END_BOW_VERTICAL_M[0], END_BOW_VERTICAL_M[1])),
         top_profile=profile,
         detail_amplitude=float(rng.uniform(0.004, 0.012)),
     )
@@ -194,11 +204,20 @@ def _body(shape: CarShape, stations: int, around: int, rng: np.random.Generator)
     y = y + displacement * radial[..., 0]
     z = z + displacement * radial[..., 1]
 
-    grid = np.stack([np.broadcast_to(x[:, None], y.shape), y, z], -1).reshape(-1, 3)  # (S*A, 3)
+    # ends bulge: recess each end section's vertices by their lateral and vertical offset
+    span = np.maximum(top - bottom, 1e-3)[:, None]  # (S, 1)
+    lateral = y / (0.5 * shape.width)  # (S, A) about -1..1
+    vertical = 2.0 * (z - bottom[:, None]) / span - 1.0  # (S, A) -1..1
+    blend = np.clip(1.0 - end_distance / END_BOW_REACH_M, 0.0, 1.0)[:, None]  # (S, 1)
+    recess = blend * (shape.end_bow * lateral**2 + shape.end_bow_vertical * vertical**2)
+    x_grid = x[:, None] - np.sign(x)[:, None] * recess  # (S, A)
+
+    grid = np.stack([x_grid, y, z], -1).reshape(-1, 3)  # (S*A, 3)
     faces = _grid_triangles(stations, around, wrap=True)
     # caps: fans to the centroid of the first and last section
     front_center = grid[:around].mean(axis=0)
     rear_center = grid[-around:].mean(axis=0)
+    front_center[0], rear_center[0] = x[0], x[-1]  # the ends' middles lead
     ring = np.arange(around)
     ring_next = (ring + 1) % around
     front_index, rear_index = len(grid), len(grid) + 1

@@ -38,6 +38,28 @@ def test_procedural_cars_are_closed_unit_box_meshes_with_kind_sizes(kind):
     assert model.kind == kind and model.faces.dtype == np.int32
 
 
+@pytest.mark.parametrize("kind", KINDS)
+def test_procedural_car_ends_bulge_without_folding(kind):
+    from dali_cli import procedural
+
+    stations, around, _ = procedural._resolution(5000)
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        shape = procedural.sample_shape(rng, kind)
+        vertices, _ = procedural._body(shape, stations, around, rng)
+        grid = vertices[: stations * around].reshape(stations, around, 3)
+        # every line along the body runs from the front bumper to the rear one without folding
+        assert (np.diff(grid[:, :, 0], axis=0) < 0).all()
+        centres = vertices[stations * around :]  # the end caps' middles: front, rear
+        for end, centre, sign in ((grid[0], centres[0], 1.0), (grid[-1], centres[1], -1.0)):
+            trail = sign * (centre[0] - end[:, 0])  # (A,) how far each rim point lies behind
+            outer = np.abs(end[:, 1]) > 0.8 * np.abs(end[:, 1]).max()
+            # the middle of each end leads; its rim trails, its corners by most of the least bow
+            assert trail.min() > 0.02
+            assert trail[outer].min() > 0.8 * procedural.END_BOW_M[0] * 0.72**2
+        assert shape.end_bow <= procedural.END_BOW_REACH_M  # the bow fades out before it folds
+
+
 def test_procedural_kinds_have_kind_specific_heights():
     heights = {
         k: np.mean([procedural_car(s, kind=k, lod=2000).native_lwh[2] for s in range(4)])

@@ -43,6 +43,14 @@ def test_car_points_lie_in_their_label_boxes():
     frame = synth.synth_frame(6, 0, exact, kitti)
     assert len(frame.boxes) >= 3
     assert _excess(frame).max() <= 1e-4
+    # ... with room to spare, as annotators draw them: the body fills the box less its slack
+    car = frame.owner >= 0
+    boxes = frame.boxes[frame.owner[car]]
+    local = _local(frame.points[car].astype(np.float64), boxes)
+    room = boxes[:, 3:6] / 2 - np.abs(local)  # (m, 3) to each face, >= 0 inside
+    room[:, 2] = boxes[:, 5] / 2 - local[:, 2]  # the top (the wheels stand on the box bottom)
+    assert (room >= world_cars.LABEL_SLACK_M - 1e-4).all()
+    assert (room.min(axis=0) <= world_cars.LABEL_SLACK_M + 0.03).all()  # and the body fills it
     np.testing.assert_array_equal(frame.num_points, np.bincount(frame.owner[frame.owner >= 0]))
     noisy = synth.synth_frame(6, 0, kitti, kitti)
     assert _excess(noisy).max() <= 5 * kitti.range_noise_sigma_m + 1e-4

@@ -15,6 +15,9 @@ POOL_SALT = 0x5EED_CA25  # the synthetic car pool's seed space (library cars use
 POOL_SIZE = 64
 POOL_LOD = 6000
 SIZE_CORRELATION = 0.6  # cars that are long tend to be wide and tall too
+# A labelled box holds its car with room to spare, as annotators draw them: the car's body ends
+# this far inside each end face, each side face and the top face (metres).
+LABEL_SLACK_M = np.array([0.035, 0.02, 0.035])
 
 
 @dataclass(frozen=True)
@@ -48,3 +51,12 @@ def sample_car_sizes(
     own = rng.standard_normal((count, 3))
     z = SIZE_CORRELATION * common + np.sqrt(1 - SIZE_CORRELATION**2) * own
     return np.asarray(mean) + np.asarray(std) * np.clip(z, -2.5, 2.5)
+
+
+def body_box(box: np.ndarray) -> np.ndarray:
+    """The box `(7,)` a car's mesh fills inside its label `box` `(7,)` (LABEL_SLACK_M; same bottom)."""
+    body = np.array(box, np.float64).reshape(7)
+    body[3:5] -= 2.0 * LABEL_SLACK_M[:2]
+    body[5] -= LABEL_SLACK_M[2]
+    body[2] -= 0.5 * LABEL_SLACK_M[2]
+    return body

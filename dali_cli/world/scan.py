@@ -14,7 +14,7 @@ import numpy as np
 from dali_cli.geometry import bev_corners, rotate_xy, wrap_angle
 from dali_cli.raycast import Scene, cast, cast_into_box
 from dali_cli.sensors import SensorProfile
-from dali_cli.world.cars import pool_car
+from dali_cli.world.cars import body_box, pool_car
 from dali_cli.world.scene import EGO_FOOTPRINT, SynthScene
 
 # ---------------------------------------------------------------------------------------------
@@ -167,7 +167,12 @@ def scan_scene(
             continue
         model = pool_car(int(scene.car_models[k]))
         car = cast_into_box(
-            model.bvh(), np.zeros(3), directions[rays], box, max_distance=limit, threads=threads
+            model.bvh(),
+            np.zeros(3),
+            directions[rays],
+            body_box(box),
+            max_distance=limit,
+            threads=threads,
         )
         unoccluded[k] = int(car.hit.sum())
         win = car.hit & (car.distance < distance[rays])
