@@ -79,6 +79,18 @@ def box_corners(boxes: np.ndarray) -> np.ndarray:
     )
 
 
+def shrink_boxes(boxes: np.ndarray, slack_m: np.ndarray) -> np.ndarray:
+    """Boxes `(N, 7)` drawn with room to spare -> the boxes `(N, 7)` float64 of what they hold:
+    each end and each side face moves inwards by slack_m `(3,)` (l, w, h; metres), the top face
+    by slack_m[2], the bottom stays (a car stands on the ground). No size shrinks below half."""
+    slack = np.asarray(slack_m, dtype=np.float64).reshape(3)
+    inner = _as_boxes(boxes).astype(np.float64, copy=True)
+    outer = inner[:, 3:6].copy()
+    inner[:, 3:6] = np.maximum(outer - slack * [2.0, 2.0, 1.0], 0.5 * outer)
+    inner[:, 2] -= 0.5 * (outer[:, 2] - inner[:, 5])
+    return inner
+
+
 def footprints_overlap(candidate: np.ndarray, others: np.ndarray) -> np.ndarray:
     """Separating-axis test of one footprint `(4, 2)` against many `(M, 4, 2)` → `(M,)` bool."""
     if len(others) == 0:

@@ -14,6 +14,7 @@ from dali_cli.runtime.device import check_options
 from dali_cli.runtime.errors import ParameterError
 from dali_cli.store.artifacts import FrameSet
 from dali_cli.store.manifest import StageOutcome
+from dali_cli.world.cars import LABEL_SLACK_M
 
 
 def ppcg_cf(
@@ -28,10 +29,11 @@ def ppcg_cf(
     ground_margin_m: float = 0.1,
     orient_models: bool | None = None,
     point_margin_m: float = DEFAULT_POINT_MARGIN_M,
+    label_slack_m: tuple[float, float, float] = tuple(LABEL_SLACK_M),
     **options: Unpack[PpcgOptions],
 ) -> StageOutcome:
-    """CF pseudo point clouds (see dali_cli.ppcg.cf); `orient_models`, `point_margin_m` and
-    `options` as ppcg_rc's."""
+    """CF pseudo point clouds (see dali_cli.ppcg.cf); `orient_models`, `point_margin_m`,
+    `label_slack_m` and `options` as ppcg_rc's."""
     low, high = (float(v) for v in range_m)
     if not 0 < low <= high:
         raise ParameterError("range_m", f"need 0 < LOW <= HIGH, got {low}:{high}")
@@ -47,6 +49,7 @@ def ppcg_cf(
         range_m=(low, high),
         orient=orient_models,
         point_margin_m=float(point_margin_m),
+        label_slack_m=tuple(float(v) for v in label_slack_m),
         **shared,
     )
     stage_params = {"range_m": [low, high], **shared}

@@ -14,6 +14,7 @@ from dali_cli.runtime.device import check_options
 from dali_cli.runtime.errors import ParameterError
 from dali_cli.store.artifacts import FrameSet
 from dali_cli.store.manifest import StageOutcome
+from dali_cli.world.cars import LABEL_SLACK_M
 
 
 def ppcg_rc(
@@ -29,11 +30,14 @@ def ppcg_rc(
     ground_margin_m: float = 0.1,
     orient_models: bool | None = None,
     point_margin_m: float = DEFAULT_POINT_MARGIN_M,
+    label_slack_m: tuple[float, float, float] = tuple(LABEL_SLACK_M),
     **options: Unpack[PpcgOptions],
 ) -> StageOutcome:
     """RC pseudo point clouds (see dali_cli.ppcg.rc); `orient_models`: turn a box round when its
     model fits its points better that way (dali_cli.ppcg.orient; None, the default: with mesh
     models only); `point_margin_m`: a box's points are those in the box grown by this (m);
+    `label_slack_m`: (l, w, h) room a box leaves around its car: the model fills the box
+    shrunk by it (m; the synthetic world's labels by default);
     `options`: sensor, models, label, engine
     and stage switches (dali_cli.ppcg.run.PpcgOptions; `bank` replaces the library in tests)."""
     if min_points < 1 or max_points <= min_points:
@@ -54,6 +58,7 @@ def ppcg_rc(
         min_points=min_points,
         orient=orient_models,
         point_margin_m=float(point_margin_m),
+        label_slack_m=tuple(float(v) for v in label_slack_m),
         **shared,
     )
     stage_params = {"max_points": max_points, "min_points": min_points, **shared}

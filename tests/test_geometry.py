@@ -321,3 +321,15 @@ def test_point_box_pairs_equal_every_pair_tested(margin_m: float) -> None:
     assert len(want_point) > 100  # overlaps and misses both occur at this density
     assert np.array_equal(point_index, want_point)
     assert np.array_equal(box_index, want_box)
+
+
+def test_shrink_boxes_moves_each_face_in_by_the_slack_and_keeps_the_bottom():
+    boxes = np.array([[10.0, -3.0, -1.0, 4.0, 1.8, 1.5, 0.7], [1.0, 2.0, 0.0, 0.1, 0.1, 0.1, -2.0]])
+    inner = g.shrink_boxes(boxes, [0.05, 0.02, 0.04])
+    np.testing.assert_allclose(inner[0, 3:6], [3.9, 1.76, 1.46])
+    np.testing.assert_allclose(inner[:, [0, 1, 6]], boxes[:, [0, 1, 6]])  # same place, heading
+    bottom = lambda b: b[:, 2] - b[:, 5] / 2  # noqa: E731
+    np.testing.assert_allclose(bottom(inner), bottom(boxes))
+    np.testing.assert_allclose(inner[1, 3:6], [0.05, 0.06, 0.06])  # never below half a size
+    for corners, box in zip(g.box_corners(inner), boxes, strict=True):
+        assert g.inside_boxes(corners, box, 1e-9).all()

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from dali_cli.geometry import bev_iou
+from dali_cli.geometry import bev_iou, shrink_boxes
 from dali_cli.library import point_models_from_frame, procedural_car, write_library
 from dali_cli.ppcg.cf import CfParams, cf_frame
 from dali_cli.ppcg.fitting import model_to_sensor, sensor_to_model
@@ -20,6 +20,7 @@ from dali_cli.raycast import Scene, cast, cast_into_box
 from dali_cli.sensors import get_profile
 from dali_cli.store.artifacts import BoxTable, FrameSet, read_boxes, write_boxes, write_frameset
 from dali_cli.store.manifest import read_manifest
+from dali_cli.world.cars import LABEL_SLACK_M
 
 PROFILE = get_profile("kitti")
 GROUND_Z = -PROFILE.mount_height_m
@@ -103,7 +104,9 @@ def source_of(out: np.ndarray, points: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------------------------------ RC
 
 
-def test_rc_points_lie_on_the_fitted_mesh_and_on_their_rays():
+@pytest.mark.parametrize("slack", [(0.0, 0.0, 0.0), tuple(LABEL_SLACK_M)])
+def test_rc_points_lie_on_the_fitted_mesh_and_on_their_rays(slack):
+    """The model fills the pseudo box shrunk by the labels' slack (all of it with none)."""
     truth = np.array(
         [
             on_ground(14.0, 4.0, car(1).native_lwh, 0.6),
@@ -113,7 +116,8 @@ def test_rc_points_lie_on_the_fitted_mesh_and_on_their_rays():
     points = scan(truth, (1, 2))
     pseudo = truth + [0.2, -0.1, 0.05, 0.3, 0.1, -0.05, 0.08]  # noisy pseudo boxes
     bank = bank_of(3)  # a different car than the one scanned
-    out, records = rc_frame("f", points, pseudo, bank, rc_params(max_points=10**6))
+    params = rc_params(max_points=10**6, label_slack_m=slack)
+    out, records = rc_frame("f", points, pseudo, bank, params)
     assert list(records.ppcg) == ["rc", "rc"]
     assert len(out) <= len(points) and (records.points_after <= records.points_before).all()
     source = source_of(out, points)
@@ -125,7 +129,7 @@ def test_rc_points_lie_on_the_fitted_mesh_and_on_their_rays():
     assert np.arccos(np.clip(cosine, -1, 1)).max() <= 1e-6
     # on the fitted mesh: raycast's own transformed-ray cast finds the same surface point
     model = car(3)
-    for box in pseudo:
+    for box in shrink_boxes(pseudo, slack):
         mine = moved[np.abs(sensor_to_model(a, box)).max(axis=1) <= 0.5 + 1e-6]
         assert len(mine) > 50
         reference = cast_into_box(model.bvh(), np.zeros(3), out[mine, :3].astype(np.float64), box)
@@ -302,7 +306,7 @@ def test_cf_points_stay_in_the_box_and_thin_out_with_range_as_the_pattern_predic
         new = out[len(out) - records.points_after[0] :, :3].astype(np.float64)
         local = sensor_to_model(new, box) * box[3:6]
         assert (np.abs(local) <= box[3:6] / 2 + 0.01).all()
-        moved = box.copy()
+        moved = shrink_boxes(box, LABEL_SLACK_M)[0]  # the model fills the body inside the box
         moved[:2] *= range_m / np.hypot(*box[:2])
         assert records.points_after[0] == full_pattern_hits(
             car(2), moved
@@ -505,7 +509,7 @@ def test_cf_with_the_calibrated_waymo_top_pattern_loses_no_ray():
     out, records = cf_frame("f", points, box[None], bank_of(2), profile, params)
     new = out[len(out) - records.points_after[0] :, :3].astype(np.float64)
     assert (np.abs(sensor_to_model(new, box) * box[3:6]) <= box[3:6] / 2 + 0.01).all()
-    moved = box.copy()
+    moved = shrink_boxes(box, params.label_slack_m)[0]
     moved[:2] *= 20.0 / np.hypot(*box[:2])
     directions = profile.ray_pattern().directions.astype(np.float64)
     hits = cast_into_box(car(2).bvh(), np.zeros(3), directions, moved)

@@ -16,6 +16,7 @@ from dali_cli.ppcg.orient import MIN_POINTS, flips, heading_costs, turned
 from dali_cli.ppcg.rc import rc_frame
 from dali_cli.store.artifacts import FrameSet, read_boxes, write_boxes
 from dali_cli.store.manifest import read_manifest
+from dali_cli.world.cars import LABEL_SLACK_M
 
 SCENES = [
     [on_ground(14.0, 4.0, car(1).native_lwh, 0.6), on_ground(25.0, -6.0, car(2).native_lwh, -2.0)],
@@ -202,6 +203,20 @@ def test_the_point_margin_is_recorded_only_when_used(dataset, tmp_path):  # noqa
     with pytest.raises(ParameterError, match="point_margin_m"):
         ppcg_rc(target, target, library, tmp_path / "c", point_margin_m=-1.0, progress=False)
     assert not (tmp_path / "c").exists()
+
+
+def test_the_label_slack_is_recorded_and_checked(dataset, tmp_path):  # noqa: F811
+    from dali_cli.runtime.errors import ParameterError
+    from stages.ppcg_cf import ppcg_cf
+
+    target, library = dataset / "target", dataset / "library"
+    ppcg_cf(target, target, library, tmp_path / "a", progress=False)
+    recorded = read_manifest(tmp_path / "a")["params"]["label_slack_m"]
+    np.testing.assert_allclose(recorded, LABEL_SLACK_M)  # the synthetic world's labels
+    for bad in ((0.6, 0.0, 0.0), (0.0, -0.01, 0.0)):
+        with pytest.raises(ParameterError, match="label_slack_m"):
+            ppcg_cf(target, target, library, tmp_path / "c", label_slack_m=bad, progress=False)
+        assert not (tmp_path / "c").exists()
 
 
 def test_the_report_figure_takes_rc_and_cf_boxes_turned_round_as_one_table():

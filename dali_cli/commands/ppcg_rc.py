@@ -19,6 +19,7 @@ from dali_cli.commands.common import (
 )
 from dali_cli.commands.kinds import MARGIN_M
 from dali_cli.ppcg.frame import DEFAULT_POINT_MARGIN_M
+from dali_cli.world.cars import LABEL_SLACK_M
 
 
 def ppcg_options(function):
@@ -51,6 +52,12 @@ def ppcg_options(function):
                           "LiDAR points lie on a car's surface, so a pseudo box a little off "
                           "leaves part of the car outside it as raw points beside the model "
                           "(0: the points in the box, as the paper)."),
+        tuning_option("--label-slack-m", type=MARGIN_M, nargs=3,
+                     default=tuple(float(v) for v in LABEL_SLACK_M), show_default=True,
+                     help="L W H: room a box leaves around its car, as the source's labels "
+                          "draw it (metres off each end, each side, the top); the model fills "
+                          "the box shrunk by it. The default is the synthetic world's labels "
+                          "(dali synth); 0 0 0 fills the whole box, as the paper."),
         click.option("--label", default="Car", show_default=True,
                      help="Process boxes of this label; other rows pass through as 'raw'."),
         workers_option("1"),

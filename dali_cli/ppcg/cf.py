@@ -16,18 +16,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dali_cli.geometry import shrink_boxes
 from dali_cli.ppcg.fitting import box_rng, box_uniform
 from dali_cli.ppcg.frame import CF, BoxRecords, assemble, car_points, ground_heights
 from dali_cli.ppcg.models import ModelBank
 from dali_cli.ppcg.orient import flips, turned
 from dali_cli.ppcg.window import box_windows, windows_directions
 from dali_cli.sensors import SensorProfile
+from dali_cli.world.cars import LABEL_SLACK_M
 
 
 @dataclass(frozen=True)
 class CfParams:
-    """CF settings. range_m: (low, high) centre range in metres; theta_rad, orient and
-    point_margin_m as in RcParams."""
+    """CF settings. range_m: (low, high) centre range in metres; theta_rad, orient,
+    point_margin_m and label_slack_m as in RcParams."""
 
     theta_rad: float
     range_m: tuple[float, float] = (20.0, 50.0)
@@ -36,6 +38,7 @@ class CfParams:
     ground_margin_m: float = 0.1
     orient: bool | None = False
     point_margin_m: float = 0.0
+    label_slack_m: tuple[float, float, float] = tuple(LABEL_SLACK_M)
 
 
 def move_radially(boxes: np.ndarray, ranges_m: np.ndarray) -> np.ndarray:
@@ -87,16 +90,16 @@ def cf_frame(
     rngs = None
     if params.top_k > 1:
         rngs = [box_rng(params.seed, frame_id, i) for i in range(len(boxes))]
-    models = bank.select(boxes, params.top_k, rngs)
+    bodies = shrink_boxes(boxes, params.label_slack_m)  # (k, 7) what the models fill
+    models = bank.select(bodies, params.top_k, rngs)
     if params.orient:  # mesh selection is by size: the same model either way round
-        records.flipped[:] = flips(bank, models, boxes, points, members)
-        boxes = turned(boxes, records.flipped)
+        records.flipped[:] = flips(bank, models, bodies, points, members)
+        bodies = turned(bodies, records.flipped)
     shift = move_radially(boxes, ranges)  # (k, 3)
-    moved = boxes.copy()
-    moved[:, :3] += shift
-    windows = box_windows(moved)
+    bodies[:, :3] += shift  # moved out
+    windows = box_windows(boxes + np.c_[shift, np.zeros((len(boxes), 4))])
     directions, bounds = windows_directions(profile, windows)  # only each window's rays
-    hit, xyz = bank.cast_many(models, moved, directions, bounds, params.theta_rad)
+    hit, xyz = bank.cast_many(models, bodies, directions, bounds, params.theta_rad)
     box_of_ray = np.repeat(np.arange(len(boxes)), np.diff(bounds))  # (N,)
     distance = np.linalg.norm(np.where(hit[:, None], xyz, 0.0), axis=1)
     hit &= (distance >= profile.min_range_m) & (distance <= profile.max_range_m)

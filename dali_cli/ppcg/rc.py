@@ -16,10 +16,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dali_cli.geometry import shrink_boxes
 from dali_cli.ppcg.fitting import box_rng
 from dali_cli.ppcg.frame import RC, BoxRecords, assemble, car_points, ground_heights
 from dali_cli.ppcg.models import ModelBank
 from dali_cli.ppcg.orient import flips, turned
+from dali_cli.world.cars import LABEL_SLACK_M
 
 
 @dataclass(frozen=True)
@@ -27,7 +29,9 @@ class RcParams:
     """RC settings. theta_rad: point-model angular threshold (point_models.angular_threshold_rad);
     orient: turn boxes whose model fits better the other way round (mesh models only; None:
     with mesh models, decided by the stage, run.resolve_orient);
-    point_margin_m: a box's points are those in the box grown by this (frame.car_points)."""
+    point_margin_m: a box's points are those in the box grown by this (frame.car_points);
+    label_slack_m: (l, w, h) room the boxes leave around their cars, as the source's labels do
+    (the model fills the box shrunk by it, geometry.shrink_boxes; the synthetic world's default)."""
 
     mount_height_m: float
     theta_rad: float
@@ -38,6 +42,7 @@ class RcParams:
     ground_margin_m: float = 0.1
     orient: bool | None = False
     point_margin_m: float = 0.0
+    label_slack_m: tuple[float, float, float] = tuple(LABEL_SLACK_M)
 
 
 def rc_frame(
@@ -56,15 +61,16 @@ def rc_frame(
     if len(eligible) == 0:
         return points, records
     rngs = [box_rng(params.seed, frame_id, int(i)) for i in eligible] if params.top_k > 1 else None
-    models = bank.select(boxes[eligible], params.top_k, rngs)
+    bodies = shrink_boxes(boxes, params.label_slack_m)  # (k, 7) what the models fill
+    models = bank.select(bodies[eligible], params.top_k, rngs)
     if params.orient:  # mesh selection is by size: the same model either way round
-        flip = flips(bank, models, boxes[eligible], points, [members[i] for i in eligible])
+        flip = flips(bank, models, bodies[eligible], points, [members[i] for i in eligible])
         records.flipped[eligible] = flip
-        boxes = turned(boxes, records.flipped)
+        bodies = turned(bodies, records.flipped)
     index = [members[i] for i in eligible]
     bounds = np.r_[0, np.cumsum([len(m) for m in index])]  # (B + 1,) rays of each box
     index = np.concatenate(index)  # (N,) the car points of all eligible boxes
-    hit, xyz = bank.cast_many(models, boxes[eligible], points[index, :3], bounds, params.theta_rad)
+    hit, xyz = bank.cast_many(models, bodies[eligible], points[index, :3], bounds, params.theta_rad)
     keep = hit.copy()
     box_of_ray = np.repeat(eligible, np.diff(bounds))
     keep[hit] = xyz[hit, 2] >= ground_z[box_of_ray[hit]]

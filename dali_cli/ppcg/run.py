@@ -48,6 +48,8 @@ def resolve_orient(params: RcParams | CfParams, models: str) -> RcParams | CfPar
     return params
 
 
+MAX_LABEL_SLACK_M = 0.5  # room a label leaves around its car, per face: more is not a car's label
+
 NOTES = (
     "occlusion between objects is not modelled: each box is processed alone",
     "ground rule: a box's points below max(box bottom, -mount height) + ground_margin_m stay "
@@ -152,12 +154,18 @@ def run_ppcg(
     models = model_kind(bank, options.get("models"), library_dir)
     if not params.point_margin_m >= 0:
         raise ParameterError("point_margin_m", f"must be >= 0 m, got {params.point_margin_m}")
+    slack = np.asarray(params.label_slack_m, dtype=np.float64)
+    if slack.shape != (3,) or not ((slack >= 0) & (slack <= MAX_LABEL_SLACK_M)).all():
+        raise ParameterError(
+            "label_slack_m", f"need 3 values (l, w, h) in [0, {MAX_LABEL_SLACK_M}] m, got {slack}"
+        )
     params = resolve_orient(params, models)
     params_record = {
         **stage_params,
         # recorded only when used: outputs made without them stay up to date
         **({"orient": True} if params.orient else {}),
         **({"point_margin_m": params.point_margin_m} if params.point_margin_m else {}),
+        "label_slack_m": slack.tolist(),
         "sensor": sensor,
         "models": models,
         "label": label,

@@ -8,6 +8,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from dali_cli.geometry import shrink_boxes
 from dali_cli.library import normalize_mesh
 from dali_cli.procedural import generate_car_mesh
 
@@ -55,8 +56,4 @@ def sample_car_sizes(
 
 def body_box(box: np.ndarray) -> np.ndarray:
     """The box `(7,)` a car's mesh fills inside its label `box` `(7,)` (LABEL_SLACK_M; same bottom)."""
-    body = np.array(box, np.float64).reshape(7)
-    body[3:5] -= 2.0 * LABEL_SLACK_M[:2]
-    body[5] -= LABEL_SLACK_M[2]
-    body[2] -= 0.5 * LABEL_SLACK_M[2]
-    return body
+    return shrink_boxes(box, LABEL_SLACK_M)[0]
