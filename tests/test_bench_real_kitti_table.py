@@ -119,3 +119,40 @@ def test_dali_against_its_control_and_where_ap_is_lost(tmp_path):
     assert loss.endswith("| mislocalized (+30.0) |")
     # a row without a breakdown gets no line in that table: the control is in the AP table only
     assert sum(line.startswith("| control (source") for line in lines) == 1
+
+
+def test_a_set_too_small_for_r40_gets_its_ceiling_and_r400(tmp_path):
+    """10 counted cars cap AP_R40 at 22.5: the table says so and rescores the saved predictions
+    under R400, where finding every car is 100 and finding half of them 50."""
+    runs, data = make_runs(tmp_path)
+    cars = np.c_[5.0 + 8.0 * np.arange(10), np.full(10, 5.0), np.full(10, -0.9),
+                 np.tile([3.9, 1.6, 1.5], (10, 1)), np.zeros(10)]  # fmt: skip
+    kitti = {"truncated": np.zeros(10, np.float32), "occluded": np.zeros(10, np.int32),
+             "alpha": np.zeros(10), "bbox_left": np.zeros(10, np.float32),
+             "bbox_top": np.zeros(10, np.float32), "bbox_right": np.full(10, 50.0, np.float32),
+             "bbox_bottom": np.full(10, 100.0, np.float32)}  # fmt: skip
+    frames = ["o-0"] * 10
+    (data / "objects_few").mkdir()
+    write_boxes(data / "objects_few", BoxTable.from_arrays(frames, cars, label="Car", **kitti))
+    for run in runs:
+        for row, found in (("x2", 10), ("control", 5)):
+            directory = run / "objects_few" / row
+            write(directory, metrics(50.0) | {"Car": metrics(50.0)["Car"] | {
+                "counts": {"moderate": {"gt": 10}}}})  # fmt: skip
+            found_cars = BoxTable.from_arrays(
+                frames[:found], cars[:found], score=np.linspace(0.9, 0.5, found), label="Car")  # fmt: skip
+            write_boxes(directory, found_cars).rename(directory / "predictions.parquet")
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "bench" / "real_kitti_table.py"), *map(str, runs),
+         "--data", str(data), "--sets", "drive", "objects_few"],
+        capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    lines = result.stdout.splitlines()
+    assert any(line.startswith("Only 10 moderate cars count here") and "at 22.5" in line
+               for line in lines)  # fmt: skip
+    assert "| DALI x2 | 100.0 ± 0.0 / 100.0 ± 0.0 | 100.0 / 100.0 · 100.0 / 100.0 |" in lines
+    assert "| control (source, x2 budget, PTSN) | 50.0 ± 0.0 / 50.0 ± 0.0 |" in "\n".join(lines)
+    pair = "| DALI x2 − control (source, x2 budget, PTSN) | +50.0 ± 0.0 / +50.0 ± 0.0 |"
+    assert any(line.startswith(pair) for line in lines)
+    # the drive (one car in the fake truth, but no counts recorded) gets no such section
+    assert sum(line.startswith("Only ") for line in lines) == 1

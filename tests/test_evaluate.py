@@ -19,6 +19,7 @@ from dali_cli.evaluation.evaluate import (
     DIFFICULTIES,
     RANGE_BANDS_M,
     EvaluationError,
+    ap_ceiling,
     evaluate,
     format_table,
 )
@@ -68,6 +69,27 @@ def test_perfect_predictions(count, expected):
     assert metrics["counts"]["all"]["bev"] == {"tp": count, "fp": 0, "fn": 0}
     r11 = evaluate(table(cars, score=scores), table(cars), recall_positions=11)["Car"]
     assert r11["bev"]["all"] == pytest.approx(100.0 if count >= 41 else 100 * 5 / 11)
+
+
+@pytest.mark.parametrize("count", [1, 9, 20, 22, 39, 40, 41, 60])
+@pytest.mark.parametrize("positions", [40, 11, 400])
+def test_the_ceiling_is_what_a_perfect_detector_scores(count, positions):
+    """ap_ceiling is a perfect detector's AP with that many counted cars (computed apart, with no
+    evaluation), and the table says so wherever it is below 100."""
+    cars = row_of_cars(count)
+    scores = np.linspace(0.9, 0.5, count)
+    metrics = evaluate(table(cars, score=scores), table(cars), recall_positions=positions)["Car"]
+    ceiling = metrics["counts"]["all"]["ap_ceiling"]
+    assert ceiling == pytest.approx(metrics["bev"]["all"])
+    assert ceiling == ap_ceiling(count, positions)
+    assert (ceiling < 100.0) == (positions != 400 and count < 41)
+    assert ("only 22 ground truths count" in format_table({"Car": metrics})) == (
+        count == 22 and positions != 400
+    )
+
+
+def test_the_ceiling_of_no_ground_truth_is_none():
+    assert ap_ceiling(0) is None
 
 
 def test_all_false_predictions_give_zero():
@@ -195,6 +217,7 @@ def test_range_bands_separate_by_distance():
         "pred": 45,
         "bev": {"tp": 45, "fp": 0, "fn": 0},
         "3d": {"tp": 45, "fp": 0, "fn": 0},
+        "ap_ceiling": 100.0,
     }
     assert metrics["bev"]["0-30"] == pytest.approx(100.0)
     assert metrics["counts"]["30-50"]["bev"] == {"tp": 0, "fp": 1, "fn": 1}

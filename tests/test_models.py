@@ -135,3 +135,37 @@ def test_a_directory_the_card_did_not_write_is_never_replaced(tmp_path):
     assert done.returncode != 0 and "not replaced" in done.stderr
     assert sorted(p.name for p in out.parent.iterdir()) == ["m"]
     assert (out / "notes.txt").read_text() == "mine"
+
+
+def test_a_set_too_small_for_r40_gets_its_ceiling_and_r400_on_the_card(tmp_path):
+    """4 counted cars cap AP_R40 at 7.5: the card says so and gives the model's R400 AP, which
+    the card computes from the evaluation's saved predictions and the data it evaluated."""
+    import numpy as np
+
+    from dali_cli.store.artifacts import BoxTable, write_boxes
+
+    cars = np.c_[5.0 + 8.0 * np.arange(4), np.full(4, 5.0), np.full(4, -0.9),
+                 np.tile([3.9, 1.6, 1.5], (4, 1)), np.zeros(4)]  # fmt: skip
+    kitti = {"truncated": np.zeros(4, np.float32), "occluded": np.zeros(4, np.int32),
+             "alpha": np.zeros(4), "bbox_left": np.zeros(4, np.float32),
+             "bbox_top": np.zeros(4, np.float32), "bbox_right": np.full(4, 50.0, np.float32),
+             "bbox_bottom": np.full(4, 100.0, np.float32)}  # fmt: skip
+    data = tmp_path / "data"
+    data.mkdir()
+    write_boxes(data, BoxTable.from_arrays(["f"] * 4, cars, label="Car", **kitti))
+    evaluation = fake_eval(tmp_path / "eval", 7.5)
+    metrics = json.loads((evaluation / "metrics.json").read_text())
+    metrics["Car"]["counts"] = {"moderate": {"gt": 4}}
+    (evaluation / "metrics.json").write_text(json.dumps(metrics))
+    found = BoxTable.from_arrays(["f"] * 3, cars[:3], score=[0.9, 0.8, 0.7], label="Car")
+    write_boxes(evaluation, found).rename(evaluation / "predictions.parquet")
+    inputs = {"inputs": {"data": [{"path": str(data), "hash": "0"}]}}
+    (evaluation / "manifest.json").write_text(json.dumps(inputs))
+    out = tmp_path / "models" / "m"
+    done = run_card("--model", str(fake_model(tmp_path / "run" / "model")), "--name", "m",
+                    "--title", "t", "--summary", "s", "--eval", f"small={evaluation}",
+                    "--out", str(out))  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    readme = (out / "README.md").read_text()
+    assert "On small only 4 moderate cars count, so KITTI's R40 caps AP at 7.5" in readme
+    assert "AP_BEV / AP_3D@0.7 is 75.0 / 75.0" in readme  # 3 of 4 found, no false box

@@ -211,6 +211,21 @@ def _sample_thresholds(
     return np.asarray(chosen)
 
 
+def ap_ceiling(num_gt: int, recall_positions: int = 40) -> float | None:
+    """The AP (percent) of a perfect detector when `num_gt` ground truths count: under R40 and
+    R11 below 100 when fewer than 41 count, since the reference indexes the recall positions by
+    threshold count (one threshold per true positive there: 22 cars cap AP_R40 at 52.5); 100
+    under R400; None without counted ground truth (docs/evaluation.md)."""
+    if num_gt <= 0:
+        return None
+    if recall_positions == 400:
+        return 100.0
+    count = len(_sample_thresholds(np.arange(num_gt, 0, -1, dtype=np.float64), num_gt))
+    precision = (np.arange(NUM_SAMPLE_POINTS) < count).astype(np.float64)  # 1 where sampled
+    entries = precision[1:] if recall_positions == 40 else precision[::4]
+    return float(entries.sum() / len(entries) * 100)
+
+
 def _edge_components(pred_index: np.ndarray, gt_index: np.ndarray, num_pred: int, num_gt: int):
     """Connected-component label `(E,)` of each (prediction, ground truth) edge: label
     propagation, a few vectorized rounds because components hold a handful of boxes."""
@@ -620,6 +635,7 @@ def evaluate(
             result[metric][name] = value
             result["curves"][metric][name] = detail
             counts[metric] = curve.totals
+        counts["ap_ceiling"] = ap_ceiling(counts["gt"], recall_positions)
         result["counts"][name] = counts
     if protocol == "st3d":
         for section in (result["bev"], result["3d"], result["counts"], *result["curves"].values()):
@@ -798,7 +814,24 @@ def format_table(metrics: dict) -> str:
                 totals = counts[metric]
                 row += f"{totals['tp']:>10}/{totals['fp']}/{totals['fn']}".rjust(22)
             lines.append(row)
+        lines.extend(ceiling_notes(result))
     return "\n".join(lines)
+
+
+def ceiling_notes(result: dict) -> list[str]:
+    """One line per group whose AP cannot reach 100 with so few counted ground truths (a
+    class's `evaluate` result; none when every group can, or under R400)."""
+    notes = []
+    for name, counts in result["counts"].items():
+        ceiling = counts.get("ap_ceiling")
+        if ceiling is not None and ceiling < 100.0:
+            notes.append(
+                f"{name}: only {counts['gt']} ground truths count: a perfect detector scores "
+                f"{ceiling:.2f} under R{result['recall_positions']} (the KITTI reference samples "
+                f"one threshold per true positive below 41); --recall-positions 400 reads the "
+                f"precision at exact recalls"
+            )
+    return notes
 
 
 def check_ious(ious: tuple[float, ...]) -> None:
