@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.store.artifacts import BoxTable, FrameSetWriter, write_boxes
+from tests.test_evaluate import kitti_columns, row_of_cars
 
 ROOT = Path(__file__).resolve().parents[1]
 # per seed: (control, x2) AP_BEV@0.7 moderate on the drive; AP_3D is BEV - 20
@@ -125,12 +126,7 @@ def test_a_set_too_small_for_r40_gets_its_ceiling_and_r400(tmp_path):
     """10 counted cars cap AP_R40 at 22.5: the table says so and rescores the saved predictions
     under R400, where finding every car is 100 and finding half of them 50."""
     runs, data = make_runs(tmp_path)
-    cars = np.c_[5.0 + 8.0 * np.arange(10), np.full(10, 5.0), np.full(10, -0.9),
-                 np.tile([3.9, 1.6, 1.5], (10, 1)), np.zeros(10)]  # fmt: skip
-    kitti = {"truncated": np.zeros(10, np.float32), "occluded": np.zeros(10, np.int32),
-             "alpha": np.zeros(10), "bbox_left": np.zeros(10, np.float32),
-             "bbox_top": np.zeros(10, np.float32), "bbox_right": np.full(10, 50.0, np.float32),
-             "bbox_bottom": np.full(10, 100.0, np.float32)}  # fmt: skip
+    cars, kitti = row_of_cars(10), kitti_columns(10)
     frames = ["o-0"] * 10
     (data / "objects_few").mkdir()
     write_boxes(data / "objects_few", BoxTable.from_arrays(frames, cars, label="Car", **kitti))

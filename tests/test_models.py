@@ -140,16 +140,10 @@ def test_a_directory_the_card_did_not_write_is_never_replaced(tmp_path):
 def test_a_set_too_small_for_r40_gets_its_ceiling_and_r400_on_the_card(tmp_path):
     """4 counted cars cap AP_R40 at 7.5: the card says so and gives the model's R400 AP, which
     the card computes from the evaluation's saved predictions and the data it evaluated."""
-    import numpy as np
-
     from dali_cli.store.artifacts import BoxTable, write_boxes
+    from tests.test_evaluate import kitti_columns, row_of_cars
 
-    cars = np.c_[5.0 + 8.0 * np.arange(4), np.full(4, 5.0), np.full(4, -0.9),
-                 np.tile([3.9, 1.6, 1.5], (4, 1)), np.zeros(4)]  # fmt: skip
-    kitti = {"truncated": np.zeros(4, np.float32), "occluded": np.zeros(4, np.int32),
-             "alpha": np.zeros(4), "bbox_left": np.zeros(4, np.float32),
-             "bbox_top": np.zeros(4, np.float32), "bbox_right": np.full(4, 50.0, np.float32),
-             "bbox_bottom": np.full(4, 100.0, np.float32)}  # fmt: skip
+    cars, kitti = row_of_cars(4), kitti_columns(4)
     data = tmp_path / "data"
     data.mkdir()
     write_boxes(data, BoxTable.from_arrays(["f"] * 4, cars, label="Car", **kitti))
