@@ -25,12 +25,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from real_kitti_table import read_json, spread  # the benchmark table's mean ± std
+from real_kitti_table import r400_at_07, read_json, spread  # the benchmark table's
 
-from dali_cli.evaluation.evaluate import ap_ceiling, evaluate
+from dali_cli.evaluation.evaluate import ap_ceiling
 from dali_cli.store.artifacts import read_boxes
 
 CARD_NAME = "card.json"
+EXACT = ("AP_BEV@0.7 R400", "AP_3D@0.7 R400")  # a small set's AP@0.7 under R400 (exact_recall)
 COPIED = ("model.pt", "model.json")
 # (metrics.json block, overlap kind, header)
 METRICS = (("Car", "bev", "AP_BEV@0.7"), ("Car", "3d", "AP_3D@0.7"),
@@ -88,12 +89,8 @@ def exact_recall(directory: Path, protocol: str) -> dict:
     predictions = directory / "predictions.parquet"
     if len(data) != 1 or not predictions.is_file():
         raise SystemExit(f"model_card: {directory} has no predictions.parquet and data input")
-    car = evaluate(read_boxes(predictions), read_boxes(data[0]), 0.7, 400, protocol)["Car"]
-    group = "moderate" if "moderate" in car["bev"] else "all"
-    return {
-        f"{kind} R400": round(float(car[key][group]), 2)
-        for kind, key in (("AP_BEV@0.7", "bev"), ("AP_3D@0.7", "3d"))
-    }
+    values = r400_at_07(read_boxes(predictions), read_boxes(data[0]), protocol)
+    return {key: round(float(v), 2) for key, v in zip(EXACT, values, strict=True)}
 
 
 def prediction_digest(directory: Path) -> dict:
@@ -195,17 +192,16 @@ def ceiling_lines(card: dict) -> list[str]:
     """A paragraph per set where too few cars count for R40 to reach 100: its ceiling and the
     model's (and the recipe's) AP@0.7 under R400."""
     lines = []
-    exact = ("AP_BEV@0.7 R400", "AP_3D@0.7 R400")
     for name, entry in card["evaluations"].items():
         if entry.get("ceiling") is None or entry["ceiling"] >= 100.0:
             continue
         text = (f"On {name} only {entry['counted']} moderate cars count, so KITTI's R40 caps AP "
                 f"at {entry['ceiling']:.1f} (what a perfect detector scores there). Under R400 "
                 f"(the precision at exact recalls, `dali eval --recall-positions 400`) this "
-                f"model's AP_BEV / AP_3D@0.7 is {entry[exact[0]]:.1f} / {entry[exact[1]]:.1f}")  # fmt: skip
-        entries = [e for e in card["recipe"].get(name, []) if exact[0] in e]
+                f"model's AP_BEV / AP_3D@0.7 is {entry[EXACT[0]]:.1f} / {entry[EXACT[1]]:.1f}")  # fmt: skip
+        entries = [e for e in card["recipe"].get(name, []) if EXACT[0] in e]
         if len(entries) > 1:
-            cells = [spread([e[h] for e in entries]) for h in exact]
+            cells = [spread([e[h] for e in entries]) for h in EXACT]
             text += f", the recipe's {cells[0]} / {cells[1]} over {len(entries)} seeds"
         lines += ["", text + "."]
     return lines

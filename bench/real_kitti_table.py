@@ -33,7 +33,7 @@ from pseudo_labels import HALLUCINATED_M, in_grid, match  # noqa: E402
 
 from dali_cli.evaluation.evaluate import ap_ceiling, evaluate  # noqa: E402
 from dali_cli.geometry import point_box_indices  # noqa: E402
-from dali_cli.store.artifacts import FrameSet, read_boxes  # noqa: E402
+from dali_cli.store.artifacts import BoxTable, FrameSet, read_boxes  # noqa: E402
 
 # row name, its drive evaluation, its name on the object sets (RUN/<set>/<name>)
 ROWS = (
@@ -171,30 +171,36 @@ def predictions_of(run: Path, set_name: str, row: tuple[str, str, str]) -> Path:
     return directory / "predictions.parquet"
 
 
+def r400_at_07(predictions: BoxTable, truth: BoxTable, protocol: str = "kitti") -> tuple:
+    """(AP_BEV, AP_3D) @0.7 under R400 (the precision at exact recalls) of the headline group:
+    KITTI moderate, or all ranges under the range protocol."""
+    car = evaluate(predictions, truth, 0.7, 400, protocol)["Car"]
+    group = "moderate" if "moderate" in car["bev"] else "all"
+    return car["bev"][group], car["3d"][group]
+
+
 def exact_recall_section(runs: list[Path], set_name: str, data: Path) -> list[str]:
     """Where too few cars count for KITTI's R40 to reach 100 (`ap_ceiling`): every row's AP@0.7
-    under R400 (the precision at exact recalls), recomputed from its saved predictions, over the
-    seeds and for the DALI pairs; nothing when the set is large enough."""
-    counted = [
-        gt
-        for run in runs
-        for row in ROWS
-        if (gt := (metrics_of(run, set_name, row) or {}).get("Car", {}).get("counts", {})
-            .get("moderate", {}).get("gt")) is not None
-    ]  # fmt: skip
-    ceiling = ap_ceiling(counted[0], 40) if counted else None
+    under R400, recomputed from its saved predictions, over the seeds and for the DALI pairs;
+    nothing when the set is large enough."""
+    counted = next(
+        (gt for run in runs for row in ROWS
+         if (gt := (metrics_of(run, set_name, row) or {}).get("Car", {}).get("counts", {})
+             .get("moderate", {}).get("gt")) is not None),
+        None,
+    )  # fmt: skip
+    ceiling = ap_ceiling(counted, 40) if counted else None
     if ceiling is None or ceiling >= 100.0:
         return []
     truth = read_boxes(data / ("drive_labels" if set_name == "drive" else set_name))
-    values = {}  # (row name, run) -> (BEV, 3D) AP_R400@0.7 moderate
-    for row in ROWS:
-        for run in runs:
-            path = predictions_of(run, set_name, row)
-            if path.is_file():
-                car = evaluate(read_boxes(path), truth, 0.7, 400, "kitti")["Car"]
-                values[(row[2], run)] = (car["bev"]["moderate"], car["3d"]["moderate"])
+    values = {  # (row name, run) -> (BEV, 3D) AP_R400@0.7 moderate
+        (row[2], run): r400_at_07(read_boxes(path), truth)
+        for row in ROWS
+        for run in runs
+        if (path := predictions_of(run, set_name, row)).is_file()
+    }
     lines = [
-        f"Only {counted[0]} moderate cars count here, so KITTI's R40 caps AP at {ceiling:.1f} (what "
+        f"Only {counted} moderate cars count here, so KITTI's R40 caps AP at {ceiling:.1f} (what "
         "a perfect detector scores). The same predictions under R400 (the precision at exact "
         "recalls, `dali eval --recall-positions 400`), AP_BEV / AP_3D@0.7:",
         "",

@@ -96,8 +96,10 @@ def cf_frame(
         records.flipped[:] = flips(bank, models, bodies, points, members)
         bodies = turned(bodies, records.flipped)
     shift = move_radially(boxes, ranges)  # (k, 3)
-    bodies[:, :3] += shift  # moved out
-    windows = box_windows(boxes + np.c_[shift, np.zeros((len(boxes), 4))])
+    moved = boxes.copy()
+    moved[:, :3] += shift
+    bodies[:, :3] += shift
+    windows = box_windows(moved)
     directions, bounds = windows_directions(profile, windows)  # only each window's rays
     hit, xyz = bank.cast_many(models, bodies, directions, bounds, params.theta_rad)
     box_of_ray = np.repeat(np.arange(len(boxes)), np.diff(bounds))  # (N,)
