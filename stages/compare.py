@@ -57,7 +57,8 @@ def ap_metric(gt_path, settings: Protocol):
             block = evaluate(pred, gt, **asdict(settings))[settings.class_name]
         except EvaluationError as error:
             raise StageError(f"cannot evaluate against {gt_path}: {error}") from None
-        return {f"{kind} {band}": ap for kind in ("3d", "bev") for band, ap in block[kind].items()}
+        kinds = ("3d", "bev", "aph")  # APH: AP_BEV with each true positive weighted by heading
+        return {f"{kind} {band}": ap for kind in kinds for band, ap in block[kind].items()}
 
     return metric
 
@@ -121,7 +122,7 @@ def _progress_bar(enabled: bool, total: int):
                 disable=not enabled, leave=False)  # fmt: skip
 
 
-def format_comparison(document: dict, kinds: tuple[str, ...] = ("3d", "bev")) -> str:
+def format_comparison(document: dict, kinds: tuple[str, ...] = ("3d", "bev", "aph")) -> str:
     """The comparison as a text table: per metric, each row's AP ± its bootstrap std and, after
     the reference, Δ ± std [95 % interval] and the share of draws with Δ <= 0."""
     summary = document[MARKER]

@@ -34,7 +34,7 @@ from dali_cli.detector.targets import (
     peak_iou_loss,
     regression_to_boxes,
 )
-from dali_cli.geometry import count_points_in_boxes, iou_3d, point_box_indices
+from dali_cli.geometry import count_points_in_boxes, iou_3d, point_box_indices, wrap_angle
 from dali_cli.sensors import get_profile
 from dali_cli.store.artifacts import FrameSet
 
@@ -69,7 +69,7 @@ def test_forward_shapes():
     h, w = config.head_size
     assert {name: tuple(v.shape) for name, v in maps.items()} == {
         "heatmap": (2, 1, h, w), "offset": (2, 2, h, w), "z": (2, 1, h, w),
-        "size": (2, 3, h, w), "rot": (2, 2, h, w), "iou": (2, 1, h, w),
+        "size": (2, 3, h, w), "rot": (2, 2, h, w), "iou": (2, 1, h, w), "dir": (2, 2, h, w),
     }  # fmt: skip
     assert h * config.cell_m >= 25.6 and w * config.cell_m >= 25.6
 
@@ -81,12 +81,16 @@ def perfect_maps(boxes_list, config):
     maps = {"heatmap": torch.log(heat / (1 - heat)), "iou": torch.full_like(heat, 20.0)}
     batch, (h, w) = len(boxes_list), config.head_size
     regression = torch.zeros(batch, 8, h * w)
+    direction = torch.zeros(batch, 2, h * w)
     for b in range(batch):
         valid = targets.mask[b]
         regression[b][:, targets.index[b][valid]] = targets.regression[b][valid].T
+        cells, bins = targets.index[b][valid], targets.direction[b][valid]
+        direction[b, bins, cells] = 20.0  # the true bin's logit far above the other's
     regression = regression.view(batch, 8, h, w)
     split = dict(zip(REGRESSION, regression.split([2, 1, 3, 2], dim=1), strict=True))
-    return {**maps, **split}
+    direction_maps = {"dir": direction.view(batch, 2, h, w)} if config.direction else {}
+    return {**maps, **split, **direction_maps}
 
 
 @pytest.mark.parametrize("radius", [0, 1])
@@ -101,7 +105,20 @@ def test_targets_decode_round_trip(kitti, radius):
         assert len(found) == len(boxes)
         assert (scores > 0.99).all()
         iou = iou_3d(boxes, found)
-        assert np.allclose(iou.max(axis=1), 1.0, atol=1e-6)  # yaw is decoded modulo pi
+        assert np.allclose(iou.max(axis=1), 1.0, atol=1e-6)
+        match = iou.argmax(axis=1)  # the direction bins give back each car's full heading
+        assert np.allclose(wrap_angle(found[match, 6] - boxes[:, 6]), 0.0, atol=1e-6)
+
+
+def test_decoding_without_a_direction_head_gives_the_axis_only(kitti):
+    """A model from before the direction classifier: yaws within +-pi/2, the same boxes."""
+    config = DetectorConfig(**SMALL, direction=False)
+    rng = np.random.default_rng(1)
+    boxes = toy_place(rng, kitti, 6) + [0, 0, kitti.mount_height_m, 0, 0, 0, 0]
+    boxes[:3, 6] = wrap_angle(boxes[:3, 6] + np.pi)  # some face the sensor
+    ((found, _),) = decode(perfect_maps([boxes], config), config)
+    assert np.all(np.abs(found[:, 6]) <= np.pi / 2 + 1e-9)
+    assert np.allclose(iou_3d(boxes, found).max(axis=1), 1.0, atol=1e-6)
 
 
 def test_every_regressing_cell_decodes_to_its_nearest_object():

@@ -993,5 +993,8 @@ def test_matching_pass_by_intervals_equals_the_level_by_level_pass(seed):
         args = ((pred_index, gt_index, overlap), scores, ignored_gt, ignored_pred, levels)
         fast = _counts_at_levels(*args, in_loop_gt, in_loop_pred)
         dense = dense_counts_at_levels(*args, in_loop_gt, in_loop_pred)
-        for got, expected, name in zip(fast, dense, ("tp", "fp", "fn"), strict=True):
+        for got, expected, name in zip(fast[:3], dense, ("tp", "fp", "fn"), strict=True):
             np.testing.assert_array_equal(got, expected, err_msg=f"{name}, trial {trial}")
+        # weighted by 1 per pair, the heading metrics' true positives are the true positives
+        ones = _counts_at_levels(*args, in_loop_gt, in_loop_pred, np.ones(len(pairs)))
+        np.testing.assert_allclose(ones[3], dense[0], err_msg=f"weighted tp, trial {trial}")

@@ -47,15 +47,35 @@ def place_cars(
     return np.asarray(boxes, np.float64).reshape(-1, 7)
 
 
+def cabin_parts(boxes: np.ndarray) -> np.ndarray:
+    """Each car box (m, 7) as two solid parts (2m, 7) inside it, a body over its whole length up to
+    60 % of its height and a cabin on the rear 55 % above it: a car whose front (the end of +yaw,
+    the low bonnet) a detector can tell from its back."""
+    body, cabin = boxes.copy(), boxes.copy()
+    body[:, 5] = 0.6 * boxes[:, 5]
+    body[:, 2] = boxes[:, 2] - 0.2 * boxes[:, 5]
+    cabin[:, 3] = 0.55 * boxes[:, 3]
+    cabin[:, 5] = 0.4 * boxes[:, 5]
+    cabin[:, 2] = boxes[:, 2] + 0.3 * boxes[:, 5]
+    back = -0.225 * boxes[:, 3]  # the cabin's centre, along the car's heading
+    cabin[:, 0] = boxes[:, 0] + back * np.cos(boxes[:, 6])
+    cabin[:, 1] = boxes[:, 1] + back * np.sin(boxes[:, 6])
+    return np.concatenate([body, cabin])
+
+
 def scan(
     boxes: np.ndarray,
     profile: SensorProfile,
     azimuth_range_deg: tuple[float, float] = (-90.0, 90.0),
     beams: int | None = None,
     points_per_beam: int | None = None,
+    cabins: bool = False,
 ) -> np.ndarray:
     """Scan boxes (m, 7) and the ground with the profile's beam pattern; returns (n, 4) float32
-    first hits in the sensor frame with a constant intensity per surface."""
+    first hits in the sensor frame with a constant intensity per surface. `cabins`: each car
+    is a body and a cabin on its rear (`cabin_parts`), so its front shows."""
+    if cabins:
+        boxes = cabin_parts(np.asarray(boxes, np.float64).reshape(-1, 7))
     beams = beams or profile.beams
     columns = points_per_beam or round(
         profile.points_per_beam * (azimuth_range_deg[1] - azimuth_range_deg[0]) / 360

@@ -202,6 +202,8 @@ class Detector:
             values = dict(meta["config"])
             # checkpoints from before the second stage existed have no refiner weights
             values.setdefault("refine", False)
+            # nor, from before the direction classifier, a direction: headings modulo pi
+            values.setdefault("direction", False)
             config = DetectorConfig.from_dict(values)
         except (KeyError, TypeError, ValueError) as error:
             raise ArtifactError(f"{meta_path}: invalid model description ({error})") from None

@@ -136,6 +136,7 @@ class Batch:
         targets = Targets(
             t.heatmap.pin_memory(), t.index.pin_memory(), t.mask.pin_memory(),
             t.regression.pin_memory(), t.boxes, t.weight.pin_memory(), t.objects,
+            None if t.direction is None else t.direction.pin_memory(),
         )  # fmt: skip
         points, index = self.points.pin_memory(), self.batch_index.pin_memory()
         return Batch(self.dataset, points, index, targets, self.frame_points)

@@ -14,8 +14,15 @@ from torch import nn
 from dali_cli.detector.config import DetectorConfig
 from dali_cli.detector.refine import BoxRefiner
 
-# head name -> output channels; "rot" is (sin 2yaw, cos 2yaw): a car turned by 180 deg is the same box
+# head name -> output channels; "rot" is (sin 2yaw, cos 2yaw), the heading axis (a car turned by
+# 180 deg is the same box), "dir" the two direction bins' logits that pick its front (direction.py)
 HEADS = {"heatmap": 1, "offset": 2, "z": 1, "size": 3, "rot": 2, "iou": 1}
+DIRECTION_HEAD = {"dir": 2}
+
+
+def heads(config: DetectorConfig) -> dict[str, int]:
+    """The head maps a detector of `config` outputs: HEADS, and "dir" with a direction classifier."""
+    return {**HEADS, **(DIRECTION_HEAD if config.direction else {})}
 
 
 def pillarize(points: torch.Tensor, batch_index: torch.Tensor, config: DetectorConfig):
@@ -138,13 +145,13 @@ class Backbone(nn.Module):
 
 
 class CenterHead(nn.Module):
-    """A shared 3x3 conv, then one 1x1 conv per output (see HEADS)."""
+    """A shared 3x3 conv, then one 1x1 conv per output (see `heads`)."""
 
     def __init__(self, config: DetectorConfig):
         super().__init__()
         self.shared = conv_bn(3 * config.up_channels, config.head_channels)
         self.outputs = nn.ModuleDict(
-            {name: nn.Conv2d(config.head_channels, dims, 1) for name, dims in HEADS.items()}
+            {name: nn.Conv2d(config.head_channels, dims, 1) for name, dims in heads(config).items()}
         )
         nn.init.constant_(self.outputs["heatmap"].bias, -2.19)  # prior p = 0.1 (CenterNet)
 

@@ -9,7 +9,10 @@ residual box and the 3D IoU of the refined box (the score's IoU factor).
 
 Shapes: K proposals, N points per proposal, D = 9 point features (local x, y, z and the distances
 to the six faces, metres; the network adds the same six over the half sizes). Boxes (K, 7) in the
-ground frame, yaw modulo pi (the heads' heading).
+ground frame. The residual's heading is a turn of less than pi/2 about the proposal's; with a
+direction classifier (config.direction) an eighth output, the flip logit, says whether the car's
+front lies at the other end of the refined box's axis (the points in the box frame show it: the
+windscreen, the taper of the bonnet, the ends' depths), so a refined box faces any way.
 """
 
 from __future__ import annotations
@@ -181,9 +184,17 @@ def encode_residuals(proposals, truth):
     )
 
 
+def flip_targets(proposals, truth):
+    """(K,) float: 1 where the true heading points away (more than pi/2) from the proposal's, the
+    refiner's flip target (numpy or torch, like `proposals`)."""
+    xp = torch if isinstance(proposals, torch.Tensor) else np
+    return (xp.cos(truth[:, 6] - proposals[:, 6]) < 0) * 1.0
+
+
 def apply_residuals(proposals, residuals):
     """The inverse of `encode_residuals`: refined boxes (K, 7), yaw in [-pi, pi) (numpy or torch,
-    like `proposals`)."""
+    like `proposals`). Residuals (K, 7), or (K, 8) with a flip logit: where it is positive the
+    refined box turns by pi."""
     tensor = isinstance(proposals, torch.Tensor)
     xp = torch if tensor else np
     c, s = xp.cos(proposals[:, 6]), xp.sin(proposals[:, 6])
@@ -195,6 +206,8 @@ def apply_residuals(proposals, residuals):
     refined[:, 2] += residuals[:, 2] * proposals[:, 5]
     refined[:, 3:6] *= xp.exp(xp.clip(residuals[:, 3:6], -1.0, 1.0))
     yaw = proposals[:, 6] + residuals[:, 6]
+    if residuals.shape[1] > 7:
+        yaw = yaw + np.pi * (residuals[:, 7] > 0)
     refined[:, 6] = box_ops.wrap_angle(yaw) if tensor else wrap_angle(yaw)
     return refined
 
@@ -224,13 +237,14 @@ class BoxRefiner(nn.Module):
             nn.Linear(2 * c, 2 * c),
             nn.ReLU(inplace=True),
         )
-        self.residual = nn.Linear(2 * c, 7)
+        self.residual = nn.Linear(2 * c, 8 if config.direction else 7)
         self.iou = nn.Linear(2 * c, 1)
         nn.init.zeros_(self.residual.weight)  # start as the identity refinement
         nn.init.zeros_(self.residual.bias)
 
     def forward(self, features: torch.Tensor, sizes: torch.Tensor):
-        """features (K, N, 9), sizes (K, 3) proposal l, w, h -> residuals (K, 7), IoU logits (K,)."""
+        """features (K, N, 9), sizes (K, 3) proposal l, w, h -> residuals (K, 7 or 8: with the
+        flip logit), IoU logits (K,)."""
         half = sizes[:, None, :] / 2  # (K, 1, 3)
         relative = torch.cat([features[..., :3] / half, features[..., 3:6] / half], dim=-1)
         x = self.point_mlp(torch.cat([features, relative], dim=-1))  # (K, N, 2c)
@@ -271,15 +285,18 @@ def refine_boxes(
     return refined, torch.sigmoid(iou_logits).float().cpu().numpy()
 
 
-def jitter_boxes(boxes: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def jitter_boxes(boxes: np.ndarray, rng: np.random.Generator, flip: bool = False) -> np.ndarray:
     """Ground-truth boxes (M, 7) disturbed like first-stage boxes: positives for the refiner
-    from the first step on (the heads' own proposals are poor early in training)."""
+    from the first step on (the heads' own proposals are poor early in training). `flip`: half
+    of them, drawn at random, turned by pi as well (the flip logit's negatives and positives)."""
     noisy = boxes.copy()
     m = len(boxes)
     noisy[:, :2] += rng.normal(0.0, 0.3, size=(m, 2))
     noisy[:, 2] += rng.normal(0.0, 0.15, size=m)
     noisy[:, 3:6] *= np.exp(rng.normal(0.0, 0.1, size=(m, 3)))
     noisy[:, 6] += rng.normal(0.0, 0.1, size=m)
+    if flip:
+        noisy[:, 6] = wrap_angle(noisy[:, 6] + np.pi * (rng.random(m) < 0.5))
     return noisy
 
 
@@ -291,7 +308,8 @@ def refine_loss(
     config: DetectorConfig,
     rng: np.random.Generator | list[np.random.Generator],
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Residual (L1, on proposals with BEV IoU >= 0.4 with a target box) and IoU (BCE against
+    """Residual (L1, on proposals with BEV IoU >= 0.4 with a target box, plus, with a direction
+    classifier, config.direction_weight x the flip logit's BCE there) and IoU (BCE against
     the refined box's best 3D IoU with any target box) losses over a batch of frames, each a
     mean over the (global, under DDP) batch's positives and proposals.
 
@@ -312,7 +330,7 @@ def refine_loss(
     ):
         found = clip_proposals(found)
         if len(objects):
-            jittered = jitter_boxes(objects, rngs[b])
+            jittered = jitter_boxes(objects, rngs[b], flip=config.direction)
             if on_device:
                 objects = torch.from_numpy(np.asarray(objects, np.float64)).to(device)
                 jittered = torch.from_numpy(jittered).to(device)
@@ -361,7 +379,14 @@ def refine_loss(
     residuals, iou_logits = refiner(torch.cat(features).to(device), sizes_all)
     target = encode_residuals(proposals_all, truth_all)
     target = target.float() if on_device else torch.from_numpy(target.astype(np.float32))
-    l1 = F.l1_loss(residuals, target.to(device), reduction="none").sum(dim=1)  # (K,)
+    target = target.to(device)
+    l1 = F.l1_loss(residuals[:, :7], target, reduction="none").sum(dim=1)  # (K,)
+    if residuals.shape[1] > 7:
+        flip = flip_targets(proposals_all, truth_all)
+        flip = flip.float() if on_device else torch.from_numpy(flip.astype(np.float32))
+        l1 = l1 + config.direction_weight * F.binary_cross_entropy_with_logits(
+            residuals[:, 7], flip.to(device), reduction="none"
+        )
     box = (l1 * positive_all).sum() / global_normalizer(positive_all.sum().float(), 1.0)
     with torch.no_grad():
         moved = residuals.detach().double()

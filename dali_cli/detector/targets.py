@@ -2,7 +2,8 @@
 
 Boxes here are in the ground frame (see config.py). The head grid has h rows (y) and w columns (x)
 of `config.cell_m` metres. Regression vector per object (8,): offset x, offset y (cell fractions),
-z (m), log l, log w, log h, sin 2yaw, cos 2yaw.
+z (m), log l, log w, log h, sin 2yaw, cos 2yaw; with a direction classifier, the bin of the full
+heading at each regressing cell (direction.py).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from dali_cli.detector.config import DetectorConfig
+from dali_cli.detector.direction import apply_direction, direction_bin
 from dali_cli.detector.distributed import global_normalizer
 from dali_cli.geometry import iou_3d, iou_3d_pairs
 
@@ -24,7 +26,8 @@ REGRESSION = ("offset", "z", "size", "rot")  # head maps concatenated in this or
 class Targets:
     """Batched targets. heatmap (B, 1, h, w) float32; index (B, K) int64 flat cell; mask (B, K)
     bool; regression (B, K, 8) float32 relative to that cell; boxes (B, K, 7) float64 ground truth
-    (for the IoU target); weight (B, K) float32 (1 at an object's centre cell, less around it).
+    (for the IoU target); weight (B, K) float32 (1 at an object's centre cell, less around it);
+    direction (B, K) int64, the direction bin of the object's full heading.
 
     With `config.regression_radius_cells` r > 0 each object supervises the (2r+1)^2 cells around
     its centre cell (a cell near two objects belongs to the nearer centre), so K is up to
@@ -37,6 +40,7 @@ class Targets:
     boxes: np.ndarray
     weight: torch.Tensor
     objects: list[np.ndarray] | None = None  # per frame (M_b, 7) float64: every target box
+    direction: torch.Tensor | None = None
 
     def to(self, device: torch.device) -> Targets:
         """The tensors on `device` (boxes and objects stay numpy: they feed the IoU targets)."""
@@ -48,6 +52,7 @@ class Targets:
             self.boxes,
             self.weight.to(device),
             self.objects,
+            None if self.direction is None else self.direction.to(device),
         )
 
 
@@ -122,6 +127,7 @@ def build_targets(boxes_list: list[np.ndarray], config: DetectorConfig) -> Targe
     regression = np.zeros((batch, k, 8), np.float32)
     gt = np.zeros((batch, k, 7), np.float64)
     weight = np.zeros((batch, k), np.float32)
+    direction = np.zeros((batch, k), np.int64)
     objects = []
     rows_grid, cols_grid = np.arange(h)[:, None], np.arange(w)[None, :]
     for b, boxes in enumerate(boxes_list):
@@ -165,6 +171,7 @@ def build_targets(boxes_list: list[np.ndarray], config: DetectorConfig) -> Targe
             axis=1,
         )
         gt[b, :n] = chosen
+        direction[b, :n] = direction_bin(chosen[:, 6], config.direction_offset)
     return Targets(
         torch.from_numpy(heatmap),
         torch.from_numpy(index),
@@ -173,6 +180,7 @@ def build_targets(boxes_list: list[np.ndarray], config: DetectorConfig) -> Targe
         gt,
         torch.from_numpy(weight),
         objects,
+        torch.from_numpy(direction),
     )
 
 
@@ -216,7 +224,8 @@ def peaks_and_boxes(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The `count` strongest 3x3 heatmap peaks of each frame: their heat (B, k), flat cells
     (B, k) and the boxes decoded there, (B, k, 7) float64 ground frame; detached, no threshold,
-    no NMS (decoding and the peak losses both start here)."""
+    no NMS (decoding and the peak losses both start here). With a "dir" map the boxes' yaws are
+    full headings in [-pi, pi) (the axis's end in the stronger bin), else in [-pi/2, pi/2]."""
     heat = torch.sigmoid(maps["heatmap"].detach())  # (B, 1, h, w)
     peaks = heat * (F.max_pool2d(heat, 3, stride=1, padding=1) == heat)
     batch = heat.shape[0]
@@ -224,6 +233,9 @@ def peaks_and_boxes(
     heat_score, index = peaks.reshape(batch, -1).topk(k, dim=1)  # (B, k), (B, k)
     regression_maps = torch.cat([maps[name].detach() for name in REGRESSION], dim=1)
     boxes = regression_to_boxes(gather_cells(regression_maps, index).double(), index, config)
+    if "dir" in maps:
+        bins = gather_cells(maps["dir"].detach(), index).argmax(dim=-1)  # (B, k)
+        boxes[..., 6] = apply_direction(boxes[..., 6], bins, config.direction_offset)
     return heat_score, index, boxes
 
 
@@ -327,6 +339,14 @@ def detection_loss(
     w_heat, w_box, w_iou = config.loss_weights
     total = w_heat * heat + w_box * box + w_iou * iou
     terms = {"loss": total, "heatmap": heat, "box": box, "iou": iou}
+    if "dir" in maps:  # cross-entropy of the direction bins, weighted like the box loss
+        logits = gather_cells(maps["dir"], targets.index)  # (B, K, 2)
+        entropy = F.cross_entropy(
+            logits.reshape(-1, logits.shape[-1]), targets.direction.reshape(-1), reduction="none"
+        ).reshape(mask.shape)  # (B, K)
+        direction = (entropy * cell_weight).sum() / count
+        total = total + config.direction_weight * direction
+        terms.update(loss=total, direction=direction)
     if config.iou_peak_cells > 0:
         peak = peak_iou_loss(maps, targets, config)
         total = total + w_iou * peak

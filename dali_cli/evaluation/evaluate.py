@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dali_cli import geometry
+from dali_cli.evaluation.heading import heading_summary, heading_weight
 from dali_cli.store.artifacts import BoxTable
 
 DIFFICULTIES = ("easy", "moderate", "hard")
@@ -312,6 +313,7 @@ class _Curve:
     fn: np.ndarray
     num_gt: int
     totals: dict  # tp, fp, fn with every prediction kept
+    tp_heading: np.ndarray | None = None  # (T,) true positives weighted by heading accuracy
 
 
 def _statistics(
@@ -323,9 +325,12 @@ def _statistics(
     ignored_pred: np.ndarray,
     min_overlap: float,
     points: int | None = NUM_SAMPLE_POINTS,
+    heading: str | None = None,
 ) -> _Curve:
     """True/false positives and misses at every sampled threshold (`points` of them as the
-    reference samples them; None: at every distinct true-positive score), over all frames."""
+    reference samples them; None: at every distinct true-positive score), over all frames.
+    `heading` ("aos" or "aph", heading.py): also the true positives weighted by how well each
+    one's heading matches its ground truth's."""
     pred_index, gt_index = pairs
     keep = (overlap > min_overlap) & (ignored_gt[gt_index] != -1) & (ignored_pred[pred_index] != -1)
     pred_index, gt_index, overlap = pred_index[keep], gt_index[keep], overlap[keep]
@@ -354,9 +359,13 @@ def _statistics(
         else _sample_thresholds(tp_scores, num_gt, points)
     )
     levels = np.r_[thresholds, -math.inf]  # (T + 1,)
-    tp, fp, fn = _counts_at_levels(
+
+    def weigh(p: np.ndarray, g: np.ndarray) -> np.ndarray:
+        return heading_weight(pred.boxes[p, 6], gt.boxes[g, 6], heading or "aos")
+
+    tp, fp, fn, tp_heading = _counts_at_levels(
         (pred_index, gt_index, overlap), scores, ignored_gt, ignored_pred, levels, in_loop_gt,
-        in_loop_pred,
+        in_loop_pred, weigh(pred_index, gt_index) if heading else None,
     )  # fmt: skip
     for component in components:
         for k, level in enumerate(levels):
@@ -364,6 +373,13 @@ def _statistics(
             tp[k] += part[0]
             fp[k] += part[1]
             fn[k] += part[2]
+            if heading:
+                counted = [
+                    (g, p) for g, p in part[4] if ignored_gt[g] == 0 and ignored_pred[p] == 0
+                ]
+                if counted:
+                    g, p = np.asarray(counted).T
+                    tp_heading[k] += weigh(p, g).sum()
     return _Curve(
         thresholds=thresholds,
         tp=tp[:-1],
@@ -371,6 +387,7 @@ def _statistics(
         fn=fn[:-1],
         num_gt=num_gt,
         totals={"tp": int(tp[-1]), "fp": int(fp[-1]), "fn": int(fn[-1])},
+        tp_heading=None if tp_heading is None else tp_heading[:-1],
     )
 
 
@@ -417,10 +434,12 @@ def _counts_at_levels(
     levels: np.ndarray,
     in_loop_gt: np.ndarray,
     in_loop_pred: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    pair_weight: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
     """Pass 2: at each score level `(L,)` match the candidate `pairs` (pred, gt, overlap) by
     largest overlap, preferring non-ignored predictions, then the first ignored one; returns
-    tp, fp, fn `(L,)` of everything but the loop's groups.
+    tp, fp, fn `(L,)` of everything but the loop's groups, and with `pair_weight (E,)` the sum of
+    the true positives' weights `(L,)` (else None).
 
     Per ground truth its candidates are ranked by that preference; at level t it takes the first
     with score >= t. So candidate j is taken exactly for t in (best score of the candidates ranked
@@ -447,11 +466,16 @@ def _counts_at_levels(
     lower = distinct[np.maximum(before, 0)] if edges else score  # (E,) the interval's open end
     counted_pred = (ignored_pred[pred_sorted] == 0).astype(np.int64)
     weights = np.c_[counted_pred * (ignored_gt[gt_sorted] == 0), counted_pred]  # (E, 2)
+    if pair_weight is not None:  # (E, 3): the true positives' weights as well
+        weights = np.c_[weights, weights[:, 0] * np.asarray(pair_weight, np.float64)[order]]
+    else:
+        weights = weights.astype(np.float64)
     # (L, 2): true positives and matched counted predictions among the candidates taken
     taken_counts = _weighted_at_least(score[taken], weights[taken], levels) - _weighted_at_least(
         lower[later], weights[later], levels
     )
-    tp = taken_counts[:, 0]
+    tp = np.rint(taken_counts[:, 0]).astype(np.int64)
+    tp_weighted = taken_counts[:, 2] if pair_weight is not None else None
     best = np.maximum.reduceat(score, starts) if edges else score  # (G,)
     fn = np.searchsorted(np.sort(best[ignored_gt[group_gt] == 0]), levels, side="left")
     has_pair = np.zeros(len(ignored_gt), dtype=bool)
@@ -459,22 +483,27 @@ def _counts_at_levels(
     fn = fn + np.sum((ignored_gt == 0) & ~has_pair & ~in_loop_gt)
     eligible = np.sort(scores[(ignored_pred == 0) & ~in_loop_pred])
     kept = len(eligible) - np.searchsorted(eligible, levels, side="left")  # score >= level
-    fp = kept - taken_counts[:, 1]
-    return tp, fp, fn
+    fp = kept - np.rint(taken_counts[:, 1]).astype(np.int64)
+    return tp, fp, fn, tp_weighted
 
 
-def _average_precision(curve: _Curve, recall_positions: int) -> tuple[float | None, dict]:
-    """AP in percent (None without counted ground truth) and the interpolated curves."""
+def _average_precision(
+    curve: _Curve, recall_positions: int, weighted: bool = False
+) -> tuple[float | None, dict]:
+    """AP in percent (None without counted ground truth) and the interpolated curves.
+    `weighted`: the precision's true positives weighted by heading (`curve.tp_heading`): KITTI's
+    AOS or the APH, on the same recall grid."""
     if recall_positions == 400:
-        return _average_precision_by_recall(curve, recall_positions)
+        return _average_precision_by_recall(curve, recall_positions, weighted)
     precision = np.zeros(NUM_SAMPLE_POINTS)
     recall = np.zeros(NUM_SAMPLE_POINTS)
     count = len(curve.thresholds)
     if count:
         tp = curve.tp.astype(np.float64)
+        hits = curve.tp_heading if weighted else tp
         with np.errstate(invalid="ignore", divide="ignore"):
             recall[:count] = np.nan_to_num(tp / (tp + curve.fn))
-            precision[:count] = np.nan_to_num(tp / (tp + curve.fp))
+            precision[:count] = np.nan_to_num(hits / (tp + curve.fp))
     precision = np.maximum.accumulate(precision[::-1])[::-1]
     recall = np.maximum.accumulate(recall[::-1])[::-1]
     if curve.num_gt == 0:
@@ -491,7 +520,9 @@ def _average_precision(curve: _Curve, recall_positions: int) -> tuple[float | No
     return value, detail
 
 
-def _average_precision_by_recall(curve: _Curve, positions: int) -> tuple[float | None, dict]:
+def _average_precision_by_recall(
+    curve: _Curve, positions: int, weighted: bool = False
+) -> tuple[float | None, dict]:
     """AP over the recall values k / `positions`, k = 1..positions: at each, the largest precision
     at any threshold whose recall reaches it (0 where none does), from a curve thresholded at
     every true-positive score. Curves: "precision" and "recall" at k = 0..positions (recall k /
@@ -501,8 +532,9 @@ def _average_precision_by_recall(curve: _Curve, positions: int) -> tuple[float |
     if len(curve.thresholds) and curve.num_gt:
         tp = curve.tp.astype(np.float64)
         recall = tp / curve.num_gt  # (T,) non-decreasing: thresholds fall
+        hits = curve.tp_heading if weighted else tp
         with np.errstate(invalid="ignore", divide="ignore"):
-            at = np.nan_to_num(tp / (tp + curve.fp))
+            at = np.nan_to_num(hits / (tp + curve.fp))
         envelope = np.maximum.accumulate(at[::-1])[::-1]  # best precision at recall >= recall[t]
         first = np.searchsorted(recall, grid - 1e-12, side="left")  # first threshold reaching it
         reached = first < len(recall)
@@ -617,6 +649,9 @@ def evaluate(
         "front_only": bool(front_only),
         "bev": {},
         "3d": {},
+        "aos": {},
+        "aph": {},
+        "heading": {},
         "counts": {},
         "curves": {"bev": {}, "3d": {}},
     }
@@ -629,16 +664,30 @@ def evaluate(
         for metric, overlap in (("bev", bev), ("3d", volume)):
             curve = _statistics(
                 pred_boxes, gt_boxes, pairs, overlap, ignored_gt, ignored_pred, iou,
-                sample_points(recall_positions),
+                sample_points(recall_positions), heading="aos" if metric == "bev" else None,
             )  # fmt: skip
             value, detail = _average_precision(curve, recall_positions)
             result[metric][name] = value
             result["curves"][metric][name] = detail
             counts[metric] = curve.totals
+            if metric == "bev":  # the heading metrics on the BEV matches (docs/evaluation.md)
+                result["aos"][name] = _average_precision(curve, recall_positions, True)[0]
+                aph = _statistics(
+                    pred_boxes, gt_boxes, pairs, overlap, ignored_gt, ignored_pred, iou,
+                    sample_points(recall_positions), heading="aph",
+                )  # fmt: skip
+                result["aph"][name] = _average_precision(aph, recall_positions, True)[0]
+        matched = matched_ground_truth(scored, "bev", name, iou)
+        true = (matched >= 0) & (ignored_pred == 0)
+        true[true] = ignored_gt[matched[true]] == 0
+        result["heading"][name] = heading_summary(
+            pred_boxes.boxes[true, 6], gt_boxes.boxes[matched[true], 6]
+        )
         counts["ap_ceiling"] = ap_ceiling(counts["gt"], recall_positions)
         result["counts"][name] = counts
     if protocol == "st3d":
-        for section in (result["bev"], result["3d"], result["counts"], *result["curves"].values()):
+        sections = ("bev", "3d", "aos", "aph", "heading", "counts")
+        for section in (*(result[key] for key in sections), *result["curves"].values()):
             for name in DIFFICULTIES[1:]:
                 section[name] = section[DIFFICULTIES[0]]
     return {class_name: result}
@@ -798,22 +847,30 @@ def format_table(metrics: dict) -> str:
             f"{class_name} AP_R{result['recall_positions']} @ IoU {result['iou']:g} "
             f"(protocol {result['protocol']}, {result['frames']} frames)"
         )
-        header = f"{'':<10}{'AP_BEV':>8}{'AP_3D':>8}{'GT':>8}{'ign':>6}{'pred':>8}"
-        header += f"{'TP/FP/FN (BEV)':>22}{'TP/FP/FN (3D)':>22}"
+        header = f"{'':<10}{'AP_BEV':>8}{'AP_3D':>8}{'APH':>8}{'AOS':>8}{'GT':>8}{'ign':>6}"
+        header += f"{'pred':>8}{'TP/FP/FN (BEV)':>22}{'TP/FP/FN (3D)':>22}{'backwards':>12}"
         lines.append(header)
         for name in result["bev"]:
             counts = result["counts"][name]
-            bev, volume = result["bev"][name], result["3d"][name]
+            headings = (result.get("aph", {}).get(name), result.get("aos", {}).get(name))
 
             def show(value):
                 return f"{value:8.2f}" if value is not None else f"{'-':>8}"
 
-            row = f"{name:<10}{show(bev)}{show(volume)}{counts['gt']:>8}{counts['gt_ignored']:>6}"
-            row += f"{counts['pred']:>8}"
+            row = f"{name:<10}{show(result['bev'][name])}{show(result['3d'][name])}"
+            row += f"{show(headings[0])}{show(headings[1])}"
+            row += f"{counts['gt']:>8}{counts['gt_ignored']:>6}{counts['pred']:>8}"
             for metric in ("bev", "3d"):
                 totals = counts[metric]
                 row += f"{totals['tp']:>10}/{totals['fp']}/{totals['fn']}".rjust(22)
+            heading = result.get("heading", {}).get(name)
+            if heading and heading["tp"]:
+                row += f"{heading['backwards']}/{heading['tp']}".rjust(12)
             lines.append(row)
+        lines.append(
+            "APH, AOS: AP_BEV with each true positive weighted by its heading (Waymo's "
+            "1 - |dθ|/π, KITTI's (1 + cos dθ)/2); backwards: true positives facing > 90° away"
+        )
         lines.extend(ceiling_notes(result))
     return "\n".join(lines)
 

@@ -1,6 +1,9 @@
 """Pseudo boxes over a scan sequence: boxes moved into one world frame by the scans' poses,
 linked into tracks scan by scan, parked cars made one box each and placed in every scan that
 holds them (the scans the detector missed them in included), and what does not persist dropped.
+Which way a tracked car faces comes from the track: a moving car faces the way it moves (boxes
+aligned along their track, as Autoware's tracker and LISO do), a parked car the way the
+score-weighted vote of its boxes' directions says (the detector's direction head).
 
 Plain numpy. Boxes are `(N, 7)` float64 `x, y, z, l, w, h, yaw` (dali_cli.geometry); a pose is
 `(4, 4)` float64, a scan's LiDAR frame in the world frame (x_world = pose @ x_lidar).
@@ -180,14 +183,51 @@ def fill_gaps(
     )
 
 
+def voted_direction(axis: float, yaw: np.ndarray, score: np.ndarray) -> float:
+    """The end of heading `axis` (rad) that boxes with headings `yaw (n,)` vote for, each with
+    its `score (n,)`: axis, or axis + pi when more score points the other way (a tie: axis)."""
+    against = np.abs(wrap_angle(yaw - axis)) > np.pi / 2
+    return float(wrap_angle(axis + np.pi * (score[against].sum() > score[~against].sum())))
+
+
 def median_box(world: np.ndarray, score: np.ndarray) -> np.ndarray:
     """`(7,)` one box of the `(n, 7)` world boxes of one car: of its boxes scored at least their
     median score (the scans that saw the car best), the median centre and size and the mean
-    heading axis, pointed the way most of them point. score : (n,)."""
+    heading axis, pointed the way the score-weighted vote of all its boxes says. score : (n,)."""
     best = world[score >= np.median(score)]
     axis = heading_axis(best[:, 6])
-    flipped = np.abs(wrap_angle(best[:, 6] - axis)) > np.pi / 2
-    return np.r_[np.median(best[:, :6], axis=0), wrap_angle(axis + np.pi * (flipped.mean() > 0.5))]
+    return np.r_[np.median(best[:, :6], axis=0), voted_direction(axis, world[:, 6], score)]
+
+
+def motion_headings(
+    track: np.ndarray, frame: np.ndarray, world: np.ndarray, params: TrackParams = TrackParams()
+) -> np.ndarray:
+    """`(N,)` the direction (rad, world frame) each box's track moves in at its frame: the
+    centre's change between the neighbouring hits (np.gradient over the frames); where the car
+    moves less than parked_m_per_frame there, the direction from the track's first to its last
+    centre; NaN for a track of one box or one that moved less than that over its span."""
+    out = np.full(len(track), np.nan)
+    for t in np.unique(track):
+        rows = np.flatnonzero(track == t)
+        rows = rows[np.argsort(frame[rows], kind="stable")]
+        times = frame[rows].astype(np.float64)
+        if len(rows) < 2 or times[-1] == times[0]:
+            continue
+        overall = world[rows[-1], :2] - world[rows[0], :2]
+        if np.hypot(*overall) < params.parked_m_per_frame * (times[-1] - times[0]):
+            continue
+        velocity = np.stack([np.gradient(world[rows, k], times) for k in (0, 1)], axis=1)
+        slow = np.hypot(velocity[:, 0], velocity[:, 1]) < params.parked_m_per_frame
+        velocity[slow] = overall
+        out[rows] = np.arctan2(velocity[:, 1], velocity[:, 0])
+    return out
+
+
+def along_motion(yaw: np.ndarray, motion: np.ndarray) -> np.ndarray:
+    """Headings `yaw (N,)` turned by pi where they point more than 90 deg away from `motion (N,)`
+    (rad; NaN: kept as they are): the box's axis kept, its front where the car is going."""
+    against = np.abs(wrap_angle(yaw - np.nan_to_num(motion))) > np.pi / 2
+    return np.where(np.isnan(motion) | ~against, yaw, wrap_angle(yaw + np.pi))
 
 
 def parked_cars(
@@ -278,9 +318,10 @@ def track_boxes(
 ) -> TrackedBoxes:
     """Pseudo boxes of a sequence turned into tracked boxes: linked in the world frame
     (link_tracks); each parked car (parked_cars, found in >= min_hits scans) as one world box
-    placed in every scan where it holds >= min_points points (place_in_scan); the boxes of
-    moving tracks with >= min_hits hits as they are; every other box (clutter that does not
-    persist) dropped.
+    placed in every scan where it holds >= min_points points (place_in_scan), facing the way its
+    boxes' score-weighted vote says; the boxes of moving tracks with >= min_hits hits as they
+    are, each turned to face the way its track moves (motion_headings); every other box (clutter
+    that does not persist) dropped.
 
     frame : (N,) int scan position (0..F-1); boxes : (N, 7) LiDAR frames; score : (N,);
     num_points : (N,) the points in each input box; poses : (F, 4, 4) LiDAR poses;
@@ -299,6 +340,10 @@ def track_boxes(
         parts.append((np.full(len(index), f), local, car_scores[index], counts, index))
     moving_rows = np.flatnonzero(moving)
     _, moving_id = np.unique(track[moving_rows], return_inverse=True)
+    motion = motion_headings(track, frame, world, params)[moving_rows]
+    moving_boxes = boxes[moving_rows].astype(np.float64, copy=True)
+    aligned = along_motion(world[moving_rows, 6], motion)
+    moving_boxes[:, 6] = wrap_angle(moving_boxes[:, 6] + (aligned - world[moving_rows, 6]))
     mean_score = track_mean(track, score)
     placed = [np.concatenate(column) for column in zip(*parts, strict=True)] if parts else None
     placed_frame, placed_boxes, placed_score, placed_points, placed_car = placed or [
@@ -307,7 +352,7 @@ def track_boxes(
     ]  # fmt: skip
     return TrackedBoxes(
         frame=np.concatenate([placed_frame, frame[moving_rows]]).astype(np.int64),
-        boxes=np.concatenate([placed_boxes.reshape(-1, 7), boxes[moving_rows]]),
+        boxes=np.concatenate([placed_boxes.reshape(-1, 7), moving_boxes]),
         score=np.concatenate([placed_score, mean_score[moving_rows]]),
         num_points=np.concatenate([placed_points, num_points[moving_rows]]).astype(np.int64),
         car=np.concatenate([placed_car, len(car_boxes) + moving_id]).astype(np.int64),

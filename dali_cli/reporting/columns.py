@@ -16,6 +16,7 @@ from dali_cli.reporting.report import BANDS, DIFFICULTIES
 COLUMNS: tuple[tuple[str, tuple], ...] = (
     ("BEV@0.7", ("ap", "0.7", "bev")),
     ("3D@0.7", ("ap", "0.7", "3d")),
+    ("APH@0.7", ("ap", "0.7", "aph")),
     ("BEV@0.5", ("ap", "0.5", "bev")),
     ("3D@0.5", ("ap", "0.5", "3d")),
     *((f"KITTI 3D@0.7 {d}", ("kitti", "0.7", "3d", d)) for d in DIFFICULTIES),

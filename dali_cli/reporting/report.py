@@ -130,7 +130,7 @@ def read_metrics(path: Path, document: dict | None = None) -> tuple[dict, dict, 
         if iou is None:
             continue
         entry = {}
-        for metric in ("bev", "3d"):
+        for metric in ("bev", "3d", "aph"):  # APH: metrics.json of dali eval with heading metrics
             values = block.get(metric, {})
             key = _summary_key(values)
             if key is not None and values[key] is not None:
@@ -222,13 +222,17 @@ def _sizes_cell(sizes: dict, key: str) -> str:
 
 
 def markdown_table(rows: list[Row]) -> str:
-    header = "| method | BEV@0.7 | 3D@0.7 | BEV@0.5 | 3D@0.5 | scale | pred l/w/h | gt l/w/h |"
-    lines = [header, "|" + "---|" * 8]
+    header = (
+        "| method | BEV@0.7 | 3D@0.7 | APH@0.7 | BEV@0.5 | 3D@0.5 | scale | pred l/w/h | gt l/w/h |"
+    )
+    lines = [header, "|" + "---|" * 9]
     for row in rows:
         cells = [row.name]
         for iou in ("0.7", "0.5"):
             entry = row.ap.get(iou, {})
             cells += [_cell(entry.get("bev")), _cell(entry.get("3d"))]
+            if iou == "0.7":
+                cells.append(_cell(entry.get("aph")))
         cells.append("—" if row.scale is None else f"{row.scale:.3f}")
         cells += [_sizes_cell(row.sizes, "pred"), _sizes_cell(row.sizes, "gt")]
         lines.append("| " + " | ".join(cells) + " |")
