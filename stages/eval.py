@@ -375,6 +375,16 @@ def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
         metrics["size_correction"] = correction
     if runtime is not None:
         metrics["runtime"] = runtime
+    if routes["model"] is not None:
+        from dali_cli.detector.infer import has_direction
+
+        metrics["direction_head"] = has_direction(routes["model"])
+        if not metrics["direction_head"]:
+            console.echo(
+                f"eval: {routes['model']} has no direction head (a model from before it): its "
+                "yaws are heading axes within ±90° of the sensor's x, so APH, AOS and the "
+                "backwards count read which way the axis happens to point"
+            )
     return metrics, pred
 
 

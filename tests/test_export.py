@@ -218,3 +218,32 @@ def test_dali_eval_of_labels_and_exports_gives_100_ap(tmp_path):
         for level in ("easy", "moderate", "hard"):
             assert metrics["bev"][level] == pytest.approx(100.0), (pred, level)
             assert metrics["3d"][level] == pytest.approx(100.0), (pred, level)
+
+
+@pytest.mark.parametrize("turn", np.arange(8) * np.pi / 4 - np.pi)
+def test_any_heading_exports_and_imports_back(imported, tmp_path, turn):
+    """Predicted boxes facing any way (every octant, -pi included): rotation_y = -yaw - pi/2 and
+    alpha = rotation_y - atan2(x, z) in [-pi, pi), and `dali import kitti` gives the heading back,
+    not its axis."""
+    from dali_cli.geometry import wrap_angle
+
+    frames = tmp_path / "predicted"
+    shutil.copytree(imported, frames)
+    truth = read_boxes(imported)
+    truth = truth.select(truth["label"] == "Car")
+    boxes = truth.boxes.copy()
+    boxes[:, 6] = wrap_angle(boxes[:, 6] + turn)
+    write_boxes(frames, BoxTable.from_arrays(truth.frame_id, boxes, score=np.full(len(boxes), 0.9)))
+    exported = export_kitti(frames, tmp_path / "exported", "--project-bbox")
+    objects = parse(exported / "data" / "000008.txt")
+    ry, alpha = np.asarray(objects.rotation_y), np.asarray(objects.alpha)
+    mine = boxes[truth.frame_id.astype(str) == "000008"]
+    assert yaw_difference(ry, -mine[:, 6] - np.pi / 2).max() < 1e-3  # label_2 keeps 2 decimals
+    ray = np.arctan2(np.asarray(objects.location)[:, 0], np.asarray(objects.location)[:, 2])
+    assert yaw_difference(alpha, ry - ray).max() < 2e-2
+    assert np.all((ry >= -np.pi - 1e-2) & (ry <= np.pi + 1e-2))
+    again = tmp_path / "again"
+    result = invoke("import", "kitti", KITTI, "--label-dir", exported / "data", "--out", again)
+    assert result.exit_code == 0, result.output
+    back = read_boxes(again)
+    assert yaw_difference(back.boxes[:, 6], boxes[:, 6]).max() < 1e-2
