@@ -376,7 +376,7 @@ def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
     if runtime is not None:
         metrics["runtime"] = runtime
     if routes["model"] is not None:
-        from dali_cli.detector.infer import has_direction
+        from dali_cli.store.model_card import has_direction
 
         metrics["direction_head"] = has_direction(routes["model"])
         if not metrics["direction_head"]:

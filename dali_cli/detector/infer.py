@@ -131,13 +131,6 @@ def ground_boxes_to_sensor(
     return ground_to_sensor(unscale_ground_boxes(boxes, scale), mount_height_m)
 
 
-def has_direction(model_dir: str | Path) -> bool:
-    """Whether the model of `model_dir` predicts full headings (a direction classifier): false
-    for a model.json from before it, whose config has no "direction"."""
-    config = read_meta(model_dir).get("config")
-    return bool(config.get("direction", False)) if isinstance(config, dict) else False
-
-
 def load_weights_only(path: Path, what: str, advice: str = ""):
     """torch.load of a file dali wrote, with the weights_only unpickler (tensors, numbers,
     strings, lists, dicts: no code can run); ArtifactError naming the file (and `advice`)

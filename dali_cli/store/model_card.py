@@ -144,6 +144,13 @@ def read_meta(model_dir: str | Path) -> dict:
     return document
 
 
+def has_direction(model_dir: str | Path) -> bool:
+    """Whether the model of `model_dir` predicts full headings (a direction classifier): false
+    for a model.json from before it, whose config has no "direction"."""
+    config = read_meta(model_dir).get("config")
+    return bool(config.get("direction", False)) if isinstance(config, dict) else False
+
+
 def read_card(model_dir: str | Path) -> ModelCard:
     """The model card of a model directory (see ModelCard.from_meta)."""
     return ModelCard.from_meta(read_meta(model_dir))
