@@ -380,10 +380,10 @@ def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
         from dali_cli.store.model_card import has_direction
 
         try:
-            metrics["direction_head"] = has_direction(routes["model"])
+            direction = has_direction(routes["model"])
         except ArtifactError:  # a stand-in detector without a model.json (tests)
-            metrics["direction_head"] = None
-        if metrics["direction_head"] is False:
+            direction = None
+        if direction is False:
             console.echo(
                 f"eval: {routes['model']} has no direction head (a model from before it): its "
                 "yaws are heading axes within ±90° of the sensor's x, so APH, AOS and the "
