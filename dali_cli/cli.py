@@ -31,6 +31,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "merge": ("merge", "One frame set from several (e.g. a target of several drives)."),
     "export": ("export", "Export boxes to other formats (KITTI label_2)."),
     "view": ("view", "Draw a frame with boxes as a PNG."),
+    "detect": ("detect", "Boxes of a trained model on your own scans (.bin, .pcd, .npy, drives)."),
     "size-norm": ("size_norm", "A labelled frame set with cars resized to a model's SN size."),
     "pretrain": ("pretrain", "Step 1: train the detector on the labelled source."),
     "ptsn-sweep": ("ptsn_sweep", "Step 2: find the PTSN scale for the target."),

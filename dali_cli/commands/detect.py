@@ -1,0 +1,74 @@
+"""`dali detect`: a trained model's boxes on one's own scans (stages/detect.py)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from dali_cli.commands.common import (
+    BATCH,
+    device_options,
+    no_progress_option,
+    out_dir_option,
+    score_min_option,
+    sensors_option,
+    stage_options,
+    tuning_option,
+)
+from dali_cli.commands.kinds import SCALE, VIEW_DEG
+
+
+@click.command(name="detect")
+@click.argument("scans", type=click.Path(exists=True, path_type=Path))
+@click.option("--model", type=click.Path(exists=True, file_okay=False, path_type=Path),
+              required=True, help="Model directory (model.pt, model.json; e.g. models/kitti-hdl64e).")  # fmt: skip
+@click.option("--scale", type=SCALE, default=None,
+              help="PTSN scale to run at. Default: MODEL/scale.json when there, else 1.")  # fmt: skip
+@tuning_option("--scale-from", type=click.Path(exists=True), default=None,
+              help="Read the scale from a ptsn-sweep directory (or its scale.json) instead.")  # fmt: skip
+@click.option("--sensor", default=None,
+              help="Sensor profile of the scans (sensors.toml; its mount height sets the ground). "
+                   "Default: kitti for .bin, nuscenes for .pcd.bin, a frame set's own; else the "
+                   "model's.")  # fmt: skip
+@click.option("--calib", type=click.Path(exists=True, path_type=Path), default=None,
+              help="KITTI calibration: a calib .txt for every scan, a folder of <frame>.txt, or "
+                   "a raw drive's date folder. With it OUT/label_2 holds camera-frame label_2 "
+                   "files. Default: a KITTI raw drive's or object split's own.")  # fmt: skip
+@click.option("--front-deg", type=VIEW_DEG, metavar="DEG", default=None,
+              help="Keep only the points within this many degrees of azimuth about the sensor's "
+                   "+x (82: KITTI's camera view, where models/kitti-hdl64e was trained).")  # fmt: skip
+@score_min_option(help="Write only boxes scored at least this.")
+@tuning_option("--batch-size", type=BATCH, default=4, show_default=True,
+              help="Scans per network pass.")  # fmt: skip
+@out_dir_option()
+@device_options
+@sensors_option
+@no_progress_option
+@stage_options
+def command(scans, model, scale, scale_from, sensor, calib, front_deg, score_min, batch_size,
+            out, device, precision, sensors_path, no_progress, force, dry_run):  # fmt: skip
+    """Detect cars in SCANS with MODEL and write OUT.
+
+    SCANS: a scan file or a folder of them (KITTI .bin, PCD ascii or binary, nuScenes .pcd.bin,
+    .npy of (n, >=3)), a KITTI raw drive (velodyne_points/data), a KITTI object split (velodyne/)
+    or a dali frame set. OUT/boxes.parquet holds the boxes (LiDAR frame, score, points inside);
+    OUT/label_2/<frame>.txt KITTI label_2 lines (camera frame, with --calib or the data's own
+    calib), else OUT/lidar/<frame>.txt lines 'x y z l w h yaw Car score' (metres, radians,
+    LiDAR frame). The boxes are the model's own, at the model's test-time scale: what `dali eval`
+    scores. Written atomically with a manifest; rerun only when an input or option changed.
+    """
+    from stages.detect import run_detect
+
+    outcome = run_detect(
+        model=model, scans=scans, out=out, scale=scale, scale_from=scale_from, sensor=sensor,
+        calib=calib, score_min=score_min, front_deg=front_deg, batch_size=batch_size,
+        device=device, precision=precision, progress=not no_progress, force=force,
+        dry_run=dry_run, sensors_path=sensors_path,
+    )  # fmt: skip
+    if outcome.status == "ran":
+        counts = outcome.manifest["outputs"]["counts"]
+        click.echo(
+            f"  {counts['boxes']} boxes in {counts['frames']} scans, "
+            f"{counts['frames_per_s']} frames/s ({counts['seconds']} s)"
+        )
