@@ -49,8 +49,9 @@ $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	@# torch first, pinned: on these machines 2.13.0 is a local CPU wheel; other specs pull CUDA.
 	$(BIN)/pip install --quiet --disable-pip-version-check torch==2.13.0
-	@# .[ray]: the optional Ray engine, installed so the test suite runs its tests on a local Ray
-	$(BIN)/pip install --quiet --disable-pip-version-check -e '.[dev,ray]'
+	@# .[ray]: the optional Ray engine, installed so the test suite runs its tests on a local Ray;
+	@# .[onnx]: the ONNX export and onnxruntime, tested the same way
+	$(BIN)/pip install --quiet --disable-pip-version-check -e '.[dev,ray,onnx]'
 	@touch $(STAMP)
 
 install: $(STAMP)
@@ -162,13 +163,18 @@ $(RUN)/library/manifest.json: | install
 
 data: $(SOURCE)/manifest.json $(TARGET)/manifest.json $(TARGET_VAL)/manifest.json
 
-# iteration 0: the source-only detector
+# iteration 0: the source-only detector, pretrained on SOURCE; or, with SOURCE_MODEL=DIR, a trained
+# model directory the iterations start from instead (the demo: models/waymo-like-source, no
+# pretraining; the other rows that retrain from iter0 still pretrain it)
+SOURCE_MODEL ?=
+iter_model = $(if $(and $(filter 0,$(1)),$(SOURCE_MODEL)),$(SOURCE_MODEL),$(RUN)/iter$(1)/model)
+iter_model_target = $(if $(and $(filter 0,$(1)),$(SOURCE_MODEL)),$(SOURCE_MODEL)/model.json,$(RUN)/iter$(1)/model/manifest.json)
 $(RUN)/iter0/model/manifest.json: $(SOURCE)/manifest.json
 	$(TRAIN_DALI) pretrain --source $(SOURCE) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
-$(RUN)/iter0/eval/manifest.json: $(RUN)/iter0/model/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
+$(RUN)/iter0/eval/manifest.json: $(call iter_model_target,0) $(TARGET_VAL)/manifest.json
+	$(DALI) eval $(DEVICE_FLAG) --model $(call iter_model,0) --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 $(RUN)/iter0/eval_ptsn/manifest.json: $(RUN)/iter1/ptsn/manifest.json $(TARGET_VAL)/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter0/model --data $(TARGET_VAL) --scale-from $(RUN)/iter1/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
+	$(DALI) eval $(DEVICE_FLAG) --model $(call iter_model,0) --data $(TARGET_VAL) --scale-from $(RUN)/iter1/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 iter0: $(RUN)/iter0/eval/manifest.json $(RUN)/iter0/eval_ptsn/manifest.json
 
 # SOURCE_SIZE=sn (default): retraining shifts the source cars to the sweep's label-free E_est,
@@ -178,18 +184,18 @@ SOURCE_SIZE_FLAGS = --source-size $(SOURCE_SIZE)$(if $(filter sn,$(SOURCE_SIZE))
 
 # ptsn-sweep N uses model N-1 (ITER_PTSN), iteration N builds model N (ITER)
 define ITER_PTSN
-$(RUN)/iter$(1)/ptsn/manifest.json: $(RUN)/iter$(2)/model/manifest.json $(TARGET)/manifest.json
-	$(DALI) ptsn-sweep $(DEVICE_FLAG) --model $(RUN)/iter$(2)/model --target $(TARGET) --expected-size $(EXPECTED) --score-min $(SCORE_MIN) --seed $(SEED) --out $$(@D)
+$(RUN)/iter$(1)/ptsn/manifest.json: $(call iter_model_target,$(2)) $(TARGET)/manifest.json
+	$(DALI) ptsn-sweep $(DEVICE_FLAG) --model $(call iter_model,$(2)) --target $(TARGET) --expected-size $(EXPECTED) --score-min $(SCORE_MIN) --seed $(SEED) --out $$(@D)
 endef
 define ITER
 $(RUN)/iter$(1)/pseudo/manifest.json: $(RUN)/iter$(1)/ptsn/manifest.json
-	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(RUN)/iter$(2)/model --target $(TARGET) --scale-from $(RUN)/iter$(1)/ptsn --score-min $(SCORE_MIN) $(PSEUDO_FLAGS) $(EXEC_FLAGS) --out $$(@D)
+	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(call iter_model,$(2)) --target $(TARGET) --scale-from $(RUN)/iter$(1)/ptsn --score-min $(SCORE_MIN) $(PSEUDO_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/rc/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
 	$(DALI) ppcg-rc --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --target-profile $(SENSOR) --seed $(SEED) $(PPCG_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/cf/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
 	$(DALI) ppcg-cf --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --target-profile $(SENSOR) --seed $(SEED) $(PPCG_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/model/manifest.json: $(RUN)/iter$(1)/rc/manifest.json $(RUN)/iter$(1)/cf/manifest.json $(SOURCE)/manifest.json
-	$(TRAIN_DALI) retrain --init $(RUN)/iter$(2)/model --source $(SOURCE) --ppcg $(RUN)/iter$(1)/rc $(RUN)/iter$(1)/cf $(call SOURCE_SIZE_FLAGS,$(1)) --seed $(SEED) $(call RETRAIN_BUDGET,$(1)) $(RETRAIN_FLAGS) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $$(@D)
+	$(TRAIN_DALI) retrain --init $(call iter_model,$(2)) --source $(SOURCE) --ppcg $(RUN)/iter$(1)/rc $(RUN)/iter$(1)/cf $(call SOURCE_SIZE_FLAGS,$(1)) --seed $(SEED) $(call RETRAIN_BUDGET,$(1)) $(RETRAIN_FLAGS) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $$(@D)
 $(RUN)/iter$(1)/eval/manifest.json: $(RUN)/iter$(3)/ptsn/manifest.json $(TARGET_VAL)/manifest.json
 	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/iter$(1)/model --data $(TARGET_VAL) --scale-from $(RUN)/iter$(3)/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 iter$(1): iter$(2) $(RUN)/iter$(1)/eval/manifest.json

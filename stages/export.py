@@ -111,3 +111,36 @@ def export_openpcdet(
         force=force,
         dry_run=dry_run,
     )
+
+
+def export_model(
+    model_dir: str | Path,
+    out: str | Path,
+    *,
+    scale: float | None = None,
+    scale_from: str | Path | None = None,
+    force: bool = False,
+    dry_run: bool = False,
+) -> StageOutcome:
+    """The detector of `model_dir` as ONNX graphs in `out` (dali_cli.detector.onnx_export) at PTSN
+    scale `scale`, `scale_from`'s scale.json, or the model's own scale.json (else 1)."""
+    from dali_cli.runtime.errors import ParameterError
+    from dali_cli.store.scale_file import SCALE_NAME, read_scale
+
+    if scale is not None and scale_from is not None:
+        raise ParameterError(("scale", "scale_from"), "give one of the two, not both")
+    if scale is None:
+        where = scale_from or (model_dir if (Path(model_dir) / SCALE_NAME).is_file() else None)
+        scale = read_scale(where).scale if where is not None else 1.0
+
+    def build(tmp: Path) -> dict:
+        from dali_cli.detector.infer import Detector
+        from dali_cli.detector.onnx_export import export_onnx
+
+        spec = export_onnx(Detector.load(model_dir), tmp, scale)
+        return {"opset": spec["opset"], "rows": spec["grid"]["rows"], "cols": spec["grid"]["cols"]}
+
+    return run_stage(
+        "export-model", out, {"model": model_dir, "scale": scale_from}, {"scale": scale, "format": "onnx"},
+        build, force=force, dry_run=dry_run,
+    )  # fmt: skip

@@ -14,6 +14,7 @@ from dali_cli.commands.common import (
     stage_options,
     tuning_option,
 )
+from dali_cli.commands.kinds import SCALE
 
 
 @click.group(name="export")
@@ -127,3 +128,31 @@ def openpcdet_command(data_dir, boxes_dir, split, score_min, out, force, dry_run
         force=force,
         dry_run=dry_run,
     )
+
+
+@command.command(name="model", short_help="The detector's network as ONNX (onnxruntime).")
+@click.argument("model_dir", type=click.Path(exists=True, file_okay=False))
+@click.option("--onnx", "as_onnx", is_flag=True, required=True,
+              help="Export as ONNX (opset 18; the one format).")  # fmt: skip
+@click.option("--scale", type=SCALE, default=None,
+              help="PTSN scale whose grid the graph runs on. Default: MODEL_DIR/scale.json, "
+                   "else 1.")  # fmt: skip
+@tuning_option("--scale-from", type=click.Path(exists=True), default=None,
+              help="Read the scale from a ptsn-sweep directory instead.")  # fmt: skip
+@out_dir_option()
+@stage_options
+def model_command(model_dir, as_onnx, scale, scale_from, out, force, dry_run):
+    """Write the detector of MODEL_DIR as OUT/detector.onnx (one frame's pillarized points ->
+    head maps) and OUT/refiner.onnx (box point features -> residuals and IoU), with OUT/onnx.json
+    (opset, grid, inputs; docs/detector.md "ONNX"). Run it with
+    dali_cli.detector.onnx_export.OnnxDetector, or read onnx.json to feed another runtime."""
+    if not as_onnx:
+        raise click.UsageError("--onnx: the only export format of a model")
+    from stages.export import export_model
+
+    outcome = export_model(
+        model_dir, out, scale=scale, scale_from=scale_from, force=force, dry_run=dry_run
+    )
+    if outcome.status == "ran":
+        counts = outcome.manifest["outputs"]["counts"]
+        click.echo(f"  opset {counts['opset']}, grid {counts['rows']} x {counts['cols']} pillars")
