@@ -50,8 +50,8 @@ $(STAMP): pyproject.toml
 	@# torch first, pinned: on these machines 2.13.0 is a local CPU wheel; other specs pull CUDA.
 	$(BIN)/pip install --quiet --disable-pip-version-check torch==2.13.0
 	@# .[ray]: the optional Ray engine, installed so the test suite runs its tests on a local Ray;
-	@# .[onnx]: the ONNX export and onnxruntime, tested the same way
-	$(BIN)/pip install --quiet --disable-pip-version-check -e '.[dev,ray,onnx]'
+	@# .[onnx], .[view]: the ONNX export with onnxruntime and Rerun recordings, tested the same way
+	$(BIN)/pip install --quiet --disable-pip-version-check -e '.[dev,ray,onnx,view]'
 	@touch $(STAMP)
 
 install: $(STAMP)

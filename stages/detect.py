@@ -163,8 +163,9 @@ def run_detect(*, model: str | Path, scans: str | Path, out: str | Path, scale=N
                scale_from=None, sensor: str | None = None, calib=None, score_min: float = 0.3,
                front_deg: float | None = None, batch_size: int = 4, device: str = "auto",
                precision: str = "fp32", progress: bool = True, force: bool = False,
-               dry_run: bool = False, sensors_path=None) -> StageOutcome:  # fmt: skip
-    """Run the stage (see the module docstring)."""
+               dry_run: bool = False, sensors_path=None, rerun=None) -> StageOutcome:  # fmt: skip
+    """Run the stage (see the module docstring); `rerun`: also write a Rerun recording of the
+    scans and their boxes there (reporting/recording.py)."""
     from dali_cli.detector.infer import WEIGHTS_NAME, Detector
     from dali_cli.runtime.device import resolve_device
     from dali_cli.sensors import get_profile
@@ -201,4 +202,17 @@ def run_detect(*, model: str | Path, scans: str | Path, out: str | Path, scale=N
         return counts
 
     inputs = {"model": model, "scans": scans, "calib": calib}
-    return run_stage("detect", out, inputs, params, build, force=force, dry_run=dry_run)
+    if rerun is not None:  # before any work: a path dali must not write fails at once
+        from dali_cli.store.output_paths import check_file_output, is_dali_recording
+
+        check_file_output(rerun, {**inputs, "out": out}, is_dali_recording,
+                          "a recording dali wrote", option="--rerun")  # fmt: skip
+    outcome = run_stage("detect", out, inputs, params, build, force=force, dry_run=dry_run)
+    if rerun is not None and not dry_run:
+        from dali_cli.reporting.recording import Layer, write_recording
+        from dali_cli.store.artifacts import read_boxes
+
+        frames = ((i, crop_front(p, front_deg)) for i, p in source.frames())
+        counts = write_recording(Path(rerun), frames, [Layer("detections", read_boxes(out))])
+        console.echo(f"detect: wrote {rerun} ({counts['frames']} frames); open it: rerun {rerun}")
+    return outcome

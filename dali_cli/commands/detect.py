@@ -39,6 +39,9 @@ from dali_cli.commands.kinds import SCALE, VIEW_DEG
               help="Keep only the points within this many degrees of azimuth about the sensor's "
                    "+x (82: KITTI's camera view, where models/kitti-hdl64e was trained).")  # fmt: skip
 @score_min_option(help="Write only boxes scored at least this.")
+@click.option("--rerun", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Also write a Rerun recording (.rrd) of the scans and their boxes coloured by "
+                   "score (rerun-sdk).")  # fmt: skip
 @tuning_option("--batch-size", type=BATCH, default=4, show_default=True,
               help="Scans per network pass.")  # fmt: skip
 @out_dir_option()
@@ -46,8 +49,8 @@ from dali_cli.commands.kinds import SCALE, VIEW_DEG
 @sensors_option
 @no_progress_option
 @stage_options
-def command(scans, model, scale, scale_from, sensor, calib, front_deg, score_min, batch_size,
-            out, device, precision, sensors_path, no_progress, force, dry_run):  # fmt: skip
+def command(scans, model, scale, scale_from, sensor, calib, front_deg, score_min, rerun,
+            batch_size, out, device, precision, sensors_path, no_progress, force, dry_run):  # fmt: skip
     """Detect cars in SCANS with MODEL and write OUT.
 
     SCANS: a scan file or a folder of them (KITTI .bin, PCD ascii or binary, nuScenes .pcd.bin,
@@ -64,7 +67,7 @@ def command(scans, model, scale, scale_from, sensor, calib, front_deg, score_min
         model=model, scans=scans, out=out, scale=scale, scale_from=scale_from, sensor=sensor,
         calib=calib, score_min=score_min, front_deg=front_deg, batch_size=batch_size,
         device=device, precision=precision, progress=not no_progress, force=force,
-        dry_run=dry_run, sensors_path=sensors_path,
+        dry_run=dry_run, sensors_path=sensors_path, rerun=rerun,
     )  # fmt: skip
     if outcome.status == "ran":
         counts = outcome.manifest["outputs"]["counts"]

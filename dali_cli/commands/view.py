@@ -22,8 +22,9 @@ def _parse_boxes(value: str) -> tuple[str, Path]:
 
 @click.command(name="view")
 @click.argument("data_dir", type=click.Path(exists=True, file_okay=False))
-@click.option("--frame", "frame", required=True,
-              help="Frame id; a number that is not an id is taken as the frame's index.")  # fmt: skip
+@click.option("--frame", "frame", default=None,
+              help="Frame id; a number that is not an id is taken as the frame's index. Needed "
+                   "for a PNG; a recording holds every frame.")  # fmt: skip
 @click.option("--boxes", "boxes", multiple=True,
               help="Box table to draw, DIR or NAME=DIR (repeatable; each gets its own colour). "
                    "DATA_DIR's own boxes.parquet is drawn first unless --no-own-boxes.")  # fmt: skip
@@ -39,8 +40,12 @@ def _parse_boxes(value: str) -> tuple[str, Path]:
 @tuning_option("--annotate", is_flag=True, help="Write each box's score (or label) at its centre.")
 @tuning_option("--width-px", type=click.IntRange(min=200, max=8000), default=1200,
               show_default=True, help="Image width in pixels.")  # fmt: skip
-@click.option("--out", "out", type=click.Path(dir_okay=False), required=True,
+@click.option("--out", "out", type=click.Path(dir_okay=False), default=None,
               help="PNG file to write.")  # fmt: skip
+@click.option("--rerun", "rerun_out", type=click.Path(dir_okay=False), default=None,
+              help="Write a Rerun recording (.rrd) of every frame instead: scans over time, each "
+                   "table's boxes (by score; TP / FP / missed against DATA_DIR's labels; tracks "
+                   "by id), the ego path where there are poses. Open it with `rerun FILE`.")  # fmt: skip
 def command(
     data_dir,
     frame,
@@ -53,12 +58,20 @@ def command(
     annotate,
     width_px,
     out,
+    rerun_out,
 ):
     """Draw frame FRAME of the FrameSet DATA_DIR as a PNG: bird's-eye view of the points (x right,
     y up, coloured by height or intensity) with the boxes of each box table in its own colour,
     Car solid, other labels dashed, a tick towards each box's front; --side adds an x-z view.
-    For checking imported data and pseudo labels by eye. Writes only OUT."""
+    For checking imported data and pseudo labels by eye. Writes only OUT (or the recording)."""
     from dali_cli.store.artifacts import BOXES_NAME, ArtifactError, FrameSet, read_boxes
+
+    if (out is None) == (rerun_out is None):
+        raise click.UsageError("give one of --out (a PNG of --frame) and --rerun (a recording)")
+    if rerun_out is not None:
+        return record(data_dir, boxes, no_own_boxes, score_min, rerun_out)
+    if frame is None:
+        raise click.UsageError("--frame: which frame to draw (a recording needs none: --rerun)")
 
     try:
         import matplotlib  # noqa: F401  (a dev extra, not a core dependency)
@@ -92,4 +105,30 @@ def command(
     render_frame(points, box_sets, out, title, side, extent, colour_by, width_px, annotate)
     click.echo(
         f"view: wrote {out} ({', '.join(f'{b.name} {len(b.boxes)}' for b in box_sets) or 'no boxes'})"
+    )
+
+
+def record(data_dir, boxes, no_own_boxes: bool, score_min, rerun_out) -> None:
+    """`dali view --rerun`: the recording of DATA_DIR with its tables (reporting/recording.py)."""
+    try:
+        import rerun  # noqa: F401  (an optional extra)
+    except ImportError:
+        raise click.ClickException(
+            "dali view --rerun needs rerun-sdk: pip install rerun-sdk (or pip install 'dali[view]')"
+        ) from None
+    from dali_cli.reporting.recording import record_frameset
+    from dali_cli.store.artifacts import BOXES_NAME
+    from dali_cli.store.output_paths import check_file_output, is_dali_recording
+
+    sources = [_parse_boxes(value) for value in boxes]
+    check_file_output(
+        rerun_out, {"data": data_dir, "boxes": [path for _, path in sources]}, is_dali_recording,
+        "a recording dali wrote", option="--rerun",
+    )  # fmt: skip
+    if not no_own_boxes and (Path(data_dir) / BOXES_NAME).is_file():
+        sources.insert(0, ("labels", Path(data_dir)))
+    counts = record_frameset(Path(rerun_out), Path(data_dir), sources, score_min)
+    click.echo(
+        f"view: wrote {rerun_out} ({counts['frames']} frames, {counts['entities']} entities, "
+        f"{counts['boxes']} boxes); open it with: rerun {rerun_out}"
     )

@@ -246,8 +246,26 @@ REPORT_FILES = ("report.md", "report.json", "plots")
 REPORT_MARKER = "written_by"
 
 
+RECORDING_APPLICATION = "dali-recording"  # the application id of every recording dali writes
+
+
+def is_dali_recording(path: Path) -> bool:
+    """A Rerun recording dali wrote (RRF2 magic, application id RECORDING_APPLICATION near the
+    start); never opens anything but a regular file (a FIFO would block)."""
+    if not Path(path).is_file():
+        return False
+    try:
+        with open(path, "rb") as file:
+            head = file.read(1 << 12)
+    except OSError:
+        return False
+    return head.startswith(b"RRF2") and RECORDING_APPLICATION.encode() in head
+
+
 def is_dali_png(path: Path) -> bool:
     """A PNG `dali view` wrote (its tEXt chunk Software = PNG_SOFTWARE)."""
+    if not Path(path).is_file():
+        return False
     try:
         with open(path, "rb") as file:
             head = file.read(1 << 16)
