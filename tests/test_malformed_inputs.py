@@ -129,7 +129,7 @@ def damage_frames(world: Path, case: Path, how: str) -> tuple[Path, tuple[str, .
         return target, ("frames.zarr/offsets", "cannot be read")
     if how == "garbage-metadata":
         (store / "points" / "zarr.json").write_text('{"zarr_format": 3, "node_type": "arr')
-        return target, ("frames.zarr/points", "cannot open array")
+        return target, ("frames.zarr/points/zarr.json", "not valid JSON")
     group = zarr.open_group(str(store), mode="r+")
     if how == "nan-points":
         points = group["points"]

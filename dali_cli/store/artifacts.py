@@ -30,7 +30,6 @@ import pyarrow.parquet as pq
 from dali_cli.runtime.errors import StageError
 from dali_cli.store import raw_chunks
 from dali_cli.store.frame_ids import FrameIdError, check_name, first_bad_name
-from dali_cli.store.regular_files import check_regular
 
 FRAMES_NAME = "frames.zarr"
 BOXES_NAME = "boxes.parquet"
@@ -45,15 +44,24 @@ class ArtifactError(StageError):
 def read_json(path: Path, missing: str, invalid: str):
     """The JSON document of the file `path`. ArtifactError naming the file: `"{path}: {missing}"`
     when it is not a file, `"{path}: {invalid} ({error})"` when it is not UTF-8 JSON."""
-    import json
+    from dali_cli.store.regular_files import (
+        SpecialFileError,
+        UnreadableFileError,
+        read_json_file,
+    )
 
-    if not path.is_file():
+    path = Path(path)
+    if not path.exists() and not path.is_symlink():
         raise ArtifactError(f"{path}: {missing}")
     try:
-        return json.loads(check_regular(path).read_text(encoding="utf-8"))
-    except (OSError, ValueError) as error:  # not UTF-8, not JSON, an integer of 5,000 digits
-        reason = error.strerror if isinstance(error, OSError) else str(error)[:160]
+        return read_json_file(path, "JSON file")
+    except SpecialFileError:
+        raise
+    except UnreadableFileError as error:  # a directory, too large, not UTF-8, not JSON, too deep
+        reason = str(error).removeprefix(f"{path}: ")[:200]
         raise ArtifactError(f"{path}: {invalid} ({reason})") from None
+    except ValueError as error:  # an integer of 5,000 digits
+        raise ArtifactError(f"{path}: {invalid} ({str(error)[:160]})") from None
 
 
 class TableValueError(ArtifactError, ValueError):
@@ -133,6 +141,12 @@ class FrameSet:
         self.path = self.directory / FRAMES_NAME
         if not self.path.is_dir():
             raise ArtifactError(f"{self.path}: frame set not found (expected a Zarr group)")
+        from dali_cli.store.regular_files import UnreadableFileError, check_zarr_files
+
+        try:
+            check_zarr_files(self.path)  # before zarr opens a file: none may block or be huge
+        except UnreadableFileError as error:
+            raise ArtifactError(str(error)) from None
         try:
             group = zarr.open_group(str(self.path), mode="r")
         except Exception as error:  # zarr raises several types for a broken group

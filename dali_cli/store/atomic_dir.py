@@ -59,9 +59,12 @@ def is_leftover(directory: Path, out: Path, kind: str) -> bool:
     if directory.is_symlink() or not directory.is_dir():
         return False
     marker = directory / LEFTOVER_MARKER
+    from dali_cli.runtime.errors import StageError
+    from dali_cli.store.regular_files import read_json_file
+
     try:
-        document = json.loads(marker.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        document = read_json_file(marker, "leftover marker")
+    except (StageError, OSError, ValueError):
         return False
     return (
         isinstance(document, dict)

@@ -77,10 +77,12 @@ def check_made_from(artifact: str | Path, role: str, expected_input: str | Path)
 def read_manifest(directory: str | Path) -> dict | None:
     """The manifest of an artifact directory, or None when absent or unreadable (not a file,
     not UTF-8, not JSON, not a JSON object): an output with such a manifest is rebuilt."""
+    from dali_cli.store.regular_files import read_json_file
+
     path = Path(directory) / MANIFEST_NAME
     try:
-        document = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        document = read_json_file(path, "manifest")
+    except (StageError, OSError, ValueError):
         return None
     return document if isinstance(document, dict) else None
 
@@ -91,10 +93,12 @@ def read_input_manifest(directory: str | Path) -> dict | None:
     path = Path(directory) / MANIFEST_NAME
     if not path.exists() and not path.is_symlink():
         return None
+    from dali_cli.store.regular_files import read_json_file
+
     try:
-        document = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as error:
-        reason = error.strerror if isinstance(error, OSError) else str(error)[:120]
+        document = read_json_file(path, "manifest")
+    except (StageError, OSError, ValueError) as error:
+        reason = str(error).removeprefix(f"{path}: ")[:160]
         raise StageError(f"{path}: not a dali manifest ({reason})", path=path) from None
     problem = manifest_problem(document)
     if problem is not None:

@@ -12,7 +12,6 @@ and says why.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
@@ -28,11 +27,14 @@ class OutputPathError(StageError):
 def read_json_quietly(path: Path):
     """The JSON document at `path`, or None when it is missing, not a file, not UTF-8 or not
     JSON (the callers decide ownership, which an unreadable file never proves)."""
+    from dali_cli.runtime.errors import StageError
+    from dali_cli.store.regular_files import read_json_file
+
     try:
         if path.is_symlink() or not path.is_file():
             return None
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        return read_json_file(path)
+    except (StageError, OSError, ValueError):
         return None
 
 

@@ -26,12 +26,15 @@ class RawChunkError(ValueError):
 
 def is_raw_layout(array_dir: str | Path) -> bool:
     """Whether the Zarr v3 array at `array_dir` stores `(C, 4)` float32 chunks as raw bytes + CRC."""
+    from dali_cli.runtime.errors import StageError
+    from dali_cli.store.regular_files import read_json_file
+
     try:
-        meta = json.loads((Path(array_dir) / "zarr.json").read_text())
+        meta = read_json_file(Path(array_dir) / "zarr.json", "Zarr metadata")
         codecs = meta["codecs"]
         chunk_shape = meta["chunk_grid"]["configuration"]["chunk_shape"]
         encoding = meta["chunk_key_encoding"]
-    except (OSError, ValueError, KeyError, TypeError):
+    except (OSError, ValueError, KeyError, TypeError, StageError):
         return False
     return (
         meta.get("zarr_format") == 3
@@ -62,11 +65,16 @@ def read_chunk(path: str | Path, chunk_points: int) -> np.ndarray:
     """
     import google_crc32c
 
+    import stat
+
     expected = int(chunk_points) * 16 + _CHECKSUM_BYTES
+    if not stat.S_ISREG(os.stat(path).st_mode):  # FileNotFoundError when absent
+        raise RawChunkError("not a regular file (a FIFO or device would block the read)")
     buffer = np.empty(expected, np.uint8)
-    with open(path, "rb", buffering=0) as handle:
+    descriptor = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    with os.fdopen(descriptor, "rb", buffering=0) as handle:
         size = os.fstat(handle.fileno()).st_size
-        if size != expected:
+        if not stat.S_ISREG(os.fstat(handle.fileno()).st_mode) or size != expected:
             raise RawChunkError(f"{size} bytes, expected {expected}")
         view, read = memoryview(buffer), 0
         while read < expected:  # readinto may return fewer bytes than asked
