@@ -17,7 +17,6 @@ import numpy as np
 from dali_cli import quantities
 from dali_cli.runtime.errors import StageError
 from dali_cli.runtime.limits import check_limit
-from dali_cli.store.regular_files import check_regular
 
 DEFAULT_SENSORS_PATH = Path(__file__).resolve().parent.parent / "sensors.toml"
 
@@ -285,10 +284,12 @@ def parse_profile(name: str, table: dict, source: str = "<sensors>") -> SensorPr
 def load_profiles(path: str | Path | None = None) -> dict[str, SensorProfile]:
     """Load every profile of a sensors.toml (default: the project's). Errors name file and key."""
     path = Path(path) if path is not None else DEFAULT_SENSORS_PATH
+    from dali_cli.store.regular_files import UnreadableFileError, read_text_file
+
     try:
-        text = check_regular(path, "sensor file").read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise SensorConfigError(f"{path}: sensor file not found") from None
+        text = read_text_file(path, "sensor file", "toml")
+    except UnreadableFileError as error:  # missing, a directory, too large, not UTF-8
+        raise SensorConfigError(str(error)) from None
     except OSError as error:
         raise SensorConfigError(f"{path}: cannot read sensor file ({error})") from None
     return dict(_parse_cached(str(path), text))

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 
 from dali_cli.commands.common import (
@@ -20,14 +18,15 @@ from dali_cli.commands.kinds import SCALE_PAIR
 
 def read_json_option(path: str | None) -> dict | None:
     """The JSON document of an option's file (None without one); not JSON is a usage error."""
-    import json
+    from dali_cli.runtime.errors import StageError
+    from dali_cli.store.regular_files import read_json_file
 
     if path is None:
         return None
     try:
-        return json.loads(Path(path).read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise click.BadParameter(f"{path}: not JSON ({error})") from None
+        return read_json_file(path, "detector config")
+    except (StageError, ValueError) as error:  # a FIFO, too large, not UTF-8, not JSON, too deep
+        raise click.BadParameter(str(error)) from None
 
 
 @click.command(name="pretrain")

@@ -66,20 +66,19 @@ def check_finite_points(points: np.ndarray, path: str | Path) -> None:
         )
 
 
-def read_text_lines(path: str | Path, what: str) -> list[str]:
-    """The lines of a UTF-8 text file; ImportFormatError naming the file (and `what` it should
-    be) when it is missing, unreadable or not UTF-8 text (the first bad byte's offset)."""
+def read_text_lines(path: str | Path, what: str, kind: str = "calib") -> list[str]:
+    """The lines of a UTF-8 text file of `kind` (regular_files.BUDGETS: its size budget);
+    ImportFormatError naming the file (and `what` it should be) when it is missing, not a
+    regular file, over the budget or not UTF-8 text (the first bad byte's offset)."""
+    from dali_cli.store.regular_files import UnreadableFileError, read_text_file
+
     path = check_regular(path, what)
     try:
-        return path.read_text(encoding="utf-8").splitlines()
-    except FileNotFoundError:
-        raise ImportFormatError(f"{path}: {what} not found") from None
+        return read_text_file(path, what, kind).splitlines()
+    except UnreadableFileError as error:
+        raise ImportFormatError(str(error)) from None
     except OSError as error:
         raise ImportFormatError(f"{path}: cannot read {what} ({error.strerror})") from None
-    except UnicodeDecodeError as error:
-        raise ImportFormatError(
-            f"{path}: {what} is not UTF-8 text (byte {error.start}: {error.object[error.start]:#04x})"
-        ) from None
 
 
 def read_keyed(path: Path) -> dict[str, tuple[int, str]]:
@@ -122,7 +121,7 @@ def read_id_list(path: str | Path) -> list[str]:
     `../../other/velodyne/000008` would otherwise read and later write outside the dataset.
     Errors name the file and the line."""
     path = Path(path)
-    lines = read_text_lines(path, "id list")
+    lines = read_text_lines(path, "id list", "ids")
     ids, first_line = [], {}
     for number, line in enumerate(lines, start=1):
         frame_id = line.split("#", 1)[0].strip()
@@ -136,6 +135,8 @@ def read_id_list(path: str | Path) -> list[str]:
             )
         first_line[frame_id] = number
         ids.append(frame_id)
+    if not ids:
+        raise ImportFormatError(f"{path}: the id list names no frame (an empty set is no import)")
     return ids
 
 

@@ -58,12 +58,14 @@ def pseudo_lidar_to_camera(boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
 
 def _split_lines(path: Path) -> tuple[list[str], list[str], list[int]]:
     """Names, numeric tokens (15 per line, the score defaulting to 1) and line numbers."""
+    from dali_cli.store.regular_files import UnreadableFileError, read_text_file
+
     try:
-        text = path.read_text()
+        text = read_text_file(path, "label file", "label")
+    except UnreadableFileError as error:  # a FIFO, a directory, too large, not UTF-8
+        raise ArtifactError(str(error)) from None
     except OSError as error:
         raise ArtifactError(f"{path}: cannot read label file ({error.strerror})") from None
-    except UnicodeDecodeError as error:
-        raise ArtifactError(f"{path}: label file is not UTF-8 text (byte {error.start})") from None
     names, tokens, numbers = [], [], []
     for number, line in enumerate(text.splitlines(), start=1):  # a loop over text lines
         fields = line.split()

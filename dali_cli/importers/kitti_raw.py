@@ -158,7 +158,12 @@ def _parse_xml(path: Path):
         raise ImportFormatError(
             f"{path}: tracklet file is {size} bytes, more than {MAX_TRACKLET_BYTES}"
         )
-    raw = path.read_bytes()
+    from dali_cli.store.regular_files import UnreadableFileError, read_file_bytes
+
+    try:
+        raw = read_file_bytes(path, "tracklet file", "xml")
+    except UnreadableFileError as error:
+        raise ImportFormatError(str(error)) from None
     if b"<!ENTITY" in raw:
         raise ImportFormatError(f"{path}: tracklet file declares XML entities (refused)")
     try:

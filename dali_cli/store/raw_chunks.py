@@ -11,7 +11,6 @@ re-encoding. Reading this way costs a quarter of what Zarr's path costs for the 
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
@@ -63,9 +62,9 @@ def read_chunk(path: str | Path, chunk_points: int) -> np.ndarray:
     Raises FileNotFoundError when absent and RawChunkError when the size or checksum is wrong.
     The array is a writable view of a buffer of its own (no other reader shares it).
     """
-    import google_crc32c
-
     import stat
+
+    import google_crc32c
 
     expected = int(chunk_points) * 16 + _CHECKSUM_BYTES
     if not stat.S_ISREG(os.stat(path).st_mode):  # FileNotFoundError when absent

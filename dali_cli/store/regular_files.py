@@ -80,7 +80,7 @@ def checked_size(path: str | Path, what: str, kind: str) -> int:
         info = os.stat(path)
     except FileNotFoundError:
         dangling = " (a symbolic link to nothing)" if path.is_symlink() else ""
-        raise UnreadableFileError(f"{path}: the {what} is not there{dangling}") from None
+        raise UnreadableFileError(f"{path}: {what} not found{dangling}") from None
     except OSError as error:
         raise UnreadableFileError(f"{path}: cannot read the {what} ({error.strerror})") from None
     if stat.S_ISDIR(info.st_mode):
