@@ -102,6 +102,13 @@ def export_openpcdet(
     if boxes_dir is None and (Path(data_dir) / BOXES_NAME).is_file():
         boxes_dir = data_dir
     table = read_boxes(boxes_dir) if boxes_dir is not None else None
+    if table is not None:
+        from dali_cli.store.artifacts import check_frames_known
+
+        from dali_cli.labels.plausibility import refuse_implausible_table
+
+        check_frames_known(table, frames.frame_ids, str(boxes_dir))
+        refuse_implausible_table(table, str(boxes_dir))
     return run_stage(
         "export-openpcdet",
         out,

@@ -64,7 +64,15 @@ def command(
     y up, coloured by height or intensity) with the boxes of each box table in its own colour,
     Car solid, other labels dashed, a tick towards each box's front; --side adds an x-z view.
     For checking imported data and pseudo labels by eye. Writes only OUT (or the recording)."""
-    from dali_cli.store.artifacts import BOXES_NAME, ArtifactError, FrameSet, read_boxes
+    from dali_cli.store.artifacts import (
+        BOXES_NAME,
+        ArtifactError,
+        FrameSet,
+        check_frames_known,
+        read_boxes,
+    )
+
+    from dali_cli.labels.plausibility import refuse_implausible_table
 
     if (out is None) == (rerun_out is None):
         raise click.UsageError("give one of --out (a PNG of --frame) and --rerun (a recording)")
@@ -92,11 +100,15 @@ def command(
         frame_id = frames.frame_ids[int(frame)]
     points = frames.frame(frame_id)
     sources = [_parse_boxes(value) for value in boxes]
-    if not no_own_boxes and (Path(data_dir) / BOXES_NAME).is_file():
+    own = Path(data_dir) / BOXES_NAME
+    if not no_own_boxes and (own.exists() or own.is_symlink()):  # a FIFO or dangling link: refused
         sources.insert(0, ("labels", Path(data_dir)))
     box_sets = []
     for name, path in sources:
-        table = read_boxes(path).for_frame(frame_id)
+        whole = read_boxes(path)
+        check_frames_known(whole, frames.frame_ids, str(path))
+        refuse_implausible_table(whole, str(path))
+        table = whole.for_frame(frame_id)
         if score_min is not None:
             table = table.select(table["score"] >= score_min)
         box_sets.append(BoxSet(name, table.boxes, table["label"], table["score"]))
@@ -125,7 +137,8 @@ def record(data_dir, boxes, no_own_boxes: bool, score_min, rerun_out) -> None:
         rerun_out, {"data": data_dir, "boxes": [path for _, path in sources]}, is_dali_recording,
         "a recording dali wrote", option="--rerun",
     )  # fmt: skip
-    if not no_own_boxes and (Path(data_dir) / BOXES_NAME).is_file():
+    own = Path(data_dir) / BOXES_NAME
+    if not no_own_boxes and (own.exists() or own.is_symlink()):
         sources.insert(0, ("labels", Path(data_dir)))
     counts = record_frameset(Path(rerun_out), Path(data_dir), sources, score_min)
     click.echo(

@@ -85,3 +85,10 @@ def refuse_implausible(
             f"{problem(boxes[row], max_range_m)} ({len(bad)} such rows; are the boxes in "
             "metres, in the sensor frame?)"
         )
+
+
+def refuse_implausible_table(table, where: str, max_range_m: float | None = None) -> None:
+    """`refuse_implausible` on a BoxTable's rows of positive size (the rows with a size of 0,
+    such as KITTI's DontCare regions, are placeholders, not boxes)."""
+    positive = (table.boxes[:, 3:6] > 0).all(axis=1)
+    refuse_implausible(table.boxes, positive, where, table.frame_id, max_range_m)

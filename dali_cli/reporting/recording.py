@@ -184,13 +184,16 @@ def record_frameset(out: Path, data_dir: Path, sources: list[tuple[str, Path]],
     (the frame set's own) shows as labels and the others, when there are labels, as true
     positives, false positives and misses against them; the frame set's LiDAR poses, when it
     has them, give the ego path."""
-    from dali_cli.store.artifacts import FrameSet, read_boxes
+    from dali_cli.labels.plausibility import refuse_implausible_table
+    from dali_cli.store.artifacts import FrameSet, check_frames_known, read_boxes
     from dali_cli.store.sequence import SequenceError, read_lidar_poses
 
     frames = FrameSet(data_dir)
     layers, truth = [], None
     for name, path in sources:
         table = read_boxes(path)
+        check_frames_known(table, frames.frame_ids, str(path))
+        refuse_implausible_table(table, str(path))
         if score_min is not None and name != "labels" and "score" in table.columns:
             table = table.select(table["score"] >= score_min)
         if name == "labels":

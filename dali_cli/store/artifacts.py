@@ -737,13 +737,28 @@ def _is_plain_type(arrow_type: pa.DataType) -> bool:
     )
 
 
+def check_frames_known(table: BoxTable, frame_ids, where: str) -> None:
+    """ArtifactError naming `where` and the first frame id of `table` that `frame_ids` (a
+    frame set's) does not hold: boxes of a frame that is not there are a mix-up of two sets."""
+    known = set(frame_ids)
+    unknown = [f for f in dict.fromkeys(table.frame_id.astype(str).tolist()) if f not in known]
+    if unknown:
+        raise ArtifactError(
+            f"{where}: {len(unknown)} frame id(s) not in the frame set, the first '{unknown[0]}'"
+        )
+
+
 def read_boxes(directory: str | Path) -> BoxTable:
     """Read and validate `<directory>/boxes.parquet` (or a .parquet file path)."""
+    from dali_cli.store.regular_files import SpecialFileError, UnreadableFileError, checked_size
+
     path = Path(directory)
-    if path.is_dir():
+    if path.is_dir() and path.suffix != ".parquet":
         path = path / BOXES_NAME
-    if not path.is_file():
-        raise ArtifactError(f"{path}: box table not found")
+    try:  # a regular file within the table budget: a 4 GiB sparse file is refused by its size
+        checked_size(path, "box table", "table")
+    except (UnreadableFileError, SpecialFileError) as error:
+        raise ArtifactError(str(error)) from None
     try:
         table = pq.read_table(path)
     except Exception as error:
@@ -801,7 +816,8 @@ def read_boxes(directory: str | Path) -> BoxTable:
 
 def _value_problem(table: BoxTable) -> str | None:
     """The first row with NaN/inf box values, a negative size or a NaN/inf score, described
-    with its frame; None when every row is fine."""
+    with its frame; None when every row is fine (what a box may plausibly be:
+    labels/plausibility.py, applied by the stages that read boxes)."""
     boxes = table.boxes
     score = np.asarray(table["score"], np.float64)
     checks = (
