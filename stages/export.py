@@ -103,9 +103,8 @@ def export_openpcdet(
         boxes_dir = data_dir
     table = read_boxes(boxes_dir) if boxes_dir is not None else None
     if table is not None:
-        from dali_cli.store.artifacts import check_frames_known
-
         from dali_cli.labels.plausibility import refuse_implausible_table
+        from dali_cli.store.artifacts import check_frames_known
 
         check_frames_known(table, frames.frame_ids, str(boxes_dir))
         refuse_implausible_table(table, str(boxes_dir))

@@ -64,6 +64,7 @@ def command(
     y up, coloured by height or intensity) with the boxes of each box table in its own colour,
     Car solid, other labels dashed, a tick towards each box's front; --side adds an x-z view.
     For checking imported data and pseudo labels by eye. Writes only OUT (or the recording)."""
+    from dali_cli.labels.plausibility import refuse_implausible_table
     from dali_cli.store.artifacts import (
         BOXES_NAME,
         ArtifactError,
@@ -71,8 +72,6 @@ def command(
         check_frames_known,
         read_boxes,
     )
-
-    from dali_cli.labels.plausibility import refuse_implausible_table
 
     if (out is None) == (rerun_out is None):
         raise click.UsageError("give one of --out (a PNG of --frame) and --rerun (a recording)")
