@@ -323,6 +323,28 @@ def keeps_predictions(save_predictions: bool, model, size_correction: str) -> bo
     return save_predictions and (model is not None or size_correction != "none")
 
 
+def refuse_unscorable(pred: BoxTable, gt: BoxTable, pred_where: str, gt_where: str) -> None:
+    """StageError for saved predictions an evaluation cannot mean anything of: none of their
+    frames among the ground truth's, every score -1 (a label table's, not a detector's), or
+    every box of size 0."""
+    if len(pred) == 0:
+        return
+    truth_frames = set(gt.frame_id.astype(str).tolist())
+    if truth_frames and not truth_frames.intersection(pred.frame_id.astype(str).tolist()):
+        raise StageError(
+            f"{pred_where}: no frame in common with the ground truth {gt_where} (its first "
+            f"frame is '{pred.frame_id[0]}'): predictions of another frame set?"
+        )
+    scores = np.asarray(pred["score"], np.float64)
+    if np.all(scores == -1):
+        raise StageError(
+            f"{pred_where}: every score is -1, the mark of a label table, not of predictions; "
+            "AP ranks predictions by their scores"
+        )
+    if np.all(pred.boxes[:, 3:6].prod(axis=1) == 0):
+        raise StageError(f"{pred_where}: every box has a size of 0: no prediction to score")
+
+
 def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
     """(the metrics document, the predictions evaluated) of one evaluation."""
     from dali_cli.evaluation.errors import breakdown
@@ -332,6 +354,8 @@ def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
     for table, where in ((pred, routes["pred_path"] or "the predictions"), (gt, gt_path)):
         positive = (table.boxes[:, 3:6] > 0).all(axis=1)
         plausibility.refuse_implausible(table.boxes, positive, str(where), table.frame_id)
+    if routes["pred_path"] is not None:
+        refuse_unscorable(pred, gt, str(routes["pred_path"]), str(gt_path))
     correction = source.pop("size_correction", None)
     class_name = options["class_name"]
     metrics: dict = {}

@@ -117,8 +117,15 @@ def test_eval_never_replaces_predictions_it_did_not_write(tmp_path):
     assert not is_eval_predictions(mine / "predictions.parquet", metrics)
     with pytest.raises(OutputPathError, match="predictions.parquet"):
         check_metrics_output(metrics, {}, beside=("predictions.parquet",))
+    # marked as dali eval's, but the metrics beside it evaluated them (--pred): a user's copy of
+    # another evaluation's predictions, which a later `eval --model --out` must not replace
     marked = table.replace_schema_metadata(dict([PREDICTIONS_MARK]))
     pq.write_table(marked, mine / "predictions.parquet")
+    assert not is_eval_predictions(mine / "predictions.parquet", metrics)
+    with pytest.raises(OutputPathError, match="predictions.parquet"):
+        check_metrics_output(metrics, {}, beside=("predictions.parquet",))
+    # beside the metrics of a model's evaluation, the marked file is that evaluation's
+    metrics.write_text('{"Car": {"bev": {}, "source": {"model": "m"}}, "sizes": {}}')
     assert is_eval_predictions(mine / "predictions.parquet", metrics)
     check_metrics_output(metrics, {}, beside=("predictions.parquet",))
 

@@ -207,6 +207,12 @@ class Detector:
             config = DetectorConfig.from_dict(values)
         except (KeyError, TypeError, ValueError) as error:
             raise ArtifactError(f"{meta_path}: invalid model description ({error})") from None
+        named = meta.get("detector", config.name)
+        if named not in (config.name, "pillar-centerpoint-iou", "pillar-centerpoint-iou-refine"):
+            raise ArtifactError(
+                f"{meta_path}: field 'detector' is {str(named)[:80]!r}, not a dali detector "
+                f"(this one is {config.name})"
+            )
         net = PillarCenterNet(config)
         state = load_weights_only(weights_path, "dali model weights")
         try:

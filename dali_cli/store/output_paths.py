@@ -200,13 +200,18 @@ def is_eval_predictions(path: Path, metrics: Path) -> bool:
         metadata = pq.read_schema(path).metadata or {}
     except Exception:  # not Parquet: not dali's
         return False
-    if metadata.get(PREDICTIONS_MARK[0]) == PREDICTIONS_MARK[1]:
-        return True
     document = read_json_quietly(metrics)
     if not is_dali_metrics_file(metrics) or not isinstance(document, dict):
         return False
+    # the metrics file beside it must say that its evaluation wrote predictions (a model's, or
+    # size-corrected ones): after `eval --pred DIR/predictions.parquet --out DIR/metrics.json`
+    # the predictions are the user's, marked or not
     sources = [block.get("source") for block in document.values() if isinstance(block, dict)]
     from_model = any(isinstance(source, dict) and "model" in source for source in sources)
+    if not (from_model or "size_correction" in document):
+        return False
+    if metadata.get(PREDICTIONS_MARK[0]) == PREDICTIONS_MARK[1]:
+        return True
     return from_model and path.stat().st_ctime_ns <= metrics.stat().st_ctime_ns
 
 

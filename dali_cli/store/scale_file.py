@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from dali_cli.store.artifacts import ArtifactError, read_json
-from dali_cli.store.json_numbers import finite_number, finite_numbers
+from dali_cli.store.json_numbers import finite_number
 
 SCALE_NAME = "scale.json"
 
@@ -39,11 +39,6 @@ class ScaleResult:
     record: dict = field(default_factory=dict)
 
 
-def _triple(value) -> tuple | None:
-    """(l, w, h) from a JSON list of three positive finite numbers, else None (not recorded)."""
-    return finite_numbers(value, 3, positive=True)
-
-
 def _measured(value) -> tuple | None:
     """(l, w, h) a sweep measured, an element None where it had no box to measure."""
     if not isinstance(value, list) or len(value) != 3:
@@ -58,17 +53,25 @@ def read_scale(scale_from: str | Path) -> ScaleResult:
     document = read_json(
         path, f"scale file not found (is {scale_from} a ptsn-sweep output?)", "invalid JSON"
     )
-    given = document.get("scale") if isinstance(document, dict) else None
-    scale = finite_number(given)
-    if scale is None or scale <= 0:
-        shown = repr(given) if len(repr(given)) < 40 else repr(given)[:40] + "..."
-        raise ArtifactError(f"{path}: field 'scale' must be a positive number, got {shown}")
-    pivot = finite_number(document.get("mount_height_m"))
+    from dali_cli.quantities import CAR_SIZE_M, MOUNT_HEIGHT_M, SCALE, QuantityError, check_triple
+
+    if not isinstance(document, dict):
+        raise ArtifactError(f"{path}: not a scale file (not a JSON object)")
+    try:  # the kinds of --scale and --expected-size: a file is held to what an option is
+        scale = SCALE.check(document.get("scale"), f"{path}: field 'scale'")
+        e_est = document.get("E_est")
+        if e_est is not None:
+            e_est = check_triple(CAR_SIZE_M, e_est, f"{path}: field 'E_est'")
+        pivot = document.get("mount_height_m")
+        if pivot is not None:
+            pivot = MOUNT_HEIGHT_M.check(pivot, f"{path}: field 'mount_height_m'")
+    except QuantityError as error:
+        raise ArtifactError(str(error)) from None
     return ScaleResult(
         scale=float(scale),
-        e_est=_triple(document.get("E_est")),
+        e_est=e_est,
         e_pred=_measured(document.get("E_pred_at_scale")),
-        pivot_m=pivot if pivot is not None and pivot >= 0 else None,
+        pivot_m=pivot,
         record=document,
     )
 
