@@ -19,6 +19,7 @@ def import_kitti(
     label_dir: str | Path | None = None,
     crop_fov: bool = False,
     sensor: str = "kitti",
+    intensity_max: float = 1.0,
     **run: Unpack[ImportRun],
 ) -> StageOutcome:
     """Import ROOT[/split] (every scan, or the ids of `ids_path`) into `out`."""
@@ -33,7 +34,8 @@ def import_kitti(
     for name, path in (("labels", layout.label_dir), ("calib", layout.calib_dir)):
         if path.is_dir():
             inputs[name] = path
-    params = {"split": split, "crop_fov": crop_fov, "sensor": sensor, "frames": len(frame_ids)}
+    params = {"split": split, "crop_fov": crop_fov, "sensor": sensor, "frames": len(frame_ids),
+              "intensity_max": intensity_max}  # fmt: skip
     return run_import(
         "import-kitti",
         out,
@@ -46,6 +48,7 @@ def import_kitti(
             crop_fov=crop_fov,
             sensor=sensor,
             progress=run.get("progress", True),
+            intensity_max=intensity_max,
         ),
         run,
     )

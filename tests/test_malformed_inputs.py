@@ -645,6 +645,7 @@ def openpcdet_case(world: Path, case: Path, how: str) -> tuple[list, tuple[str, 
     (root / "points").mkdir(parents=True)
     (root / "labels").mkdir()
     points = np.random.default_rng(0).normal(size=(50, 4)).astype(np.float32)
+    points[:, 3] = np.abs(points[:, 3]) % 1.0  # intensities in [0, 1], the contract's
     np.save(root / "points" / "000000.npy", points)
     (root / "labels" / "000000.txt").write_text(
         "10 0 -1 4 1.8 1.5 0.1 Car\n12 5 -1 4 1.8 1.5 0 Car\n"

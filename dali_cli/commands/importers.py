@@ -46,8 +46,13 @@ def _summary(outcome) -> None:
 @click.option("--crop-fov", is_flag=True,
               help="Keep only points that project into the camera image (KITTI labels cover only "
                    "it).")  # fmt: skip
+@click.option("--intensity-max", type=INTENSITY_MAX, default=1.0, show_default=True,
+              help="Reflectances are divided by this (255 for 8-bit ones); after it they must lie "
+                   "in [0, 1].")  # fmt: skip
 @import_options("kitti")
-def kitti_command(root, split, ids_path, label_dir, crop_fov, sensor, out, no_progress, **run):
+def kitti_command(
+    root, split, ids_path, label_dir, crop_fov, intensity_max, sensor, out, no_progress, **run
+):
     """Import KITTI object data from ROOT (holding training/ and testing/, or one split).
 
     Reads <split>/velodyne/*.bin (float32 x, y, z, reflectance), label_2/*.txt (camera frame,
@@ -62,7 +67,7 @@ def kitti_command(root, split, ids_path, label_dir, crop_fov, sensor, out, no_pr
 
     outcome = import_kitti(
         root, out, split=split, ids_path=ids_path, label_dir=label_dir, crop_fov=crop_fov,
-        sensor=sensor, progress=not no_progress, **run,
+        sensor=sensor, intensity_max=intensity_max, progress=not no_progress, **run,
     )  # fmt: skip
     _summary(outcome)
 

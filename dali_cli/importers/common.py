@@ -45,6 +45,38 @@ def read_float_records(path: str | Path, fields: int) -> np.ndarray:
     return points
 
 
+MAX_POINT_DISTANCE_M = 1000.0  # no LiDAR return lies a kilometre away along any axis
+
+
+def check_scan_contract(points: np.ndarray, path: str | Path, intensity_max: float = 1.0):
+    """`points (n, 4)` of one scan file as the frame-set contract holds them: intensity divided
+    by `intensity_max` and within [0, 1], coordinates within MAX_POINT_DISTANCE_M of the sensor,
+    at least one point off the sensor's origin. ImportFormatError naming the file and what was
+    found otherwise (a text file or a scan in millimetres read as floats is no scan). Returns
+    the points (a copy when rescaled)."""
+    if len(points) == 0 or not np.any(points[:, :3]):
+        raise ImportFormatError(
+            f"{path}: no valid point ({len(points)} points, none off the sensor's origin)"
+        )
+    reach = float(np.abs(points[:, :3]).max())
+    if reach > MAX_POINT_DISTANCE_M:
+        raise ImportFormatError(
+            f"{path}: coordinates up to {reach:.3g} m, beyond any LiDAR's reach "
+            f"({MAX_POINT_DISTANCE_M:g} m): not a scan of float32 metres?"
+        )
+    if intensity_max != 1.0:
+        points = points.copy()
+        points[:, 3] /= intensity_max
+    low, high = float(points[:, 3].min()), float(points[:, 3].max())
+    if low < 0.0 or high > 1.0:
+        hint = f" after dividing by {intensity_max:g}" if intensity_max != 1.0 else ""
+        raise ImportFormatError(
+            f"{path}: intensity from {low:.4g} to {high:.4g}{hint}, outside [0, 1] (the frame "
+            "set's contract); for 8-bit intensities give --intensity-max 255"
+        )
+    return points
+
+
 def check_point_files(paths: list[Path]) -> None:
     """Every point file within the size limit (a stat each), before the stage hashes or reads
     them: an oversized file fails at once instead of after hashing gigabytes."""
@@ -195,6 +227,8 @@ def write_imported(
                 unlabeled += 1
             else:
                 tables.append(table)
+    if writer.count == 0:
+        raise ImportFormatError(f"{description}: no frame to import (an empty frame set is none)")
     counts = {
         "frames": writer.count,
         "points": int(writer.num_points),

@@ -40,9 +40,13 @@ IGNORE_TYPES = ("DontCare",)  # rows without a 3D box: kept for their 2D region 
 # Point clouds
 
 
-def read_velodyne(path: str | Path) -> np.ndarray:
-    """A velodyne `.bin` scan: `(n, 4)` float32 x, y, z, reflectance in the LiDAR frame (metres)."""
-    return read_float_records(path, 4)
+def read_velodyne(path: str | Path, intensity_max: float = 1.0) -> np.ndarray:
+    """A velodyne `.bin` scan: `(n, 4)` float32 x, y, z, reflectance in the LiDAR frame (metres),
+    the reflectance divided by `intensity_max`, held to the frame-set contract
+    (common.check_scan_contract)."""
+    from dali_cli.importers.common import check_scan_contract
+
+    return check_scan_contract(read_float_records(path, 4), path, intensity_max)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -386,12 +390,14 @@ def objects_to_lidar_columns(objects: CameraObjects, calib: Calibration) -> tupl
     return boxes, columns
 
 
-def load_frame(layout: KittiLayout, frame_id: str, crop_fov: bool = False):
+def load_frame(
+    layout: KittiLayout, frame_id: str, crop_fov: bool = False, intensity_max: float = 1.0
+):
     """One frame: points `(n, 4)` float32 and its BoxTable, or None when it has no label file.
 
     The calib file is required when the frame has labels or `crop_fov` is set.
     """
-    points = read_velodyne(layout.velodyne_dir / f"{frame_id}.bin")
+    points = read_velodyne(layout.velodyne_dir / f"{frame_id}.bin", intensity_max)
     label_path = layout.label_dir / f"{frame_id}.txt"
     has_labels = label_path.is_file()
     if not has_labels and (label_path.exists() or label_path.is_symlink()):
@@ -429,13 +435,14 @@ def build_import(
     crop_fov: bool = False,
     sensor: str = "kitti",
     progress: bool = True,
+    intensity_max: float = 1.0,
 ) -> BuildResult:
     """Stage body of `dali import kitti`: read every frame, write FrameSet + boxes into `out`
-    (`progress`: a progress bar on stderr)."""
+    (`progress`: a progress bar on stderr); reflectances are divided by `intensity_max`."""
 
     def frames():
         for frame_id in frame_ids:
-            points, table = load_frame(layout, frame_id, crop_fov=crop_fov)
+            points, table = load_frame(layout, frame_id, crop_fov, intensity_max)
             yield frame_id, points, table
 
     attrs = {"source_format": "kitti", "crop_fov": bool(crop_fov)}

@@ -37,10 +37,12 @@ CSV_COLUMNS = ("category", "x", "y", "z", "l", "w", "h", "yaw")
 def read_pcd_bin(path: str | Path) -> np.ndarray:
     """A LIDAR_TOP `.pcd.bin` (float32 x, y, z, intensity, ring) -> `(n, 4)` float32 with the
     intensity scaled to [0, 1] and the ring index dropped. Sensor frame of nuScenes (x right)."""
+    from dali_cli.importers.common import check_scan_contract
+
     records = read_float_records(path, 5)
     points = records[:, :4].copy()
     points[:, 3] = np.clip(points[:, 3] / INTENSITY_MAX, 0.0, 1.0)
-    return points
+    return check_scan_contract(points, path)
 
 
 def quaternion_to_matrix(quaternions: np.ndarray) -> np.ndarray:

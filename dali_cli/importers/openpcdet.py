@@ -16,6 +16,7 @@ from dali_cli.importers.common import (
     ImportFormatError,
     check_finite_points,
     check_id,
+    check_scan_contract,
     read_id_list,
     read_text_lines,
     write_imported,
@@ -66,8 +67,7 @@ def read_points(path: str | Path, intensity_max: float = 1.0) -> np.ndarray:
         )
     points = array[:, :4].astype(np.float32)
     check_finite_points(points, path)
-    points[:, 3] /= intensity_max
-    return points
+    return check_scan_contract(points, path, intensity_max)
 
 
 def read_labels(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
