@@ -34,7 +34,8 @@ CARD_NAME = "card.json"
 EXACT = ("AP_BEV@0.7 R400", "AP_3D@0.7 R400")  # a small set's AP@0.7 under R400 (exact_recall)
 COPIED = ("model.pt", "model.json")
 # (metrics.json block, overlap kind, header)
-METRICS = (("Car", "bev", "AP_BEV@0.7"), ("Car", "3d", "AP_3D@0.7"),
+# APH@0.7: AP_BEV with each true positive weighted by its heading (docs/evaluation.md)
+METRICS = (("Car", "bev", "AP_BEV@0.7"), ("Car", "3d", "AP_3D@0.7"), ("Car", "aph", "APH@0.7"),
            ("Car@0.5", "bev", "AP_BEV@0.5"), ("Car@0.5", "3d", "AP_3D@0.5"))  # fmt: skip
 COUNTS_SHOWN = (
     "frames",
@@ -157,14 +158,14 @@ def card_text(card: dict) -> str:
               "", "| set | frames | " + " | ".join(headers) + " |",
               "|---|---|" + "---|" * len(headers)]  # fmt: skip
     for name, entry in card["evaluations"].items():
-        cells = ["-" if entry[h] is None else f"{entry[h]:.1f}" for h in headers]
+        cells = ["-" if entry.get(h) is None else f"{entry[h]:.1f}" for h in headers]
         lines.append(f"| {name} | {entry['frames']} | " + " | ".join(cells) + " |")
     if card["recipe"]:
         lines += ["", f"The recipe over {card['recipe_seeds']} seeds (mean ± std; this model is one "
                   "of them):", "", "| set | seeds | " + " | ".join(headers) + " |",
                   "|---|---|" + "---|" * len(headers)]  # fmt: skip
         for name, entries in card["recipe"].items():
-            cells = [spread([e[h] for e in entries if e[h] is not None]) for h in headers]
+            cells = [spread([e[h] for e in entries if e.get(h) is not None]) for h in headers]
             lines.append(f"| {name} | {len(entries)} | " + " | ".join(cells) + " |")
     lines += ceiling_lines(card)
     if card["fixture"]:
@@ -248,8 +249,11 @@ def main(argv: list[str] | None = None) -> None:
     recipe = {name: [evaluation(d) for d in dirs if (d / "metrics.json").is_file()]
               for name, dirs in named_dirs(args.recipe, "--recipe").items()}  # fmt: skip
     scale = read_json(scale_file)["scale"] if scale_file else 1.0
-    use = f"dali eval --model {args.out} --data DATA" + (
-        f" --scale-from {args.out}" if scale_file else "") + " --out OUT"  # fmt: skip
+    use = (f"dali detect SCANS --model {args.out} --out OUT    # your own scans: .bin, .pcd, .npy, "
+           "a KITTI drive (at the model's scale.json)\n    "
+           f"dali eval --model {args.out} --data DATA" + (
+               f" --scale-from {args.out}" if scale_file else "") + " --out OUT"
+           "    # AP on a labelled frame set")  # fmt: skip
     card = {
         "name": args.name,
         "title": args.title,
