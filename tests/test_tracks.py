@@ -138,3 +138,54 @@ def test_fill_gaps_puts_the_skipped_scan_between_its_neighbours():
     new_track, new_frame, new_world = tracks.fill_gaps(track, frame, world)
     assert new_track.tolist() == [0] and new_frame.tolist() == [4]
     np.testing.assert_allclose(new_world[0], [11.0, 1, 0, 4, 2, 1.5, 0.0], atol=1e-12)
+
+
+def test_tracked_boxes_face_their_cars_way_on_a_drive_where_half_face_the_sensor():
+    """A synthetic drive: four parked cars, two facing the ego's way and two facing the sensor,
+    whose boxes point the wrong way in a third of the scans (at lower scores), and two moving
+    cars, one ahead in the ego's lane and one oncoming, whose boxes' fronts are a coin flip.
+    After track_boxes every parked car faces the score-weighted vote of its boxes and every
+    moving box faces where its car goes."""
+    frames = 12
+    poses = ego_poses(frames, step_m=1.0, turn_deg=0.0)
+    rng = np.random.default_rng(4)
+    parked = np.array([[20.0, 5.0, -0.8, 4.2, 1.8, 1.5, 0.0], [28.0, 5.0, -0.8, 4.2, 1.8, 1.5, 0.0],
+                       [22.0, -5.0, -0.8, 4.2, 1.8, 1.5, np.pi],
+                       [30.0, -5.0, -0.8, 4.2, 1.8, 1.5, np.pi]])  # fmt: skip
+    moving = [(np.array([15.0, 0.0]), 1.5), (np.array([60.0, -2.5]), -1.5)]  # start, m a scan
+    boxes, scores, truth_yaw = [], [], []
+    for f in range(frames):
+        world = [b.copy() for b in parked]
+        for start, step in moving:
+            world.append(
+                np.r_[start + [step * f, 0.0], -0.8, 4.3, 1.8, 1.5, 0.0 if step > 0 else np.pi]
+            )
+        world = np.array(world)
+        seen = tracks.boxes_from_world(world, poses[f])
+        score = np.full(len(seen), 0.8)
+        wrong = np.zeros(len(seen), bool)
+        wrong[:4] = rng.random(4) < 1 / 3  # parked: a third turned round, less sure
+        wrong[4:] = rng.random(2) < 0.5  # moving: a coin flip
+        seen[wrong, 6] = wrap_angle(seen[wrong, 6] + np.pi)
+        score[wrong & (np.arange(len(seen)) < 4)] = 0.55
+        boxes.append(seen)
+        scores.append(score)
+        truth_yaw.append(world[:, 6])
+    frame = np.concatenate([np.full(len(b), i) for i, b in enumerate(boxes)])
+    points = [np.zeros((0, 3)) for _ in range(frames)]
+    # the parked cars' placed boxes need points: one per car corner region, in each scan's frame
+    for f in range(frames):
+        local = tracks.boxes_from_world(parked, poses[f])
+        points[f] = np.repeat(local[:, :3], 10, axis=0) + rng.normal(0, 0.2, (40, 3))
+    result = tracks.track_boxes(
+        frame, np.concatenate(boxes), np.concatenate(scores),
+        np.full(len(frame), 50), poses, lambda f: points[f], PARAMS,
+    )  # fmt: skip
+    assert result.parked.sum() >= 4 * (frames - 2) and (~result.parked).sum() >= 2 * (frames - 3)
+    for row in range(len(result.frame)):
+        f = result.frame[row]
+        world = tracks.boxes_to_world(result.boxes[[row]], poses[f])[0]
+        truth = np.array([b for b in [*parked]] + [np.r_[s + [st * f, 0.0], -0.8, 4.3, 1.8, 1.5,
+                          0.0 if st > 0 else np.pi] for s, st in moving])  # fmt: skip
+        nearest = np.argmin(np.hypot(*(truth[:, :2] - world[:2]).T))
+        assert np.cos(world[6] - truth[nearest, 6]) > 0, (row, result.parked[row])
