@@ -315,7 +315,7 @@ def build_report(run: Path) -> tuple[str, dict]:
         "",
         "## Target validation (Car AP, R40)",
         "",
-        markdown_table(rows),
+        markdown_table([row for row in rows if row.ap] or rows),
         *gap_lines(rows),
         *controls_section(rows, controls),
     ]
@@ -326,12 +326,13 @@ def build_report(run: Path) -> tuple[str, dict]:
     if by_difficulty is not None:
         parts += ["", "### KITTI difficulties (AP_R40)", "", by_difficulty]
     if any(row.ap for row in source_rows):
-        parts += ["", "## Source validation (cross-domain check)", "", markdown_table(source_rows)]
+        shown = [row for row in source_rows if row.ap]
+        parts += ["", "## Source validation (cross-domain check)", "", markdown_table(shown)]
     parts += breakdown_section(rows + controls)
     parts += ptsn_section(scales) + timings_section(timings)
     missing = [row.name for row in rows if not row.ap]
     if missing:
-        parts += ["", f"Not run in this RUN (shown as —): {', '.join(missing)}."]
+        parts += ["", f"Not run in this RUN (left out of the tables): {', '.join(missing)}."]
     document = {
         "run": str(run),
         "target": [row.__dict__ for row in rows],
