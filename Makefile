@@ -508,7 +508,7 @@ $(RUN)/fixture/$(MODELS_ROW)/manifest.json: $(RUN)/$(call row_field,$(models_row
 models/waymo-like-source/card.json: $(RUN)/$(MODELS_SOURCE)/eval_source/manifest.json bench/model_card.py models-always
 	$(BIN)/python bench/model_card.py --model $(RUN)/$(MODELS_SOURCE)/model --name waymo-like-source \
 	    --title "a car detector trained on the calibrated synthetic Waymo-like world" \
-	    --summary "A dali detector (pillars, CenterPoint head, IoU refinement; Car) trained on $(FRAMES) synthetic frames of the Waymo-like world (dali synth, seed $(SEED)); no real data. The source that models/kitti-hdl64e was adapted from." \
+	    --summary "A dali detector (pillars, CenterPoint head, IoU refinement, direction head: boxes face the car's way; Car) trained on $(FRAMES) synthetic frames of the Waymo-like world (dali synth, seed $(SEED)); no real data. The source the recipe of models/kitti-hdl64e starts from." \
 	    --eval synthetic_waymo_like_val=$(RUN)/$(MODELS_SOURCE)/eval_source \
 	    --limit "Trained on $(FRAMES) frames on a 2-core CPU: where more frames stop helping was not measured." \
 	    --out $(@D)

@@ -250,7 +250,7 @@ def main(argv: list[str] | None = None) -> None:
               for name, dirs in named_dirs(args.recipe, "--recipe").items()}  # fmt: skip
     scale = read_json(scale_file)["scale"] if scale_file else 1.0
     use = (f"dali detect SCANS --model {args.out} --out OUT    # your own scans: .bin, .pcd, .npy, "
-           "a KITTI drive (at the model's scale.json)\n    "
+           "a KITTI drive" + (" (at the model's scale.json)" if scale_file else "") + "\n    "
            f"dali eval --model {args.out} --data DATA" + (
                f" --scale-from {args.out}" if scale_file else "") + " --out OUT"
            "    # AP on a labelled frame set")  # fmt: skip
