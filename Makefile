@@ -27,11 +27,11 @@ TARGET     ?= $(RUN)/data/target
 TARGET_VAL ?= $(RUN)/data/target_val
 LIBRARY    ?= $(RUN)/library
 
-.PHONY: help install test test-slow demo bench pareto pareto-quick lint format clean-runs models
+.PHONY: help install test test-slow demo bench pareto pareto-quick lint format clean clean-runs models
 
 help:
 	@echo "make demo        - install, then adapt the shipped source to a small synthetic target (a few minutes)"
-	@echo "make test        - install and run the test suite but its slow end-to-end cases"
+	@echo "make test        - install and run the test suite, without its slow end-to-end cases"
 	@echo "make test-slow   - the slow end-to-end tests (CI runs both: make -j2 test test-slow)"
 	@echo "make tiny        - one DALI iteration on 16 synthetic frames (runs/tiny), with what each step kept"
 	@echo "make iter0, iter1, iter2 ... iter5 RUN=DIR - the pipeline's iterations (variables: top of the Makefile)"
@@ -44,6 +44,16 @@ help:
 	@echo "make bench       - run the benchmarks (results in bench/results/*.json)"
 	@echo "make pareto      - run time vs error of every stage's speed knobs (docs/pareto.md; pareto-quick: smoke test)"
 	@echo "make lint        - ruff check + format check"
+	@echo "make clean       - remove caches and build leftovers (the venv and runs/ stay)"
+	@echo "make clean-runs  - remove runs/, every run's artifacts (the venv stays)"
+
+# caches and build leftovers of the tools (pytest, ruff, setuptools, Python); never runs/ or data
+clean:
+	rm -rf .pytest_cache .ruff_cache .hypothesis build *.egg-info bench/results/tmp
+	find dali_cli stages tests bench -name __pycache__ -type d -prune -exec rm -rf {} +
+# every run directory (make's and dali's artifacts under runs/)
+clean-runs:
+	rm -rf runs
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -552,7 +562,7 @@ demo: install
 	$(DALI) report $(DEMO_RUN)
 	@echo
 	@echo "This was the demo ($(DEMO_RUN)): DALI's first iteration from models/waymo-like-source."
-	@echo "Your own scans: .venv/bin/dali detect SCANS --model models/kitti-hdl64e --out OUT"
+	@echo "Your own scans: dali detect SCANS --model models/kitti-hdl64e --out OUT (dali: .venv/bin/dali)"
 	@echo "The full synthetic benchmark: make experiment"
 
 # the tiny run: one DALI iteration on TINY_FRAMES frames, enough training that PTSN finds a scale,
