@@ -555,10 +555,11 @@ DEMO_EPOCHS ?= 6
 # on DEMO_TARGET_FRAMES synthetic KITTI-like target frames, and the rows it is read against
 # (source only, PTSN only), then `dali report`; a few minutes on a 2-core VM (README.md)
 DEMO_RUN ?= runs/demo
-DEMO_TARGET_FRAMES ?= 24
+DEMO_TARGET_FRAMES ?= 48
+DEMO_RETRAIN_EPOCHS ?= 4
 demo: install
 	$(MAKE) $(SUBMAKE_FLAGS) iter1 RUN=$(DEMO_RUN) SOURCE_MODEL=models/waymo-like-source \
-	    FRAMES=$(DEMO_TARGET_FRAMES) EPOCHS=1 LIBRARY_MODELS=8
+	    FRAMES=$(DEMO_TARGET_FRAMES) EPOCHS=$(DEMO_RETRAIN_EPOCHS) LIBRARY_MODELS=8
 	$(DALI) report $(DEMO_RUN)
 	@echo
 	@echo "This was the demo ($(DEMO_RUN)): DALI's first iteration from models/waymo-like-source."

@@ -80,9 +80,12 @@ def resolve_e_est(
         source_lwh = get_profile(profile, sensors_path).car_mean_lwh_m
         lwh = ptsn.ros_expected_size(source_lwh, factor)
         return lwh, {"mode": "ros", "source_profile": profile, "ros_factor": factor}
+    from dali_cli.quantities import CAR_SIZE_M, QuantityError, check_triple
+
     try:
         lwh = np.asarray(ptsn.parse_size(spec))
-    except ValueError as error:
+        check_triple(CAR_SIZE_M, [float(v) for v in lwh], "E_est")  # --expected-size 1e308,1,1
+    except (ValueError, QuantityError) as error:
         raise ParameterError("expected_size", str(error)) from None
     return lwh, {"mode": "explicit"}
 

@@ -23,6 +23,9 @@ def command() -> None:
     manifest.json, written atomically and skipped when up to date."""
 
 
+MAX_IMAGE_PX = 100_000  # pixels on a side of any camera's image
+
+
 def _parse_image_size(_ctx, _param, value: str | None) -> tuple[int, int] | None:
     if value is None:
         return None
@@ -32,6 +35,10 @@ def _parse_image_size(_ctx, _param, value: str | None) -> tuple[int, int] | None
         raise click.BadParameter(f"expected WIDTHxHEIGHT in pixels, got {value!r}") from None
     if width <= 0 or height <= 0:
         raise click.BadParameter(f"image size must be positive, got {value!r}")
+    if width > MAX_IMAGE_PX or height > MAX_IMAGE_PX:
+        raise click.BadParameter(
+            f"image size {width}x{height}: at most {MAX_IMAGE_PX} pixels a side (no camera has more)"
+        )
     return width, height
 
 

@@ -135,7 +135,13 @@ def load_weights_only(path: Path, what: str, advice: str = ""):
     """torch.load of a file dali wrote, with the weights_only unpickler (tensors, numbers,
     strings, lists, dicts: no code can run); ArtifactError naming the file (and `advice`)
     otherwise."""
+    from dali_cli.store.regular_files import UnreadableFileError, checked_size
+
     check_regular(path, what)
+    try:  # within the weights budget by stat: a 4 GiB sparse model.pt is not read
+        checked_size(path, what, "weights")
+    except UnreadableFileError as error:
+        raise ArtifactError(str(error)) from None
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # UnpicklingError, RuntimeError, IndexError on garbage, ...

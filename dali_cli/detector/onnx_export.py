@@ -134,6 +134,7 @@ class OnnxDetector:
         self.spec = json.loads((directory / SPEC_NAME).read_text())
         self.config = DetectorConfig.from_dict(self.spec["config"])
         options = onnxruntime.SessionOptions()
+        options.log_severity_level = 3  # errors only: not its shape notes on the scatter's output
         if threads:
             options.intra_op_num_threads = threads
         providers = ["CPUExecutionProvider"]
