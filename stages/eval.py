@@ -34,6 +34,7 @@ from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.store.artifacts import BOX_FIELDS, BoxTable, FrameSet
 from dali_cli.store.atomic_file import write_atomically, write_text_atomically
 from dali_cli.store.output_paths import DERIVED_FILES
+from dali_cli.store.regular_files import read_json_file
 
 PREDICTIONS_NAME = "predictions.parquet"
 METRICS_NAME = "metrics.json"
@@ -176,8 +177,8 @@ def saved_predictions_scale(pred_path: Path) -> float | None:
     """The scale saved predictions were made at, as the eval that saved them recorded it; None
     for predictions from elsewhere (`dali export`, another tool): their scale is unknown."""
     try:
-        made_at = json.loads(saved_metrics_file(pred_path).read_text()).get("scale")
-    except (OSError, ValueError, AttributeError):
+        made_at = read_json_file(saved_metrics_file(pred_path), "metrics file").get("scale")
+    except (OSError, ValueError, AttributeError, StageError):
         return None
     if isinstance(made_at, bool) or not isinstance(made_at, int | float):
         return None
@@ -470,7 +471,7 @@ def eval_artifact(out, inputs, routes, options, save_predictions, force, dry_run
     )  # fmt: skip
     if outcome.status == "dry-run":
         return EvalResult({}, [], outcome.status)
-    metrics = computed.get("metrics") or json.loads((out / METRICS_NAME).read_text())
+    metrics = computed.get("metrics") or read_json_file(out / METRICS_NAME, "metrics file")
     names = (
         [PREDICTIONS_NAME, METRICS_NAME] if (out / PREDICTIONS_NAME).is_file() else [METRICS_NAME]
     )

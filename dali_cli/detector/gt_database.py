@@ -23,6 +23,7 @@ from dali_cli.detector.augment import ObjectDatabase, frame_instances
 from dali_cli.runtime import console
 from dali_cli.runtime.errors import StageError
 from dali_cli.store.atomic_dir import is_leftover, mark_leftover, unmark
+from dali_cli.store.regular_files import read_json_file
 
 CACHE_ENV = "DALI_CACHE_DIR"  # where caches go instead of beside the training data
 FORMAT = 1  # bump when the layout or the instances' selection changes
@@ -39,7 +40,7 @@ class MappedDatabase(ObjectDatabase):
 def load_database(directory: str | Path) -> MappedDatabase:
     """The database of the cache entry `directory` (points memory-mapped, read-only)."""
     directory = Path(directory)
-    meta = json.loads((directory / "database.json").read_text())
+    meta = read_json_file(directory / "database.json", "gt database index")
     offsets = np.load(directory / "offsets.npy")
     points = (
         np.memmap(directory / "points.f32", np.float32, "r", shape=(int(offsets[-1]), 4))

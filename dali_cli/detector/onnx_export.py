@@ -29,6 +29,7 @@ from torch import nn
 
 from dali_cli.detector.config import DetectorConfig
 from dali_cli.detector.model import PillarCenterNet, heads, pillarize
+from dali_cli.store.regular_files import read_json_file
 
 OPSET = 18
 HEADS_NAME, REFINER_NAME, SPEC_NAME = "detector.onnx", "refiner.onnx", "onnx.json"
@@ -131,7 +132,7 @@ class OnnxDetector:
         import onnxruntime
 
         directory = Path(directory)
-        self.spec = json.loads((directory / SPEC_NAME).read_text())
+        self.spec = read_json_file(directory / SPEC_NAME, "ONNX export description")
         self.config = DetectorConfig.from_dict(self.spec["config"])
         options = onnxruntime.SessionOptions()
         options.log_severity_level = 3  # errors only: not its shape notes on the scatter's output

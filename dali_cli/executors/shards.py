@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dali_cli.store.regular_files import read_json_file
+
 
 class ShardFramesWriter:
     """Collect one shard's frames `(n_i, 4)` float32 and write them with `close()`."""
@@ -43,7 +45,7 @@ def read_shard_frames(directory: Path) -> Iterator[tuple[str, np.ndarray]]:
     directory = Path(directory)
     points = np.load(directory / "points.npy", mmap_mode="r")
     offsets = np.load(directory / "offsets.npy")
-    ids = json.loads((directory / "frame_ids.json").read_text())
+    ids = read_json_file(directory / "frame_ids.json", "shard frame ids")
     if len(ids) != len(offsets) - 1 or offsets[-1] != len(points):
         raise ValueError(
             f"{directory}: shard files disagree ({len(ids)} ids, {len(offsets) - 1} frames)"

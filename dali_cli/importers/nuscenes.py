@@ -9,7 +9,6 @@ by -90 degrees about z so that x points forward (x' = y, y' = -x, yaw' = yaw - p
 from __future__ import annotations
 
 import csv
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +24,7 @@ from dali_cli.importers.common import (
 from dali_cli.labels import plausibility
 from dali_cli.store.artifacts import BoxTable, TableValueError, int32_column
 from dali_cli.store.manifest import BuildResult
+from dali_cli.store.regular_files import read_json_file
 
 _INT32 = np.iinfo(np.int32)
 
@@ -129,14 +129,13 @@ def _load_table(table_dir: Path, name: str, required: bool = True) -> list[dict]
         if required:
             raise ImportFormatError(f"{path}: nuScenes table missing")
         return None
+    from dali_cli.store.regular_files import UnreadableFileError
+
     try:
-        with open(path) as handle:
-            rows = json.load(handle)
-    except json.JSONDecodeError as error:
-        raise ImportFormatError(
-            f"{path}: invalid JSON (line {error.lineno}: {error.msg})"
-        ) from None
-    except (OSError, UnicodeDecodeError) as error:
+        rows = read_json_file(path, "nuScenes table", "dataset_json")
+    except UnreadableFileError as error:  # a FIFO, too large, not UTF-8, not JSON, too deep
+        raise ImportFormatError(str(error)) from None
+    except OSError as error:
         raise ImportFormatError(f"{path}: cannot read nuScenes table ({error})") from None
     if not isinstance(rows, list):
         raise ImportFormatError(f"{path}: expected a JSON list of records")

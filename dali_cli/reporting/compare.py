@@ -11,10 +11,11 @@ R400 (the fine recall grid) has no R40 steps: the figure to read when difference
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from dali_cli.reporting.columns import statistics
+from dali_cli.runtime.errors import StageError
+from dali_cli.store.regular_files import read_json_file
 
 FILES = (("compare_r400.json", "R400, the fine recall grid"), ("compare_r40.json", "R40"))
 METRIC = "3d all"  # AP_3D@0.7 of the front region, all boxes (make compare's settings)
@@ -23,8 +24,8 @@ METRIC = "3d all"  # AP_3D@0.7 of the front region, all boxes (make compare's se
 def read_summary(path: Path) -> dict | None:
     """The "bootstrap" block of one `dali compare` file (None when absent or not one)."""
     try:
-        document = json.loads(path.read_text())
-    except (OSError, ValueError):
+        document = read_json_file(path, "comparison file")
+    except (OSError, ValueError, StageError):
         return None
     summary = document.get("bootstrap") if isinstance(document, dict) else None
     return summary if isinstance(summary, dict) and "rows" in summary else None

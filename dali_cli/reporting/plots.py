@@ -6,7 +6,6 @@ Each plot is drawn only from artifacts the run holds; a missing artifact means a
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -14,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.labels import SCORE_MIN
+from dali_cli.store.regular_files import read_json_file
 from dali_cli.store.scale_file import read_scale
 
 
@@ -160,7 +160,7 @@ def _evaluation(run: Path, relative: str):
         or not (directory / "metrics.json").is_file()
     ):
         return None
-    metrics = json.loads((directory / "metrics.json").read_text())
+    metrics = read_json_file(directory / "metrics.json", "metrics file")
     return read_boxes(directory / "predictions.parquet"), metrics
 
 

@@ -6,11 +6,12 @@ manifests, PTSN outputs); rows whose artifacts are missing are shown as "—", n
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from dali_cli.store.regular_files import read_json_file
 
 # x2's retraining frames in one retraining on iteration 1's PPCG (`make x1-long`)
 X1_LONG = "x1 long (x2's frames, one retraining)"
@@ -118,7 +119,7 @@ def read_precision_3d(document: dict) -> dict:
 def read_metrics(path: Path, document: dict | None = None) -> tuple[dict, dict, float | None]:
     """AP per IoU ({iou: {"bev", "3d"}}), sizes and scale from one metrics.json (or its parsed
     `document`)."""
-    document = json.loads(path.read_text()) if document is None else document
+    document = read_json_file(path, "metrics file") if document is None else document
     blocks = [
         value
         for key, value in document.items()
@@ -146,7 +147,7 @@ def read_kitti(path: Path) -> dict:
     if not path.is_file():
         return {}
     kitti = {}
-    for key, block in json.loads(path.read_text()).items():
+    for key, block in read_json_file(path, "metrics file").items():
         if not (key.startswith("Car") and isinstance(block, dict) and "iou" in block):
             continue
         kitti[f"{float(block['iou']):.1f}"] = {
@@ -162,7 +163,7 @@ def collect_rows(run: Path, rows=ROWS) -> list[Row]:
         path = run / relative
         errors = None
         if path.is_file():
-            document = json.loads(path.read_text())
+            document = read_json_file(path, "metrics file")
             ap, sizes, scale = read_metrics(path, document)
             bands, precision = read_bands(document), read_precision_3d(document)
             errors = document.get("errors") if isinstance(document.get("errors"), dict) else None
@@ -180,7 +181,7 @@ def stage_timings(run: Path) -> dict[str, dict[str, float]]:
         for stage in STAGE_DIRS:
             manifest = iteration / stage / "manifest.json"
             if manifest.is_file():
-                document = json.loads(manifest.read_text())
+                document = read_json_file(manifest, "manifest")
                 seconds = document.get("timings", {}).get("wall_seconds")
                 if seconds is not None:
                     timings.setdefault(iteration.name, {})[stage] = float(seconds)

@@ -61,6 +61,7 @@ BUDGETS: dict[str, int] = {
     "calib": 1 * MiB,  # one KITTI calib file (about 1 kB)
     "ids": 64 * MiB,  # an id list (a million ids)
     "xml": 256 * MiB,  # a KITTI raw drive's tracklet_labels.xml (a long drive: tens of MB)
+    "dataset_json": 2 << 30,  # a dataset's own JSON table (nuScenes' sample_data.json: ~1 GB)
     "table": 1 << 30,  # a Parquet box table or sequence table
     "weights": 2 << 30,  # model.pt
 }
