@@ -166,6 +166,18 @@ def stage_options(function):
     return function
 
 
+def scale_from_option(tuning: bool = False):
+    """--scale-from: the PTSN scale ŝ of a `dali ptsn-sweep` directory or its scale.json, one
+    option with one meaning for every command that runs the detector at a scale."""
+    option = tuning_option if tuning else click.option
+    return option(
+        "--scale-from",
+        type=click.Path(exists=True),
+        default=None,
+        help="A ptsn-sweep directory (or its scale.json): run at its 'scale', ŝ.",
+    )
+
+
 def sensors_option(function, *, shown: bool = False):
     """--sensors FILE: another sensors.toml (an engine control, listed with DALI_HELP=all unless
     `shown`: `dali sensors` lists the file's profiles)."""
@@ -303,7 +315,8 @@ def training_options(function):
             type=EPOCHS,
             default=10.0,
             show_default=True,
-            help="Passes over the (source) training frames.",
+            help="Passes over the training frames (pretrain: the source; retrain: source and "
+            "PPCG frames; self-train: the target).",
         ),
         click.option(
             "--minutes",
@@ -448,10 +461,11 @@ target-domain evaluation (ground truth only in the front 90 deg FOV and the dete
 every box 'easy'); auto (default) = kitti when the ground truth has the KITTI fields, else range.
 dali synth labels carry the KITTI fields (2D box, truncation, occlusion level of a virtual KITTI
 camera at the sensor), so --protocol kitti gives easy/moderate/hard on synthetic data too.
---front-only restricts any protocol to that front region, ground truth and predictions alike
-(KITTI's clouds are FOV-cropped; dali synth's are 360 degrees). Van ground truths are ignored
-for Car; --min-gt-points marks ground-truth cars with fewer points as ignored (neither miss nor
-false positive), it never drops them.
+Van ground truths are ignored for Car. Tuning options (listed with DALI_HELP=all): --front-only
+restricts any protocol to that front region, ground truth and predictions alike (KITTI's clouds
+are FOV-cropped; dali synth's are 360 degrees); --min-gt-points marks ground-truth cars with
+fewer points as ignored (neither miss nor false positive), it never drops them;
+--recall-positions 400 reads the precision at exact recalls (sets of fewer than 41 cars).
 """
 
 

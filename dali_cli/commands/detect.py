@@ -11,6 +11,7 @@ from dali_cli.commands.common import (
     device_options,
     no_progress_option,
     out_dir_option,
+    scale_from_option,
     score_min_option,
     sensors_option,
     stage_options,
@@ -25,8 +26,7 @@ from dali_cli.commands.kinds import SCALE, VIEW_DEG
               required=True, help="Model directory (model.pt, model.json; e.g. models/kitti-hdl64e).")  # fmt: skip
 @click.option("--scale", type=SCALE, default=None,
               help="PTSN scale to run at. Default: MODEL/scale.json when there, else 1.")  # fmt: skip
-@tuning_option("--scale-from", type=click.Path(exists=True), default=None,
-              help="Read the scale from a ptsn-sweep directory (or its scale.json) instead.")  # fmt: skip
+@scale_from_option(tuning=True)
 @click.option("--sensor", default=None,
               help="Sensor profile of the scans (sensors.toml; its mount height sets the ground). "
                    "Default: kitti for .bin, nuscenes for .pcd.bin, a frame set's own; else the "

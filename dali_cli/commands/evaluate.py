@@ -14,6 +14,7 @@ from dali_cli.commands.common import (
     executor_options,
     no_progress_option,
     protocol_options,
+    scale_from_option,
     score_min_option,
     stage_options,
     tuning_option,
@@ -33,7 +34,8 @@ truth unless --gt is given.
     + PROTOCOLS_HELP
     + """
 \b
-Size correction (--size-correction per-dim --scale-from PTSN_DIR): one isotropic PTSN scale
+Size correction (a tuning option, DALI_HELP=all: --size-correction per-dim --scale-from
+PTSN_DIR): one isotropic PTSN scale
 matches the volume of the mean predicted car, not each dimension; the bias left per dimension
 (measured: w +0.07, h -0.06 m at 600 frames) costs AP at IoU 0.7. The factors E_est / E_pred at
 the chosen scale, both from PTSN_DIR/scale.json (the sweep's own numbers on the unlabelled target
@@ -68,8 +70,7 @@ each kind costs; docs/evaluation.md).
               help="Frame set to run --model on (its boxes.parquet is the default --gt).")  # fmt: skip
 @click.option("--scale", type=SCALE, default=None,
               help="PTSN scale for --model inference (default 1).")  # fmt: skip
-@click.option("--scale-from", type=click.Path(exists=True, file_okay=False),
-              help="Read the scale from PTSN_DIR/scale.json.")  # fmt: skip
+@scale_from_option()
 @click.option("--iou", "ious", type=FRACTION, multiple=True, default=(0.7,), show_default=True,
               help="IoU threshold (a match needs IoU > this); repeat for several (--iou 0.7 "
                    "--iou 0.5).")  # fmt: skip

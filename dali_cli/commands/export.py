@@ -11,6 +11,7 @@ from dali_cli.commands.common import (
     choice_option,
     no_progress_option,
     out_dir_option,
+    scale_from_option,
     stage_options,
     tuning_option,
 )
@@ -144,8 +145,7 @@ def openpcdet_command(data_dir, boxes_dir, split, score_min, out, force, dry_run
 @click.option("--scale", type=SCALE, default=None,
               help="PTSN scale whose grid the graph runs on. Default: MODEL_DIR/scale.json, "
                    "else 1.")  # fmt: skip
-@tuning_option("--scale-from", type=click.Path(exists=True), default=None,
-              help="Read the scale from a ptsn-sweep directory instead.")  # fmt: skip
+@scale_from_option(tuning=True)
 @out_dir_option()
 @stage_options
 def model_command(model_dir, as_onnx, scale, scale_from, out, force, dry_run):

@@ -9,6 +9,7 @@ from dali_cli.commands.common import (
     executor_options,
     finite_range,
     model_target_out_options,
+    scale_from_option,
     score_min_option,
     target_profile_option,
     target_scaling_options,
@@ -20,8 +21,7 @@ from dali_cli.commands.kinds import SCALE
 
 @click.command(name="pseudo-label")
 @model_target_out_options("Trained model directory (model.pt + model.json).")
-@click.option("--scale-from", type=click.Path(exists=True), default=None,
-              help="PTSN directory (or scale.json) of `dali ptsn-sweep`: its 'scale' is ŝ.")  # fmt: skip
+@scale_from_option()
 @click.option("--scale", type=SCALE, default=None,
               help="Use this scale instead (overrides --scale-from's ŝ).")  # fmt: skip
 @score_min_option()
@@ -43,9 +43,10 @@ from dali_cli.commands.kinds import SCALE
 @target_scaling_options
 def command(model_dir, target_dir, out, sensors_path, no_progress, fit_points, **options):
     """Pseudo-label the target: run the model on the target points scaled by ŝ about the ground,
-    de-scale the boxes, keep score >= --score-min, BEV NMS at --nms-iou, then (by default)
-    correct each dimension's remaining size bias against E_est (target statistics only),
-    and (by default, --fit-points) move each box onto its points.
+    de-scale the boxes, keep score >= --score-min, BEV NMS, then correct each dimension's
+    remaining size bias against E_est (target statistics only) and move each box onto its
+    points (the NMS threshold, the correction and the fit are tuning options: --nms-iou,
+    --size-correction, --no-fit-points under DALI_HELP=all).
 
     Reads MODEL, the TARGET frame set (never its labels) and --scale-from's scale.json.
     Writes OUT/boxes.parquet (one row per pseudo box: frame_id, x, y, z, l, w, h, yaw, score,
