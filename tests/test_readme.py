@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import subprocess
@@ -45,3 +46,36 @@ def test_the_goal_scan_sees_what_it_must():
     text = "run `make iter2 RUN=x` then `make -n tiny`. Goals: `iter0`, `x1-long` (`make help`)"
     assert goals_named(text) == {"iter2", "tiny", "iter0", "x1-long"}
     assert goals_named("```\nmake demo    # all\n```") == {"demo"}
+
+
+TINY_FIGURES = re.compile(
+    r"ŝ (?P<scale>[0-9.]+), (?P<pseudo>\d+) pseudo boxes, RC (?P<rc>\d+), CF (?P<cf>\d+)"
+)
+
+
+@pytest.mark.slow  # runs `make tiny` (about 2 minutes on 2 idle cores)
+def test_the_readmes_tiny_run_figures_are_what_make_tiny_prints(tmp_path):
+    """The README's `make tiny` sentence holds the figures the code prints today: ŝ within 0.02
+    and each count within 15 % (training on another CPU moves them a little; a changed world or
+    pipeline moves them far more: 126 pseudo boxes against 239 was such a drift)."""
+    stated = TINY_FIGURES.search(README)
+    assert stated, "README.md no longer states the tiny run's figures"
+    run = tmp_path / "tiny"
+    result = subprocess.run(
+        ["make", "--no-print-directory", "tiny", f"TINY_RUN={run}"],
+        cwd=ROOT, capture_output=True, text=True, timeout=1200,
+        env={k: v for k, v in os.environ.items() if not k.startswith("MAKE")},
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-2000:]
+    out = result.stdout
+    scale = float(re.search(r"ptsn-sweep: scale ([0-9.]+)", out).group(1))
+    pseudo = int(re.search(r"pseudo-label: (\d+) boxes kept", out).group(1))
+    rc = int(re.search(r"ppcg-rc: (\d+) of", out).group(1))
+    cf = int(re.search(r"ppcg-cf: (\d+) of", out).group(1))
+    assert abs(scale - float(stated["scale"])) <= 0.02, (scale, stated["scale"])
+    for printed, name in ((pseudo, "pseudo"), (rc, "rc"), (cf, "cf")):
+        assert abs(printed - int(stated[name])) <= 0.15 * int(stated[name]), (
+            name,
+            printed,
+            stated[name],
+        )

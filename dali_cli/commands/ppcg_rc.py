@@ -43,9 +43,9 @@ def ppcg_options(function):
                           "ground: kept."),
         tuning_option("--orient-models/--no-orient-models", default=None,
                      help="Turn a box round when its car model fits the box's points better "
-                          "facing the other way (the detector's headings are right only up to "
-                          "a half turn; dali_cli.ppcg.orient). Mesh models only  [default: on "
-                          "with mesh models, off with point models]"),
+                          "facing the other way (dali_cli.ppcg.orient; for pseudo labels of a "
+                          "model without a direction head, whose headings are axes). Mesh "
+                          "models only  [default: on with mesh models, off with point models]"),
         tuning_option("--point-margin-m", type=MARGIN_M,
                      default=DEFAULT_POINT_MARGIN_M, show_default=True,
                      help="A box's points are those in the box grown by this on every side: "
