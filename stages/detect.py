@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.runtime import console
-from dali_cli.runtime.errors import ParameterError, StageError
+from dali_cli.runtime.errors import StageError
 from dali_cli.store.manifest import StageOutcome, run_stage
 
 FULL_SCAN_BEHIND_SHARE = 0.1  # a scan with this share of its points behind the sensor is 360°
@@ -169,16 +169,12 @@ def run_detect(*, model: str | Path, scans: str | Path, out: str | Path, scale=N
     from dali_cli.detector.infer import WEIGHTS_NAME, Detector
     from dali_cli.runtime.device import resolve_device
     from dali_cli.sensors import get_profile
-    from dali_cli.store.scale_file import SCALE_NAME, read_scale
+    from dali_cli.store.scale_file import model_scale
 
     model, scans = Path(model), Path(scans)
     if not (model / WEIGHTS_NAME).is_file():
         raise StageError(f"{model}: no {WEIGHTS_NAME} here: not a dali model directory")
-    if scale is not None and scale_from is not None:
-        raise ParameterError(("scale", "scale_from"), "give one of the two, not both")
-    if scale is None:
-        where = scale_from or (model if (model / SCALE_NAME).is_file() else None)
-        scale = read_scale(where).scale if where is not None else 1.0
+    scale = model_scale(model, scale, scale_from)
     source = scans_source(scans, sensor, Path(calib) if calib is not None else None)
     mount = get_profile(source.sensor, sensors_path).mount_height_m if source.sensor else None
     torch_device = resolve_device(device)

@@ -130,14 +130,9 @@ def export_model(
 ) -> StageOutcome:
     """The detector of `model_dir` as ONNX graphs in `out` (dali_cli.detector.onnx_export) at PTSN
     scale `scale`, `scale_from`'s scale.json, or the model's own scale.json (else 1)."""
-    from dali_cli.runtime.errors import ParameterError
-    from dali_cli.store.scale_file import SCALE_NAME, read_scale
+    from dali_cli.store.scale_file import model_scale
 
-    if scale is not None and scale_from is not None:
-        raise ParameterError(("scale", "scale_from"), "give one of the two, not both")
-    if scale is None:
-        where = scale_from or (model_dir if (Path(model_dir) / SCALE_NAME).is_file() else None)
-        scale = read_scale(where).scale if where is not None else 1.0
+    scale = model_scale(model_dir, scale, scale_from)
 
     def build(tmp: Path) -> dict:
         from dali_cli.detector.infer import Detector

@@ -84,3 +84,17 @@ def write_scale(directory: str | Path, document: dict) -> Path:
     path = Path(directory) / SCALE_NAME
     path.write_text(json.dumps(document, indent=2) + "\n")
     return path
+
+
+def model_scale(model_dir: str | Path, scale: float | None, scale_from: str | Path | None) -> float:
+    """The PTSN scale a model runs at: `scale`, else `scale_from`'s ŝ, else the model
+    directory's own scale.json (a shipped adapted model's test-time scale), else 1.
+    ParameterError when both `scale` and `scale_from` are given."""
+    from dali_cli.runtime.errors import ParameterError
+
+    if scale is not None and scale_from is not None:
+        raise ParameterError(("scale", "scale_from"), "give one of the two, not both")
+    if scale is not None:
+        return float(scale)
+    where = scale_from or (model_dir if (Path(model_dir) / SCALE_NAME).is_file() else None)
+    return read_scale(where).scale if where is not None else 1.0
