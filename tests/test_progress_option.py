@@ -32,6 +32,7 @@ FIXTURE_IMPORTS = {
 # command must accept --no-progress, so a new command either gets it or is added here knowingly
 NO_BAR = {
     "compare-domains",
+    "export model",
     "export openpcdet",
     "library show",
     "report",
