@@ -27,7 +27,6 @@ from dali_cli.geometry import (
 )
 from dali_cli.store.artifacts import ArtifactError, BoxTable, FrameSet
 from dali_cli.store.model_card import ModelCard, read_meta
-from dali_cli.store.regular_files import check_regular
 
 WEIGHTS_NAME = "model.pt"
 META_NAME = "model.json"
@@ -137,8 +136,7 @@ def load_weights_only(path: Path, what: str, advice: str = ""):
     otherwise."""
     from dali_cli.store.regular_files import UnreadableFileError, checked_size
 
-    check_regular(path, what)
-    try:  # within the weights budget by stat: a 4 GiB sparse model.pt is not read
+    try:  # a regular file within the weights budget, by stat: a 4 GiB sparse model.pt is not read
         checked_size(path, what, "weights")
     except UnreadableFileError as error:
         raise ArtifactError(str(error)) from None

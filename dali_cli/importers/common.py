@@ -104,7 +104,6 @@ def read_text_lines(path: str | Path, what: str, kind: str = "calib") -> list[st
     regular file, over the budget or not UTF-8 text (the first bad byte's offset)."""
     from dali_cli.store.regular_files import UnreadableFileError, read_text_file
 
-    path = check_regular(path, what)
     try:
         return read_text_file(path, what, kind).splitlines()
     except UnreadableFileError as error:

@@ -93,7 +93,6 @@ def write_recording(path: Path, frames: Iterable[tuple[str, np.ndarray]], layers
 
     import rerun as rr
 
-    from dali_cli.labels.tracks import boxes_to_world
     from dali_cli.store.output_paths import RECORDING_APPLICATION
 
     path = Path(path)
@@ -101,7 +100,7 @@ def write_recording(path: Path, frames: Iterable[tuple[str, np.ndarray]], layers
     recording = rr.RecordingStream(RECORDING_APPLICATION)
     recording.save(str(temporary))
     try:
-        counts = _log_frames(recording, frames, layers, truth, poses, point_step, boxes_to_world)
+        counts = _log_frames(recording, frames, layers, truth, poses, point_step)
     except BaseException:
         recording.disconnect()
         temporary.unlink(missing_ok=True)
@@ -112,9 +111,11 @@ def write_recording(path: Path, frames: Iterable[tuple[str, np.ndarray]], layers
     return counts
 
 
-def _log_frames(recording, frames, layers, truth, poses, point_step, boxes_to_world) -> dict:
+def _log_frames(recording, frames, layers, truth, poses, point_step) -> dict:
     """Log every frame of `frames` into `recording` (see write_recording); the counts."""
     import rerun as rr
+
+    from dali_cli.labels.tracks import boxes_to_world
 
     rows = {layer.name: layer.table.rows_by_frame() for layer in layers}
     truth_rows = truth.rows_by_frame() if truth is not None else {}
