@@ -89,8 +89,8 @@ format: install
 # the benchmarks (each writes bench/results/*.json; SCRIPT:ARG runs `bench/SCRIPT ARG`). The other
 # scripts in bench/ are analysis tools that take run directories (ablation_table, paired_rows,
 # pseudo_labels; docs/RESULTS.md shows their commands)
-BENCHMARKS = detector.py:speed eval.py frameset_read.py importers.py pareto.py ppcg.py ptsn.py \
-    raycast.py scale.py scale_training.py synth.py waymo_import.py
+BENCHMARKS = detector.py:speed eval.py frameset_read.py hostile_inputs.py importers.py pareto.py \
+    ppcg.py ptsn.py raycast.py scale.py scale_training.py synth.py waymo_import.py
 bench: install
 	@mkdir -p bench/results
 	@for run in $(BENCHMARKS); do echo "== bench/$${run/:/ }"; $(BIN)/python bench/$${run/:/ } || exit 1; done
@@ -137,7 +137,8 @@ TRAIN_BUDGET    = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(EPOCHS))
 RETRAIN_BUDGET  = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(or $(RETRAIN_EPOCHS_$(1)),$(RETRAIN_EPOCHS)))
 EXPECTED       ?= sn
 LIBRARY_MODELS ?= 24
-SYNTH_WORKERS  ?= 2
+# synth's worker processes: the cores this make may use (taskset-pinned lanes get their share)
+SYNTH_WORKERS  ?= $(shell nproc)
 # engine of the per-frame stages (synth, pseudo-label, ppcg-rc, ppcg-cf, eval): local or ray
 # (docs/scale-out.md); WORKERS: their workers (empty: each stage's default), RAY_ADDRESS: a Ray
 # cluster (empty: a local Ray instance per stage)
@@ -190,20 +191,20 @@ iter0: $(RUN)/iter0/eval/manifest.json $(RUN)/iter0/eval_ptsn/manifest.json
 # SOURCE_SIZE=sn (default): retraining shifts the source cars to the sweep's label-free E_est,
 # so source and PPCG labels agree on the target's size (docs/method.md); SOURCE_SIZE=init keeps the initial model's sizes (the paper's).
 SOURCE_SIZE ?= sn
-SOURCE_SIZE_FLAGS = --source-size $(SOURCE_SIZE)$(if $(filter sn,$(SOURCE_SIZE)), --target-size-from $(RUN)/iter$(1)/ptsn)
+SOURCE_SIZE_FLAGS = --size-norm $(SOURCE_SIZE)$(if $(filter sn,$(SOURCE_SIZE)), --target-size-from $(RUN)/iter$(1)/ptsn)
 
 # ptsn-sweep N uses model N-1 (ITER_PTSN), iteration N builds model N (ITER)
 define ITER_PTSN
 $(RUN)/iter$(1)/ptsn/manifest.json: $(call iter_model_target,$(2)) $(TARGET)/manifest.json
-	$(DALI) ptsn-sweep $(DEVICE_FLAG) --model $(call iter_model,$(2)) --target $(TARGET) --expected-size $(EXPECTED) --score-min $(SCORE_MIN) --seed $(SEED) --out $$(@D)
+	$(DALI) ptsn-sweep $(DEVICE_FLAG) --model $(call iter_model,$(2)) --data $(TARGET) --target-size $(EXPECTED) --score-min $(SCORE_MIN) --seed $(SEED) --out $$(@D)
 endef
 define ITER
 $(RUN)/iter$(1)/pseudo/manifest.json: $(RUN)/iter$(1)/ptsn/manifest.json
-	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(call iter_model,$(2)) --target $(TARGET) --scale-from $(RUN)/iter$(1)/ptsn --score-min $(SCORE_MIN) $(PSEUDO_FLAGS) $(EXEC_FLAGS) --out $$(@D)
+	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(call iter_model,$(2)) --data $(TARGET) --scale-from $(RUN)/iter$(1)/ptsn --score-min $(SCORE_MIN) $(PSEUDO_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/rc/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
-	$(DALI) ppcg-rc --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --target-profile $(SENSOR) --seed $(SEED) $(PPCG_FLAGS) $(EXEC_FLAGS) --out $$(@D)
+	$(DALI) ppcg-rc --data $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --target-profile $(SENSOR) --seed $(SEED) $(PPCG_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/cf/manifest.json: $(RUN)/iter$(1)/pseudo/manifest.json $(LIBRARY)/manifest.json
-	$(DALI) ppcg-cf --target $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --target-profile $(SENSOR) --seed $(SEED) $(PPCG_FLAGS) $(EXEC_FLAGS) --out $$(@D)
+	$(DALI) ppcg-cf --data $(TARGET) --boxes $(RUN)/iter$(1)/pseudo --library $(LIBRARY) --target-profile $(SENSOR) --seed $(SEED) $(PPCG_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/iter$(1)/model/manifest.json: $(RUN)/iter$(1)/rc/manifest.json $(RUN)/iter$(1)/cf/manifest.json $(SOURCE)/manifest.json
 	$(TRAIN_DALI) retrain --init $(call iter_model,$(2)) --source $(SOURCE) --ppcg $(RUN)/iter$(1)/rc $(RUN)/iter$(1)/cf $(call SOURCE_SIZE_FLAGS,$(1)) --seed $(SEED) $(call RETRAIN_BUDGET,$(1)) $(RETRAIN_FLAGS) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $$(@D)
 $(RUN)/iter$(1)/eval/manifest.json: $(RUN)/iter$(3)/ptsn/manifest.json $(TARGET_VAL)/manifest.json
@@ -222,7 +223,7 @@ X1_LONG_BUDGET = $(if $(MINUTES),--minutes $$(( 2 * $(MINUTES) )),--epochs $$(( 
 $(RUN)/x1_long/model/manifest.json: $(RUN)/iter1/rc/manifest.json $(RUN)/iter1/cf/manifest.json $(SOURCE)/manifest.json
 	$(TRAIN_DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/rc $(RUN)/iter1/cf $(call SOURCE_SIZE_FLAGS,1) --seed $(SEED) $(X1_LONG_BUDGET) $(RETRAIN_FLAGS) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/x1_long/ptsn/manifest.json: $(RUN)/x1_long/model/manifest.json $(TARGET)/manifest.json
-	$(DALI) ptsn-sweep $(DEVICE_FLAG) --model $(RUN)/x1_long/model --target $(TARGET) --expected-size $(EXPECTED) --score-min $(SCORE_MIN) --seed $(SEED) --out $(@D)
+	$(DALI) ptsn-sweep $(DEVICE_FLAG) --model $(RUN)/x1_long/model --data $(TARGET) --target-size $(EXPECTED) --score-min $(SCORE_MIN) --seed $(SEED) --out $(@D)
 $(RUN)/x1_long/eval/manifest.json: $(RUN)/x1_long/ptsn/manifest.json $(TARGET_VAL)/manifest.json
 	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/x1_long/model --data $(TARGET_VAL) --scale-from $(RUN)/x1_long/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 x1-long: iter0 $(RUN)/x1_long/eval/manifest.json
@@ -242,7 +243,7 @@ $(RUN)/baselines/cf_only/model/manifest.json: $(RUN)/iter1/cf/manifest.json $(SO
 $(RUN)/baselines/%/eval/manifest.json: $(RUN)/baselines/%/model/manifest.json $(TARGET_VAL)/manifest.json
 	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 $(RUN)/baselines/%/ptsn/manifest.json: $(RUN)/baselines/%/model/manifest.json $(TARGET)/manifest.json
-	$(DALI) ptsn-sweep $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --target $(TARGET) --expected-size $(EXPECTED) --score-min $(SCORE_MIN) --seed $(SEED) --out $(@D)
+	$(DALI) ptsn-sweep $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --data $(TARGET) --target-size $(EXPECTED) --score-min $(SCORE_MIN) --seed $(SEED) --out $(@D)
 $(RUN)/baselines/%/eval_ptsn/manifest.json: $(RUN)/baselines/%/ptsn/manifest.json $(TARGET_VAL)/manifest.json
 	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --data $(TARGET_VAL) --scale-from $(RUN)/baselines/$*/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 # the controls at their strongest: their own test-time PTSN predictions resized per dimension by
@@ -269,7 +270,7 @@ ST_BUDGET  = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(ST_EPOCHS))
 # a self-trained row: its directory, the model it starts from, its pseudo labels, their PTSN scale
 define SELF_TRAIN
 $(RUN)/$(1)/model/manifest.json: $(RUN)/$(3)/manifest.json $(TARGET)/manifest.json
-	$(TRAIN_DALI) self-train --init $(RUN)/$(2) --target $(TARGET) --pseudo $(RUN)/$(3) --seed $(SEED) $(ST_BUDGET) $(ST_FLAGS) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $$(@D)
+	$(TRAIN_DALI) self-train --init $(RUN)/$(2) --data $(TARGET) --pseudo $(RUN)/$(3) --seed $(SEED) $(ST_BUDGET) $(ST_FLAGS) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $$(@D)
 $(RUN)/$(1)/eval/manifest.json: $(RUN)/$(1)/model/manifest.json $(TARGET_VAL)/manifest.json
 	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/$(1)/model --data $(TARGET_VAL) --scale-from $(RUN)/$(4) $(EVAL_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 endef
@@ -277,7 +278,7 @@ $(eval $(call SELF_TRAIN,iter2_st,iter2/model,iter3/pseudo,iter3/ptsn))
 # the control self-trained the same way (control + ST): the x2-budget control pseudo-labels the
 # target at its own PTSN scale with iteration N's pseudo-label settings, then self-trains on them
 $(RUN)/baselines/%/pseudo/manifest.json: $(RUN)/baselines/%/ptsn/manifest.json
-	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --target $(TARGET) --scale-from $(RUN)/baselines/$*/ptsn --score-min $(SCORE_MIN) $(PSEUDO_FLAGS) $(EXEC_FLAGS) --out $(@D)
+	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(RUN)/baselines/$*/model --data $(TARGET) --scale-from $(RUN)/baselines/$*/ptsn --score-min $(SCORE_MIN) $(PSEUDO_FLAGS) $(EXEC_FLAGS) --out $(@D)
 $(eval $(call SELF_TRAIN,baselines/source_x2_budget_st,baselines/source_x2_budget/model,baselines/source_x2_budget/pseudo,baselines/source_x2_budget/ptsn))
 # tracked self-training (docs/tracks.md): the same self-training on labels that persist over the
 # target's scans. The model pseudo-labels the target with a low cut (TRACK_PSEUDO_MIN: the tracks
@@ -287,13 +288,13 @@ $(eval $(call SELF_TRAIN,baselines/source_x2_budget_st,baselines/source_x2_budge
 TRACK_PSEUDO_MIN ?= 0.1
 TARGET_POSES = $(TARGET)_poses
 $(TARGET_POSES)/manifest.json: $(TARGET)/manifest.json
-	$(DALI) register --target $(TARGET) --out $(@D)
+	$(DALI) register --data $(TARGET) --out $(@D)
 # tracked labels in (1) by the model (2) at its PTSN scale (3)
 define TRACKED_LABELS
 $(RUN)/$(1)/pseudo_low/manifest.json: $(RUN)/$(3)/manifest.json
-	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(RUN)/$(2) --target $(TARGET) --scale-from $(RUN)/$(3) --score-min $(TRACK_PSEUDO_MIN) $(PSEUDO_FLAGS) $(EXEC_FLAGS) --out $$(@D)
+	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(RUN)/$(2) --data $(TARGET) --scale-from $(RUN)/$(3) --score-min $(TRACK_PSEUDO_MIN) $(PSEUDO_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/$(1)/tracked/manifest.json: $(RUN)/$(1)/pseudo_low/manifest.json $(TARGET_POSES)/manifest.json
-	$(DALI) track-pseudo --pseudo $(RUN)/$(1)/pseudo_low --target $(TARGET) --poses $(TARGET_POSES) --out $$(@D)
+	$(DALI) track-pseudo --pseudo $(RUN)/$(1)/pseudo_low --data $(TARGET) --poses $(TARGET_POSES) --out $$(@D)
 endef
 $(eval $(call TRACKED_LABELS,iter3,iter2/model,iter3/ptsn))
 $(eval $(call TRACKED_LABELS,baselines/source_x2_budget,baselines/source_x2_budget/model,baselines/source_x2_budget/ptsn))

@@ -105,10 +105,10 @@ def run_stage(
     if stage == "synth":
         command = [dali, "synth", "--sensor", sensor, "--frames", str(frames), "--seed", "11"]
     elif stage == "pseudo-label":
-        command = [dali, "pseudo-label", "--model", str(paths["model"]), "--target",
+        command = [dali, "pseudo-label", "--model", str(paths["model"]), "--data",
                    str(paths["target"]), "--scale", "1.0", "--no-progress"]  # fmt: skip
     else:
-        command = [dali, stage, "--target", str(paths["ppcg_target"]), "--boxes",
+        command = [dali, stage, "--data", str(paths["ppcg_target"]), "--boxes",
                    str(paths["ppcg_target"]), "--library", str(paths["library"]), "--no-progress"]  # fmt: skip
     usage = resource.getrusage(resource.RUSAGE_CHILDREN)
     started = time.perf_counter()

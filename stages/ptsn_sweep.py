@@ -84,7 +84,7 @@ def resolve_e_est(
 
     try:
         lwh = np.asarray(ptsn.parse_size(spec))
-        check_triple(CAR_SIZE_M, [float(v) for v in lwh], "E_est")  # --expected-size 1e308,1,1
+        check_triple(CAR_SIZE_M, [float(v) for v in lwh], "E_est")  # --target-size 1e308,1,1
     except (ValueError, QuantityError) as error:
         raise ParameterError("expected_size", str(error)) from None
     return lwh, {"mode": "explicit"}

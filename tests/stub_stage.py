@@ -32,6 +32,6 @@ def pseudo_label_cli(model: Path, target: Path, out: Path, *options: str):
 
     return CliRunner().invoke(
         main,
-        ["pseudo-label", "--model", str(model), "--target", str(target), "--scale", "1.0",
+        ["pseudo-label", "--model", str(model), "--data", str(target), "--scale", "1.0",
          "--out", str(out), "--no-progress", *options],
     )  # fmt: skip

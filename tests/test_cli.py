@@ -61,7 +61,7 @@ def test_tuning_options_stay_out_of_the_default_help_but_work_and_show_on_reques
     result = CliRunner().invoke(main, ["ptsn-sweep", "--help"])
     assert "--noise" not in result.output and "DALI_HELP=all" in result.output
     # a hidden option is parsed like any other: a bad value is refused naming it
-    bad = CliRunner().invoke(main, ["ptsn-sweep", "--model", ".", "--target", ".", "--noise", "x"])
+    bad = CliRunner().invoke(main, ["ptsn-sweep", "--model", ".", "--data", ".", "--noise", "x"])
     assert bad.exit_code == 2 and "--noise" in bad.output
 
 
@@ -122,3 +122,39 @@ def test_step_numbers_follow_the_pipeline():
     steps = ["pretrain", "ptsn-sweep", "pseudo-label", "ppcg-rc", "ppcg-cf", "retrain"]
     for number, name in enumerate(steps, 1):
         assert COMMANDS[name][1].startswith(f"Step {number}:"), name
+
+
+def test_one_name_per_concept_across_commands_and_the_former_names_still_work():
+    """The frame set a command runs on is --data, the target's mean car size --target-size and
+    the training sizing of source boxes --size-norm in every command that has the concept; the
+    former names (--target, --expected-size, --source-size) parse to the same parameter, and
+    --help lists only the current name."""
+    import click
+
+    commands = dict(leaf_commands())
+    former = {"--target": "--data", "--expected-size": "--target-size",
+              "--source-size": "--size-norm"}  # fmt: skip
+    for name, command in commands.items():
+        for option in command.params:
+            if not isinstance(option, click.Option):
+                continue
+            for old, new in former.items():
+                if old in option.opts:
+                    assert option.opts[0] == new, (name, option.opts)
+                    shown = option.get_help_record(click.Context(command))[0]
+                    assert old not in shown and new in shown, (name, shown)
+    for name in ("ptsn-sweep", "pseudo-label", "ppcg-rc", "ppcg-cf", "register", "track-pseudo",
+                 "self-train", "eval", "size-norm"):  # fmt: skip
+        opts = [o.opts for o in commands[name].params if isinstance(o, click.Option)]
+        assert any(o[0] == "--data" for o in opts), name
+    sweep = commands["ptsn-sweep"]
+    for spelling in ("--target-size", "--expected-size"):
+        context = sweep.make_context("ptsn-sweep", ["--model", ".", "--data", ".", "--out", "o",
+                                                    spelling, "4,1.7,1.5"])  # fmt: skip
+        assert context.params["expected_size"] == "4,1.7,1.5"
+    for spelling in ("--data", "--target"):
+        context = commands["register"].make_context("register", [spelling, ".", "--out", "o"])
+        assert context.params["target"] == "."
+    missing = CliRunner().invoke(main, ["register", "--out", "o"])
+    assert missing.exit_code == 2 and "'--data'" in missing.output
+    assert "--target'" not in missing.output

@@ -82,7 +82,7 @@ def test_synth_refuses_an_existing_user_directory_and_keeps_its_contents(tmp_pat
 
 
 def test_pseudo_label_refuses_its_own_target_as_out(tmp_path):
-    """`dali pseudo-label ... --target T --out T` must not delete T/frames.zarr."""
+    """`dali pseudo-label ... --data T --out T` must not delete T/frames.zarr."""
     target = make_target(tmp_path / "T")
     model = tmp_path / "model"  # never opened: the output check comes first
     model.mkdir()
@@ -94,7 +94,7 @@ def test_pseudo_label_refuses_its_own_target_as_out(tmp_path):
             "pseudo-label",
             "--model",
             str(model),
-            "--target",
+            "--data",
             str(target),
             "--scale",
             "1",

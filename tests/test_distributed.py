@@ -74,9 +74,9 @@ def test_cuda_without_a_gpu_is_an_error_and_writes_nothing(no_cuda, toy_dir, tmp
     args = {
         "pretrain": ["--source", str(toy_dir), "--out", str(out), "--epochs", "1"],
         "eval": ["--model", str(toy_dir), "--data", str(toy_dir), "--out", str(out / "m.json")],
-        "pseudo-label": ["--model", str(toy_dir), "--target", str(toy_dir), "--scale", "1",
+        "pseudo-label": ["--model", str(toy_dir), "--data", str(toy_dir), "--scale", "1",
                          "--out", str(out)],
-        "ptsn-sweep": ["--model", str(toy_dir), "--target", str(toy_dir), "--out", str(out)],
+        "ptsn-sweep": ["--model", str(toy_dir), "--data", str(toy_dir), "--out", str(out)],
     }[command]  # fmt: skip
     before = sorted(p.name for p in tmp_path.iterdir())
     result = CliRunner().invoke(main, [command, *args, "--device", "cuda"])

@@ -123,7 +123,7 @@ def test_synth_on_ray_and_local_pool_equals_serial(data, ray_session, tmp_path):
 def test_ppcg_on_ray_equals_serial_and_loads_the_library_once_per_actor(
     data, ray_session, tmp_path, stage
 ):
-    args = [stage, "--target", data / "target", "--boxes", data / "target",
+    args = [stage, "--data", data / "target", "--boxes", data / "target",
             "--library", data / "library", "--no-progress"]  # fmt: skip
     dali(*args, "--out", tmp_path / "serial")
     dali(*args, "--executor", "ray", "--workers", 2, "--out", tmp_path / "ray")
@@ -140,7 +140,7 @@ def test_ppcg_on_ray_equals_serial_and_loads_the_library_once_per_actor(
 def test_pseudo_label_on_ray_equals_serial_at_the_same_torch_threads(data, ray_session, tmp_path):
     """Each worker runs torch on one thread; the serial reference does too (torch's results
     differ in the last bits between thread counts, whatever the engine)."""
-    args = ["pseudo-label", "--model", data / "model", "--target", data / "target",
+    args = ["pseudo-label", "--model", data / "model", "--data", data / "target",
             "--scale", "1.05", "--score-min", "0.05", "--batch-size", 2, "--no-progress"]  # fmt: skip
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -193,7 +193,7 @@ def test_a_failing_frame_on_ray_leaves_no_artifact_and_is_named(data, ray_sessio
     out = tmp_path / "rc"
     result = CliRunner().invoke(
         main,
-        ["ppcg-rc", "--target", str(target), "--boxes", str(target),
+        ["ppcg-rc", "--data", str(target), "--boxes", str(target),
          "--library", str(data / "library"), "--no-progress", "--executor", "ray",
          "--workers", "2", "--out", str(out)],
     )  # fmt: skip
@@ -228,7 +228,7 @@ def test_shards_are_written_by_workers_into_the_temporary_directory_and_merged_o
             yield shard, shard_dir, summary
 
     monkeypatch.setattr(executors, "shard_results", watching)
-    dali("ppcg-rc", "--target", data / "target", "--boxes", data / "target", "--library",
+    dali("ppcg-rc", "--data", data / "target", "--boxes", data / "target", "--library",
          data / "library", "--no-progress", "--executor", "ray", "--workers", 2,
          "--out", tmp_path / "rc")  # fmt: skip
     assert seen == list(range(len(seen))) and len(seen) > 2
@@ -292,7 +292,7 @@ def test_lost_ray_workers_are_restarted_and_their_shards_retried(
             yield shard, result
 
     monkeypatch.setattr(RayExecutor, "_completions", killing)
-    args = ["ppcg-cf", "--target", data / "target", "--boxes", data / "target",
+    args = ["ppcg-cf", "--data", data / "target", "--boxes", data / "target",
             "--library", data / "library", "--no-progress"]  # fmt: skip
     dali(*args, "--out", tmp_path / "serial")
     dali(*args, "--executor", "ray", "--workers", 2, "--out", tmp_path / "ray")

@@ -204,9 +204,9 @@ def test_a_malformed_model_card_fails_cleanly(inputs, tmp_path, document, comman
     (model / "model.json").write_bytes(content)
     out = tmp_path / "out"
     args = {
-        "pseudo-label": ["pseudo-label", "--model", model, "--target", inputs / "target",
+        "pseudo-label": ["pseudo-label", "--model", model, "--data", inputs / "target",
                          "--scale", "1", "--out", out, "--no-progress"],
-        "ptsn-sweep": ["ptsn-sweep", "--model", model, "--target", inputs / "target",
+        "ptsn-sweep": ["ptsn-sweep", "--model", model, "--data", inputs / "target",
                        "--out", out, "--no-progress"],
         "eval": ["eval", "--model", model, "--data", inputs / "target", "--scale", "1",
                  "--out", tmp_path / "m.json", "--no-progress"],
@@ -246,7 +246,7 @@ def test_a_malformed_input_manifest_fails_cleanly(inputs, tmp_path, document):
         and all(isinstance(v, list) and all(isinstance(r, dict) and isinstance(r.get("path"), str)
                 and isinstance(r.get("hash"), str) for r in v) for v in records.values())
     )  # fmt: skip
-    args = ["ppcg-rc", "--target", inputs / "target", "--boxes", boxes, "--library",
+    args = ["ppcg-rc", "--data", inputs / "target", "--boxes", boxes, "--library",
             inputs / "library", "--out", tmp_path / "out", "--dry-run"]  # fmt: skip
     before = tree_hashes(inputs), tree_hashes(tmp_path)
     code, output, exception = run_cli(args)

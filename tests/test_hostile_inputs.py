@@ -133,14 +133,14 @@ def base_args(world: Path, command: str, out: Path) -> list:
     """A valid invocation of `command` writing `out` (the hostile option is appended)."""
     model, target, source = world / "model", world / "target", world / "source"
     return {
-        "pseudo-label": ["pseudo-label", "--model", model, "--target", target, "--out", out],
-        "ptsn-sweep": ["ptsn-sweep", "--model", model, "--target", target, "--out", out],
+        "pseudo-label": ["pseudo-label", "--model", model, "--data", target, "--out", out],
+        "ptsn-sweep": ["ptsn-sweep", "--model", model, "--data", target, "--out", out],
         "pretrain": ["pretrain", "--source", source, "--out", out, "--size-norm", "sn"],
         "retrain": ["retrain", "--init", model, "--source", source, "--ppcg", target,
-                    "--out", out, "--source-size", "sn"],
+                    "--out", out, "--size-norm", "sn"],
         "size-norm": ["size-norm", "--data", target, "--out", out],
         "view": ["view", target, "--frame", "0", "--out", out],
-        "ppcg-rc": ["ppcg-rc", "--target", target, "--boxes", target, "--library",
+        "ppcg-rc": ["ppcg-rc", "--data", target, "--boxes", target, "--library",
                     world / "library", "--out", out],
         "export-openpcdet": ["export", "openpcdet", target, "--out", out],
         "eval": ["eval", "--pred", target, "--gt", target, "--out", out],
@@ -246,7 +246,7 @@ def test_implausible_boxes_are_refused_by_every_stage_that_reads_them(world, tmp
     """One plausibility rule: boxes 10^6 m away (ppcg-rc), l = 1e30 (eval), as pretrain."""
     far = boxes_with(world, tmp_path, 0, 1e6)
     out = tmp_path / "out"
-    args = ["ppcg-rc", "--target", world / "target", "--boxes", far, "--library",
+    args = ["ppcg-rc", "--data", world / "target", "--boxes", far, "--library",
             world / "library", "--out", out, "--no-progress"]  # fmt: skip
     expect_refused(tmp_path, args, out, "row 0", "centre")
     (far / "boxes.parquet").unlink()
@@ -297,7 +297,7 @@ def test_a_hostile_input_manifest_is_refused_naming_it(world, tmp_path, how):
     boxes = boxes_with(world, tmp_path, 0, float(read_boxes(world / "target").boxes[0, 0]))
     write_or_mkdir(boxes / "manifest.json", MANIFESTS.get(how))
     out = tmp_path / "out"
-    args = ["ppcg-rc", "--target", world / "target", "--boxes", boxes, "--library",
+    args = ["ppcg-rc", "--data", world / "target", "--boxes", boxes, "--library",
             world / "library", "--out", out, "--no-progress"]  # fmt: skip
     expect_refused(tmp_path, args, out, "manifest.json")
 
@@ -335,7 +335,7 @@ def test_a_hostile_model_card_is_refused_naming_the_field(world, tmp_path, how):
         card.unlink()
         card.mkdir()
     out = tmp_path / "out"
-    args = ["pseudo-label", "--model", model, "--target", world / "target", "--scale", "1",
+    args = ["pseudo-label", "--model", model, "--data", world / "target", "--scale", "1",
             "--out", out, "--no-progress"]  # fmt: skip
     expect_refused(tmp_path, args, out, needle)
 

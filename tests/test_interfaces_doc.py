@@ -12,6 +12,8 @@ import click
 import pytest
 from cli_commands import cli_commands
 
+from dali_cli.commands.common import AliasedOption
+
 DOC = Path(__file__).resolve().parents[1] / "docs" / "INTERFACES.md"
 OPTION = re.compile(r"`(--[a-z0-9][a-z0-9-]*)`")
 COMMAND = re.compile(r"`dali ([a-z0-9 -]+)`")
@@ -46,8 +48,13 @@ def parse_stage_table() -> tuple[dict[str, dict], set[str], set[str]]:
 
 
 def options_of(command: click.Command) -> set[str]:
-    """The command's option names as a user types them (the long primary name of each)."""
-    return {max(param.opts, key=len) for param in command.params if isinstance(param, click.Option)}
+    """The command's option names as a user types them (the long primary name of each; a renamed
+    option's current name, not the former ones it still answers to)."""
+    return {
+        param.opts[0] if isinstance(param, AliasedOption) else max(param.opts, key=len)
+        for param in command.params
+        if isinstance(param, click.Option)
+    }
 
 
 ROWS, SHARED, READERS = parse_stage_table()

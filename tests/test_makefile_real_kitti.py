@@ -138,7 +138,7 @@ def test_the_dali_stages_and_the_controls_adapt_to_the_merged_target(setup):
         if w[0] in ("ptsn-sweep", "pseudo-label", "ppcg-rc", "ppcg-cf", "self-train")
     ]
     assert adapting
-    assert all(option(w, "--target") == f"{data}/target" for w in adapting)
+    assert all(option(w, "--data") == f"{data}/target" for w in adapting)
     # only the evaluations, the comparisons and the merge that names the drive's frames read labels
     for words in commands:
         if any(
@@ -198,7 +198,7 @@ def test_tracked_rows_self_train_like_st_on_labels_tracked_over_registered_scans
     registers = [w for w in named(commands, "register")]
     # one registration of the target, shared by every seed and row
     assert registers and all(w == registers[0] for w in registers)
-    assert option(registers[0], "--target") == f"{data}/target"
+    assert option(registers[0], "--data") == f"{data}/target"
     poses = option(registers[0], "--out")
     for seed in SEEDS:
         run = f"{setup['run']}-s{seed}"
@@ -216,7 +216,7 @@ def test_tracked_rows_self_train_like_st_on_labels_tracked_over_registered_scans
             assert float(option(low, "--score-min")) < float(option(cut, "--score-min"))
             tracked = tracks[f"{run}/{labels}/tracked"]
             assert option(tracked, "--pseudo") == f"{run}/{labels}/pseudo_low"
-            assert option(tracked, "--target") == f"{data}/target"
+            assert option(tracked, "--data") == f"{data}/target"
             assert option(tracked, "--poses") == poses
             mine, theirs = train[f"{run}/{row}/model"], train[f"{run}/{plain}/model"]
             assert option(mine, "--pseudo") == f"{run}/{labels}/tracked"

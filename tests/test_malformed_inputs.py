@@ -238,16 +238,16 @@ def out_of(case: Path) -> Path:
 # each: (world, case, damaged input) -> dali arguments
 FRAME_STAGES: dict[str, Callable[[Path, Path, Path], list]] = {
     "pseudo-label": lambda w, c, t: [
-        "pseudo-label", "--model", w / "model", "--target", t, "--scale", "1", "--out",
+        "pseudo-label", "--model", w / "model", "--data", t, "--scale", "1", "--out",
         out_of(c), "--no-progress"],
     "ppcg-rc": lambda w, c, t: [
-        "ppcg-rc", "--target", t, "--boxes", w / "target", "--library", w / "library", "--out",
+        "ppcg-rc", "--data", t, "--boxes", w / "target", "--library", w / "library", "--out",
         out_of(c), "--no-progress"],
     "ppcg-cf": lambda w, c, t: [
-        "ppcg-cf", "--target", t, "--boxes", w / "target", "--library", w / "library", "--out",
+        "ppcg-cf", "--data", t, "--boxes", w / "target", "--library", w / "library", "--out",
         out_of(c), "--no-progress"],
     "ptsn-sweep": lambda w, c, t: [
-        "ptsn-sweep", "--model", w / "model", "--target", t, "--out", out_of(c), "--no-progress"],
+        "ptsn-sweep", "--model", w / "model", "--data", t, "--out", out_of(c), "--no-progress"],
     "eval-model": lambda w, c, t: [
         "eval", "--model", w / "model", "--data", t, "--scale", "1",
         "--out", out_of(c) / "metrics.json"],
@@ -259,10 +259,10 @@ FRAME_STAGES: dict[str, Callable[[Path, Path, Path], list]] = {
 }  # fmt: skip
 BOX_STAGES: dict[str, Callable[[Path, Path, Path], list]] = {
     "ppcg-rc": lambda w, c, b: [
-        "ppcg-rc", "--target", w / "target", "--boxes", b, "--library", w / "library", "--out",
+        "ppcg-rc", "--data", w / "target", "--boxes", b, "--library", w / "library", "--out",
         out_of(c), "--no-progress"],
     "ppcg-cf": lambda w, c, b: [
-        "ppcg-cf", "--target", w / "target", "--boxes", b, "--library", w / "library", "--out",
+        "ppcg-cf", "--data", w / "target", "--boxes", b, "--library", w / "library", "--out",
         out_of(c), "--no-progress"],
     "eval-pred": lambda w, c, b: [
         "eval", "--pred", b, "--gt", w / "target", "--out", out_of(c) / "metrics.json"],
@@ -325,9 +325,9 @@ def test_empty_pseudo_labels_flow_through_ppcg_view_and_retrain(world, tmp_path)
     """A run whose pseudo-label cut keeps no box still goes on."""
     pseudo, rc = tmp_path / "pseudo", tmp_path / "rc"
     steps = [
-        ["pseudo-label", "--model", world / "model", "--target", world / "target", "--scale",
+        ["pseudo-label", "--model", world / "model", "--data", world / "target", "--scale",
          "1", "--score-min", "1.0", "--out", pseudo, "--no-progress"],
-        ["ppcg-rc", "--target", world / "target", "--boxes", pseudo, "--library",
+        ["ppcg-rc", "--data", world / "target", "--boxes", pseudo, "--library",
          world / "library", "--out", rc, "--no-progress"],
         ["view", rc, "--frame", "000000", "--out", tmp_path / "v.png"],
         ["eval", "--pred", rc, "--gt", world / "target", "--out", tmp_path / "m.json"],

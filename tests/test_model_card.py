@@ -44,7 +44,7 @@ def ros_world(tmp_path_factory):
 
 
 def test_ros_expected_size_uses_the_real_checkpoints_card(ros_world):
-    """`--expected-size ros` read top-level keys that pretrain never wrote, so a real checkpoint
+    """`--target-size ros` read top-level keys that pretrain never wrote, so a real checkpoint
     silently fell back to the default factor and the profile's size."""
     labels = read_boxes(ros_world / "source")
     source_mean = labels.boxes[:, 3:6].mean(axis=0)  # every toy car has points
@@ -69,8 +69,8 @@ def test_the_sweep_records_the_cards_ros_size(ros_world):
     out = ros_world / "ptsn"
     result = CliRunner().invoke(
         main,
-        ["ptsn-sweep", "--model", str(ros_world / "iter0"), "--target", str(ros_world / "target"),
-         "--expected-size", "ros", "--search", "grid", "--scales", "0.9:1.1:0.1", "--no-progress",
+        ["ptsn-sweep", "--model", str(ros_world / "iter0"), "--data", str(ros_world / "target"),
+         "--target-size", "ros", "--search", "grid", "--scales", "0.9:1.1:0.1", "--no-progress",
          "--out", str(out)],
     )  # fmt: skip
     assert result.exit_code == 0, result.output
@@ -149,7 +149,7 @@ def test_a_foreign_model_file_is_a_clear_error(ros_world, tmp_path, damage):
         (model / "model.json").write_text(json.dumps(meta))
     for command in (
         ["eval", "--model", str(model), "--data", str(ros_world / "target")],
-        ["pseudo-label", "--model", str(model), "--target", str(ros_world / "target"),
+        ["pseudo-label", "--model", str(model), "--data", str(ros_world / "target"),
          "--scale", "1", "--out", str(tmp_path / "pseudo")],
         ["retrain", "--init", str(model), "--source", str(ros_world / "source"), "--ppcg",
          str(ros_world / "target"), "--out", str(tmp_path / "re"), "--epochs", "1", "--no-progress"],

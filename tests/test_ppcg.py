@@ -454,7 +454,7 @@ def test_cli_errors_name_the_file_frame_and_field(dataset, tmp_path):
     bad.mkdir()
     write_boxes(bad, BoxTable.from_arrays(["000009"], np.array([[10, 0, -1, 4, 2, 1.5, 0]])))
     runner = CliRunner()
-    args = ["--target", str(target), "--library", str(library)]
+    args = ["--data", str(target), "--library", str(library)]
     result = runner.invoke(
         main, ["ppcg-rc", *args, "--boxes", str(bad), "--out", str(tmp_path / "o")]
     )
@@ -483,7 +483,7 @@ def test_cli_errors_name_the_file_frame_and_field(dataset, tmp_path):
     write_library(meshes_only, [car(3)])
     result = runner.invoke(
         main,
-        ["ppcg-rc", "--target", str(target), "--library", str(meshes_only), "--boxes", str(target)]
+        ["ppcg-rc", "--data", str(target), "--library", str(meshes_only), "--boxes", str(target)]
         + ["--models", "points", "--out", str(tmp_path / "o")],
     )
     assert result.exit_code == 1 and "no point models" in result.output

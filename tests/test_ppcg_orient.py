@@ -115,7 +115,7 @@ def test_the_stages_turn_the_boxes_and_record_it(dataset, tmp_path):  # noqa: F8
         )
     result = CliRunner().invoke(
         main,
-        ["ppcg-rc", "--target", str(target), "--boxes", str(boxes), "--library", str(library),
+        ["ppcg-rc", "--data", str(target), "--boxes", str(boxes), "--library", str(library),
          "--models", "points", "--orient-models", "--no-progress", "--out", str(tmp_path / "p")],
     )  # fmt: skip
     assert result.exit_code == 2 and "orient" in result.output and "cad" in result.output
@@ -123,7 +123,7 @@ def test_the_stages_turn_the_boxes_and_record_it(dataset, tmp_path):  # noqa: F8
     # by default point models are not oriented: no error
     result = CliRunner().invoke(
         main,
-        ["ppcg-rc", "--target", str(target), "--boxes", str(boxes), "--library", str(library),
+        ["ppcg-rc", "--data", str(target), "--boxes", str(boxes), "--library", str(library),
          "--models", "points", "--no-progress", "--out", str(tmp_path / "p")],
     )  # fmt: skip
     assert result.exit_code == 0, result.output

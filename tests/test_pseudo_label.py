@@ -105,14 +105,14 @@ def run(*arguments):
 def PSEUDO_LABEL(model, target):  # noqa: N802 (reads as the command line it starts)
     # the point fit (on by default, tests/test_box_fit.py) would move these stub boxes off the
     # uniform points they hold: these tests check the scale, cut, NMS and count exactly
-    return ("pseudo-label", "--model", model, "--target", target, "--no-fit-points")
+    return ("pseudo-label", "--model", model, "--data", target, "--no-fit-points")
 
 
 def test_pseudo_labels_at_the_swept_scale_match_e_est(setup):
     tmp_path, target, model, detector = setup
     ptsn_dir, out = tmp_path / "ptsn", tmp_path / "pseudo"
     result = run(
-        "ptsn-sweep", "--model", model, "--target", target, "--out", ptsn_dir, "--no-progress"
+        "ptsn-sweep", "--model", model, "--data", target, "--out", ptsn_dir, "--no-progress"
     )
     assert result.exit_code == 0, result.output
     scale = json.loads((ptsn_dir / "scale.json").read_text())["scale"]
@@ -148,7 +148,7 @@ def test_explicit_scale_overrides_and_options(setup):
     tmp_path, target, model, detector = setup
     out = tmp_path / "p1"
     result = run(
-        "pseudo-label", "--model", model, "--target", target, "--scale", "1.0", "--out", out,
+        "pseudo-label", "--model", model, "--data", target, "--scale", "1.0", "--out", out,
         "--no-progress", "--nms-iou", "0.95", "--score-min", "0.05",
     )  # fmt: skip
     assert result.exit_code == 0, result.output
@@ -162,7 +162,7 @@ def test_explicit_scale_overrides_and_options(setup):
 
 def test_missing_scale_is_a_usage_error(setup):
     tmp_path, target, model, _ = setup
-    result = run("pseudo-label", "--model", model, "--target", target, "--out", tmp_path / "x")
+    result = run("pseudo-label", "--model", model, "--data", target, "--out", tmp_path / "x")
     assert result.exit_code == 2 and "--scale-from" in result.output
     bad = tmp_path / "bad_ptsn"
     bad.mkdir()
@@ -245,7 +245,7 @@ def test_implausible_detections_are_dropped_before_nms_and_counted(setup, monkey
     monkeypatch.setattr(stages.pseudo_label, "load_detector", lambda _: AbsurdBoxDetector())
     out = tmp_path / "pseudo"
     result = run(
-        "pseudo-label", "--model", model, "--target", target, "--scale", "1.0", "--out", out,
+        "pseudo-label", "--model", model, "--data", target, "--scale", "1.0", "--out", out,
         "--no-progress",
     )  # fmt: skip
     assert result.exit_code == 0, result.output
@@ -276,12 +276,12 @@ def test_size_correction_removes_an_anisotropic_bias(setup, monkeypatch):
     monkeypatch.setattr(stages.pseudo_label, "load_detector", lambda _: biased)
     monkeypatch.setattr(stages.ptsn_sweep, "load_detector", lambda _: biased)
     ptsn_dir = tmp_path / "ptsn-aniso"
-    result = run("ptsn-sweep", "--model", model, "--target", target, "--out", ptsn_dir,
+    result = run("ptsn-sweep", "--model", model, "--data", target, "--out", ptsn_dir,
                  "--no-progress")  # fmt: skip
     assert result.exit_code == 0, result.output
     e_est = np.asarray(json.loads((ptsn_dir / "scale.json").read_text())["E_est"])
     # positions are checked exactly below: no point fit
-    base = ["pseudo-label", "--model", model, "--target", target, "--scale-from", ptsn_dir,
+    base = ["pseudo-label", "--model", model, "--data", target, "--scale-from", ptsn_dir,
             "--no-progress", "--no-fit-points"]  # fmt: skip
 
     assert run(*base, "--out", tmp_path / "raw", "--size-correction", "none").exit_code == 0

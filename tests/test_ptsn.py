@@ -320,7 +320,7 @@ def invoke(*arguments):
 @pytest.mark.parametrize("spec", ["1.4:0.8", "0:1", "a:b"])
 def test_cli_bad_scales_are_usage_errors(spec, sweep_setup):
     tmp_path, target, model = sweep_setup
-    result = invoke("--model", model, "--target", target, "--out", tmp_path / "o", "--scales", spec)
+    result = invoke("--model", model, "--data", target, "--out", tmp_path / "o", "--scales", spec)
     assert result.exit_code == 2, result.output
     assert "--scales" in result.output
     assert not (tmp_path / "o").exists()
@@ -333,7 +333,7 @@ def test_cli_sweep_writes_scale_and_curve(spec, step, sweep_setup):
     arguments = [
         "--model",
         model,
-        "--target",
+        "--data",
         target,
         "--out",
         out,
@@ -376,7 +376,7 @@ def test_cli_expected_size_options(sweep_setup):
     base = [
         "--model",
         model,
-        "--target",
+        "--data",
         target,
         "--no-progress",
         "--search",
@@ -384,7 +384,7 @@ def test_cli_expected_size_options(sweep_setup):
         "--scales",
         "0.9:1.1:0.05",
     ]
-    result = invoke(*base, "--out", tmp_path / "ros", "--expected-size", "ros")
+    result = invoke(*base, "--out", tmp_path / "ros", "--target-size", "ros")
     assert result.exit_code == 0, result.output
     document = json.loads((tmp_path / "ros" / "scale.json").read_text())
     assert document["E_est"] == pytest.approx((SOURCE_LWH * 0.875).tolist())
@@ -392,23 +392,23 @@ def test_cli_expected_size_options(sweep_setup):
     # what pretrain --size-norm ros records (test_model_card checks a real checkpoint)
     card = {"source_mean_lwh_m": [4.0, 2.0, 1.6], "ros_range": [0.7, 0.9], "size_norm": "ros"}
     (model / "model.json").write_text(json.dumps({"card": card}))
-    result = invoke(*base, "--out", tmp_path / "ros2", "--expected-size", "ros")
+    result = invoke(*base, "--out", tmp_path / "ros2", "--target-size", "ros")
     assert result.exit_code == 0, result.output
     document = json.loads((tmp_path / "ros2" / "scale.json").read_text())
     assert document["E_est"] == pytest.approx([3.2, 1.6, 1.28])  # measured mean x mean factor 0.8
-    result = invoke(*base, "--out", tmp_path / "x", "--expected-size", "4,2,1.5")
+    result = invoke(*base, "--out", tmp_path / "x", "--target-size", "4,2,1.5")
     assert result.exit_code == 0 and json.loads((tmp_path / "x" / "scale.json").read_text())[
         "E_est"
     ] == [4, 2, 1.5]
-    result = invoke(*base, "--out", tmp_path / "bad", "--expected-size", "4,2")
-    assert result.exit_code == 2 and "--expected-size" in result.output
+    result = invoke(*base, "--out", tmp_path / "bad", "--target-size", "4,2")
+    assert result.exit_code == 2 and "--target-size" in result.output
 
 
 def test_cli_clipped_boundary_is_reported(sweep_setup):
     tmp_path, target, model = sweep_setup
     out = tmp_path / "clip"
     result = invoke(
-        "--model", model, "--target", target, "--out", out, "--no-progress", "--scales", "0.8:1.1"
+        "--model", model, "--data", target, "--out", out, "--no-progress", "--scales", "0.8:1.1"
     )
     assert result.exit_code == 0, result.output
     assert "WARNING" in result.output and "clipped" in result.output
@@ -427,7 +427,7 @@ def test_cli_no_detections_falls_back_to_no_scaling_or_fails_on_request(sweep_se
         lambda _: LawDetector(inverse_law(SOURCE_LWH), score=0.1),
     )
     out = tmp_path / "none"
-    result = invoke("--model", model, "--target", target, "--out", out, "--no-progress")
+    result = invoke("--model", model, "--data", target, "--out", out, "--no-progress")
     assert result.exit_code == 0, result.output
     assert "WARNING" in result.output and "no detections with score >= 0.3" in result.output
     document = json.loads((out / "scale.json").read_text())
@@ -438,7 +438,7 @@ def test_cli_no_detections_falls_back_to_no_scaling_or_fails_on_request(sweep_se
     assert any("ŝ = 1" in note for note in manifest["notes"])
 
     strict = tmp_path / "strict"
-    arguments = ["--model", model, "--target", target, "--no-progress", "--out", strict]
+    arguments = ["--model", model, "--data", target, "--no-progress", "--out", strict]
     result = invoke(*arguments, "--no-detections", "error")
     assert result.exit_code == 1 and "no detections" in result.output
     assert "more frames or epochs" in result.output and "--score-min" in result.output
@@ -515,7 +515,7 @@ def test_sweep_keeps_its_boxes_and_reproduces_its_e_pred_from_them(search, sweep
 
     monkeypatch.setattr(stages.ptsn_sweep, "load_detector", lambda model_dir: detector)
     out = tmp_path / f"ptsn-{search}"
-    result = invoke("--model", model, "--target", target, "--out", out, "--search", search,
+    result = invoke("--model", model, "--data", target, "--out", out, "--search", search,
                     "--no-progress")  # fmt: skip
     assert result.exit_code == 0, result.output
     document = json.loads((out / "scale.json").read_text())

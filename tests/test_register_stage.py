@@ -48,7 +48,7 @@ def test_register_writes_the_scans_poses_and_skips_when_up_to_date(tmp_path):
     # written backwards: the table's index, not the frame set's order, orders the scans
     frame_ids = street_target(tmp_path / "target", truth, order=[5, 4, 3, 2, 1, 0], table=True)
     out = tmp_path / "poses"
-    result = invoke("register", "--target", tmp_path / "target", "--out", out)
+    result = invoke("register", "--data", tmp_path / "target", "--out", out)
     assert result.exit_code == 0, result.output
     assert "register: 6 scans in 1 recording(s), 6.0 m, 0 not converged" in result.output
     poses = read_lidar_poses(out, frame_ids)
@@ -65,7 +65,7 @@ def test_register_writes_the_scans_poses_and_skips_when_up_to_date(tmp_path):
     assert manifest["stage"] == "register" and set(manifest["inputs"]) == {"target"}
     assert manifest["params"]["voxel_m"] == 1.0
     assert not (tmp_path / "target" / "summary.json").exists()
-    again = invoke("register", "--target", tmp_path / "target", "--out", out)
+    again = invoke("register", "--data", tmp_path / "target", "--out", out)
     assert again.exit_code == 0 and "up to date" in again.output
 
 
@@ -79,7 +79,7 @@ def test_a_merged_target_is_registered_recording_by_recording(tmp_path):
     assert done.exit_code == 0, done.output
     assert not (merged / "sequence.parquet").exists()
     out = tmp_path / "poses"
-    result = invoke("register", "--target", merged, "--out", out)
+    result = invoke("register", "--data", merged, "--out", out)
     assert result.exit_code == 0, result.output
     frame_ids = FrameSet(merged).frame_ids
     table = pq.read_table(out / "sequence.parquet").to_pydict()
@@ -99,7 +99,7 @@ def test_a_recording_of_one_scan_is_an_error_and_nothing_is_written(tmp_path):
     done = invoke("merge", "--in", f"a={tmp_path / 'a'}", "--in", f"b={tmp_path / 'b'}",
                   "--out", merged, "--no-progress")  # fmt: skip
     assert done.exit_code == 0, done.output
-    result = invoke("register", "--target", merged, "--out", tmp_path / "poses")
+    result = invoke("register", "--data", merged, "--out", tmp_path / "poses")
     assert result.exit_code == 1
     assert result.output.strip().splitlines() == [
         f"Error: {merged / 'frames.zarr'}: recording 'b' has 1 scan ('b-0000000000'): "
@@ -114,13 +114,13 @@ def test_a_scan_too_empty_to_register_is_named(tmp_path):
     near = scan(truth[2])[:50]
     frames = [(ids[0], scan(truth[0])), (ids[1], scan(truth[1])), (ids[2], near)]
     write_frameset(tmp_path / "target", frames, "kitti")
-    result = invoke("register", "--target", tmp_path / "target", "--out", tmp_path / "poses")
+    result = invoke("register", "--data", tmp_path / "target", "--out", tmp_path / "poses")
     assert result.exit_code == 1
     message = result.output.strip()
     assert len(message.splitlines()) == 1 and "frames.zarr, frame '0000000002': " in message
     assert "fewer than the 100 registration needs" in message
     assert not (tmp_path / "poses").exists()
-    empty_range = invoke("register", "--target", tmp_path / "target", "--min-range-m", "90",
+    empty_range = invoke("register", "--data", tmp_path / "target", "--min-range-m", "90",
                          "--out", tmp_path / "poses")  # fmt: skip
     assert empty_range.exit_code == 2 and "--min-range-m / --max-range-m" in empty_range.output
 
@@ -128,13 +128,11 @@ def test_a_scan_too_empty_to_register_is_named(tmp_path):
 def test_track_pseudo_reads_poses_from_another_directory(tmp_path):
     target, pseudo, _, frame_ids = sequence_target(tmp_path)
     own = tmp_path / "own"
-    assert (
-        invoke("track-pseudo", "--pseudo", pseudo, "--target", target, "--out", own).exit_code == 0
-    )
+    assert invoke("track-pseudo", "--pseudo", pseudo, "--data", target, "--out", own).exit_code == 0
     poses = tmp_path / "registered"
     poses.mkdir()
     shutil.move(target / "sequence.parquet", poses / "sequence.parquet")
-    result = invoke("track-pseudo", "--pseudo", pseudo, "--target", target, "--poses", poses,
+    result = invoke("track-pseudo", "--pseudo", pseudo, "--data", target, "--poses", poses,
                     "--out", tmp_path / "other")  # fmt: skip
     assert result.exit_code == 0, result.output
     boxes = pq.read_table(own / "boxes.parquet")
@@ -148,7 +146,7 @@ def test_track_pseudo_reads_poses_from_another_directory(tmp_path):
     assert "poses" not in first["inputs"] and second["inputs"]["poses"][0]["path"] == str(poses)
     # poses that lack a scan of the target
     write_sequence(poses, frame_ids[:-1], read_lidar_poses(poses, frame_ids[:-1]))
-    short = invoke("track-pseudo", "--pseudo", pseudo, "--target", target, "--poses", poses,
+    short = invoke("track-pseudo", "--pseudo", pseudo, "--data", target, "--poses", poses,
                    "--out", tmp_path / "short")  # fmt: skip
     assert short.exit_code == 1 and not (tmp_path / "short").exists()
     assert f"no pose for frame '{frame_ids[-1]}' (--poses must cover the scans of" in short.output

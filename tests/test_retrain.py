@@ -192,7 +192,7 @@ def test_ppcg_sets_without_boxes_are_left_out_not_trained_as_background(world, t
 
 
 def test_source_size_sn_shifts_the_source_to_the_given_target_size(world, tmp_path):
-    """--source-size sn replaces INIT's normalization: the source boxes get the given target
+    """--size-norm sn replaces INIT's normalization: the source boxes get the given target
     mean (not INIT's kitti SN), the card records the new delta, and without a size it fails."""
     runner = CliRunner()
     base = ["retrain", "--init", str(world / "iter0"), "--source", str(world / "source"),
@@ -200,7 +200,7 @@ def test_source_size_sn_shifts_the_source_to_the_given_target_size(world, tmp_pa
     target = (4.5, 1.9, 1.7)
     out = tmp_path / "sn"
     result = runner.invoke(
-        main, [*base, "--out", str(out), "--source-size", "sn", "--target-size", "4.5,1.9,1.7"]
+        main, [*base, "--out", str(out), "--size-norm", "sn", "--target-size", "4.5,1.9,1.7"]
     )
     assert result.exit_code == 0, result.output
     meta = json.loads((out / "model.json").read_text())
@@ -210,7 +210,7 @@ def test_source_size_sn_shifts_the_source_to_the_given_target_size(world, tmp_pa
     assert np.allclose(meta["card"]["sn_delta_lwh_m"], np.asarray(target) - raw_mean, atol=1e-6)
     assert read_manifest(out)["params"]["source_size"] == "sn"
 
-    missing = runner.invoke(main, [*base, "--out", str(tmp_path / "bad"), "--source-size", "sn"])
+    missing = runner.invoke(main, [*base, "--out", str(tmp_path / "bad"), "--size-norm", "sn"])
     assert missing.exit_code != 0 and "target" in missing.output
     assert not (tmp_path / "bad").exists()
 
@@ -226,7 +226,7 @@ def test_source_size_sn_reads_e_est_from_a_ptsn_sweep(world, tmp_path):
     runner = CliRunner()
     base = ["retrain", "--init", str(world / "iter0"), "--source", str(world / "source"),
             "--ppcg", str(world / "rc"), "--epochs", "1", "--lr", "1e-12", "--no-progress",
-            "--source-size", "sn"]  # fmt: skip
+            "--size-norm", "sn"]  # fmt: skip
     out = tmp_path / "from-sweep"
     result = runner.invoke(main, [*base, "--target-size-from", str(sweep), "--out", str(out)])
     assert result.exit_code == 0, result.output

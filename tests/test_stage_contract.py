@@ -76,7 +76,7 @@ def test_stage_error_mapping(tmp_path):
     # a ParameterError raised by the stage: exit 2, rendered with the command's flags
     result = runner.invoke(
         main,
-        ["ptsn-sweep", "--model", str(tmp_path / "model"), "--target", str(tmp_path / "target"),
+        ["ptsn-sweep", "--model", str(tmp_path / "model"), "--data", str(tmp_path / "target"),
          "--frames", "2", "--frame-fraction", "0.5", "--out", str(tmp_path / "o")],
     )  # fmt: skip
     assert result.exit_code == 2, result.output
@@ -85,7 +85,7 @@ def test_stage_error_mapping(tmp_path):
     # any other StageError: exit 1 with its message (the missing frames.zarr is named)
     result = runner.invoke(
         main,
-        ["pseudo-label", "--model", str(tmp_path / "model"), "--target", str(tmp_path / "target"),
+        ["pseudo-label", "--model", str(tmp_path / "model"), "--data", str(tmp_path / "target"),
          "--scale", "1.0", "--out", str(tmp_path / "o")],
     )  # fmt: skip
     assert result.exit_code == 1 and "frames.zarr" in result.output, result.output

@@ -102,16 +102,16 @@ def test_no_stage_reads_the_target_labels(world, monkeypatch):
 
     monkeypatch.setattr(pq, "read_table", recording_read_table)
     target, it = root / "target", root / "iter1"
-    invoke("ptsn-sweep", "--model", root / "iter0", "--target", target, "--out", it / "ptsn",
+    invoke("ptsn-sweep", "--model", root / "iter0", "--data", target, "--out", it / "ptsn",
            "--no-progress")  # fmt: skip
-    invoke("pseudo-label", "--model", root / "iter0", "--target", target, "--scale-from",
+    invoke("pseudo-label", "--model", root / "iter0", "--data", target, "--scale-from",
            it / "ptsn", "--out", it / "pseudo", "--no-progress")  # fmt: skip
     for stage in ("ppcg-rc", "ppcg-cf"):
-        invoke(stage, "--target", target, "--boxes", it / "pseudo", "--library", root / "library",
+        invoke(stage, "--data", target, "--boxes", it / "pseudo", "--library", root / "library",
                "--target-profile", "kitti", "--out", it / stage[-2:])  # fmt: skip
     invoke("retrain", "--init", root / "iter0", "--source", root / "source", "--ppcg", it / "rc",
            it / "cf", "--epochs", "1", "--no-progress", "--out", it / "model")  # fmt: skip
-    invoke("self-train", "--init", it / "model", "--target", target, "--pseudo", it / "pseudo",
+    invoke("self-train", "--init", it / "model", "--data", target, "--pseudo", it / "pseudo",
            "--epochs", "1", "--no-progress", "--out", it / "st")  # fmt: skip
     poisoned = (target / "boxes.parquet").resolve()
     assert opened and poisoned not in opened
@@ -131,7 +131,7 @@ def test_self_train_learns_in_the_ptsn_scaled_frame(world):
     table = labels.with_columns(scale=np.full(len(labels), scale))
     pseudo.mkdir()
     write_boxes(pseudo, table)
-    base = ["self-train", "--init", root / "iter0", "--target", root / "target", "--pseudo",
+    base = ["self-train", "--init", root / "iter0", "--data", root / "target", "--pseudo",
             pseudo, "--epochs", "1", "--no-progress"]  # fmt: skip
     invoke(*base, "--out", root / "st-still", "--lr", "1e-12")
     meta = json.loads((root / "st-still" / "model.json").read_text())

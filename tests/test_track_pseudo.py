@@ -219,7 +219,7 @@ def sequence_target(tmp_path: Path, frames: int = 12):
 def test_track_pseudo_places_the_parked_car_in_every_scan_and_drops_clutter(tmp_path):
     target, pseudo, truth, frame_ids = sequence_target(tmp_path)
     out = tmp_path / "tracked"
-    result = invoke("track-pseudo", "--pseudo", pseudo, "--target", target, "--out", out)
+    result = invoke("track-pseudo", "--pseudo", pseudo, "--data", target, "--out", out)
     assert result.exit_code == 0, result.output
     table = read_boxes(out)
     # the car in all 12 scans, the 4 it was missed in included; the clutter box (one scan,
@@ -234,7 +234,7 @@ def test_track_pseudo_places_the_parked_car_in_every_scan_and_drops_clutter(tmp_
     assert (out / "scale.json").read_text() == (pseudo / "scale.json").read_text()
     # a score cut above the car's median score keeps nothing
     again = invoke(
-        "track-pseudo", "--pseudo", pseudo, "--target", target, "--track-score-min", "0.7",
+        "track-pseudo", "--pseudo", pseudo, "--data", target, "--track-score-min", "0.7",
         "--out", tmp_path / "strict",
     )  # fmt: skip
     assert again.exit_code == 0, again.output
@@ -244,7 +244,7 @@ def test_track_pseudo_places_the_parked_car_in_every_scan_and_drops_clutter(tmp_
 def test_track_pseudo_without_poses_says_how_to_get_them(tmp_path):
     target, pseudo, _, _ = sequence_target(tmp_path, frames=4)
     (target / "sequence.parquet").unlink()
-    result = invoke("track-pseudo", "--pseudo", pseudo, "--target", target, "--out", tmp_path / "o")
+    result = invoke("track-pseudo", "--pseudo", pseudo, "--data", target, "--out", tmp_path / "o")
     assert result.exit_code == 1
     assert "sequence.parquet: no sequence table" in result.output
     assert "dali import kitti-raw --poses" in result.output
@@ -254,7 +254,7 @@ def test_track_pseudo_without_lidar_poses_names_the_missing_column(tmp_path):
     target, pseudo, _, frame_ids = sequence_target(tmp_path, frames=4)
     table = sequence_table(frame_ids, camera_poses=ego_poses(4))  # odometry without calib.txt
     pq.write_table(table, target / "sequence.parquet")
-    result = invoke("track-pseudo", "--pseudo", pseudo, "--target", target, "--out", tmp_path / "o")
+    result = invoke("track-pseudo", "--pseudo", pseudo, "--data", target, "--out", tmp_path / "o")
     assert result.exit_code == 1
     assert "sequence.parquet: column 'lidar_pose_00' missing" in result.output
     assert len(result.output.strip().splitlines()) == 1
@@ -291,7 +291,7 @@ def test_merge_keeps_each_drives_poses_and_track_pseudo_never_links_across_drive
         read_lidar_poses(merged, frame_ids), np.r_[ego_poses(12), ego_poses(12)]
     )
     out = tmp_path / "tracked"
-    result = invoke("track-pseudo", "--pseudo", pseudo, "--target", merged, "--out", out)
+    result = invoke("track-pseudo", "--pseudo", pseudo, "--data", merged, "--out", out)
     assert result.exit_code == 0, result.output
     boxes = read_boxes(out)
     # one car per drive (tracked as one over the 24 scans they would be one car, its parked
@@ -308,7 +308,7 @@ def test_merge_keeps_each_drives_poses_and_track_pseudo_never_links_across_drive
         pq.read_table(merged / "sequence.parquet").drop_columns(["recording"]),
         merged / "sequence.parquet",
     )
-    again = invoke("track-pseudo", "--pseudo", pseudo, "--target", merged, "--out", tmp_path / "t2")
+    again = invoke("track-pseudo", "--pseudo", pseudo, "--data", merged, "--out", tmp_path / "t2")
     assert again.exit_code == 0, again.output
     assert set(read_boxes(tmp_path / "t2")["track"]) == {0, 1}
 
@@ -317,14 +317,14 @@ def test_ppcg_reads_the_tracked_labels_as_it_reads_pseudo_labels(tmp_path):
     target, pseudo, _, frame_ids = sequence_target(tmp_path, frames=6)
     tracked, library = tmp_path / "tracked", tmp_path / "library"
     assert (
-        invoke("track-pseudo", "--pseudo", pseudo, "--target", target, "--out", tracked).exit_code
+        invoke("track-pseudo", "--pseudo", pseudo, "--data", target, "--out", tracked).exit_code
         == 0
     )
     built = invoke("library", "build", "--procedural", 1, "--seed", 1, "--out", library)
     assert built.exit_code == 0, built.output
     for stage in ("ppcg-rc", "ppcg-cf"):
         result = invoke(
-            stage, "--target", target, "--boxes", tracked, "--library", library,
+            stage, "--data", target, "--boxes", tracked, "--library", library,
             "--no-progress", "--out", tmp_path / stage,
         )  # fmt: skip
         assert result.exit_code == 0, result.output

@@ -21,6 +21,33 @@ def input_dir_option(*decls: str, help: str, required: bool = True):
     return click.option(*decls, type=INPUT_DIR, required=required, help=help)
 
 
+class AliasedOption(click.Option):
+    """An option whose later long names are its former names, kept working for one release
+    (`aliases` of `renamed_option`): --help lists only the first."""
+
+    def get_help_record(self, ctx: click.Context):
+        names, self.opts = self.opts, self.opts[:1]
+        try:
+            return super().get_help_record(ctx)
+        finally:
+            self.opts = names
+
+    def get_error_hint(self, ctx: click.Context) -> str:
+        return f"'{self.opts[0]}'"
+
+
+def renamed_option(name: str, *aliases_and_dest: str, **kwargs):
+    """click.option(name, ...) that also answers to its former names (the `--` words among
+    `aliases_and_dest`) without listing them in --help."""
+    return click.option(name, *aliases_and_dest, cls=AliasedOption, **kwargs)
+
+
+def data_option(dest: str, help: str):
+    """--data DIR: the frame set a command runs on (every stage that reads one, under one name;
+    --target is its former name in the target stages)."""
+    return renamed_option("--data", "--target", dest, type=INPUT_DIR, required=True, help=help)
+
+
 def out_dir_option(help: str = "Output directory.", *decls: str):
     """--out DIR: the artifact directory a stage writes (atomically)."""
     return click.option("--out", *decls, type=click.Path(file_okay=False), required=True, help=help)
@@ -137,7 +164,7 @@ exhaust memory or processes before the first step)."""
 
 def target_size_options(profile_help: str, size_help: str):
     """--target-profile and --target-size 'l,w,h': the target's mean car size (pretrain's SN,
-    retrain's --source-size sn)."""
+    retrain's --size-norm sn)."""
 
     def decorate(function):
         function = click.option("--target-size", type=CAR_SIZE, default=None, help=size_help)(
@@ -192,18 +219,14 @@ def sensors_option(function, *, shown: bool = False):
 
 
 def model_target_out_options(model_help: str):
-    """--model, --target and --out of the stages that run a model on the target frame set."""
+    """--model, --data and --out of the stages that run a model on the target frame set."""
 
     def decorate(function):
         function = click.option(
             "--out", required=True, type=click.Path(file_okay=False), help="Output directory."
         )(function)
-        function = click.option(
-            "--target",
-            "target_dir",
-            required=True,
-            type=click.Path(exists=True, file_okay=False),
-            help="Target frame set (frames.zarr). Its labels, if any, are never read.",
+        function = data_option(
+            "target_dir", "Target frame set (frames.zarr). Its labels, if any, are never read."
         )(function)
         return click.option(
             "--model",

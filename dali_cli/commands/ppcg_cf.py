@@ -22,7 +22,7 @@ def command(target_dir, boxes_dir, library_dir, out, no_progress, range_m, **opt
     (ground points stay). Random draws come from (seed, frame, box): any --workers gives the
     same output.
 
-    Reads TARGET, the BOXES table and the LIBRARY. Writes OUT/frames.zarr, OUT/boxes.parquet
+    Reads DATA, the BOXES table and the LIBRARY. Writes OUT/frames.zarr, OUT/boxes.parquet
     (input rows plus ppcg = cf|raw, ppcg_reason, points_before, points_after, model_id) and
     OUT/manifest.json (counts, per-frame timing).
     """

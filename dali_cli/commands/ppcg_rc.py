@@ -7,6 +7,7 @@ import click
 from dali_cli.commands.common import (
     SEED,
     apply_options,
+    data_option,
     executor_options,
     input_dir_option,
     no_progress_option,
@@ -25,7 +26,7 @@ from dali_cli.world.cars import LABEL_SLACK_M
 def ppcg_options(function):
     """Options shared by ppcg-rc and ppcg-cf."""
     decorators = [
-        input_dir_option("--target", "target_dir", help="Target frame set (frames.zarr)."),
+        data_option("target_dir", help="Target frame set (frames.zarr)."),
         click.option("--boxes", "boxes_dir", required=True, type=click.Path(exists=True),
                      help="Box table directory (boxes.parquet): pseudo labels, or labels for "
                           "controlled runs."),
@@ -82,7 +83,7 @@ def command(target_dir, boxes_dir, library_dir, out, no_progress, **options):
     nearest model point within 2 x 360/points-per-beam degrees of the ray). Misses are dropped;
     ground points stay; RC never adds points.
 
-    Reads TARGET, the BOXES table and the LIBRARY. Writes OUT/frames.zarr (every target frame,
+    Reads DATA, the BOXES table and the LIBRARY. Writes OUT/frames.zarr (every target frame,
     processed boxes' points replaced), OUT/boxes.parquet (the input rows plus ppcg = rc|raw,
     ppcg_reason, points_before, points_after, model_id) and OUT/manifest.json (counts of
     boxes processed and skipped, per-frame timing).

@@ -48,7 +48,7 @@ def command(model_dir, target_dir, out, sensors_path, no_progress, fit_points, *
     points (the NMS threshold, the correction and the fit are tuning options: --nms-iou,
     --size-correction, --no-fit-points under DALI_HELP=all).
 
-    Reads MODEL, the TARGET frame set (never its labels) and --scale-from's scale.json.
+    Reads MODEL, the DATA frame set (never its labels) and --scale-from's scale.json.
     Writes OUT/boxes.parquet (one row per pseudo box: frame_id, x, y, z, l, w, h, yaw, score,
     label, num_points = original target points inside the box, size_factor_l/w/h = the
     correction factors), OUT/scale.json (the scale used: --scale-from's scale.json with

@@ -9,6 +9,7 @@ from dali_cli.commands.common import (
     choice_option,
     finite_range,
     model_target_out_options,
+    renamed_option,
     score_min_option,
     target_profile_option,
     target_scaling_options,
@@ -40,9 +41,11 @@ SCALE_RANGE = ScaleRangeType()
 @tuning_option("--scales", "scale_range", type=SCALE_RANGE, default="0.8:1.4", show_default=True,
               help="Swept scales LOW:HIGH[:STEP] (STEP default 0.01; the grid and the confirm "
                    "resolution).")  # fmt: skip
-@click.option("--expected-size", "expected_size", default="sn", show_default=True,
-              help="E_est: 'sn' (target profile's mean car size, sensors.toml), 'ros' (source "
-                   "mean x mean ROS factor) or explicit L,W,H in metres.")  # fmt: skip
+@renamed_option("--target-size", "--expected-size", "expected_size", default="sn",
+                show_default=True,
+                help="E_est, the target's expected mean car size: 'sn' (the target profile's "
+                     "car_mean_lwh_m, sensors.toml), 'ros' (source mean x mean ROS factor) or "
+                     "L,W,H in metres.")  # fmt: skip
 @choice_option("--search", choices=["bracket", "grid"], tuning=True, default="bracket",
                help="bracket: secant on a frame subsample, confirmed on all frames; grid: every "
                     "scale.")  # fmt: skip
@@ -75,7 +78,7 @@ def command(model_dir, target_dir, out, scale_range, sensors_path, no_progress, 
     """Find the PTSN scale ŝ: the point-cloud scale at which the model's mean predicted car size
     E_pred(s) (boxes de-scaled, score >= --score-min) matches the expected target size E_est.
 
-    Reads MODEL (model.json, model.pt) and the TARGET frame set only: never target labels.
+    Reads MODEL (model.json, model.pt) and the DATA frame set only: never target labels.
     Writes OUT/scale.json ("scale": ŝ, E_est, E_pred at ŝ, per-dimension bias, passes, detector
     frames, strategy, clipping), OUT/sweep.parquet (one row per evaluated scale and frame set:
     frames, boxes, mean l/w/h, mean volume, seconds), OUT/detections.parquet (every box at the

@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from dali_cli.commands.common import (
-    input_dir_option,
+    data_option,
     no_progress_option,
     out_dir_option,
     stage_options,
@@ -18,8 +18,8 @@ DEFAULTS = RegistrationParams()
 
 
 @click.command(name="register")
-@input_dir_option("--target", help="The frame set whose scans to register (frames.zarr; its "
-                  "sequence.parquet, when it has one, gives the scans' order and recordings).")  # fmt: skip
+@data_option("target", help="The frame set whose scans to register (frames.zarr; its "
+             "sequence.parquet, when it has one, gives the scans' order and recordings).")  # fmt: skip
 @out_dir_option()
 @tuning_option("--voxel-m", type=DISTANCE_M, default=DEFAULTS.voxel_m, show_default=True,
                help="Map voxel (m); a scan is kept at half of it and registered at 1.5 times it.")  # fmt: skip
@@ -49,13 +49,13 @@ def command(target, out, force, dry_run, no_progress, **params):
     (point-to-plane ICP with a constant-velocity motion prior and a robust kernel, on points
     3-80 m from the sensor), for a target recorded without GPS/IMU poses.
 
-    A merged TARGET (`dali merge`) is registered recording by recording (its sequence table's
+    A merged DATA (`dali merge`) is registered recording by recording (its sequence table's
     recording, or the frame ids' NAME- prefix), each from its own first scan. Scans are taken
     in the order of the sequence table's index; a scan the table lacks (or a target without
     one) by the number its frame id ends with, else by frame id. Writes OUT/sequence.parquet
-    (TARGET's table with the LiDAR poses replaced, or a new one: each scan's pose in its
+    (DATA's table with the LiDAR poses replaced, or a new one: each scan's pose in its
     recording's first scan), OUT/summary.json (per recording: scans, path length, median step,
-    ICP iterations, scans that did not converge) and manifest.json; never writes in TARGET.
+    ICP iterations, scans that did not converge) and manifest.json; never writes in DATA.
     `dali track-pseudo --poses OUT` reads the poses.
     """
     from stages.register import register

@@ -8,6 +8,7 @@ from dali_cli.commands.common import (
     choice_option,
     input_dir_option,
     out_dir_option,
+    renamed_option,
     run_training_command,
     target_size_options,
     training_options,
@@ -52,18 +53,19 @@ class GreedyOption(click.Option):
 @tuning_option("--mix", default="1:1", show_default=True,
               help="Batches source:PPCG (PPCG sets pooled), or source:set1:set2 for separate "
                    "weights.")  # fmt: skip
-@choice_option("--source-size", choices=["init", "sn"], default="init",
-               help="init: the source keeps INIT's size normalization; sn: source boxes are "
+@renamed_option("--size-norm", "--source-size", "source_size", type=click.Choice(["init", "sn"]),
+                default="init", show_default=True,
+                help="init: the source keeps INIT's size normalization; sn: source boxes are "
                     "shifted to the target's expected mean size (--target-profile / "
                     "--target-size, label-free statistics), points scaled with them, so source "
                     "and PPCG labels agree on car size.")  # fmt: skip
 @target_size_options(
-    "Sensor profile whose car_mean_lwh_m is the target size for --source-size sn.",
-    "Target mean size 'l,w,h' in m for --source-size sn (overrides the profile).",
+    "Sensor profile whose car_mean_lwh_m is the target size for --size-norm sn.",
+    "Target mean size 'l,w,h' in m for --size-norm sn (overrides the profile).",
 )
 @click.option("--target-size-from", type=click.Path(exists=True), default=None,
               help="ptsn-sweep directory (or its scale.json) whose E_est is the target size for "
-                   "--source-size sn (what `make iter2` passes).")  # fmt: skip
+                   "--size-norm sn (what `make iter2` passes).")  # fmt: skip
 @click.option("--label", "labels", multiple=True, default=("Car",), show_default=True,
               help="Box labels to train on.")  # fmt: skip
 @training_options

@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from dali_cli.commands.common import (
+    data_option,
     input_dir_option,
     out_dir_option,
     run_training_command,
@@ -15,10 +16,10 @@ from dali_cli.commands.kinds import SCALE
 
 @click.command(name="self-train")
 @input_dir_option("--init", help="Model to fine-tune (e.g. RUN/iter2/model, the final DALI model).")
-@input_dir_option("--target",
-                  help="Target FrameSet directory (its frames only; its labels are never read).")  # fmt: skip
+@data_option("target",
+             help="Target FrameSet directory (its frames only; its labels are never read).")  # fmt: skip
 @input_dir_option("--pseudo",
-                  help="Pseudo labels of INIT on TARGET from `dali pseudo-label` (e.g. "
+                  help="Pseudo labels of INIT on DATA from `dali pseudo-label` (e.g. "
                        "RUN/iter3/pseudo).")  # fmt: skip
 @out_dir_option("Checkpoint directory to write.")
 @click.option("--scale", type=SCALE, default=None,
@@ -26,11 +27,11 @@ from dali_cli.commands.kinds import SCALE
                    "scale ŝ).")  # fmt: skip
 @training_options
 def command(init, target, pseudo, out, **options):
-    """Self-training (the paper's ‡): fine-tune INIT on the raw TARGET frames with its own pseudo
+    """Self-training (the paper's ‡): fine-tune INIT on the raw DATA frames with its own pseudo
     labels, both scaled by ŝ about the ground, as the model sees the target at test time.
 
-    Reads INIT/model.pt + model.json, TARGET/frames.zarr and PSEUDO/boxes.parquet (never
-    TARGET/boxes.parquet). An epoch is one pass over the target frames. Writes OUT/model.pt,
+    Reads INIT/model.pt + model.json, DATA/frames.zarr and PSEUDO/boxes.parquet (never
+    DATA/boxes.parquet). An epoch is one pass over the target frames. Writes OUT/model.pt,
     model.json, train_log.parquet and manifest.json (as pretrain); evaluate with
     `dali eval --scale-from` the sweep that made PSEUDO.
     """

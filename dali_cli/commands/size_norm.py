@@ -12,7 +12,7 @@ from dali_cli.commands.kinds import SIZE_DELTA
 @input_dir_option("--data", "data", help="Labelled frame set (frames.zarr + boxes.parquet).")
 @click.option("--like-model", type=click.Path(exists=True, file_okay=False), default=None,
               help="Shift by the SN delta this model's training applied to its source (a model "
-                   "of `retrain --source-size sn` or `pretrain --size-norm sn`).")  # fmt: skip
+                   "of `retrain --size-norm sn` or `pretrain --size-norm sn`).")  # fmt: skip
 @click.option("--delta", "delta_lwh", type=SIZE_DELTA, default=None, metavar="DL,DW,DH",
               help="Shift every box's l, w, h by these metres instead (e.g. -0.76,-0.47,-0.22).")  # fmt: skip
 @click.option("--label", "labels", multiple=True, default=("Car",), show_default=True,
@@ -24,7 +24,7 @@ def command(data, like_model, delta_lwh, labels, out, force, dry_run):
     yaw kept) and the points inside it moved with it: the view of the source that a model
     trained with a size shift (SN) learned from.
 
-    Use it for the forgetting check of such a model: `dali retrain --source-size sn` teaches
+    Use it for the forgetting check of such a model: `dali retrain --size-norm sn` teaches
     target-sized cars, so on the raw source validation set its boxes miss IoU 0.7 by design;
     `dali size-norm --data SOURCE_VAL --like-model MODEL --out DIR` then `dali eval --model MODEL
     --data DIR --scale 1` measures what it still knows of the source. Writes OUT/frames.zarr,

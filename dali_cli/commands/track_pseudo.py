@@ -6,6 +6,7 @@ import click
 
 from dali_cli.commands.common import (
     FRACTION,
+    data_option,
     input_dir_option,
     out_dir_option,
     stage_options,
@@ -18,14 +19,14 @@ DEFAULTS = TrackParams()
 
 
 @click.command(name="track-pseudo")
-@input_dir_option("--pseudo", help="Pseudo labels of `dali pseudo-label` on TARGET (best made "
+@input_dir_option("--pseudo", help="Pseudo labels of `dali pseudo-label` on DATA (best made "
                   "with a low `pseudo-label --score-min`, e.g. 0.1: the tracks do the filtering).")  # fmt: skip
-@input_dir_option("--target", help="The target frame set the pseudo labels were made on, with "
-                  "its scans' LiDAR poses (sequence.parquet: `dali import kitti-raw --poses`, or "
+@data_option("target", help="The target frame set the pseudo labels were made on, with "
+             "its scans' LiDAR poses (sequence.parquet: `dali import kitti-raw --poses`, or "
                   "kitti-odometry with poses and calib.txt) unless --poses gives them.")  # fmt: skip
 @input_dir_option("--poses", "poses_dir", required=False,
                   help="Read the scans' LiDAR poses (and recordings) from this directory's "
-                       "sequence.parquet instead of TARGET's: a `dali register` output.")  # fmt: skip
+                       "sequence.parquet instead of DATA's: a `dali register` output.")  # fmt: skip
 @out_dir_option()
 @click.option("--track-score-min", type=FRACTION, default=TRACK_SCORE_MIN, show_default=True,
               help="Keep a parked car whose boxes' median score, a moving track whose mean "
@@ -43,7 +44,7 @@ DEFAULTS = TrackParams()
                                        "box to be placed there.")  # fmt: skip
 @stage_options
 def command(pseudo, target, poses_dir, out, track_score_min, force, dry_run, **params):
-    """Keep the pseudo boxes that persist over TARGET's scans: the boxes go into one world frame
+    """Keep the pseudo boxes that persist over DATA's scans: the boxes go into one world frame
     by the scans' poses and are linked scan by scan (nearest within --gate-m of where the
     track's velocity puts it); a parked car (its track moves < --parked-m-per-frame a scan; its
     fragments within --gate-m merged) found in >= --min-hits scans becomes one world box
@@ -51,8 +52,8 @@ def command(pseudo, target, poses_dir, out, track_score_min, force, dry_run, **p
     >= --min-points points, including the scans the detector missed it in; boxes of moving
     tracks with >= --min-hits hits are kept as they are; every other box is dropped.
 
-    Reads PSEUDO/boxes.parquet and scale.json, TARGET/frames.zarr and TARGET/sequence.parquet
-    or POSES/sequence.parquet (never TARGET's labels). A merged TARGET is tracked drive by
+    Reads PSEUDO/boxes.parquet and scale.json, DATA/frames.zarr and DATA/sequence.parquet
+    or POSES/sequence.parquet (never DATA's labels). A merged DATA is tracked drive by
     drive (its sequence table's recording): scans of different drives are never linked. Writes OUT/boxes.parquet (pseudo-label's columns, score = the car's
     or track's score, plus track = the car's id and parked), OUT/scale.json (PSEUDO's),
     OUT/summary.json (counts) and manifest.json: ppcg-rc, ppcg-cf and self-train read OUT as

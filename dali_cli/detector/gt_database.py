@@ -126,7 +126,7 @@ def cached_database(
 
 def process_alive(pid: int) -> bool:
     """Whether a process `pid` exists (a reused pid reads as alive: the entry is then kept, and
-    a later run removes it)."""
+    a later call removes it)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:

@@ -1,7 +1,7 @@
 """A labelled frame set seen with a model's size convention (SN): every car box's l, w, h shifted
 by a fixed delta (its bottom centre and yaw kept) and the points inside it moved with it.
 
-This is the view `dali pretrain --size-norm sn` and `dali retrain --source-size sn` train on
+This is the view `dali pretrain --size-norm sn` and `dali retrain --size-norm sn` train on
 (dali_cli.detector.size_normalize, the same `augment.scale_objects`). A model trained that way
 outputs cars of the shifted size, so its source-domain validation (the forgetting check) is only
 fair on source frames shifted the same way; `dali size-norm` writes them.

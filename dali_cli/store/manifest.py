@@ -33,6 +33,7 @@ from dali_cli.store.atomic_file import write_text_atomically
 from dali_cli.store.file_hashes import hash_tree as _hash_files
 from dali_cli.store.foreign_files import foreign_files
 from dali_cli.store.output_paths import OutputPathError, check_output_path
+from dali_cli.store.regular_files import check_artifact_files
 
 MANIFEST_NAME = "manifest.json"
 # how content hashes are computed; manifests of older versions hashed raw bytes differently
@@ -51,6 +52,7 @@ def content_hash(path: str | Path) -> str:
     path = Path(path)
     if not path.exists():
         raise StageError(f"{path}: input not found")
+    check_artifact_files(path)
     return hash_tree(path)
 
 

@@ -5,7 +5,7 @@ One typed record, written by pretrain (and carried forward by retrain and self-t
 height, the source's mean car size, the size normalization (SN offset or ROS range) the model was
 trained with. Checkpoints written before the card existed keep these facts in `provenance`,
 `metrics` and `config`; `ModelCard.from_meta` reads both layouts, so no reader looks inside
-model.json by itself (a second, diverging reader once made `--expected-size ros` ignore a real
+model.json by itself (a second, diverging reader once made `--target-size ros` ignore a real
 checkpoint's ROS range and source mean).
 """
 

@@ -221,7 +221,8 @@ EVAL_FILES = ("metrics.json", "predictions.parquet", "metrics_kitti.json")
 
 def is_unmanaged_eval_dir(path: Path) -> bool:
     """A directory holding only the files dali eval writes (its metrics.json a dali metrics
-    file): an evaluation of an older run, which `dali eval --out DIR` may replace."""
+    file, and a predictions.parquet there one dali eval wrote with it, not a user's `--pred`):
+    an evaluation of an older run, which `dali eval --out DIR` may replace."""
     try:
         names = {p.name for p in path.iterdir()}
     except OSError:
@@ -231,6 +232,11 @@ def is_unmanaged_eval_dir(path: Path) -> bool:
         and names <= set(EVAL_FILES)
         and all((path / name).is_file() for name in names)
         and is_dali_metrics_file(path / "metrics.json")
+        and all(
+            is_eval_predictions(path / name, path / "metrics.json")
+            for name in names
+            if name.endswith(".parquet")
+        )
     )
 
 
@@ -306,8 +312,9 @@ def check_file_output(
     one or containing one, not inside a dali artifact, and an existing file only when `owned`
     proves dali wrote it (`what` names such a file in the message). Returns the absolute path."""
     target = check_output_path(out, inputs, directory=False, option=option)
-    if target.is_symlink() or target.is_dir():
-        kind = "a symbolic link" if target.is_symlink() else "a directory"
+    linked = Path(out).is_symlink() or target.is_symlink()  # resolving follows a dangling link
+    if linked or target.is_dir():
+        kind = "a symbolic link" if linked else "a directory"
         raise OutputPathError(f"{option} {out} is {kind}; give the file to write")
     inside = artifact_around(target.parent)
     if inside is not None and not is_derived_file(target, inside):

@@ -66,6 +66,18 @@ BUDGETS: dict[str, int] = {
     "weights": 2 << 30,  # model.pt
 }
 MAX_JSON_DEPTH = 64  # what dali writes nests 6 deep
+# the files an artifact directory holds at its top, by name: (what a message calls it, kind)
+ARTIFACT_FILES: dict[str, tuple[str, str]] = {
+    "model.json": ("model description", "json"),
+    "scale.json": ("scale file", "json"),
+    "manifest.json": ("manifest", "json"),
+    "card.json": ("model card", "json"),
+    "summary.json": ("summary", "json"),
+    "metrics.json": ("metrics file", "json"),
+    "model.pt": ("dali model weights", "weights"),
+    "boxes.parquet": ("box table", "table"),
+    "sequence.parquet": ("sequence table", "table"),
+}
 
 
 class UnreadableFileError(StageError):
@@ -171,6 +183,18 @@ def parse_json_text(text: str, where: str, what: str = "JSON file"):
 def read_json_file(path: str | Path, what: str = "JSON file", kind: str = "json"):
     """A regular file's JSON document, within the budget, parsed with a depth limit."""
     return parse_json_text(read_text_file(path, what, kind), str(path), what)
+
+
+def check_artifact_files(directory: str | Path) -> None:
+    """The files of ARTIFACT_FILES at the top of `directory`, where present, held to their
+    kinds (checked_size) before anything reads or hashes the directory: a 4 GiB model.json is
+    refused by its size, not after hashing it."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        return
+    for name, (what, kind) in ARTIFACT_FILES.items():
+        if os.path.lexists(directory / name):
+            checked_size(directory / name, what, kind)
 
 
 ZARR_META = "zarr.json"

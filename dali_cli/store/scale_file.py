@@ -57,7 +57,7 @@ def read_scale(scale_from: str | Path) -> ScaleResult:
 
     if not isinstance(document, dict):
         raise ArtifactError(f"{path}: not a scale file (not a JSON object)")
-    try:  # the kinds of --scale and --expected-size: a file is held to what an option is
+    try:  # the kinds of --scale and --target-size: a file is held to what an option is
         scale = SCALE.check(document.get("scale"), f"{path}: field 'scale'")
         e_est = document.get("E_est")
         if e_est is not None:

@@ -1,5 +1,6 @@
-"""Every read of a user-given or artifact file bounded and checked (store/regular_files.py): each
-reader fed each bad kind of file (a FIFO, a directory, a dangling link, a link to /dev/zero, a
+"""The fuzz suite's reads and values (tests/test_fuzz.py has its options and documents), the
+classes of bench/hostile_inputs.py. Every read of a user-given or artifact file bounded and
+checked (store/regular_files.py): each reader fed each bad kind of file (a FIFO, a directory, a dangling link, a link to /dev/zero, a
 4 GiB sparse file, JSON nested 200,000 deep, random bytes) refuses it within seconds, exit 1
 or 2, no traceback, nothing written; and values read from artifacts are held to the options'
 kinds (scale.json's scale of 1e-300 is refused as --scale 1e-300 is)."""
@@ -24,6 +25,7 @@ MODEL = ROOT / "models" / "kitti-hdl64e"
 KITTI = Path(__file__).resolve().parent / "fixtures" / "real" / "kitti"
 BAD_KINDS = ("fifo", "directory", "dangling", "dev-zero", "sparse-4g", "deep-json", "random")
 SECONDS = 10  # a refusal takes well under one; a hang or a 4 GiB read would take far more
+REFUSAL_S = 3.0  # a sparse 4 GiB file refused by stat: milliseconds; hashing it first: 4 s or more
 
 
 def make_bad(path: Path, kind: str) -> None:
@@ -94,16 +96,21 @@ def copy_model(tmp_path: Path) -> Path:
 @pytest.mark.parametrize("kind", BAD_KINDS)
 def test_model_and_scale_files(tmp_path, frames, kind):
     for name in ("model.json", "scale.json", "model.pt"):
-        if kind == "deep-json" and name == "model.pt":
-            continue
-        model = copy_model(tmp_path / name)
-        make_bad(model / name, kind)
-        out = tmp_path / name / "out"
-        args = ["eval", "--model", model, "--data", frames, "--no-progress", "--out", out]
-        if name == "scale.json":
-            args += ["--scale-from", model]
-        result, _ = run_bounded(args)
-        assert_refused(result, out)
+        for command in ("eval", "pseudo-label", "ptsn-sweep"):
+            if (kind == "deep-json" and name == "model.pt") or (
+                command == "ptsn-sweep" and name == "scale.json"  # a sweep does not read it
+            ):
+                continue
+            model = copy_model(tmp_path / command / name)
+            make_bad(model / name, kind)
+            out = tmp_path / command / name / "out"
+            args = [command, "--model", model, "--data", frames, "--no-progress", "--out", out]
+            if command == "pseudo-label" or name == "scale.json":
+                args += ["--scale-from", model]
+            result, seconds = run_bounded(args)
+            assert_refused(result, out)
+            if kind == "sparse-4g":  # refused by its size, not after hashing 4 GiB
+                assert seconds < REFUSAL_S, (command, name, seconds)
 
 
 @pytest.mark.parametrize("kind", BAD_KINDS)
@@ -144,8 +151,10 @@ def test_kitti_label_calib_and_id_files(tmp_path, kind):
         args = ["import", "kitti", root, "--no-progress", "--out", out]
         if target.name == "ids.txt":
             args += ["--ids", target]
-        result, _ = run_bounded(args)
+        result, seconds = run_bounded(args)
         assert_refused(result, out)
+        if kind == "sparse-4g":
+            assert seconds < REFUSAL_S, (target, seconds)
         original = KITTI / "training" / target.parent.name / target.name
         make_bad(target, "random")  # clears the bad kind, then the original goes back
         target.unlink()
@@ -213,9 +222,10 @@ def test_intensity_max_rescales_and_is_recorded(tmp_path):
     assert json.loads((out / "manifest.json").read_text())["params"]["intensity_max"] == 255
 
 
-def test_eval_keeps_a_users_predictions_beside_its_metrics(tmp_path, frames):
+@pytest.mark.parametrize("form", ["DIR/metrics.json", "DIR"])
+def test_eval_keeps_a_users_predictions_beside_its_metrics(tmp_path, frames, form):
     """eval --pred DIR/predictions.parquet --out DIR/metrics.json, then eval --model --out
-    DIR/metrics.json: the user's predictions are never replaced."""
+    DIR/metrics.json or --out DIR: the user's predictions are never replaced."""
     mine = tmp_path / "mine"
     mine.mkdir()
     shutil.copy(frames / "boxes.parquet", mine / "predictions.parquet")
@@ -223,7 +233,74 @@ def test_eval_keeps_a_users_predictions_beside_its_metrics(tmp_path, frames):
     first, _ = run_bounded(["eval", "--pred", mine / "predictions.parquet", "--gt", frames,
                             "--out", mine / "metrics.json"])  # fmt: skip
     assert first.exit_code == 0, first.output
+    out = mine / "metrics.json" if form == "DIR/metrics.json" else mine
     second, _ = run_bounded(["eval", "--model", MODEL, "--data", frames, "--no-progress",
-                             "--out", mine / "metrics.json"])  # fmt: skip
-    assert second.exit_code != 0 and "predictions.parquet" in second.output
+                             "--out", out])  # fmt: skip
+    assert second.exit_code != 0
+    assert ("predictions.parquet" if out != mine else "without a dali manifest") in second.output
     assert (mine / "predictions.parquet").read_bytes() == before
+
+
+def box_table_with(frames: Path, path: Path, **columns) -> Path:
+    """`frames`' box table with each named column set to one value for every row, at `path`."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    table = pq.read_table(frames / "boxes.parquet")
+    for name, value in columns.items():
+        index = table.schema.get_field_index(name)
+        kind = table.schema.field(name).type if index >= 0 else pa.float32()
+        column = pa.array([value] * table.num_rows, kind)
+        table = (
+            table.set_column(index, name, column)
+            if index >= 0
+            else table.append_column(name, column)
+        )
+    pq.write_table(table, path)
+    return path
+
+
+@pytest.mark.parametrize(
+    "columns, found",
+    [({"score": -1.0}, "-1"), ({"l": 0.0, "score": 0.9}, "size"),
+     ({"frame_id": "nosuch", "score": 0.9}, "frame")],
+)  # fmt: skip
+def test_eval_refuses_predictions_it_cannot_score(tmp_path, frames, columns, found):
+    pred = box_table_with(frames, tmp_path / "pred.parquet", **columns)
+    out = tmp_path / "m.json"
+    result, _ = run_bounded(["eval", "--pred", pred, "--gt", frames, "--out", out])
+    assert_refused(result, out)
+    assert found in result.output
+
+
+@pytest.mark.parametrize(
+    "columns", [{"l": 1e308}, {"l": float("nan")}, {"h": -1.0}, {"frame_id": "nosuch"}]
+)
+def test_view_and_export_refuse_impossible_boxes(tmp_path, frames, columns):
+    copy = tmp_path / "frames"
+    shutil.copytree(frames, copy)
+    box_table_with(frames, tmp_path / "b.parquet", **columns).replace(copy / "boxes.parquet")
+    png = tmp_path / "v.png"
+    result, _ = run_bounded(["view", copy, "--frame", "0", "--out", png])
+    assert_refused(result, png)
+    result, _ = run_bounded(["export", "openpcdet", copy, "--out", tmp_path / "pcdet"])
+    assert_refused(result, tmp_path / "pcdet")
+
+
+def test_an_empty_id_list_is_refused(tmp_path):
+    (tmp_path / "ids.txt").write_text("")
+    out = tmp_path / "out"
+    result, _ = run_bounded(["import", "kitti", KITTI, "--ids", tmp_path / "ids.txt",
+                             "--no-progress", "--out", out])  # fmt: skip
+    assert_refused(result, out)
+    assert "ids.txt" in result.output
+
+
+def test_a_png_output_that_is_a_link_is_refused_even_dangling(tmp_path, frames):
+    """--out f.png a symbolic link to nothing: writing would follow it (or replace the user's
+    link); refused like a link to a file."""
+    png = tmp_path / "f.png"
+    png.symlink_to(tmp_path / "elsewhere.png")
+    result, _ = run_bounded(["view", frames, "--frame", "0", "--out", png])
+    assert_refused(result)
+    assert png.is_symlink() and not (tmp_path / "elsewhere.png").exists()
