@@ -23,15 +23,16 @@ def import_kitti(
     **run: Unpack[ImportRun],
 ) -> StageOutcome:
     """Import ROOT[/split] (every scan, or the ids of `ids_path`) into `out`."""
-    from dali_cli.importers.common import check_point_files, check_text_files, read_id_list
+    from dali_cli.importers.common import check_point_files, read_id_list
     from dali_cli.importers.kitti import KittiLayout, build_import
+    from dali_cli.store.regular_files import check_present_files
 
     check_sensor(sensor, run)  # an unknown profile fails before any work
     layout = KittiLayout.of(root, split, label_dir)
     frame_ids = layout.frame_ids(read_id_list(ids_path) if ids_path else None)
     check_point_files([layout.velodyne_dir / f"{frame_id}.bin" for frame_id in frame_ids])
-    check_text_files([layout.label_dir / f"{i}.txt" for i in frame_ids], "label file", "label")
-    check_text_files([layout.calib_dir / f"{i}.txt" for i in frame_ids], "calib file", "calib")
+    check_present_files([layout.label_dir / f"{i}.txt" for i in frame_ids], "label file", "label")
+    check_present_files([layout.calib_dir / f"{i}.txt" for i in frame_ids], "calib file", "calib")
     inputs = {"velodyne": layout.velodyne_dir, "ids": ids_path}
     for name, path in (("labels", layout.label_dir), ("calib", layout.calib_dir)):
         if path.is_dir():

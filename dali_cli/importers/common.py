@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import TypedDict
 
@@ -87,16 +86,6 @@ def check_point_files(paths: list[Path]) -> None:
         except OSError:
             continue  # missing files are named where they are read
         check_limit("point_file_bytes", size, str(path))
-
-
-def check_text_files(paths: list[Path], what: str, kind: str) -> None:
-    """Every present file of `paths` a regular file within its kind's budget (store.regular_files,
-    a stat each) before the stage hashes or reads them; missing files are named where read."""
-    from dali_cli.store.regular_files import checked_size
-
-    for path in paths:
-        if os.path.lexists(path):
-            checked_size(path, what, kind)
 
 
 def check_finite_points(points: np.ndarray, path: str | Path) -> None:

@@ -185,6 +185,14 @@ def read_json_file(path: str | Path, what: str = "JSON file", kind: str = "json"
     return parse_json_text(read_text_file(path, what, kind), str(path), what)
 
 
+def check_present_files(paths: list[Path], what: str, kind: str) -> None:
+    """Every present file of `paths` held to `kind` (checked_size: a stat each) before a stage
+    hashes or reads them; missing files are named where they are read."""
+    for path in paths:
+        if os.path.lexists(path):
+            checked_size(path, what, kind)
+
+
 def check_artifact_files(directory: str | Path) -> None:
     """The files of ARTIFACT_FILES at the top of `directory`, where present, held to their
     kinds (checked_size) before anything reads or hashes the directory: a 4 GiB model.json is
@@ -193,8 +201,7 @@ def check_artifact_files(directory: str | Path) -> None:
     if not directory.is_dir():
         return
     for name, (what, kind) in ARTIFACT_FILES.items():
-        if os.path.lexists(directory / name):
-            checked_size(directory / name, what, kind)
+        check_present_files([directory / name], what, kind)
 
 
 ZARR_META = "zarr.json"
