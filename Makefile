@@ -90,7 +90,7 @@ format: install
 # scripts in bench/ are analysis tools that take run directories (ablation_table, paired_rows,
 # pseudo_labels; docs/RESULTS.md shows their commands)
 BENCHMARKS = detector.py:speed eval.py frameset_read.py hostile_inputs.py importers.py pareto.py \
-    ppcg.py ptsn.py raycast.py scale.py scale_training.py synth.py waymo_import.py
+    ppcg.py ptsn.py raycast.py registration.py scale.py scale_training.py synth.py waymo_import.py
 bench: install
 	@mkdir -p bench/results
 	@for run in $(BENCHMARKS); do echo "== bench/$${run/:/ }"; $(BIN)/python bench/$${run/:/ } || exit 1; done

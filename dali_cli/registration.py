@@ -1,6 +1,6 @@
 """LiDAR poses by scan registration: each scan aligned to a local map of the scans before it
 (point-to-plane ICP in the spirit of KISS-ICP, Vizzo et al., RA-L 2023), for sequences recorded
-without GPS/IMU poses.
+without GPS/IMU poses. Why not through the `kiss-icp` package: docs/tracks.md.
 
 Plain numpy. Points are `(n, >= 3)` float in a scan's LiDAR frame (metres); a pose is `(4, 4)`
 float64, the scan's LiDAR frame in the first scan's (x_first = pose @ [x_scan, 1]).
