@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dali_cli.importers.calibration import frame_calib, load_calib
 from dali_cli.runtime import console
 from dali_cli.runtime.errors import StageError
 from dali_cli.store.manifest import StageOutcome, run_stage
@@ -60,34 +61,6 @@ def scans_source(scans: Path, sensor: str | None, calib: Path | None) -> Source:
             calib = scans / "calib"  # a KITTI object split
     return Source(lambda: ((scan.frame_id, read_scan(scan)) for scan in found), len(found),
                   sensor, load_calib(calib), f"{len(found)} {'/'.join(kinds)} scans")  # fmt: skip
-
-
-def load_calib(calib: Path | None):
-    """A kitti.Calibration for every scan (a KITTI calib .txt, or a raw drive's date folder), a
-    directory of per-scan <frame>.txt files, or None."""
-    from dali_cli.importers.kitti import read_calib
-    from dali_cli.importers.kitti_raw import read_raw_calib
-
-    if calib is None:
-        return None
-    calib = Path(calib)
-    if calib.is_file():
-        return read_calib(calib)
-    if (calib / "calib_cam_to_cam.txt").is_file():
-        return read_raw_calib(calib)[0]
-    return calib
-
-
-def frame_calib(calib, frame_id: str):
-    """The calibration of one scan (StageError naming the missing file)."""
-    from dali_cli.importers.kitti import read_calib
-
-    if not isinstance(calib, Path):
-        return calib
-    path = calib / f"{frame_id}.txt"
-    if not path.is_file():
-        raise StageError(f"{path}: calib file missing for scan '{frame_id}'")
-    return read_calib(path)
 
 
 def crop_front(points: np.ndarray, front_deg: float | None) -> np.ndarray:

@@ -275,6 +275,7 @@ def run_eval(
     dry_run: bool = False,
     progress: bool = True,
     size_correction: str = "none",
+    calib: str | Path | None = None,
 ) -> EvalResult:
     """Evaluate (see the module docstring). `out`: None (print only), a metrics file (.json) or
     an artifact directory; `force` applies to the directory, `dry_run` to both (a metrics file
@@ -295,9 +296,11 @@ def run_eval(
         scale_from=scale_from, device=device, precision=precision,
         engine=make_executor(executor, workers, ray_address),
         near=Path(out).parent if out is not None else None, progress=progress,
-        size_correction=size_correction, class_name=class_name,
+        size_correction=size_correction, class_name=class_name, calib=calib,
     )  # fmt: skip
     inputs = {"model": model, "data": data, "pred": pred_path, "gt": gt_path, "scale": scale_from}
+    if calib is not None:  # absent without: older artifacts stay up to date
+        inputs["calib"] = calib
     if out is not None and Path(out).suffix != ".json":
         return eval_artifact(Path(out), inputs, routes, options, save_predictions, force, dry_run)
     out = Path(out) if out is not None else None
@@ -346,12 +349,27 @@ def refuse_unscorable(pred: BoxTable, gt: BoxTable, pred_where: str, gt_where: s
         raise StageError(f"{pred_where}: every box has a size of 0: no prediction to score")
 
 
+def with_image_boxes_of(pred: BoxTable, calib: str | Path) -> BoxTable:
+    """`pred` with the 2D image box and alpha of every box through `calib` (`--calib`: a calib
+    file for every frame, a raw drive's date folder, or a folder of <frame>.txt)."""
+    from dali_cli.evaluation.image import with_image_boxes
+    from dali_cli.importers.calibration import frame_calib, load_calib
+
+    loaded = load_calib(Path(calib))
+    return with_image_boxes(pred, lambda frame_id: frame_calib(loaded, frame_id))
+
+
 def compute_metrics(routes: dict, options: dict) -> tuple[dict, BoxTable]:
     """(the metrics document, the predictions evaluated) of one evaluation."""
     from dali_cli.evaluation.errors import breakdown
     from dali_cli.evaluation.evaluate import EvaluationError, evaluate, scored_boxes
 
-    pred, gt, frame_ids, source, gt_path, runtime = predictions_and_truth(**routes)
+    calib = routes.get("calib")
+    pred, gt, frame_ids, source, gt_path, runtime = predictions_and_truth(
+        **{name: value for name, value in routes.items() if name != "calib"}
+    )
+    if calib is not None:  # KITTI's image side: each prediction's 2D box and alpha
+        pred = with_image_boxes_of(pred, calib)
     for table, where in ((pred, routes["pred_path"] or "the predictions"), (gt, gt_path)):
         positive = (table.boxes[:, 3:6] > 0).all(axis=1)
         plausibility.refuse_implausible(table.boxes, positive, str(where), table.frame_id)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import os
+from pathlib import Path
 
 import click
 
@@ -492,6 +493,16 @@ fewer points as ignored (neither miss nor false positive), it never drops them;
 """
 
 
+def calib_option(help: str):
+    """--calib: KITTI camera calibration (importers/calibration.py: a calib .txt for every
+    frame, a raw drive's date folder, or a folder of <frame>.txt), a Path or None."""
+    return click.option(
+        "--calib", type=click.Path(exists=True, path_type=Path), default=None,
+        help="KITTI calibration: a calib .txt for every frame, a folder of <frame>.txt, or a raw "
+             "drive's date folder. " + help,
+    )  # fmt: skip
+
+
 def protocol_options(function):
     """How AP is computed (`dali eval`, `dali compare`): --recall-positions, --protocol,
     --front-only, --class, --min-gt-points (PROTOCOLS_HELP explains them in an epilog)."""
@@ -506,8 +517,8 @@ def protocol_options(function):
                      help="Keep only ground truth and predictions centred in the front 90 deg "
                           "FOV and the detection range (x 0..70.4, |y| <= 40 m), as on KITTI's "
                           "FOV-cropped clouds; for 360-degree frames such as dali synth's."),
-        click.option("--class", "class_name", default="Car", show_default=True,
-                     help="Class to evaluate."),
+        tuning_option("--class", "class_name", default="Car", show_default=True,
+                      help="Class to evaluate (dali's detectors find cars)."),
         tuning_option("--min-gt-points", type=click.IntRange(min=0), default=0, show_default=True,
                      help="Ignore ground-truth boxes with fewer points (needs num_points)."),
     ])  # fmt: skip

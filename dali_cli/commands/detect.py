@@ -8,6 +8,7 @@ import click
 
 from dali_cli.commands.common import (
     BATCH,
+    calib_option,
     device_options,
     no_progress_option,
     out_dir_option,
@@ -31,10 +32,10 @@ from dali_cli.commands.kinds import SCALE, VIEW_DEG
               help="Sensor profile of the scans (sensors.toml; its mount height sets the ground). "
                    "Default: kitti for .bin, nuscenes for .pcd.bin, a frame set's own; else the "
                    "model's.")  # fmt: skip
-@click.option("--calib", type=click.Path(exists=True, path_type=Path), default=None,
-              help="KITTI calibration: a calib .txt for every scan, a folder of <frame>.txt, or "
-                   "a raw drive's date folder. With it OUT/label_2 holds camera-frame label_2 "
-                   "files. Default: a KITTI raw drive's or object split's own.")  # fmt: skip
+@calib_option(
+    "With it OUT/label_2 holds camera-frame label_2 files. Default: a KITTI raw "
+    "drive's or object split's own."
+)
 @click.option("--front-deg", type=VIEW_DEG, metavar="DEG", default=None,
               help="Keep only the points within this many degrees of azimuth about the sensor's "
                    "+x (82: KITTI's camera view, where models/kitti-hdl64e was trained).")  # fmt: skip

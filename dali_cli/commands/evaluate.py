@@ -9,6 +9,7 @@ import click
 from dali_cli.commands.common import (
     FRACTION,
     PROTOCOLS_HELP,
+    calib_option,
     choice_option,
     device_options,
     executor_options,
@@ -54,7 +55,8 @@ the class (predictions: score >= --size-score-min), "scale" (with --model; with 
 scale of the eval that saved them, when its metrics.json says), with a size
 correction "size_correction" (factors, E_est, E_pred and the scale.json they came from),
 "errors": the error breakdown (box errors of the matches, false positives by kind and the AP
-each kind costs; docs/evaluation.md).
+each kind costs; docs/evaluation.md). With --calib each block also holds "bbox" (AP_2D) and its
+"aos" is KITTI's on the image matches ("aos_matching": "image", else "bev").
 """
 )
 
@@ -78,6 +80,11 @@ each kind costs; docs/evaluation.md).
                                     "predicted size in metrics.json (AP counts every "
                                     "prediction).", flag="--size-score-min")  # fmt: skip
 @protocol_options
+@calib_option(
+    "With it, KITTI's image side as its devkit computes it: each prediction's 2D box "
+    "and alpha through its frame's calibration, AP_2D and AOS on the image matches "
+    "(the labels' own 2D boxes and alpha; --protocol kitti)."
+)
 @choice_option("--size-correction", choices=["none", "per-dim"], default="none", tuning=True,
                help="per-dim: resize the predicted cars per dimension (bottom face kept) by "
                     "E_est / E_pred(ŝ) of --scale-from's sweep before evaluating: the test-time "
@@ -109,6 +116,7 @@ def command(
     front_only,
     class_name,
     min_gt_points,
+    calib,
     size_correction,
     out,
     save_predictions,
@@ -134,7 +142,7 @@ def command(
         class_name=class_name, min_gt_points=min_gt_points, out=out,
         save_predictions=save_predictions, device=device, precision=precision, executor=executor,
         workers=workers, ray_address=ray_address, force=force, dry_run=dry_run,
-        progress=not no_progress, size_correction=size_correction,
+        progress=not no_progress, size_correction=size_correction, calib=calib,
     )  # fmt: skip
     if result.status == "dry-run":
         return

@@ -170,11 +170,14 @@ def _statistics(
     min_overlap: float,
     points: int | None = NUM_SAMPLE_POINTS,
     heading: str | None = None,
+    yaw: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> _Curve:
     """True/false positives and misses at every sampled threshold (`points` of them as the
     reference samples them; None: at every distinct true-positive score), over all frames.
     `heading` ("aos" or "aph", heading.py): also the true positives weighted by how well each
-    one's heading matches its ground truth's."""
+    one's heading matches its ground truth's: their yaws, or the angles `yaw` `((P,), (G,))`
+    (KITTI's AOS on image boxes weighs the observation angles alpha)."""
+    pred_yaw, gt_yaw = yaw if yaw is not None else (pred.boxes[:, 6], gt.boxes[:, 6])
     pred_index, gt_index = pairs
     keep = (overlap > min_overlap) & (ignored_gt[gt_index] != -1) & (ignored_pred[pred_index] != -1)
     pred_index, gt_index, overlap = pred_index[keep], gt_index[keep], overlap[keep]
@@ -205,7 +208,7 @@ def _statistics(
     levels = np.r_[thresholds, -math.inf]  # (T + 1,)
 
     def weigh(p: np.ndarray, g: np.ndarray) -> np.ndarray:
-        return heading_weight(pred.boxes[p, 6], gt.boxes[g, 6], heading or "aos")
+        return heading_weight(pred_yaw[p], gt_yaw[g], heading or "aos")
 
     tp, fp, fn, tp_heading = _counts_at_levels(
         (pred_index, gt_index, overlap), scores, ignored_gt, ignored_pred, levels, in_loop_gt,

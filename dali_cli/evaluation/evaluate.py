@@ -36,6 +36,13 @@ from dali_cli.evaluation.curves import (  # noqa: F401  (re-exported: the evalua
     sample_points,
 )
 from dali_cli.evaluation.heading import heading_summary
+from dali_cli.evaluation.image import (
+    IMAGE_BOX_COLUMNS,
+    ImageMatches,
+    has_image_boxes,
+    image_matches,
+    image_min_overlap,
+)
 from dali_cli.evaluation.tables import ceiling_notes, format_table  # noqa: F401 (re-exported)
 from dali_cli.store.artifacts import BoxTable
 
@@ -97,14 +104,20 @@ def _prepare(table: BoxTable, universe: np.ndarray) -> _Boxes:
     )
 
 
-def _frame_pairs(pred: _Boxes, gt: _Boxes, num_frames: int) -> tuple[np.ndarray, np.ndarray]:
-    """(prediction, ground truth) index pairs `(E,)` in the same frame whose BEV circles touch."""
+def _same_frame_pairs(pred: _Boxes, gt: _Boxes, num_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every (prediction, ground truth) index pair `(E,)` of the same frame."""
     gt_count = np.bincount(gt.frame, minlength=num_frames)
     gt_start = np.cumsum(gt_count) - gt_count
     per_pred = gt_count[pred.frame]  # (n_pred,) candidate ground truths of each prediction
     pred_index = np.repeat(np.arange(len(pred.frame)), per_pred)
     run_start = np.repeat(np.cumsum(per_pred) - per_pred, per_pred)
     gt_index = gt_start[pred.frame[pred_index]] + np.arange(len(pred_index)) - run_start
+    return pred_index, gt_index
+
+
+def _frame_pairs(pred: _Boxes, gt: _Boxes, num_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """(prediction, ground truth) index pairs `(E,)` in the same frame whose BEV circles touch."""
+    pred_index, gt_index = _same_frame_pairs(pred, gt, num_frames)
     pred_radius = 0.5 * np.hypot(pred.boxes[:, 3], pred.boxes[:, 4])  # bounding circles
     gt_radius = 0.5 * np.hypot(gt.boxes[:, 3], gt.boxes[:, 4])
     reach = pred_radius[pred_index] + gt_radius[gt_index]
@@ -286,6 +299,9 @@ def evaluate(
         "bev": {},
         "3d": {},
         "aos": {},
+        # where AOS is matched: "image" (KITTI's devkit: 2D boxes, alpha) or "bev" (yaw)
+        "aos_matching": "image" if scored.image is not None else "bev",
+        **({"bbox": {}, "bbox_iou": image_min_overlap(class_name)} if scored.image else {}),
         "aph": {},
         "heading": {},
         "counts": {},
@@ -306,8 +322,18 @@ def evaluate(
             result[metric][name] = value
             result["curves"][metric][name] = detail
             counts[metric] = curve.totals
-            if metric == "bev":  # the heading metrics on the BEV matches (docs/evaluation.md)
+            if metric == "bev":  # the heading metrics (docs/evaluation.md)
                 result["aos"][name] = _average_precision(curve, recall_positions, True)[0]
+                if scored.image is not None:  # KITTI's AOS: on the image matches, alpha
+                    image, min_overlap = scored.image, image_min_overlap(class_name)
+                    on_image = _statistics(
+                        pred_boxes, gt_boxes, image.pairs, image.overlap, ignored_gt,
+                        image.ignored_pred(ignored_gt, ignored_pred, min_overlap), min_overlap,
+                        sample_points(recall_positions), heading="aos",
+                        yaw=(image.pred_alpha, image.gt_alpha),
+                    )  # fmt: skip
+                    result["bbox"][name] = _average_precision(on_image, recall_positions)[0]
+                    result["aos"][name] = _average_precision(on_image, recall_positions, True)[0]
                 aph = _statistics(
                     pred_boxes, gt_boxes, pairs, overlap, ignored_gt, ignored_pred, iou,
                     sample_points(recall_positions), heading="aph",
@@ -345,6 +371,20 @@ class Scored:
     overlap: dict[str, np.ndarray]  # {"bev", "3d"}: (E,) float64 IoU of each pair
     # group -> (ignored_gt (G,), ignored_pred (P,)) int8: -1 takes no part, 0 counts, 1 ignored
     flags: dict[str, tuple[np.ndarray, np.ndarray]]
+    # KITTI's image side when both tables carry image boxes and alpha (image.py), else None
+    image: ImageMatches | None = None
+
+
+def _image_matches(pred: _Boxes, gt: _Boxes, num_frames: int) -> ImageMatches:
+    """The image side (image.py) of every same-frame pair of two tables with image boxes."""
+
+    def boxes(side: _Boxes) -> np.ndarray:
+        return np.stack([_as_written(side.columns[name]) for name in IMAGE_BOX_COLUMNS], axis=1)
+
+    return image_matches(
+        boxes(pred), boxes(gt), _same_frame_pairs(pred, gt, num_frames), gt.label == "dontcare",
+        np.asarray(pred.columns["alpha"], np.float64), np.asarray(gt.columns["alpha"], np.float64),
+    )  # fmt: skip
 
 
 def scored_boxes(
@@ -365,6 +405,9 @@ def scored_boxes(
     pred_boxes, gt_boxes = _prepare(pred, universe), _prepare(gt, universe)
     pairs = _frame_pairs(pred_boxes, gt_boxes, len(universe))
     bev, volume = geometry.iou_pairs_bev_3d(pred_boxes.boxes[pairs[0]], gt_boxes.boxes[pairs[1]])
+    image = None
+    if protocol == "kitti" and has_image_boxes(pred) and has_image_boxes(gt):
+        image = _image_matches(pred_boxes, gt_boxes, len(universe))
     return Scored(
         protocol=protocol,
         frame_ids=universe,
@@ -375,6 +418,7 @@ def scored_boxes(
         pairs=pairs,
         overlap={"bev": bev, "3d": volume},
         flags=_groups(pred_boxes, gt_boxes, class_name.lower(), protocol, min_gt_points),
+        image=image,
     )
 
 

@@ -12,7 +12,9 @@ def format_table(metrics: dict) -> str:
             f"{class_name} AP_R{result['recall_positions']} @ IoU {result['iou']:g} "
             f"(protocol {result['protocol']}, {result['frames']} frames)"
         )
-        header = f"{'':<10}{'AP_BEV':>8}{'AP_3D':>8}{'APH':>8}{'AOS':>8}{'GT':>8}{'ign':>6}"
+        image = "bbox" in result  # KITTI's image side: AP_2D, and AOS matched on it
+        header = f"{'':<10}{'AP_BEV':>8}{'AP_3D':>8}" + (f"{'AP_2D':>8}" if image else "")
+        header += f"{'APH':>8}{'AOS':>8}{'GT':>8}{'ign':>6}"
         header += f"{'pred':>8}{'TP/FP/FN (BEV)':>22}{'TP/FP/FN (3D)':>22}{'backwards':>12}"
         lines.append(header)
         for name in result["bev"]:
@@ -23,6 +25,7 @@ def format_table(metrics: dict) -> str:
                 return f"{value:8.2f}" if value is not None else f"{'-':>8}"
 
             row = f"{name:<10}{show(result['bev'][name])}{show(result['3d'][name])}"
+            row += show(result["bbox"][name]) if image else ""
             row += f"{show(headings[0])}{show(headings[1])}"
             row += f"{counts['gt']:>8}{counts['gt_ignored']:>6}{counts['pred']:>8}"
             for metric in ("bev", "3d"):
@@ -33,8 +36,15 @@ def format_table(metrics: dict) -> str:
                 row += f"{heading['backwards']}/{heading['tp']}".rjust(12)
             lines.append(row)
         lines.append(
-            "APH, AOS: AP_BEV with each true positive weighted by its heading (Waymo's "
-            "1 - |dθ|/π, KITTI's (1 + cos dθ)/2); backwards: true positives facing > 90° away"
+            "APH, AOS: AP with each true positive weighted by its heading (Waymo's 1 - |dθ|/π "
+            "on the BEV matches, KITTI's (1 + cos dθ)/2 "
+            + (
+                f"on the image matches at 2D IoU > {result['bbox_iou']:g}, dθ of alpha; AP_2D: "
+                "those matches' AP"
+                if image
+                else "on the BEV matches"
+            )
+            + "); backwards: true positives facing > 90° away"
         )
         lines.extend(ceiling_notes(result))
     return "\n".join(lines)
