@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 
@@ -102,6 +103,29 @@ def test_the_default_help_stays_short_and_every_option_has_help():
         if isinstance(option, click.Option) and not option.help
     ]
     assert not bare, bare
+
+
+def test_every_option_a_help_text_names_is_listed_in_that_help():
+    """A command's default --help lists each of its own options that its text names (tuning
+    ones in a section of their own), so no help sends a user to an option it does not show."""
+    if os.environ.get("DALI_HELP") == "all":
+        return
+    import click
+
+    unlisted = []
+    for name, command in leaf_commands():
+        output = CliRunner().invoke(main, [*name.split(), "--help"]).output
+        listed = set(re.findall(r"^  (?:-\w, )?(--[\w-]+)", output, re.MULTILINE))
+        listed |= {f"--no-{flag[2:]}" for flag in listed}  # a --x/--no-x flag's record
+        for param in command.params:
+            if not isinstance(param, click.Option):
+                continue
+            for opt in (*param.opts, *param.secondary_opts):
+                if re.search(rf"(?<![\w-]){re.escape(opt)}(?![\w-])", output) and opt not in listed:
+                    unlisted.append(f"{name} {opt}")
+    assert not unlisted, unlisted
+    pseudo = CliRunner().invoke(main, ["pseudo-label", "--help"]).output
+    assert "Tuning options named above:" in pseudo and "  --nms-iou" in pseudo
 
 
 def test_engine_options_have_their_own_help_section():

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from pathlib import Path
 
 import click
@@ -87,18 +88,45 @@ def tuning_option(*decls: str, **kwargs):
     return click.option(*decls, hidden=not SHOW_TUNING, **kwargs)
 
 
+def named_hidden_options(command: click.Command, ctx: click.Context) -> list[click.Option]:
+    """The hidden (tuning) options of `command` whose name its help text, epilog or visible
+    options' help mention (a whole word, e.g. `--nms-iou`): the default --help shows them too,
+    so that every option a help text names is visible where it is named."""
+    visible = [p for p in command.get_params(ctx) if not getattr(p, "hidden", False)]
+    text = " ".join(
+        [command.help or "", command.epilog or ""]
+        + [getattr(p, "help", None) or "" for p in visible]
+    )
+    named = []
+    for param in command.get_params(ctx):
+        if isinstance(param, click.Option) and param.hidden:
+            names = [*param.opts, *param.secondary_opts]
+            if any(re.search(rf"(?<![\w-]){re.escape(name)}(?![\w-])", text) for name in names):
+                named.append(param)
+    return named
+
+
 class StageCommand(click.Command):
     """A command whose --help lists its engine options (ENGINE_PARAMS) in a section of their
-    own after the others, and ends with TUNING_NOTE when some of its options are hidden.
-    dali_cli.cli gives every subcommand this class."""
+    own after the others, the tuning options its text names (`named_hidden_options`) in a
+    third, and ends with TUNING_NOTE when some of its options are hidden. dali_cli.cli gives
+    every subcommand this class."""
 
     def format_options(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
-        own, engine = [], []
+        own, engine, named = [], [], []
         for param in self.get_params(ctx):
             record = param.get_help_record(ctx)
             if record is not None:
                 (engine if param.name in ENGINE_PARAMS else own).append(record)
-        for title, records in (("Options", own), ("Engine options", engine)):
+        for param in named_hidden_options(self, ctx):
+            param.hidden = False  # click gives no help record for a hidden option
+            try:
+                named.append(param.get_help_record(ctx))
+            finally:
+                param.hidden = True
+        sections = (("Options", own), ("Engine options", engine),
+                    ("Tuning options named above", named))  # fmt: skip
+        for title, records in sections:
             if records:
                 with formatter.section(title):
                     formatter.write_dl(records)
@@ -485,7 +513,7 @@ target-domain evaluation (ground truth only in the front 90 deg FOV and the dete
 every box 'easy'); auto (default) = kitti when the ground truth has the KITTI fields, else range.
 dali synth labels carry the KITTI fields (2D box, truncation, occlusion level of a virtual KITTI
 camera at the sensor), so --protocol kitti gives easy/moderate/hard on synthetic data too.
-Van ground truths are ignored for Car. Tuning options (listed with DALI_HELP=all): --front-only
+Van ground truths are ignored for Car. Of the tuning options (shown above): --front-only
 restricts any protocol to that front region, ground truth and predictions alike (KITTI's clouds
 are FOV-cropped; dali synth's are 360 degrees); --min-gt-points marks ground-truth cars with
 fewer points as ignored (neither miss nor false positive), it never drops them;

@@ -35,7 +35,7 @@ truth unless --gt is given.
     + PROTOCOLS_HELP
     + """
 \b
-Size correction (a tuning option, DALI_HELP=all: --size-correction per-dim --scale-from
+Size correction (a tuning option, shown above: --size-correction per-dim --scale-from
 PTSN_DIR): one isotropic PTSN scale
 matches the volume of the mean predicted car, not each dimension; the bias left per dimension
 (measured: w +0.07, h -0.06 m at 600 frames) costs AP at IoU 0.7. The factors E_est / E_pred at

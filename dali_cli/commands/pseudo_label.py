@@ -46,7 +46,7 @@ def command(model_dir, target_dir, out, sensors_path, no_progress, fit_points, *
     de-scale the boxes, keep score >= --score-min, BEV NMS, then correct each dimension's
     remaining size bias against E_est (target statistics only) and move each box onto its
     points (the NMS threshold, the correction and the fit are tuning options: --nms-iou,
-    --size-correction, --no-fit-points under DALI_HELP=all).
+    --size-correction, --no-fit-points, shown below).
 
     Reads MODEL, the DATA frame set (never its labels) and --scale-from's scale.json.
     Writes OUT/boxes.parquet (one row per pseudo box: frame_id, x, y, z, l, w, h, yaw, score,
