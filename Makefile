@@ -519,7 +519,7 @@ $(RUN)/fixture/$(MODELS_ROW)/manifest.json: $(RUN)/$(call row_field,$(models_row
 models/waymo-like-source/card.json: $(RUN)/$(MODELS_SOURCE)/eval_source/manifest.json bench/model_card.py models-always
 	$(BIN)/python bench/model_card.py --model $(RUN)/$(MODELS_SOURCE)/model --name waymo-like-source \
 	    --title "a car detector trained on the calibrated synthetic Waymo-like world" \
-	    --summary "A dali detector (pillars, CenterPoint head, IoU refinement, direction head: boxes face the car's way; Car) trained on $(FRAMES) synthetic frames of the Waymo-like world (dali synth, seed $(SEED)); no real data. The source the recipe of models/kitti-hdl64e starts from." \
+	    --summary "A source detector to adapt: trained on $(FRAMES) synthetic frames of the Waymo-like world (dali synth, seed $(SEED)), no real data, with a direction head so that its boxes face the car's way. \`make demo\` and models/kitti-hdl64e's recipe start from it (pillars, CenterPoint head, IoU refinement; Car)." \
 	    --eval synthetic_waymo_like_val=$(RUN)/$(MODELS_SOURCE)/eval_source \
 	    --limit "Trained on $(FRAMES) frames on a 2-core CPU: where more frames stop helping was not measured." \
 	    --out $(@D)
@@ -530,7 +530,7 @@ models/kitti-hdl64e/card.json: bench/model_card.py models-always $(foreach dir,$
 	$(BIN)/python bench/model_card.py --model $(RUN)/$(call row_field,$(models_row),2) \
 	    --scale-from $(lastword $(subst =, ,$(call row_field,$(models_row),4))) --name kitti-hdl64e \
 	    --title "a KITTI HDL-64E car detector no real label went into" \
-	    --summary "models/waymo-like-source adapted by $(recipe_$(MODELS_ROW)) to $(words $(REAL_DRIVES)) unlabeled real KITTI drives ($(REAL_DRIVE_NAMES)); no stage that made it read a real label. Point clouds: KITTI HDL-64E scans in the LiDAR frame, camera field of view; it expects them scaled by its test-time scale (scale.json)." \
+	    --summary "Finds cars in KITTI's HDL-64E LiDAR scans (camera field of view, LiDAR frame, scaled by its scale.json): \`dali detect\` on your own scans, or a start for adapting further. It is models/waymo-like-source adapted by $(recipe_$(MODELS_ROW)) to $(words $(REAL_DRIVES)) unlabeled real KITTI drives ($(REAL_DRIVE_NAMES)) without any real label." \
 	    $(foreach pair,$(models_evals),--eval $(pair)) $(foreach pair,$(models_recipe),--recipe $(pair)) \
 	    --fixture-eval $(RUN)/fixture/$(MODELS_ROW) \
 	    --limit "Other drives' frames are harder than the adapted drives': see the accuracy table and docs/RESULTS.md." \
