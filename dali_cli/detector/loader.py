@@ -28,7 +28,7 @@ def default_loader_workers(local_processes: int = 1, device_type: str = "cuda") 
     """Loader workers per training process when not given. On a GPU: one less than its share of
     the available cores (the training process keeps one), at most MAX_DEFAULT_WORKERS. On the CPU
     none: there the training step itself computes on every core, and a worker would take cores
-    from it (measured ~2x slower on a 2-core machine, docs/scale-out.md)."""
+    from it (measured ~2x slower on a 2-core machine, docs/scale-out-measurements.md)."""
     from dali_cli.runtime.cores import available_cores
 
     if device_type != "cuda":
