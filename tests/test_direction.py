@@ -102,8 +102,10 @@ def backwards_share(detector: Detector, directory):
 @pytest.mark.slow  # trains a detector for a minute or two
 def test_detector_learns_which_way_cars_face(tmp_path):
     """Trained on toy cars facing every way, with a cabin on their rear, the detector's boxes on
-    frames it never saw face the cars' way: <= 5 % of its true positives backwards (a head that
-    regressed the axis alone would have about half)."""
+    frames it never saw face the cars' way: at most a fifth of its true positives backwards,
+    where a head that regressed the axis alone would have about half (P(<= 4 of 24) = 0.08 %
+    for a coin). The count itself moves with the CPU's float rounding over 30 epochs: 0 of 24
+    on an Intel Xeon VM, 3 of 24 on an AMD EPYC VM, for one commit."""
     kitti = get_profile("kitti")
     train_dir, test_dir = tmp_path / "train", tmp_path / "test"
     write_toy_dataset(train_dir, kitti, frames=24, seed=5, cars_per_frame=5, **PLACE, **SCAN)
@@ -116,4 +118,4 @@ def test_detector_learns_which_way_cars_face(tmp_path):
     train(net, [data], [Augmentation(gt_sampling=False)], settings, progress=False)
     backwards, matched = backwards_share(Detector(net), test_dir)
     assert matched >= 20
-    assert backwards <= 0.05 * matched, (backwards, matched)
+    assert backwards <= 0.2 * matched, (backwards, matched)
