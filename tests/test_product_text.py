@@ -24,7 +24,8 @@ HISTORY = re.compile(
     r"|(?<![\w.~}])/tmp/[a-z]"
     # a work log's phrases: which run or sitting did what, what has been fixed since
     r"|\b[Aa] later[ ]run\b|\bnow[ ]fixed\b|\bnot yet[ ]remeasured\b|\b[Tt]his[ ]session\b"
-    r"|\bleft on the[ ]lease\b|\bwork[ ]period\b"
+    r"|\bleft on the[ ]lease\b|\bwork[ ]period\b|\bwithin the[ ]lease\b|\bhelpers'[ ]jobs\b"
+    r"|\b(?:[Ee]arlier|[Ll]ater) the[ ]same day\b|\bas first[ ]written\b"
 )
 # a calendar date (not part of a longer token such as a nuScenes scene name)
 DATE = re.compile(r"(?<![-\w])20\d\d-[01]\d-[0-3]\d(?![-\w])")
@@ -79,7 +80,9 @@ def test_the_pattern_catches_what_it_must(tmp_path):
              "iss" "ue 18's target", "Iss" "ue 22.1: a bug", "iss" "ue #7", "../sha" "red/M.md",
              "see results/hist" "ory.md", "--out /wo" "rk/runs/x", "RUN=/t" "mp/rx/mk",
              "ran in a la" "ter run", "two were defects, now fi" "xed", "no time left on the le" "ase",
-             "in this sess" "ion"]  # fmt: skip
+             "in this sess" "ion", "did not finish within the le" "ase", "other help" "ers' jobs",
+             "earlier the sa" "me day", "Later the sa" "me day, at a lower load",
+             "streaming as first wr" "itten was slower"]  # fmt: skip
     clean = ["a session of training", "the issue is the size bias", "shared/ memory",
              "runs/work/x", "$TMPDIR/tmp/x", "a history of the run"]  # fmt: skip
     assert all(HISTORY.search(text) for text in cited)
