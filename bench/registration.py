@@ -27,7 +27,7 @@ import numpy as np
 from pareto.common import load_average, machine, pin_one_core
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the street scenes
-from street_scans import scan, trajectory  # noqa: E402
+from street_scans import scan, step_errors, trajectory  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "registration.json"
 GROUND_CUT_M = -1.5  # the street's ground is at -1.73 m in the LiDAR frame
@@ -36,13 +36,9 @@ GROUND_CUT_M = -1.5  # the street's ground is at -1.73 m in the LiDAR frame
 def weaving(steps_m: np.ndarray, amplitude_rad: float = 0.1) -> np.ndarray:
     """`(n, 4, 4)` poses along the street: forward steps `steps_m` `(n - 1,)` (m), the heading
     weaving by +-`amplitude_rad` over the drive (so the sensor stays in its lane)."""
-    yaw = amplitude_rad * np.sin(np.linspace(0, 2 * np.pi, len(steps_m) + 1))
-    poses = trajectory(steps_m, yaw_rate=0.0)
-    heading = np.c_[np.cos(yaw[:-1]), np.sin(yaw[:-1])]
-    poses[:, :2, 3] = np.r_[[[0.0, 0.0]], np.cumsum(heading * steps_m[:, None], axis=0)]
-    c, s = np.cos(yaw), np.sin(yaw)
-    poses[:, 0, 0], poses[:, 0, 1], poses[:, 1, 0], poses[:, 1, 1] = c, -s, s, c
-    return poses
+    return trajectory(
+        steps_m, yaw=amplitude_rad * np.sin(np.linspace(0, 2 * np.pi, len(steps_m) + 1))
+    )
 
 
 def drives(scans: int) -> dict[str, np.ndarray]:
@@ -54,15 +50,6 @@ def drives(scans: int) -> dict[str, np.ndarray]:
         "speeding-up": weaving(np.linspace(0.2, 1.8, n)),
         "stop-and-go": weaving(stop_and_go, amplitude_rad=0.0),
     }
-
-
-def step_errors(estimated: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`(n - 1,)` translation (m) and rotation (deg) error of each scan-to-scan step."""
-    step = np.linalg.inv(estimated[:-1]) @ estimated[1:]
-    true_step = np.linalg.inv(truth[:-1]) @ truth[1:]
-    error = np.linalg.inv(true_step) @ step
-    cosine = (np.trace(error[:, :3, :3], axis1=1, axis2=2) - 1) / 2
-    return np.linalg.norm(error[:, :3, 3], axis=1), np.degrees(np.arccos(np.clip(cosine, -1, 1)))
 
 
 def register_dali(scans: list[np.ndarray]) -> np.ndarray:

@@ -34,10 +34,14 @@ def street_scene(seed: int = 0) -> Scene:
     return Scene([_box_mesh(box) for box in boxes])
 
 
-def trajectory(steps_m: np.ndarray, yaw_rate: float = 0.01) -> np.ndarray:
+def trajectory(
+    steps_m: np.ndarray, yaw_rate: float = 0.01, yaw: np.ndarray | None = None
+) -> np.ndarray:
     """`(n, 4, 4)` sensor poses in the street's frame: forward steps `steps_m` `(n - 1,)` (m),
-    turning by `yaw_rate` (rad) a scan, the sensor 1.73 m above the ground."""
-    yaw = yaw_rate * np.arange(len(steps_m) + 1)
+    turning by `yaw_rate` (rad) a scan, or heading `yaw` `(n,)` (rad) when given, the sensor
+    1.73 m above the ground."""
+    steps_m = np.asarray(steps_m, np.float64)
+    yaw = yaw_rate * np.arange(len(steps_m) + 1) if yaw is None else np.asarray(yaw, np.float64)
     heading = np.c_[np.cos(yaw[:-1]), np.sin(yaw[:-1])]
     xy = np.r_[[[0.0, 0.0]], np.cumsum(heading * np.asarray(steps_m)[:, None], axis=0)]
     poses = np.tile(np.eye(4), (len(yaw), 1, 1))
@@ -68,3 +72,13 @@ def scan(pose: np.ndarray, seed: int = 0, noise_m: float = 0.01) -> np.ndarray:
     distance = hits.distance[hits.hit] + rng.normal(0, noise_m, hits.hit.sum())
     local = rays[hits.hit] * distance[:, None]
     return np.c_[local, np.full(len(local), 0.5)].astype(np.float32)
+
+
+def step_errors(estimated: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`(n - 1,)` translation (m) and rotation (deg) error of each scan-to-scan step of the poses
+    `estimated` `(n, 4, 4)` against `truth`."""
+    step = np.linalg.inv(estimated[:-1]) @ estimated[1:]
+    true_step = np.linalg.inv(truth[:-1]) @ truth[1:]
+    error = np.linalg.inv(true_step) @ step  # (n - 1, 4, 4)
+    cosine = (np.trace(error[:, :3, :3], axis1=1, axis2=2) - 1) / 2
+    return np.linalg.norm(error[:, :3, 3], axis=1), np.degrees(np.arccos(np.clip(cosine, -1, 1)))

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from street_scans import scan, trajectory
+from street_scans import scan, step_errors, trajectory
 
 from dali_cli.registration import (
     RegistrationError,
@@ -18,15 +18,6 @@ from dali_cli.registration import (
     voxel_downsample,
     voxel_keys,
 )
-
-
-def step_errors(estimated: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`(n - 1,)` translation (m) and rotation (deg) error of each scan-to-scan step."""
-    step = np.linalg.inv(estimated[:-1]) @ estimated[1:]
-    true_step = np.linalg.inv(truth[:-1]) @ truth[1:]
-    error = np.linalg.inv(true_step) @ step  # (n - 1, 4, 4)
-    cosine = (np.trace(error[:, :3, :3], axis1=1, axis2=2) - 1) / 2
-    return np.linalg.norm(error[:, :3, 3], axis=1), np.degrees(np.arccos(np.clip(cosine, -1, 1)))
 
 
 def registered(truth: np.ndarray, **params):

@@ -38,6 +38,7 @@ from dali_cli.evaluation.curves import (  # noqa: F401  (re-exported: the evalua
 from dali_cli.evaluation.heading import heading_summary
 from dali_cli.evaluation.image import (
     IMAGE_BOX_COLUMNS,
+    REGION_LABELS,
     ImageMatches,
     has_image_boxes,
     image_matches,
@@ -382,7 +383,8 @@ def _image_matches(pred: _Boxes, gt: _Boxes, num_frames: int) -> ImageMatches:
         return np.stack([_as_written(side.columns[name]) for name in IMAGE_BOX_COLUMNS], axis=1)
 
     return image_matches(
-        boxes(pred), boxes(gt), _same_frame_pairs(pred, gt, num_frames), gt.label == "dontcare",
+        boxes(pred), boxes(gt), _same_frame_pairs(pred, gt, num_frames),
+        np.isin(gt.label, REGION_LABELS),
         np.asarray(pred.columns["alpha"], np.float64), np.asarray(gt.columns["alpha"], np.float64),
     )  # fmt: skip
 

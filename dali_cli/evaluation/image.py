@@ -16,14 +16,17 @@ import numpy as np
 
 from dali_cli.importers.kitti import (
     DEFAULT_IMAGE_SIZE,
+    IGNORE_TYPES,
     Calibration,
     image_boxes,
     lidar_boxes_to_camera,
     observation_angle,
 )
+from dali_cli.importers.kitti_label import BBOX_COLUMNS as IMAGE_BOX_COLUMNS
 from dali_cli.store.artifacts import BoxTable
 
-IMAGE_BOX_COLUMNS = ("bbox_left", "bbox_top", "bbox_right", "bbox_bottom")
+# the labels whose rows are regions, not objects: their image boxes spare predictions in them
+REGION_LABELS = tuple(name.lower() for name in IGNORE_TYPES)
 # the 2D overlap a match needs, per class: KITTI's (and OpenPCDet's) "bbox" row, the same in its
 # IoU 0.7 and 0.5 settings (Car is matched in the image at 0.7 in both)
 IMAGE_MIN_OVERLAP = {"car": 0.7, "van": 0.7, "truck": 0.7, "pedestrian": 0.5, "cyclist": 0.5}
@@ -32,11 +35,6 @@ IMAGE_MIN_OVERLAP = {"car": 0.7, "van": 0.7, "truck": 0.7, "pedestrian": 0.5, "c
 def has_image_boxes(table: BoxTable) -> bool:
     """Whether `table` carries a 2D image box and an observation angle for every box."""
     return all(name in table.columns for name in (*IMAGE_BOX_COLUMNS, "alpha"))
-
-
-def image_boxes_of(table: BoxTable) -> np.ndarray:
-    """`(n, 4)` float64 image boxes of a table that has them (`has_image_boxes`)."""
-    return np.stack([np.asarray(table[name], np.float64) for name in IMAGE_BOX_COLUMNS], axis=1)
 
 
 def with_image_boxes(
@@ -52,10 +50,8 @@ def with_image_boxes(
     count = len(table)
     bbox = np.zeros((count, 4), np.float64)
     alpha = np.zeros(count, np.float64)
-    frame_ids = table.frame_id.astype(str)
-    for frame_id in np.unique(frame_ids):
-        rows = np.flatnonzero(frame_ids == frame_id)
-        calib = calib_of(str(frame_id))
+    for frame_id, rows in table.rows_by_frame().items():
+        calib = calib_of(frame_id)
         location, hwl, rotation_y = lidar_boxes_to_camera(table.boxes[rows], calib)
         bbox[rows] = image_boxes(location, hwl, rotation_y, calib, image_size)[0]
         alpha[rows] = observation_angle(location, rotation_y)
