@@ -27,40 +27,15 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pyarrow as pa
-import pyarrow.parquet as pq
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))  # the bad files the fuzz tests use too
+from hostile_files import BAD_KINDS, box_table_with, make_bad  # noqa: E402
+
 DALI = str(Path(sys.executable).with_name("dali"))
 MODEL = ROOT / "models" / "kitti-hdl64e"
 KITTI = ROOT / "tests" / "fixtures" / "real" / "kitti"
-BAD_KINDS = ("fifo", "directory", "dangling", "dev-zero", "dev-null", "dev-urandom", "sparse-4g",
-             "deep-json", "random")  # fmt: skip
 REFUSAL_S = 1.0
-
-
-def make_bad(path: Path, kind: str) -> None:
-    """Replace `path` by a bad file of `kind`."""
-    if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path)
-    elif os.path.lexists(path):
-        path.unlink()
-    devices = {"dev-zero": "/dev/zero", "dev-null": "/dev/null", "dev-urandom": "/dev/urandom"}
-    if kind == "fifo":
-        os.mkfifo(path)
-    elif kind == "directory":
-        path.mkdir()
-    elif kind == "dangling":
-        path.symlink_to(path.parent / "nothing-here")
-    elif kind in devices:
-        path.symlink_to(devices[kind])
-    elif kind == "sparse-4g":
-        with open(path, "wb") as handle:
-            handle.truncate(4 << 30)
-    elif kind == "deep-json":
-        path.write_text("[" * 200_000 + "]" * 200_000)
-    else:
-        path.write_bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
 
 
 def run(args: list, limit_s: float) -> tuple[int | None, str, float]:
@@ -135,16 +110,7 @@ class Probe:
 
     def box_table(self, case: Path, changes: dict) -> Path:
         """The frame set's box table with columns replaced: {name: one value for every row}."""
-        table = pq.read_table(self.frames / "boxes.parquet")
-        for name, value in changes.items():
-            index = table.schema.get_field_index(name)
-            kind = table.schema.field(name).type if index >= 0 else pa.float32()
-            column = pa.array([value] * table.num_rows, kind)
-            table = (table.set_column(index, name, column) if index >= 0
-                     else table.append_column(name, column))  # fmt: skip
-        path = case / "boxes.parquet"
-        pq.write_table(table, path)
-        return path
+        return box_table_with(self.frames, case / "boxes.parquet", **changes)
 
 
 def reader_cases(probe: Probe) -> None:

@@ -68,10 +68,10 @@ def paired_table(base: tuple[str, str], rows: list[tuple[str, str]], seeds: list
 
 
 def cell(stats: dict, sign: str = "") -> str:
-    if stats["mean"] is None:
-        return "—"
-    spread = "—" if stats["std"] is None else f"{stats['std']:.1f}"
-    return f"{stats['mean']:{sign}.1f} ± {spread} (n = {stats['n']})"
+    """mean ± std over the seeds and their count."""
+    from dali_cli.reporting.columns import mean_std
+
+    return "—" if stats["mean"] is None else f"{mean_std(stats, 1, sign)} (n = {stats['n']})"
 
 
 def split(text: str) -> tuple[str, str]:

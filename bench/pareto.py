@@ -26,25 +26,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
-import subprocess
 import sys
 import time
 from importlib import import_module
 from pathlib import Path
 
-from pareto.common import load_average, machine
+from pareto.common import dali, load_average, machine
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "bench" / "results" / "pareto.json"
 PLOTS = ROOT / "docs" / "pareto"
 FRONTS = ("raycast", "ppcg", "ptsn", "detector", "pillar")
-
-
-def dali(*arguments) -> None:
-    shown = "dali " + " ".join(shlex.quote(str(a)) for a in arguments)
-    print(f"$ {shown}", file=sys.stderr, flush=True)
-    subprocess.run([sys.executable, "-m", "dali_cli.cli", *map(str, arguments)], check=True)
 
 
 def ensure_model(args) -> tuple[Path, Path, Path, list[str]]:

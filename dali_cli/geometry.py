@@ -111,6 +111,21 @@ def footprints_overlap(candidate: np.ndarray, others: np.ndarray) -> np.ndarray:
 # Points in boxes
 
 
+def points_in_box_frames(xyz: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """Points `(M, >=3)` into the frames of per-point boxes `(M, 7)` → `(M, 3)` float64 (metres,
+    unscaled: x along the box's heading, z up from its centre)."""
+    offset = np.asarray(xyz, np.float64)[:, :3] - boxes[:, :3]
+    cos, sin = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
+    return np.stack(
+        [
+            cos * offset[:, 0] + sin * offset[:, 1],
+            -sin * offset[:, 0] + cos * offset[:, 1],
+            offset[:, 2],
+        ],
+        axis=1,
+    )
+
+
 def inside_boxes(points: np.ndarray, boxes: np.ndarray, margin_m: float = 0.0) -> np.ndarray:
     """Row-wise containment: is points[k] `(K, >=3)` inside boxes[k] `(K, 7)` (or every point in
     one box `(7,)`), grown by `margin_m` on each side, boundaries included? -> `(K,)` bool.

@@ -23,6 +23,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from dali_cli.geometry import rotation_z
 from dali_cli.runtime.cores import available_cores
 
 _MIN_RAYS_PER_THREAD = 16_384
@@ -338,12 +339,6 @@ def cast(
         primitive_id=np.where(hit, primitive, -1).astype(np.int32),
         raw_normals=normals,
     )
-
-
-def rotation_z(yaw: float) -> np.ndarray:
-    """`(3, 3)` rotation by `yaw` (rad) counter-clockwise about +z."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def box_affine(

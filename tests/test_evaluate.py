@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from kitti_reference import reference_statistics, reference_thresholds
 
 from dali_cli import geometry
 from dali_cli.cli import main
@@ -290,66 +291,6 @@ def reference_flags(gt_rows: BoxTable, pred_rows: BoxTable, level: int):
     return ignored_gt, ignored_dt
 
 
-def reference_statistics(overlaps, scores, ignored_gt, ignored_dt, min_overlap, thresh, compute_fp):
-    no_detection = -10000000
-    assigned = [False] * len(scores)
-    below = [compute_fp and s < thresh for s in scores]
-    tp = fp = fn = 0
-    thresholds = []
-    for i in range(len(ignored_gt)):
-        if ignored_gt[i] == -1:
-            continue
-        det, valid, max_overlap, took_ignored = -1, no_detection, 0, False
-        for j in range(len(scores)):
-            if ignored_dt[j] == -1 or assigned[j] or below[j]:
-                continue
-            overlap = overlaps[j, i]
-            if not compute_fp and overlap > min_overlap and scores[j] > valid:
-                det, valid = j, scores[j]
-            elif (
-                compute_fp
-                and overlap > min_overlap
-                and (overlap > max_overlap or took_ignored)
-                and ignored_dt[j] == 0
-            ):
-                max_overlap, det, valid, took_ignored = overlap, j, 1, False
-            elif (
-                compute_fp
-                and overlap > min_overlap
-                and valid == no_detection
-                and ignored_dt[j] == 1
-            ):
-                det, valid, took_ignored = j, 1, True
-        if valid == no_detection and ignored_gt[i] == 0:
-            fn += 1
-        elif valid != no_detection and (ignored_gt[i] == 1 or ignored_dt[det] == 1):
-            assigned[det] = True
-        elif valid != no_detection:
-            tp += 1
-            thresholds.append(scores[det])
-            assigned[det] = True
-    if compute_fp:
-        fp = sum(
-            1
-            for j in range(len(scores))
-            if not (assigned[j] or ignored_dt[j] == -1 or ignored_dt[j] == 1 or below[j])
-        )
-    return tp, fp, fn, thresholds
-
-
-def reference_thresholds(scores, num_gt):
-    scores = sorted(scores, reverse=True)
-    current, chosen = 0.0, []
-    for i, score in enumerate(scores):
-        left = (i + 1) / num_gt
-        right = (i + 2) / num_gt if i < len(scores) - 1 else left
-        if (right - current) < (current - left) and i < len(scores) - 1:
-            continue
-        chosen.append(score)
-        current += 1 / 40.0
-    return chosen
-
-
 def reference_band_flags(gt_rows: BoxTable, pred_rows: BoxTable, band: tuple):
     """clean_data with a BEV range band in place of the difficulty filters (dali's range protocol):
     Car outside the band is ignored like a too-hard Car, detections outside it like small ones."""
@@ -397,7 +338,7 @@ def reference_ap(frames, overlap_fn, level, min_overlap, flags=reference_flags):
     for k, thresh in enumerate(thresholds):
         tp = fp = fn = 0
         for overlaps, scores, ignored_gt, ignored_dt in prepared:
-            a, b, c, _ = reference_statistics(
+            a, b, c, _, _ = reference_statistics(
                 overlaps, scores, ignored_gt, ignored_dt, min_overlap, thresh, True
             )
             tp, fp, fn = tp + a, fp + b, fn + c
@@ -898,7 +839,7 @@ def reference_ap_by_recall(frames, overlap_fn, level, min_overlap, positions=400
     for thresh in sorted(set(tp_scores), reverse=True):
         tp = fp = 0
         for overlaps, scores, ignored_gt, ignored_dt in prepared:
-            a, b, _, _ = reference_statistics(
+            a, b, _, _, _ = reference_statistics(
                 overlaps, scores, ignored_gt, ignored_dt, min_overlap, thresh, True
             )
             tp, fp = tp + a, fp + b

@@ -8,7 +8,6 @@ kinds (scale.json's scale of 1e-300 is refused as --scale 1e-300 is)."""
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import signal
 import time
@@ -17,38 +16,24 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from hostile_files import box_table_with, make_bad
 
 from dali_cli.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 MODEL = ROOT / "models" / "kitti-hdl64e"
 KITTI = Path(__file__).resolve().parent / "fixtures" / "real" / "kitti"
-BAD_KINDS = ("fifo", "directory", "dangling", "dev-zero", "sparse-4g", "deep-json", "random")
+BAD_KINDS = (
+    "fifo",
+    "directory",
+    "dangling",
+    "dev-zero",
+    "sparse-4g",
+    "deep-json",
+    "random",
+)  # of hostile_files
 SECONDS = 10  # a refusal takes well under one; a hang or a 4 GiB read would take far more
 REFUSAL_S = 3.0  # a sparse 4 GiB file refused by stat: milliseconds; hashing it first: 4 s or more
-
-
-def make_bad(path: Path, kind: str) -> None:
-    """Put a bad file of `kind` at `path` (replacing what is there)."""
-    if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path)
-    elif os.path.lexists(path):  # a file, a link, a FIFO
-        path.unlink()
-    if kind == "fifo":
-        os.mkfifo(path)
-    elif kind == "directory":
-        path.mkdir()
-    elif kind == "dangling":
-        path.symlink_to(path.parent / "nothing-here")
-    elif kind == "dev-zero":
-        path.symlink_to("/dev/zero")
-    elif kind == "sparse-4g":
-        with open(path, "wb") as handle:
-            handle.truncate(4 << 30)
-    elif kind == "deep-json":
-        path.write_text("[" * 200_000 + "]" * 200_000)
-    else:
-        path.write_bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
 
 
 def run_bounded(args: list) -> tuple[object, float]:
@@ -239,25 +224,6 @@ def test_eval_keeps_a_users_predictions_beside_its_metrics(tmp_path, frames, for
     assert second.exit_code != 0
     assert ("predictions.parquet" if out != mine else "without a dali manifest") in second.output
     assert (mine / "predictions.parquet").read_bytes() == before
-
-
-def box_table_with(frames: Path, path: Path, **columns) -> Path:
-    """`frames`' box table with each named column set to one value for every row, at `path`."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    table = pq.read_table(frames / "boxes.parquet")
-    for name, value in columns.items():
-        index = table.schema.get_field_index(name)
-        kind = table.schema.field(name).type if index >= 0 else pa.float32()
-        column = pa.array([value] * table.num_rows, kind)
-        table = (
-            table.set_column(index, name, column)
-            if index >= 0
-            else table.append_column(name, column)
-        )
-    pq.write_table(table, path)
-    return path
 
 
 @pytest.mark.parametrize(

@@ -340,13 +340,34 @@ def test_a_hostile_model_card_is_refused_naming_the_field(world, tmp_path, how):
     expect_refused(tmp_path, args, out, needle)
 
 
+@pytest.mark.parametrize("given", ["file", "inline"])
 @pytest.mark.parametrize("how", list(MODEL_CONFIGS)[:7])
-def test_a_hostile_detector_config_is_refused_before_training(world, tmp_path, how):
+def test_a_hostile_detector_config_is_refused_before_training(world, tmp_path, how, given):
     config = tmp_path / "detector.json"
     config.write_text(json.dumps(MODEL_CONFIGS[how]))
+    if given == "inline":
+        config = config.read_text()
     out = tmp_path / "out"
     args = ["pretrain", "--source", world / "source", "--out", out, "--detector-config", config]
     expect_refused(tmp_path, args, out, "--detector-config", next(iter(MODEL_CONFIGS[how])))
+
+
+@pytest.mark.parametrize("value", ['{"pillar_m": ', "[1, 2]", '{"a": ' * 200 + "1" + "}" * 200,
+                                   "no-such-config.json"])  # fmt: skip
+def test_a_detector_config_that_is_no_json_object_is_a_usage_error(world, tmp_path, value):
+    out = tmp_path / "out"
+    args = ["pretrain", "--source", world / "source", "--out", out, "--detector-config", value]
+    expect_refused(tmp_path, args, out, "--detector-config")
+
+
+def test_an_inline_detector_config_is_the_same_as_its_file(tmp_path):
+    from dali_cli.commands.pretrain import read_json_option
+
+    document = {"direction_weight": 0.5, "x_range_m": [0.0, 40.0]}
+    path = tmp_path / "detector.json"
+    path.write_text(json.dumps(document))
+    assert read_json_option(str(path)) == read_json_option(json.dumps(document)) == document
+    assert read_json_option(None) is None
 
 
 @pytest.mark.parametrize("state", [[1, 2], {"key": "x"}, "garbage"])

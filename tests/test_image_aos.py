@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from kitti_reference import reference_statistics, reference_thresholds
 
 from dali_cli.cli import main
 from dali_cli.evaluation.evaluate import evaluate, format_table
@@ -162,54 +163,21 @@ def reference_aos(frames, min_overlap=0.7, min_height=25):
     def stats(gt2d, gt_alpha, dt2d, dt_alpha, scores, thresh, compute_fp):
         ignored_gt = [0 if b[3] - b[1] > min_height else 1 for b in gt2d]
         ignored_dt = [1 if abs(b[3] - b[1]) < min_height else 0 for b in dt2d]
-        assigned = [False] * len(scores)
-        below = [compute_fp and s < thresh for s in scores]
-        tp = fp = fn = 0
-        similarity, thresholds = 0.0, []
-        for i in range(len(gt2d)):
-            det, valid, best, took_ignored = -1, -1e7, 0.0, False
-            for j in range(len(scores)):
-                if assigned[j] or below[j]:
-                    continue
-                overlap = image_overlap(dt2d[j : j + 1], gt2d[i : i + 1])[0]
-                if not compute_fp and overlap > min_overlap and scores[j] > valid:
-                    det, valid = j, scores[j]
-                elif compute_fp and overlap > min_overlap and (overlap > best or took_ignored) \
-                        and ignored_dt[j] == 0:  # fmt: skip
-                    best, det, valid, took_ignored = overlap, j, 1, False
-                elif compute_fp and overlap > min_overlap and valid == -1e7 and ignored_dt[j] == 1:
-                    det, valid, took_ignored = j, 1, True
-            if valid == -1e7 and ignored_gt[i] == 0:
-                fn += 1
-            elif valid != -1e7 and (ignored_gt[i] == 1 or ignored_dt[det] == 1):
-                assigned[det] = True
-            elif valid != -1e7:
-                tp += 1
-                thresholds.append(scores[det])
-                similarity += (1 + np.cos(gt_alpha[i] - dt_alpha[det])) / 2
-                assigned[det] = True
-        if compute_fp:
-            fp = sum(
-                1 for j in range(len(scores)) if not (assigned[j] or ignored_dt[j] or below[j])
-            )
-        return tp, fp, fn, similarity, thresholds
+        overlaps = np.array([[image_overlap(d[None], g[None])[0] for g in gt2d] for d in dt2d])
+        similarity = (1 + np.cos(np.subtract.outer(dt_alpha, gt_alpha))) / 2  # [j, i]
+        return reference_statistics(
+            overlaps.reshape(len(dt2d), len(gt2d)), list(scores), ignored_gt, ignored_dt,
+            min_overlap, thresh, compute_fp, similarity,
+        )  # fmt: skip
 
     num_gt = sum(int(np.sum(f[0][:, 3] - f[0][:, 1] > min_height)) for f in frames)
-    tp_scores = sorted((s for f in frames for s in stats(*f, 0.0, False)[4]), reverse=True)
-    current, chosen = 0.0, []
-    for i, score in enumerate(tp_scores):
-        left = (i + 1) / num_gt
-        right = (i + 2) / num_gt if i < len(tp_scores) - 1 else left
-        if (right - current) < (current - left) and i < len(tp_scores) - 1:
-            continue
-        chosen.append(score)
-        current += 1 / 40.0
+    chosen = reference_thresholds([s for f in frames for s in stats(*f, 0.0, False)[3]], num_gt)
     precision, aos = np.zeros(41), np.zeros(41)
     for k, thresh in enumerate(chosen):
         tp = fp = 0
         similarity = 0.0
         for frame in frames:
-            a, b, _, s, _ = stats(*frame, thresh, True)
+            a, b, _, _, s = stats(*frame, thresh, True)
             tp, fp, similarity = tp + a, fp + b, similarity + s
         precision[k], aos[k] = tp / (tp + fp), similarity / (tp + fp)
     precision = np.array([precision[k:].max() for k in range(41)])

@@ -23,6 +23,7 @@ from ray_reference import hits_and_window_rays
 
 from dali_cli.geometry import (
     point_box_indices,
+    rotation_z,
     scale_boxes_about_ground,
     scale_points_about_ground,
 )
@@ -58,14 +59,9 @@ def _unit_cube_bank() -> ModelBank:
     return ModelBank("cad", ["cube"], [[1.0, 1.0, 1.0]], meshes=[(corners, faces)])
 
 
-def _rotation_t(yaw: float) -> np.ndarray:
-    cos, sin = np.cos(yaw), np.sin(yaw)
-    return np.array([[cos, sin, 0.0], [-sin, cos, 0.0], [0.0, 0.0, 1.0]])
-
-
 def _surface_error(xyz: np.ndarray, box: np.ndarray) -> np.ndarray:
     """Distance `(N,)` of points on (or near) a box's surface to that surface, float64."""
-    local = (xyz - box[:3]) @ _rotation_t(box[6]).T
+    local = (xyz - box[:3]) @ rotation_z(box[6])  # (R^T (p - c))^T = (p - c)^T R
     return np.min(np.abs(np.abs(local) - 0.5 * box[3:6]), axis=1)
 
 
@@ -87,7 +83,7 @@ def _boxes_at(range_m: float, lwh, rng, count: int) -> np.ndarray:
 def _rays_into(box: np.ndarray, rng, count: int) -> np.ndarray:
     """Unit rays from the sensor through random points strictly inside `box`: all must hit."""
     local = rng.uniform(-0.499, 0.499, (count, 3)) * box[3:6]
-    targets = box[:3] + local @ _rotation_t(box[6])
+    targets = box[:3] + local @ rotation_z(box[6]).T
     return targets / np.linalg.norm(targets, axis=1, keepdims=True)
 
 
@@ -162,7 +158,7 @@ def test_inbox_test_agrees_with_float64_except_within_its_tolerance_at_150_m(lwh
         rows = np.arange(6000)[:4000]
         local[rows, axis[:4000]] = np.sign(local[rows, axis[:4000]]) * 0.5
         local[:4000] += rng.normal(0.0, 3e-5, (4000, 3)) / box[3:6]  # straddle each face
-        parts.append(box[:3] + (local * box[3:6]) @ _rotation_t(box[6]))
+        parts.append(box[:3] + (local * box[3:6]) @ rotation_z(box[6]).T)
     xyz = np.concatenate(parts)
     points = np.column_stack([xyz, np.zeros(len(xyz))]).astype(np.float32)  # frames are float32
     members = points_per_box(points, boxes)

@@ -19,21 +19,12 @@ from dali_cli.world import scan as world_scan
 from dali_cli.world import scene as world_scene
 
 
-def _local(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
-    """Points `(n, 3)` in the frames of their boxes `(n, 7)`."""
-    offset = points[:, :3] - boxes[:, :3]
-    c, s = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
-    return np.stack(
-        [c * offset[:, 0] + s * offset[:, 1], -s * offset[:, 0] + c * offset[:, 1], offset[:, 2]], 1
-    )
-
-
 def _excess(frame: synth.SynthFrame) -> np.ndarray:
     """How far each car point lies outside its label box (<= 0 inside), `(m,)` metres."""
     car = frame.owner >= 0
     boxes = frame.boxes[frame.owner[car]]
     return np.max(
-        np.abs(_local(frame.points[car].astype(np.float64), boxes)) - boxes[:, 3:6] / 2, axis=1
+        np.abs(geometry.points_in_box_frames(frame.points[car].astype(np.float64), boxes)) - boxes[:, 3:6] / 2, axis=1
     )
 
 
@@ -46,7 +37,7 @@ def test_car_points_lie_in_their_label_boxes():
     # ... with room to spare, as annotators draw them: the body fills the box less its slack
     car = frame.owner >= 0
     boxes = frame.boxes[frame.owner[car]]
-    local = _local(frame.points[car].astype(np.float64), boxes)
+    local = geometry.points_in_box_frames(frame.points[car].astype(np.float64), boxes)
     room = boxes[:, 3:6] / 2 - np.abs(local)  # (m, 3) to each face, >= 0 inside
     room[:, 2] = boxes[:, 5] / 2 - local[:, 2]  # the top (the wheels stand on the box bottom)
     assert (room >= world_cars.LABEL_SLACK_M - 1e-4).all()
@@ -112,7 +103,7 @@ def test_cars_occlude_each_other_and_the_estimate_says_so():
     occlusion = 1 - both.car_visible_rays / both.car_unoccluded_rays
     assert occlusion[0] == 0.0 and occlusion[1] > 0.7
     # rays do not pass through a car body: no ground or far-car point inside the front car's box
-    local = _local(both.points.astype(np.float64), np.array([front] * len(both.points)))
+    local = geometry.points_in_box_frames(both.points.astype(np.float64), np.array([front] * len(both.points)))
     inside = np.all(np.abs(local) <= np.array(front[3:6]) / 2, axis=1)
     assert inside.sum() > 100 and (both.owner[inside] == 0).all()
 

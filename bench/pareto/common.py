@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import os
 import platform
+import shlex
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 
@@ -79,3 +82,12 @@ def timed(function: Callable[[], object], repeats: int) -> dict:
         "repeats": len(walls),
         "all_seconds": [round(w, 6) for w in walls],
     }
+
+
+def dali(*arguments) -> str:
+    """Run `dali ARGUMENTS` in this Python (echoed on stderr; a failure raises); the command
+    line as shown."""
+    shown = "dali " + " ".join(shlex.quote(str(a)) for a in arguments)
+    print(f"$ {shown}", file=sys.stderr, flush=True)
+    subprocess.run([sys.executable, "-m", "dali_cli.cli", *map(str, arguments)], check=True)
+    return shown

@@ -18,21 +18,12 @@ stages' manifests (train_seconds; eval wall seconds / frames, model loading incl
 from __future__ import annotations
 
 import json
-import shlex
-import subprocess
-import sys
 from pathlib import Path
 
 from dali_cli.reporting.report import read_kitti, read_metrics
+from pareto.common import dali
 
 PILLARS_M = (0.24, 0.40)  # swept around the detector's default, which is always a point
-
-
-def _dali(arguments: list) -> str:
-    shown = "dali " + " ".join(shlex.quote(str(a)) for a in arguments)
-    print(f"$ {shown}", file=sys.stderr, flush=True)
-    subprocess.run([sys.executable, "-m", "dali_cli.cli", *map(str, arguments)], check=True)
-    return shown
 
 
 def _manifest(directory: Path) -> dict:
@@ -48,14 +39,14 @@ def train_and_evaluate(
     config.write_text(json.dumps({"pillar_m": pillar_m}) + "\n")
     model, evaluation = out / "model", out / "eval"
     commands = [
-        _dali(["pretrain", "--source", target, "--epochs", epochs, "--seed", seed,
-               "--threads", threads, "--no-progress", "--detector-config", config, "--out", model]),
-        _dali(["eval", "--model", model, "--data", target_val, "--scale", 1.0, "--protocol",
+        dali("pretrain", "--source", target, "--epochs", epochs, "--seed", seed,
+               "--threads", threads, "--no-progress", "--detector-config", config, "--out", model),
+        dali("eval", "--model", model, "--data", target_val, "--scale", 1.0, "--protocol",
                "range", "--front-only", "--iou", 0.7, "--iou", 0.5, "--size-score-min", 0.3,
-               "--workers", 1, "--out", evaluation]),
-        _dali(["eval", "--pred", evaluation / "predictions.parquet", "--gt", target_val,
+               "--workers", 1, "--out", evaluation),
+        dali("eval", "--pred", evaluation / "predictions.parquet", "--gt", target_val,
                "--protocol", "kitti", "--iou", 0.7, "--size-score-min", 0.3,
-               "--out", evaluation / "metrics_kitti.json"]),
+               "--out", evaluation / "metrics_kitti.json"),
     ]  # fmt: skip
     training = _manifest(model)
     frames_seen = training["outputs"]["counts"]["frames_seen"]

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.kinds import VIEW_DEG
+from dali_cli.commands.kinds import VIEW_DEG, named_path
 
 EPILOG = """\b
 Each DOMAIN is a frame set directory, DIR or NAME=DIR (named after the directory when no NAME
@@ -32,18 +32,6 @@ points_per_car.png (points per car against range), written atomically with a man
 """
 
 
-def _parse_domain(value: str) -> tuple[str, Path]:
-    """`NAME=DIR` or `DIR` (named after the directory)."""
-    name, sep, path = value.partition("=")
-    if not sep:
-        name, path = Path(value).name or value, value
-    if not name:
-        raise click.BadParameter(f"{value}: empty name", param_hint="DOMAIN")
-    if not Path(path).is_dir():
-        raise click.BadParameter(f"{path}: not a directory", param_hint="DOMAIN")
-    return name, Path(path)
-
-
 @click.command(name="compare-domains", epilog=EPILOG)
 @click.argument("domains", nargs=-1, required=True, metavar="DOMAIN...")
 @click.option("--view-deg", type=VIEW_DEG, default=80.0,
@@ -62,7 +50,7 @@ def command(domains, view_deg, label, max_frames, out, force):
     from dali_cli.reporting.domains import format_table
     from stages.compare_domains import compare_domains
 
-    named = [_parse_domain(value) for value in domains]
+    named = [named_path(value, "DOMAIN", directory=True) for value in domains]
     names = [name for name, _ in named]
     if len(set(names)) != len(names):
         raise click.BadParameter(f"names must differ, got {', '.join(names)}", param_hint="DOMAIN")

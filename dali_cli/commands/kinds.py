@@ -4,6 +4,8 @@ usage error naming the option (exit 2), before any work."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 
 from dali_cli import quantities
@@ -122,3 +124,19 @@ class CoreCount(click.ParamType):
 
 LOCAL_WORKERS = CoreCount(0)
 """Helper processes beside the main one (a training loader): 0 to the number of cores."""
+
+
+def named_path(value: str, hint: str, directory: bool = False) -> tuple[str, Path]:
+    """(name, path) of a `NAME=PATH` or `PATH` argument (named after the path's last part); a
+    usage error naming `hint` when the name is empty or the path is missing (not a directory,
+    with `directory`)."""
+    name, sep, path = value.partition("=")
+    if not sep:
+        name, path = Path(value).name or value, value
+    if not name:
+        raise click.BadParameter(f"{value}: empty name", param_hint=hint)
+    if directory and not Path(path).is_dir():
+        raise click.BadParameter(f"{path}: not a directory", param_hint=hint)
+    if not Path(path).exists():
+        raise click.BadParameter(f"{path}: not found", param_hint=hint)
+    return name, Path(path)

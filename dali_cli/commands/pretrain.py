@@ -16,17 +16,29 @@ from dali_cli.commands.common import (
 from dali_cli.commands.kinds import SCALE_PAIR
 
 
-def read_json_option(path: str | None) -> dict | None:
-    """The JSON document of an option's file (None without one); not JSON is a usage error."""
-    from dali_cli.runtime.errors import StageError
-    from dali_cli.store.regular_files import read_json_file
+def read_json_option(value: str | None) -> dict | None:
+    """The detector config overrides of `--detector-config` (None without it): an inline JSON
+    object (text starting with "{") or the path of a JSON file; anything else, or bad JSON, is a
+    usage error."""
+    from pathlib import Path
 
-    if path is None:
+    from dali_cli.runtime.errors import StageError
+    from dali_cli.store.regular_files import parse_json_text, read_json_file
+
+    if value is None:
         return None
     try:
-        return read_json_file(path, "detector config")
+        if value.lstrip().startswith("{"):
+            document = parse_json_text(value, "--detector-config", "detector config")
+        elif Path(value).is_file():
+            document = read_json_file(value, "detector config")
+        else:
+            raise click.BadParameter(f"{value!r}: neither a JSON object nor a file")
     except (StageError, ValueError) as error:  # a FIFO, too large, not UTF-8, not JSON, too deep
         raise click.BadParameter(str(error)) from None
+    if not isinstance(document, dict):
+        raise click.BadParameter("detector config: not a JSON object")
+    return document
 
 
 @click.command(name="pretrain")
@@ -44,10 +56,10 @@ def read_json_option(path: str | None) -> dict | None:
 @choice_option("--features", choices=["xyz", "xyzi"], default="xyz", tuning=True,
                help="Point features fed to the pillar encoder.")  # fmt: skip
 @tuning_option("--detector-config", "config_overrides",
-              type=click.Path(exists=True, dir_okay=False), default=None,
-              callback=lambda _ctx, _param, path: read_json_option(path),
-              help="JSON file of DetectorConfig fields to override (ranges, pillar size, widths; "
-                   "see docs/detector.md).")  # fmt: skip
+              metavar="JSON|FILE", default=None,
+              callback=lambda _ctx, _param, value: read_json_option(value),
+              help="DetectorConfig fields to override, as a JSON object or a JSON file (ranges, "
+                   "pillar size, widths, loss weights; see docs/detector.md).")  # fmt: skip
 @click.option("--label", "labels", multiple=True, default=("Car",), show_default=True,
               help="Box labels to train on (repeatable).")  # fmt: skip
 @training_options

@@ -7,17 +7,7 @@ from pathlib import Path
 import click
 
 from dali_cli.commands.common import FRACTION, choice_option, tuning_option
-from dali_cli.commands.kinds import DISTANCE_M
-
-
-def _parse_boxes(value: str) -> tuple[str, Path]:
-    """`NAME=DIR` or `DIR` (named after the directory)."""
-    name, sep, path = value.partition("=")
-    if not sep:
-        name, path = Path(value).name or value, value
-    if not Path(path).exists():
-        raise click.BadParameter(f"{path}: not found", param_hint="--boxes")
-    return name, Path(path)
+from dali_cli.commands.kinds import DISTANCE_M, named_path
 
 
 @click.command(name="view")
@@ -87,7 +77,7 @@ def command(
     from dali_cli.reporting.view import BoxSet, render_frame
     from dali_cli.store.output_paths import check_file_output, is_dali_png
 
-    box_inputs = [_parse_boxes(value)[1] for value in boxes]
+    box_inputs = [named_path(value, "--boxes")[1] for value in boxes]
     check_file_output(
         out, {"data": data_dir, "boxes": box_inputs}, is_dali_png, "a PNG dali view wrote"
     )
@@ -98,7 +88,7 @@ def command(
             raise ArtifactError(f"{frames.path}: no frame '{frame}' ({len(frames)} frames)")
         frame_id = frames.frame_ids[int(frame)]
     points = frames.frame(frame_id)
-    sources = [_parse_boxes(value) for value in boxes]
+    sources = [named_path(value, "--boxes") for value in boxes]
     own = Path(data_dir) / BOXES_NAME
     if not no_own_boxes and (own.exists() or own.is_symlink()):  # a FIFO or dangling link: refused
         sources.insert(0, ("labels", Path(data_dir)))
@@ -131,7 +121,7 @@ def record(data_dir, boxes, no_own_boxes: bool, score_min, rerun_out) -> None:
     from dali_cli.store.artifacts import BOXES_NAME
     from dali_cli.store.output_paths import check_file_output, is_dali_recording
 
-    sources = [_parse_boxes(value) for value in boxes]
+    sources = [named_path(value, "--boxes") for value in boxes]
     check_file_output(
         rerun_out, {"data": data_dir, "boxes": [path for _, path in sources]}, is_dali_recording,
         "a recording dali wrote", option="--rerun",

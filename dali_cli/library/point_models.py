@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dali_cli.geometry import point_box_indices, wrap_angle
+from dali_cli.geometry import point_box_indices, points_in_box_frames, wrap_angle
 from dali_cli.store.artifacts import (
     FrameSet,
     read_boxes,
@@ -88,20 +88,6 @@ class PointModels:
         )
 
 
-def _to_box_frame(xyz: np.ndarray, boxes: np.ndarray) -> np.ndarray:
-    """Points `(M, 3)` into the frames of per-point boxes `(M, 7)` → `(M, 3)` (metres, unscaled)."""
-    offset = np.asarray(xyz, np.float64) - boxes[:, :3]
-    cos, sin = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
-    return np.stack(
-        [
-            cos * offset[:, 0] + sin * offset[:, 1],
-            -sin * offset[:, 0] + cos * offset[:, 1],
-            offset[:, 2],
-        ],
-        axis=1,
-    )
-
-
 def point_models_from_frame(
     points: np.ndarray,
     boxes: np.ndarray,
@@ -127,11 +113,11 @@ def point_models_from_frame(
     selected = np.flatnonzero(np.isin(owner, keep))
     selected = selected[np.argsort(owner[selected], kind="stable")]  # grouped by box, kept order
     box_of_point = boxes[owner[selected]]  # (P, 7)
-    local = _to_box_frame(points[selected, :3], box_of_point) / box_of_point[:, 3:6]
+    local = points_in_box_frames(points[selected, :3], box_of_point) / box_of_point[:, 3:6]
     normalized = np.concatenate([local, points[selected, 3:4]], axis=1).astype(np.float32)
     origin = np.zeros(3) if origin is None else np.asarray(origin, np.float64)
     kept = boxes[keep]
-    sensor_local = _to_box_frame(np.broadcast_to(origin, (len(kept), 3)), kept)
+    sensor_local = points_in_box_frames(np.broadcast_to(origin, (len(kept), 3)), kept)
     return PointModels(
         points=normalized,
         offsets=np.r_[0, np.cumsum(counts[keep])].astype(np.int64),

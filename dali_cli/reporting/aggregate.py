@@ -12,7 +12,7 @@ from pathlib import Path
 
 from dali_cli.reporting import compare as report_compare
 from dali_cli.reporting import paired as report_paired
-from dali_cli.reporting.columns import COLUMNS, dig, statistics
+from dali_cli.reporting.columns import COLUMNS, dig, mean_std, statistics
 from dali_cli.reporting.report import BANDS, DIFFICULTIES, build_report
 
 SCALARS = (
@@ -57,20 +57,13 @@ def aggregate_documents(documents: list[dict], section: str = "target") -> list[
     return rows
 
 
-def _cell(stats: dict, digits: int) -> str:
-    if stats["mean"] is None:
-        return "—"
-    spread = "—" if stats["std"] is None else f"{stats['std']:.{digits}f}"
-    return f"{stats['mean']:.{digits}f} ± {spread}"
-
-
 def markdown(rows: list[dict], columns=TABLE_COLUMNS) -> str:
     lines = ["| method | n | " + " | ".join(columns) + " |", "|---|---|" + "---|" * len(columns)]
     for row in rows:
         n = max(row["columns"][c]["n"] for c in columns)
         if n == 0:
             continue
-        cells = [_cell(row["columns"][c], 3 if c.startswith("pred") else 2) for c in columns]
+        cells = [mean_std(row["columns"][c], 3 if c.startswith("pred") else 2) for c in columns]
         lines.append(f"| {row['name']} | {n} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -106,7 +99,7 @@ def aggregate_runs(runs: list[Path]) -> tuple[str, dict]:
         parts += ["", "## Source validation", "", markdown(source, ("BEV@0.7", "3D@0.7"))]
     parts += ["", "## Gap closed (share, mean ± std over runs)", ""]
     for key, stats in scalars.items():
-        parts.append(f"- {key}: {_cell(stats, 3)} (n = {stats['n']})")
+        parts.append(f"- {key}: {mean_std(stats, 3)} (n = {stats['n']})")
     if paired:
         parts += [
             "",

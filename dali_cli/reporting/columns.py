@@ -49,3 +49,12 @@ def statistics(values: list[float]) -> dict:
     array = np.asarray(values, np.float64)
     std = float(array.std(ddof=1)) if len(array) > 1 else None
     return {"mean": float(array.mean()), "std": std, "n": len(array), "values": list(values)}
+
+
+def mean_std(stats: dict, digits: int = 1, sign: str = "") -> str:
+    """"mean ± std" of a `statistics` result, `digits` decimals (`sign` "+": signed mean); "—"
+    without runs, "—" for the spread of one run."""
+    if stats["mean"] is None:
+        return "—"
+    spread = "—" if stats["std"] is None else f"{stats['std']:.{digits}f}"
+    return f"{stats['mean']:{sign}.{digits}f} ± {spread}"

@@ -262,28 +262,28 @@ REPORT_MARKER = "written_by"
 RECORDING_APPLICATION = "dali-recording"  # the application id of every recording dali writes
 
 
-def is_dali_recording(path: Path) -> bool:
-    """A Rerun recording dali wrote (RRF2 magic, application id RECORDING_APPLICATION near the
-    start); never opens anything but a regular file (a FIFO would block)."""
+def file_head(path: Path, size: int) -> bytes:
+    """The first `size` bytes of a regular file (b"" for anything else or an unreadable file);
+    never opens anything but a regular file (a FIFO would block)."""
     if not Path(path).is_file():
-        return False
+        return b""
     try:
         with open(path, "rb") as file:
-            head = file.read(1 << 12)
+            return file.read(size)
     except OSError:
-        return False
+        return b""
+
+
+def is_dali_recording(path: Path) -> bool:
+    """A Rerun recording dali wrote (RRF2 magic, application id RECORDING_APPLICATION near the
+    start)."""
+    head = file_head(path, 1 << 12)
     return head.startswith(b"RRF2") and RECORDING_APPLICATION.encode() in head
 
 
 def is_dali_png(path: Path) -> bool:
     """A PNG `dali view` wrote (its tEXt chunk Software = PNG_SOFTWARE)."""
-    if not Path(path).is_file():
-        return False
-    try:
-        with open(path, "rb") as file:
-            head = file.read(1 << 16)
-    except OSError:
-        return False
+    head = file_head(path, 1 << 16)
     return head.startswith(b"\x89PNG") and b"tEXtSoftware\x00" + PNG_SOFTWARE.encode() in head
 
 
