@@ -160,26 +160,35 @@ def reference_aos(frames, min_overlap=0.7, min_height=25):
     """(AP_2D, AOS) R40 in percent of [(gt_boxes2d, gt_alpha, pred_boxes2d, pred_alpha,
     scores)] per frame, every object a Car that is not occluded or truncated (moderate)."""
 
-    def stats(gt2d, gt_alpha, dt2d, dt_alpha, scores, thresh, compute_fp):
+    def prepare(gt2d, gt_alpha, dt2d, dt_alpha, scores):
+        """A frame's reference_statistics inputs but the threshold: computed once."""
         ignored_gt = [0 if b[3] - b[1] > min_height else 1 for b in gt2d]
         ignored_dt = [1 if abs(b[3] - b[1]) < min_height else 0 for b in dt2d]
-        overlaps = np.array([[image_overlap(d[None], g[None])[0] for g in gt2d] for d in dt2d])
+        pairs = image_overlap(np.repeat(dt2d, len(gt2d), axis=0), np.tile(gt2d, (len(dt2d), 1)))
         similarity = (1 + np.cos(np.subtract.outer(dt_alpha, gt_alpha))) / 2  # [j, i]
-        return reference_statistics(
-            overlaps.reshape(len(dt2d), len(gt2d)), list(scores), ignored_gt, ignored_dt,
-            min_overlap, thresh, compute_fp, similarity,
-        )  # fmt: skip
+        overlaps = pairs.reshape(len(dt2d), len(gt2d))
+        return overlaps, list(scores), ignored_gt, ignored_dt, similarity
 
+    prepared = [prepare(*frame) for frame in frames]
     num_gt = sum(int(np.sum(f[0][:, 3] - f[0][:, 1] > min_height)) for f in frames)
-    chosen = reference_thresholds([s for f in frames for s in stats(*f, 0.0, False)[3]], num_gt)
+    tp_scores = [
+        score
+        for overlaps, scores, ignored_gt, ignored_dt, similarity in prepared
+        for score in reference_statistics(
+            overlaps, scores, ignored_gt, ignored_dt, min_overlap, 0.0, False, similarity
+        )[3]
+    ]
+    chosen = reference_thresholds(tp_scores, num_gt)
     precision, aos = np.zeros(41), np.zeros(41)
     for k, thresh in enumerate(chosen):
         tp = fp = 0
-        similarity = 0.0
-        for frame in frames:
-            a, b, _, _, s = stats(*frame, thresh, True)
-            tp, fp, similarity = tp + a, fp + b, similarity + s
-        precision[k], aos[k] = tp / (tp + fp), similarity / (tp + fp)
+        similar = 0.0
+        for overlaps, scores, ignored_gt, ignored_dt, similarity in prepared:
+            a, b, _, _, s = reference_statistics(
+                overlaps, scores, ignored_gt, ignored_dt, min_overlap, thresh, True, similarity
+            )
+            tp, fp, similar = tp + a, fp + b, similar + s
+        precision[k], aos[k] = tp / (tp + fp), similar / (tp + fp)
     precision = np.array([precision[k:].max() for k in range(41)])
     aos = np.array([aos[k:].max() for k in range(41)])
     return precision[1:].sum() / 40 * 100, aos[1:].sum() / 40 * 100

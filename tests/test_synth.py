@@ -24,7 +24,9 @@ def _excess(frame: synth.SynthFrame) -> np.ndarray:
     car = frame.owner >= 0
     boxes = frame.boxes[frame.owner[car]]
     return np.max(
-        np.abs(geometry.points_in_box_frames(frame.points[car].astype(np.float64), boxes)) - boxes[:, 3:6] / 2, axis=1
+        np.abs(geometry.points_in_box_frames(frame.points[car].astype(np.float64), boxes))
+        - boxes[:, 3:6] / 2,
+        axis=1,
     )
 
 
@@ -103,7 +105,9 @@ def test_cars_occlude_each_other_and_the_estimate_says_so():
     occlusion = 1 - both.car_visible_rays / both.car_unoccluded_rays
     assert occlusion[0] == 0.0 and occlusion[1] > 0.7
     # rays do not pass through a car body: no ground or far-car point inside the front car's box
-    local = geometry.points_in_box_frames(both.points.astype(np.float64), np.array([front] * len(both.points)))
+    local = geometry.points_in_box_frames(
+        both.points.astype(np.float64), np.array([front] * len(both.points))
+    )
     inside = np.all(np.abs(local) <= np.array(front[3:6]) / 2, axis=1)
     assert inside.sum() > 100 and (both.owner[inside] == 0).all()
 

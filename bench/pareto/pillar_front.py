@@ -40,13 +40,13 @@ def train_and_evaluate(
     model, evaluation = out / "model", out / "eval"
     commands = [
         dali("pretrain", "--source", target, "--epochs", epochs, "--seed", seed,
-               "--threads", threads, "--no-progress", "--detector-config", config, "--out", model),
+             "--threads", threads, "--no-progress", "--detector-config", config, "--out", model),
         dali("eval", "--model", model, "--data", target_val, "--scale", 1.0, "--protocol",
-               "range", "--front-only", "--iou", 0.7, "--iou", 0.5, "--size-score-min", 0.3,
-               "--workers", 1, "--out", evaluation),
+             "range", "--front-only", "--iou", 0.7, "--iou", 0.5, "--size-score-min", 0.3,
+             "--workers", 1, "--out", evaluation),
         dali("eval", "--pred", evaluation / "predictions.parquet", "--gt", target_val,
-               "--protocol", "kitti", "--iou", 0.7, "--size-score-min", 0.3,
-               "--out", evaluation / "metrics_kitti.json"),
+             "--protocol", "kitti", "--iou", 0.7, "--size-score-min", 0.3,
+             "--out", evaluation / "metrics_kitti.json"),
     ]  # fmt: skip
     training = _manifest(model)
     frames_seen = training["outputs"]["counts"]["frames_seen"]

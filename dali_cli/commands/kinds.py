@@ -135,8 +135,8 @@ def named_path(value: str, hint: str, directory: bool = False) -> tuple[str, Pat
         name, path = Path(value).name or value, value
     if not name:
         raise click.BadParameter(f"{value}: empty name", param_hint=hint)
-    if directory and not Path(path).is_dir():
-        raise click.BadParameter(f"{path}: not a directory", param_hint=hint)
     if not Path(path).exists():
         raise click.BadParameter(f"{path}: not found", param_hint=hint)
+    if directory and not Path(path).is_dir():
+        raise click.BadParameter(f"{path}: not a directory", param_hint=hint)
     return name, Path(path)

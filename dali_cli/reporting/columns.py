@@ -52,7 +52,7 @@ def statistics(values: list[float]) -> dict:
 
 
 def mean_std(stats: dict, digits: int = 1, sign: str = "") -> str:
-    """"mean ± std" of a `statistics` result, `digits` decimals (`sign` "+": signed mean); "—"
+    """The "mean ± std" of a `statistics` result, `digits` decimals (`sign` "+": signed mean); "—"
     without runs, "—" for the spread of one run."""
     if stats["mean"] is None:
         return "—"
