@@ -300,6 +300,10 @@ $(eval $(call TRACKED_LABELS,iter3,iter2/model,iter3/ptsn))
 $(eval $(call TRACKED_LABELS,baselines/source_x2_budget,baselines/source_x2_budget/model,baselines/source_x2_budget/ptsn))
 $(eval $(call SELF_TRAIN,iter2_tst,iter2/model,iter3/tracked,iter3/ptsn))
 $(eval $(call SELF_TRAIN,baselines/source_x2_budget_tst,baselines/source_x2_budget/model,baselines/source_x2_budget/tracked,baselines/source_x2_budget/ptsn))
+# a second round (control + tracked ST x2): control + tracked ST pseudo-labels the target again at
+# its own PTSN scale, its labels are tracked the same way and it self-trains on them, from itself
+$(eval $(call TRACKED_LABELS,baselines/source_x2_budget_tst,baselines/source_x2_budget_tst/model,baselines/source_x2_budget_tst/ptsn))
+$(eval $(call SELF_TRAIN,baselines/source_x2_budget_tst2,baselines/source_x2_budget_tst/model,baselines/source_x2_budget_tst/tracked,baselines/source_x2_budget_tst/ptsn))
 # KITTI easy / moderate / hard of the same predictions (synthetic labels carry KITTI's columns)
 KITTI_EVAL_FLAGS ?= --protocol kitti --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
 $(RUN)/%/metrics_kitti.json: $(RUN)/%/manifest.json
@@ -445,6 +449,7 @@ REAL_ROWS = source:iter0/model:iter0/eval:--scale=1.0 \
     control_st:baselines/source_x2_budget_st/model:baselines/source_x2_budget_st/eval:--scale-from=$(RUN)/baselines/source_x2_budget/ptsn \
     x2_tst:iter2_tst/model:iter2_tst/eval:--scale-from=$(RUN)/iter3/ptsn \
     control_tst:baselines/source_x2_budget_tst/model:baselines/source_x2_budget_tst/eval:--scale-from=$(RUN)/baselines/source_x2_budget/ptsn \
+    control_tst2:baselines/source_x2_budget_tst2/model:baselines/source_x2_budget_tst2/eval:--scale-from=$(RUN)/baselines/source_x2_budget_tst/ptsn \
     oracle:baselines/sim_oracle_x2_budget/model:baselines/sim_oracle_x2_budget/eval:--scale=1.0
 row_field = $(word $(2),$(subst :, ,$(1)))
 # a row (1) on an object set (2): the row's model at the scale its drive evaluation used
@@ -495,8 +500,9 @@ real-kitti: install
 # model's evaluations: the source on synthetic Waymo-like validation frames; the adapted model
 # on the labelled drive, the object frames of the target's drives and of other drives, and the
 # repository's test frame (tests/test_models.py reruns that one); with the recipe's mean ± std
-# over the seeds of SEEDS that `make real-kitti` has evaluated. Builds what is missing of the
-# benchmark's seed MODELS_SEED (resumable like it), then writes the two directories.
+# over the seeds of SEEDS (`make models SEEDS="0 1 2"`). Builds what is missing of the
+# benchmark's seed MODELS_SEED and the recipe's row on every other seed of SEEDS (resumable like
+# it: the same targets as `make real-kitti`), then writes the two directories.
 MODELS_SEED   ?= 0
 MODELS_ROW    ?= control_tst
 MODELS_SOURCE ?= baselines/source_x2_budget
@@ -504,6 +510,7 @@ MODELS_FIXTURE = tests/fixtures/real/kitti/training
 models_row = $(filter $(MODELS_ROW):%,$(REAL_ROWS))
 recipe_control_st = the equal-budget control (the source trained as long as x2, at its PTSN scale) self-trained on its own pseudo labels (control + ST)
 recipe_control_tst = the equal-budget control (the source trained as long as x2, at its PTSN scale) self-trained on its pseudo labels kept by dali track-pseudo over the registered scans (control + tracked ST)
+recipe_control_tst2 = the equal-budget control (the source trained as long as x2, at its PTSN scale) self-trained twice on its pseudo labels kept by dali track-pseudo over the registered scans, the second time on the labels of the first self-trained model at its own PTSN scale (control + tracked ST x2)
 recipe_x2_st = two DALI iterations then self-training on x2's pseudo labels (x2 + ST)
 recipe_x2_tst = two DALI iterations then self-training on x2's pseudo labels kept by dali track-pseudo (x2 + tracked ST)
 # the recipe's evaluation directories, relative to a run: on the drive, then on each object set
@@ -537,6 +544,10 @@ models/kitti-hdl64e/card.json: bench/model_card.py models-always $(foreach dir,$
 	    --out $(@D)
 models: install
 	$(MAKE) $(SUBMAKE_FLAGS) real-kitti-data $(REAL_DATA)/fixture/manifest.json $(REAL_VARS)
+	@for seed in $(filter-out $(MODELS_SEED),$(SEEDS)); do \
+	    $(MAKE) $(SUBMAKE_FLAGS) $(addprefix $(REAL_RUN)-s$$seed/,$(addsuffix /manifest.json,$(models_eval_dirs))) \
+	        RUN=$(REAL_RUN)-s$$seed SEED=$$seed $(REAL_VARS) || exit 1; \
+	done
 	$(MAKE) $(SUBMAKE_FLAGS) models/waymo-like-source/card.json models/kitti-hdl64e/card.json \
 	    RUN=$(REAL_RUN)-s$(MODELS_SEED) SEED=$(MODELS_SEED) $(REAL_VARS)
 # the cards are committed: with every run target secondary (.SECONDARY below) a card newer than

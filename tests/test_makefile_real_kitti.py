@@ -35,6 +35,10 @@ ROWS = {  # row -> (model, drive evaluation)
     "control_st": ("baselines/source_x2_budget_st/model", "baselines/source_x2_budget_st/eval"),
     "x2_tst": ("iter2_tst/model", "iter2_tst/eval"),
     "control_tst": ("baselines/source_x2_budget_tst/model", "baselines/source_x2_budget_tst/eval"),
+    "control_tst2": (
+        "baselines/source_x2_budget_tst2/model",
+        "baselines/source_x2_budget_tst2/eval",
+    ),
     "oracle": ("baselines/sim_oracle_x2_budget/model", "baselines/sim_oracle_x2_budget/eval"),
 }
 PAIRS = (("x2", "control"), ("x2_st", "control_st"), ("x2_tst", "control_tst"))
@@ -221,6 +225,54 @@ def test_tracked_rows_self_train_like_st_on_labels_tracked_over_registered_scans
             mine, theirs = train[f"{run}/{row}/model"], train[f"{run}/{plain}/model"]
             assert option(mine, "--pseudo") == f"{run}/{labels}/tracked"
             assert options(mine, ("--pseudo", "--out")) == options(theirs, ("--pseudo", "--out"))
+
+
+def test_the_second_tracked_round_relabels_with_the_first_at_its_own_scale(setup):
+    commands = setup["commands"]
+    for seed in SEEDS:
+        run = f"{setup['run']}-s{seed}"
+        first, second = (
+            f"{run}/baselines/source_x2_budget_tst",
+            f"{run}/baselines/source_x2_budget_tst2",
+        )
+        sweeps = {option(w, "--out"): w for w in named(commands, "ptsn-sweep")}
+        assert option(sweeps[f"{first}/ptsn"], "--model") == f"{first}/model"
+        low = {option(w, "--out"): w for w in named(commands, "pseudo-label")}[
+            f"{first}/pseudo_low"
+        ]
+        assert option(low, "--model") == f"{first}/model"
+        assert option(low, "--scale-from") == f"{first}/ptsn"
+        tracked = {option(w, "--out"): w for w in named(commands, "track-pseudo")}[
+            f"{first}/tracked"
+        ]
+        assert option(tracked, "--pseudo") == f"{first}/pseudo_low"
+        train = {option(w, "--out"): w for w in named(commands, "self-train")}
+        mine, theirs = train[f"{second}/model"], train[f"{first}/model"]
+        assert option(mine, "--init") == f"{first}/model"
+        assert option(mine, "--pseudo") == f"{first}/tracked"
+        # the same self-training budget and flags as the first round
+        skip = ("--init", "--pseudo", "--out")
+        assert options(mine, skip) == options(theirs, skip)
+        evals = {option(w, "--out"): w for w in named(commands, "eval")}
+        assert option(evals[f"{second}/eval"], "--scale-from") == f"{first}/ptsn"
+
+
+def test_make_models_builds_the_recipe_row_on_every_seed(setup):
+    """`make models SEEDS=...`: the shipped seed's whole chain and, on every other seed, the
+    recipe row's evaluations (not the benchmark's other rows)."""
+    variables = [v for v in setup["variables"] if not v.startswith("SEEDS=")]
+    commands = [
+        shlex.split(line.split("/bin/dali ", 1)[1])
+        for line in dali_commands("models", *variables, "SEEDS=0 1 2")
+        if "/bin/dali " in line  # not the cards' summaries that name dali commands
+    ]
+    outs = {option(w, "--out") for w in commands}
+    for seed in SEEDS + ("2",):
+        run = f"{setup['run']}-s{seed}"
+        assert f"{run}/baselines/source_x2_budget_tst/eval" in outs
+        assert f"{run}/objects_other/control_tst" in outs
+        assert f"{run}/iter2/model" not in outs  # DALI's rows are not the recipe
+    assert f"{setup['run']}-s3/baselines/source_x2_budget_tst/eval" not in outs
 
 
 def test_the_pairs_are_compared_on_every_set_with_a_paired_bootstrap(setup):
