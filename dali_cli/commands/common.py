@@ -141,6 +141,14 @@ class StageCommand(click.Command):
                 formatter.write_text(TUNING_NOTE)
 
 
+def ran_counts(outcome) -> dict | None:
+    """The output counts of a stage that ran (a StageOutcome's manifest), for the one-line summary
+    a command prints; None when it was up to date or a dry run."""
+    if outcome.manifest and outcome.status == "ran":
+        return outcome.manifest["outputs"]["counts"]
+    return None
+
+
 def stage_command_class(command: click.Command) -> click.Command:
     """`command` and, for a group, each of its subcommands, as StageCommands (help layout only)."""
     if isinstance(command, click.Group):
