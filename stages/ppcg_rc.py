@@ -7,12 +7,8 @@ from pathlib import Path
 from typing import Unpack
 
 from dali_cli.ppcg.frame import DEFAULT_POINT_MARGIN_M
-from dali_cli.ppcg.point_models import angular_threshold_rad
-from dali_cli.ppcg.rc import RcParams
-from dali_cli.ppcg.run import PpcgOptions, run_ppcg, target_profile
-from dali_cli.runtime.device import check_options
+from dali_cli.ppcg.run import PpcgOptions, run_ppcg_stage
 from dali_cli.runtime.errors import ParameterError
-from dali_cli.store.artifacts import FrameSet
 from dali_cli.store.manifest import StageOutcome
 from dali_cli.world.cars import LABEL_SLACK_M
 
@@ -44,25 +40,10 @@ def ppcg_rc(
         raise ParameterError(
             ("min_points", "max_points"), f"need 1 <= MIN < MAX, got {min_points}, {max_points}"
         )
-    check_options(options, PpcgOptions, "ppcg_rc")
-    _, profile = target_profile(
-        FrameSet(target_dir), options.get("sensor"), options.get("sensors_path")
-    )
     shared = {"top_k": top_k, "seed": seed, "ground_margin_m": ground_margin_m}
-    # run_ppcg checks the margin, resolves the orientation (it knows the model kind) and
-    # records each only when used
-    params = RcParams(
-        mount_height_m=profile.mount_height_m,
-        theta_rad=angular_threshold_rad(profile.points_per_beam),
-        max_points=max_points,
-        min_points=min_points,
-        orient=orient_models,
-        point_margin_m=float(point_margin_m),
-        label_slack_m=tuple(float(v) for v in label_slack_m),
-        **shared,
-    )
-    stage_params = {"max_points": max_points, "min_points": min_points, **shared}
-    return run_ppcg(
+    return run_ppcg_stage(
         "rc", target_dir, boxes_dir, library_dir, out,
-        params=params, stage_params=stage_params, **options,
+        method={"max_points": max_points, "min_points": min_points}, shared=shared,
+        orient_models=orient_models, point_margin_m=point_margin_m, label_slack_m=label_slack_m,
+        options=options,
     )  # fmt: skip

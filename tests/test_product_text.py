@@ -1,8 +1,8 @@
 """The product speaks of the product: code, help text, comments, tests, the Makefile, the
 benchmarks, their results and the documents say what dali does and why, never when or in which
 round of its development something was written, nor where on some machine it ran. A figure's
-date of measurement belongs beside the figure (docs/RESULTS.md, docs/results/, bench/results/); how the
-project got there lives in git history."""
+date of measurement belongs beside the figure (docs/RESULTS.md, docs/experiments.md, docs/results/,
+bench/results/); how the project got there lives in git history."""
 
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ HISTORY = re.compile(
 # a calendar date (not part of a longer token such as a nuScenes scene name)
 DATE = re.compile(r"(?<![-\w])20\d\d-[01]\d-[0-3]\d(?![-\w])")
 # where a date may stand: beside a measured figure
-DATED_DOCUMENTS = ("docs/RESULTS.md", "docs/results/", "bench/results/")
+DATED_DOCUMENTS = ("docs/RESULTS.md", "docs/experiments.md", "docs/results/", "bench/results/")
 # what continues a comment or a quote on the next line, stripped before joining two lines
 CONTINUATION = re.compile(r"^\s*(?:#+|//|\*|>|-)?\s*")
 

@@ -65,14 +65,16 @@ def choice_option(
 
 # Tuning options: settings of an algorithm whose defaults were measured (docs/RESULTS.md,
 # docs/ptsn.md, docs/ppcg.md) and that only research changes, and the engine's fine controls
-# (threads, batch sizes, loader processes, a Ray cluster's address, another sensors.toml). They
+# (threads, batch sizes, loader processes, the executor and a Ray cluster's address, bf16
+# precision, the progress bar, another sensors.toml). They
 # work like any option but stay out of `--help` unless the environment has DALI_HELP=all, so that
 # a command's help shows what running the pipeline needs; each such command says so below its
 # options (TUNING_NOTE, added by StageCommand).
 SHOW_TUNING = os.environ.get("DALI_HELP", "") == "all"
 TUNING_NOTE = (
     "Tuning options (the algorithm's measured defaults, for research) and the engine's fine "
-    "controls (threads, batch sizes, Ray address, another sensors.toml) are listed with: "
+    "controls (threads, batch sizes, executor, precision, progress bar, another sensors.toml) "
+    "are listed with: "
     "DALI_HELP=all dali COMMAND --help"
 )
 # the options that say where and how a command runs, not what it computes: listed in their own
@@ -137,6 +139,14 @@ class StageCommand(click.Command):
             formatter.write_paragraph()
             with formatter.indentation():
                 formatter.write_text(TUNING_NOTE)
+
+
+def ran_counts(outcome) -> dict | None:
+    """The output counts of a stage that ran (a StageOutcome's manifest), for the one-line summary
+    a command prints; None when it was up to date or a dry run."""
+    if outcome.manifest and outcome.status == "ran":
+        return outcome.manifest["outputs"]["counts"]
+    return None
 
 
 def stage_command_class(command: click.Command) -> click.Command:
@@ -301,7 +311,7 @@ def import_options(default_sensor: str | None):
 def device_options(function):
     """--device and --precision, shared by every command that runs the detector (pretrain,
     retrain, self-train, ptsn-sweep, pseudo-label, eval)."""
-    function = click.option(
+    function = tuning_option(
         "--precision",
         type=click.Choice(["fp32", "bf16"]),
         default="fp32",
@@ -341,7 +351,7 @@ def executor_options(function):
         help="With --executor ray: the Ray cluster to use (e.g. HEAD:6379 of `ray start "
         "--head`, or 'auto'). Default: start a local Ray instance for this run.",
     )(function)
-    return click.option(
+    return tuning_option(
         "--executor",
         type=click.Choice(["local", "ray"]),
         default="local",
@@ -354,8 +364,9 @@ def executor_options(function):
 
 
 def no_progress_option(function):
-    """--no-progress, the one switch of every command that draws a progress bar."""
-    return click.option("--no-progress", is_flag=True, help="No progress bar.")(function)
+    """--no-progress, the one switch of every command that draws a progress bar (an engine
+    control: listed with DALI_HELP=all)."""
+    return tuning_option("--no-progress", is_flag=True, help="No progress bar.")(function)
 
 
 def training_options(function):

@@ -12,6 +12,7 @@ from dali_cli.commands.common import (
     device_options,
     no_progress_option,
     out_dir_option,
+    ran_counts,
     scale_from_option,
     score_min_option,
     sensors_option,
@@ -70,8 +71,7 @@ def command(scans, model, scale, scale_from, sensor, calib, front_deg, score_min
         device=device, precision=precision, progress=not no_progress, force=force,
         dry_run=dry_run, sensors_path=sensors_path, rerun=rerun,
     )  # fmt: skip
-    if outcome.status == "ran":
-        counts = outcome.manifest["outputs"]["counts"]
+    if (counts := ran_counts(outcome)) is not None:
         click.echo(
             f"  {counts['boxes']} boxes in {counts['frames']} scans, "
             f"{counts['frames_per_s']} frames/s ({counts['seconds']} s)"

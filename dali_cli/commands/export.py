@@ -11,6 +11,7 @@ from dali_cli.commands.common import (
     choice_option,
     no_progress_option,
     out_dir_option,
+    ran_counts,
     scale_from_option,
     stage_options,
     tuning_option,
@@ -102,8 +103,7 @@ def kitti_command(
         score_min=score_min, keep_outside=keep_outside, project_bbox=project_bbox,
         with_score=not no_score, force=force, dry_run=dry_run, progress=not no_progress,
     )  # fmt: skip
-    if outcome.status == "ran":
-        counts = outcome.manifest["outputs"]["counts"]
+    if (counts := ran_counts(outcome)) is not None:
         click.echo(
             f"  {counts['boxes_written']} boxes in {counts['frames']} files under {Path(out) / 'data'}, "
             f"{counts['boxes_outside_image']} outside the image left out"
@@ -160,6 +160,5 @@ def model_command(model_dir, as_onnx, scale, scale_from, out, force, dry_run):
     outcome = export_model(
         model_dir, out, scale=scale, scale_from=scale_from, force=force, dry_run=dry_run
     )
-    if outcome.status == "ran":
-        counts = outcome.manifest["outputs"]["counts"]
+    if (counts := ran_counts(outcome)) is not None:
         click.echo(f"  opset {counts['opset']}, grid {counts['rows']} x {counts['cols']} pillars")

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import choice_option, import_options, tuning_option
+from dali_cli.commands.common import choice_option, import_options, ran_counts, tuning_option
 from dali_cli.commands.kinds import INTENSITY_MAX, VIEW_DEG
 
 
@@ -21,8 +21,7 @@ def command() -> None:
 
 
 def _summary(outcome) -> None:
-    if outcome.manifest and outcome.status == "ran":
-        counts = outcome.manifest["outputs"]["counts"]
+    if (counts := ran_counts(outcome)) is not None:
         by_label = ", ".join(f"{k} {v}" for k, v in counts.get("boxes_by_label", {}).items())
         click.echo(
             f"  {counts['frames']} frames, {counts['points']} points, "

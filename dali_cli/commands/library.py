@@ -11,6 +11,7 @@ from dali_cli.commands.common import (
     SEED,
     no_progress_option,
     out_dir_option,
+    ran_counts,
     stage_options,
     tuning_option,
 )
@@ -83,8 +84,7 @@ def build_command(out, no_progress, **options):
     from stages.library_build import library_build
 
     outcome = library_build(out, progress=not no_progress, **options)
-    if outcome.status == "ran":
-        counts = outcome.manifest["outputs"]["counts"]
+    if (counts := ran_counts(outcome)) is not None:
         click.echo(
             f"  {counts['meshes']} meshes ({counts['mesh_triangles']} triangles), "
             f"{counts['point_models']} point models ({counts['model_points']} points)"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import no_progress_option, out_dir_option, stage_options
+from dali_cli.commands.common import no_progress_option, out_dir_option, ran_counts, stage_options
 
 
 @click.command(name="merge")
@@ -35,7 +35,6 @@ def command(specs, no_labels, out, force, dry_run, no_progress):
     outcome = merge(
         specs, out, labels=not no_labels, force=force, dry_run=dry_run, progress=not no_progress
     )
-    if outcome.manifest and outcome.status == "ran":
-        counts = outcome.manifest["outputs"]["counts"]
+    if (counts := ran_counts(outcome)) is not None:
         sets = ", ".join(f"{name} {n}" for name, n in counts["frames_by_set"].items())
         click.echo(f"  {counts['frames']} frames ({sets}), {counts.get('boxes', 0)} boxes")

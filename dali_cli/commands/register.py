@@ -8,6 +8,7 @@ from dali_cli.commands.common import (
     data_option,
     no_progress_option,
     out_dir_option,
+    ran_counts,
     stage_options,
     tuning_option,
 )
@@ -68,8 +69,7 @@ def command(target, out, force, dry_run, no_progress, **params):
         dry_run=dry_run,
         progress=not no_progress,
     )
-    if outcome.manifest and outcome.status == "ran":
-        counts = outcome.manifest["outputs"]["counts"]
+    if (counts := ran_counts(outcome)) is not None:
         click.echo(
             f"register: {counts['frames']} scans in {counts['recordings']} recording(s), "
             f"{counts['path_length_m']:.1f} m, {counts['not_converged']} not converged"

@@ -10,6 +10,7 @@ from dali_cli.commands.common import (
     executor_options,
     no_progress_option,
     out_dir_option,
+    ran_counts,
     sensors_option,
     stage_options,
     tuning_option,
@@ -70,8 +71,7 @@ def command(
         threads=threads, sensors_path=sensors_path, force=force, dry_run=dry_run,
         executor=executor, ray_address=ray_address, progress=not no_progress,
     )  # fmt: skip
-    if outcome.status == "ran":
-        counts = outcome.manifest["outputs"]["counts"]
+    if (counts := ran_counts(outcome)) is not None:
         lwh = counts["mean_label_lwh_m"]
         click.echo(
             f"  {counts['frames']} frames, {counts['points']} points, {counts['labels']} cars "

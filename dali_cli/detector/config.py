@@ -50,7 +50,7 @@ class DetectorConfig:
     # logit in the second stage (direction.py; OpenPCDet SECOND's dir_offset). Weight 1, not
     # SECOND's 0.2: within dali's short budgets 0.2 had not learnt it (toy cars with a cabin,
     # 360 steps: 10 of 23 true positives backwards at 0.2, 0 of 24 at 1; on synthetic Waymo-like
-    # frames, three seeds: 4.1 % against 8.3 % backwards, for less AP_3D; docs/RESULTS.md)
+    # frames, three seeds: 4.1 % against 8.3 % backwards, for less AP_3D; docs/experiments.md)
     direction: bool = True
     direction_offset: float = math.pi / 4
     direction_weight: float = 1.0

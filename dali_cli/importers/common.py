@@ -199,12 +199,13 @@ def write_imported(
     sensor: str,
     attrs: dict | None = None,
     total: int | None = None,
-    description: str = "import",
+    description: str | None = None,
     notes: list[str] | None = None,
     progress: bool = True,
 ):
     """Write `(frame_id, points (n, 4), BoxTable | None)` triples as a FrameSet + boxes.parquet
-    (`progress`: a progress bar of `total` frames on stderr, named `description`).
+    (`progress`: a progress bar of `total` frames on stderr, named `description`; by default
+    "import " and the attrs' source_format).
 
     A frame whose table is None has no labels; when no frame has labels, no box table is written
     (an unlabelled set). Returns the manifest's BuildResult (counts, notes). `out` is the stage's
@@ -215,6 +216,8 @@ def write_imported(
     from dali_cli.store.artifacts import BoxTable, FrameSetWriter, write_boxes
     from dali_cli.store.manifest import BuildResult
 
+    if description is None:
+        description = f"import {(attrs or {}).get('source_format', '')}".rstrip()
     tables = []
     unlabeled = 0
     with FrameSetWriter(out, sensor=sensor, attrs=attrs) as writer:

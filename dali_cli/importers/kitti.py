@@ -452,7 +452,6 @@ def build_import(
         sensor,
         attrs,
         total=len(frame_ids),
-        description="import kitti",
         progress=progress,
         notes=[
             "boxes: label_2 through calib (R0_rect, Tr_velo_to_cam) to the LiDAR frame, geometric centre",

@@ -220,15 +220,7 @@ def build_import(
         "crop_fov": bool(crop_fov),
         "crop_front_deg": crop_front_deg,
     }
-    result = write_imported(
-        out,
-        frames(),
-        sensor,
-        attrs,
-        total=len(frame_ids),
-        description="import kitti-odometry",
-        progress=progress,
-    )
+    result = write_imported(out, frames(), sensor, attrs, total=len(frame_ids), progress=progress)
     if table is not None:
         write_table(out, table)
         kept = [

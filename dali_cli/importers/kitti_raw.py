@@ -354,15 +354,7 @@ def build_import(
             yield frame_id, points, table
 
     attrs = {"source_format": "kitti-raw", "crop_fov": bool(crop_fov)}
-    result = write_imported(
-        out,
-        frames(),
-        sensor,
-        attrs,
-        total=len(frame_ids),
-        description="import kitti-raw",
-        progress=progress,
-    )
+    result = write_imported(out, frames(), sensor, attrs, total=len(frame_ids), progress=progress)
     if lidar_poses is not None:
         write_sequence(out, frame_ids, lidar_poses)
         travelled = np.linalg.norm(np.diff(lidar_poses[:, :3, 3], axis=0), axis=1).sum()

@@ -537,7 +537,6 @@ def build_import(
         sensor,
         attrs,
         total=len(samples),
-        description="import nuscenes",
         progress=progress,
         notes=[
             attrs["axes"],

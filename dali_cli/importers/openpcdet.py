@@ -152,7 +152,6 @@ def build_import(
         sensor,
         attrs,
         total=len(frame_ids),
-        description="import openpcdet",
         progress=progress,
         notes=[f"intensity divided by {intensity_max}"],
     )

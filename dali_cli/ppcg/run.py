@@ -29,6 +29,7 @@ from dali_cli.ppcg.orient import turned
 from dali_cli.ppcg.point_models import angular_threshold_rad
 from dali_cli.ppcg.rc import RcParams
 from dali_cli.runtime import console
+from dali_cli.runtime.device import check_options
 from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.sensors import get_profile
 from dali_cli.store.artifacts import BoxTable, FrameSet, FrameSetWriter, read_boxes, write_boxes
@@ -127,6 +128,47 @@ class PpcgOptions(TypedDict, total=False):
     bank: ModelBank | None  # replaces the library (tests)
     executor: str  # local | ray (dali_cli.executors)
     ray_address: str | None
+
+
+def run_ppcg_stage(
+    mode: str,
+    target_dir: str | Path,
+    boxes_dir: str | Path,
+    library_dir: str | Path,
+    out: str | Path,
+    *,
+    method: dict,
+    shared: dict,
+    orient_models: bool | None,
+    point_margin_m: float,
+    label_slack_m: tuple[float, float, float],
+    options: PpcgOptions,
+) -> StageOutcome:
+    """ppcg-rc or ppcg-cf from its stage function's arguments (stages.ppcg_rc, stages.ppcg_cf):
+    `method` the mode's own parameters and `shared` top_k, seed and ground_margin_m (both
+    recorded as given); the angular threshold (and RC's mount height) from the target's profile;
+    run_ppcg checks the margin and the slack, resolves the orientation (it knows the model kind)
+    and records each only when used."""
+    check_options(options, PpcgOptions, f"ppcg_{mode}")
+    _, profile = target_profile(
+        FrameSet(target_dir), options.get("sensor"), options.get("sensors_path")
+    )
+    params_class, of_profile = (
+        (RcParams, {"mount_height_m": profile.mount_height_m}) if mode == "rc" else (CfParams, {})
+    )
+    params = params_class(
+        **of_profile,
+        theta_rad=angular_threshold_rad(profile.points_per_beam),
+        orient=orient_models,
+        point_margin_m=float(point_margin_m),
+        label_slack_m=tuple(float(v) for v in label_slack_m),
+        **method,
+        **shared,
+    )
+    return run_ppcg(
+        mode, target_dir, boxes_dir, library_dir, out,
+        params=params, stage_params={**method, **shared}, **options,
+    )  # fmt: skip
 
 
 def run_ppcg(
