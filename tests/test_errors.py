@@ -19,6 +19,7 @@ from dali_cli.evaluation.errors import (
     box_errors,
     breakdown,
     format_breakdown,
+    size_spread,
     summarize,
     turned_around,
 )
@@ -111,6 +112,25 @@ def test_summary_of_a_symmetric_and_a_shifted_sample():
     assert stats["p16"] == pytest.approx(0.25 - 0.68) and stats["p84"] == pytest.approx(0.25 + 0.68)
     assert stats["median_abs"] == pytest.approx(0.5, abs=0.02)
     assert set(summarize(np.zeros(0)).values()) == {None}
+
+
+def test_size_spread_tells_one_size_for_every_car_from_sizes_that_follow_the_cars():
+    rng = np.random.default_rng(0)
+    truth = np.zeros((200, 7))
+    truth[:, 3] = rng.uniform(3.2, 5.0, 200)  # lengths as varied as KITTI's cars
+    truth[:, 4] = rng.uniform(1.5, 1.9, 200)
+    same = truth.copy()
+    same[:, 3], same[:, 4] = 3.9, 1.6  # every car the same box
+    follows = truth.copy()
+    follows[:, 3] += rng.normal(0, 0.05, 200)
+    one_size, per_car = size_spread(same, truth), size_spread(follows, truth)
+    assert one_size["l_m"]["spread_ratio"] == pytest.approx(0.0, abs=1e-9)
+    assert per_car["l_m"]["spread_ratio"] == pytest.approx(1.0, abs=0.1)
+    assert per_car["l_m"]["labels"]["p5"] == pytest.approx(np.percentile(truth[:, 3], 5), abs=1e-4)
+    assert per_car["w_m"]["spread_ratio"] == pytest.approx(1.0)  # widths kept exactly
+    assert size_spread(truth[:1], truth[:1])["l_m"]["spread_ratio"] is None
+    _, gt, pred = scene()
+    assert "l spread: predicted" in format_breakdown(breakdown(pred, gt))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -84,6 +84,33 @@ def summarize(values: np.ndarray) -> dict:
     }
 
 
+SIZE_SPREAD = (("l_m", 3), ("w_m", 4))  # the sizes whose spread is compared, (name, box column)
+
+
+def size_spread(predicted: np.ndarray, truth: np.ndarray) -> dict:
+    """How much the true positives' sizes vary, predicted against labelled: per SIZE_SPREAD
+    column of the matched `predicted (n, 7)` and `truth (n, 7)` boxes, the 5 / 95 % percentiles
+    and the standard deviation (m) of each, and `spread_ratio`, the predicted 5-95 % range over
+    the labels' (1: as varied as the cars; near 0: every car the same size). None each for n < 2."""
+    result = {}
+    for name, column in SIZE_SPREAD:
+        block = {}
+        for side, boxes in (("predicted", predicted), ("labels", truth)):
+            values = np.asarray(boxes[:, column], np.float64)
+            if len(values) < 2:
+                block[side] = dict.fromkeys(("p5", "p95", "std"))
+                continue
+            p5, p95 = np.percentile(values, [5, 95])
+            block[side] = {"p5": round(float(p5), 4), "p95": round(float(p95), 4),
+                           "std": round(float(values.std()), 4)}  # fmt: skip
+        ranges = [block[side]["p95"] - block[side]["p5"] if block[side]["p5"] is not None else None
+                  for side in ("predicted", "labels")]  # fmt: skip
+        ratio = ranges[0] / ranges[1] if ranges[1] else None  # no spread in the labels: no ratio
+        block["spread_ratio"] = None if ratio is None else round(float(ratio), 4)
+        result[name] = block
+    return result
+
+
 def errors_by_band(
     errors: np.ndarray, distance_m: np.ndarray, turned: np.ndarray, bands: dict = ERROR_BANDS_M
 ) -> dict:
@@ -209,6 +236,7 @@ def breakdown(
             **errors_by_band(
                 errors, np.hypot(truth[:, 0], truth[:, 1]), turned_around(predicted, truth)
             ),
+            "sizes": size_spread(predicted, truth),
         },
         "false_positives": {},
     }
@@ -294,6 +322,15 @@ def format_breakdown(result: dict) -> str:
             for k in ("median", "mean", "median_abs", "p16", "p84")
         )
         lines.append(f"{quantity:<14}{cells}")
+    for name, block in (tps.get("sizes") or {}).items():
+        predicted, labels = block["predicted"], block["labels"]
+        if predicted["p5"] is None:
+            continue
+        lines.append(
+            f"{name[0]} spread: predicted {predicted['p5']:.2f}-{predicted['p95']:.2f} m, labels "
+            f"{labels['p5']:.2f}-{labels['p95']:.2f} m (5-95 %), ratio "
+            + ("-" if block["spread_ratio"] is None else f"{block['spread_ratio']:.2f}")
+        )
     lines.append(
         f"{'IoU':<10}{'TP':>6}{'FP':>6}{'bg':>6}{'misloc':>7}{'dup':>6}{'missed':>7}"
         f"{'AP':>8}  AP if fixed: " + " / ".join(FIXES)
