@@ -9,7 +9,7 @@ from test_tracks import ego_poses
 from dali_cli.geometry import inside_boxes
 from dali_cli.labels import track_fit, tracks
 
-FIT = track_fit.TrackFit()
+FIT = track_fit.TrackFit(across=True)
 # the true car: 4.6 m long, 1.85 m wide, 1.5 m high, its bottom on the ground (z = -1.73)
 TRUTH = np.array([20.0, 5.0, -1.73 + 0.75, 4.6, 1.85, 1.5, 0.1])
 # the detector's box of it: the usual 3.9 x 1.65 car, 0.3 m off along it, 0.1 m across, too low
@@ -58,13 +58,17 @@ def scans(cars: list[np.ndarray], poses: np.ndarray, seed: int = 0) -> list[np.n
     return out
 
 
-def fit_one(prior: np.ndarray, poses: np.ndarray, points: list[np.ndarray], others=None):
-    """The fitted box `(7,)` of one car (world box `prior`) over the scans, and its points."""
+def fit_one(prior, poses, points, others=None, parked=None, fit=FIT):
+    """The fitted box `(7,)` of one car (world box `prior`, scored 0.6) over the scans, and its
+    points; `parked` `(J, 8)`: other parked cars' world boxes and scores; `others` `(J, 7)`:
+    moving cars' boxes."""
     others = np.zeros((0, 7)) if others is None else others
+    parked = np.zeros((0, 8)) if parked is None else parked
+    cars, score = np.vstack([prior, parked[:, :7]]), np.r_[0.6, parked[:, 7]]
     car, uvz, sensor = track_fit.accumulate(
-        prior[None], poses, points.__getitem__, lambda f: others, FIT
+        cars, score, poses, points.__getitem__, lambda f: others, fit
     )
-    boxes, used = track_fit.fit_cars(prior[None], car, uvz, sensor, FIT)
+    boxes, used = track_fit.fit_cars(cars, car, uvz, sensor, fit)
     return boxes[0], used[0]
 
 
@@ -132,6 +136,30 @@ def test_another_cars_points_are_not_this_cars():
     assert unclaimed[3] > TRUTH[3] + 0.2  # without the claim, its front face joins this car
 
 
+def test_a_lower_scored_box_on_the_cars_front_takes_none_of_its_points():
+    # the detector's fragment of a long car: a box on its front half, scored lower
+    fragment = TRUTH.copy()
+    fragment[:2] += 1.2 * np.array([np.cos(0.1), np.sin(0.1)])
+    fragment[3] = 3.0
+    poses = straight(30, -5.0, 1.5)
+    points = scans([TRUTH], poses)
+    fitted, _ = fit_one(PRIOR, poses, points, parked=np.r_[fragment, 0.2][None])
+    np.testing.assert_allclose(fitted[3], TRUTH[3], atol=0.05)
+    # scored higher than the car, the same box does take them
+    taken, _ = fit_one(PRIOR, poses, points, parked=np.r_[fragment, 0.9][None])
+    assert taken[3] < TRUTH[3] - 0.5
+
+
+def test_by_default_the_width_and_lateral_place_stay_the_detectors():
+    poses = straight(30, -5.0, 1.5)
+    fitted, _ = fit_one(PRIOR, poses, scans([TRUTH], poses), fit=track_fit.TrackFit())
+    np.testing.assert_allclose(fitted[3], TRUTH[3], atol=0.05)  # the length is fitted
+    assert fitted[4] == PRIOR[4]
+    c, s = np.cos(PRIOR[6]), np.sin(PRIOR[6])
+    across = -s * (fitted[0] - PRIOR[0]) + c * (fitted[1] - PRIOR[1])
+    assert abs(across) < 1e-9
+
+
 def test_no_points_one_scan_and_no_cars_keep_the_tracked_boxes():
     poses = straight(3, -5.0, 1.5)
     empty = [np.zeros((0, 4), np.float32)] * 3
@@ -150,7 +178,7 @@ def test_no_points_one_scan_and_no_cars_keep_the_tracked_boxes():
         np.zeros((0, 7)), np.zeros(0, np.int64), nothing, nothing, FIT
     )
     assert cars.shape == (0, 7) and counts.shape == (0,)
-    car, uvz, sensor = track_fit.scan_points(np.zeros((0, 7)), np.eye(4), np.ones((5, 3)), np.zeros((0, 7)), FIT)  # fmt: skip
+    car, uvz, sensor = track_fit.scan_points(np.zeros((0, 7)), np.zeros(0), np.eye(4), np.ones((5, 3)), np.zeros((0, 7)), FIT)  # fmt: skip
     assert car.shape == (0,) and uvz.shape == (0, 3) and sensor.shape == (0, 3)
 
 

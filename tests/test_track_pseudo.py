@@ -256,11 +256,17 @@ def test_fit_track_points_is_recorded_and_fits_the_car_to_its_points(tmp_path):
     assert "track_fit" not in json.loads((plain / "manifest.json").read_text())["params"]
     table, before = read_boxes(fitted), read_boxes(plain)
     assert sorted(table.frame_id) == frame_ids
-    # the car's points fill 90 % of its box (car_points) and the ego stays behind it: the
-    # width is the points' (an end face was seen), the length the detector's (the front never
-    # faced the sensor), and the box is still on the car
-    assert (table.boxes[:, 4] < before.boxes[:, 4] - 0.1).all()
-    np.testing.assert_allclose(table.boxes[:, 3], before.boxes[:, 3])
+    # the car's points fill 90 % of its box (car_points) and the ego stays behind it: the box
+    # moves along its heading onto the points' rear end, the detector's length and width kept
+    # (the front never faced the sensor), and stays on the car
+    order = np.argsort(table.frame_id), np.argsort(before.frame_id)
+    fitted_boxes, plain_boxes = table.boxes[order[0]], before.boxes[order[1]]
+    np.testing.assert_allclose(fitted_boxes[:, 3:5], plain_boxes[:, 3:5])
+    shift = fitted_boxes[:, :2] - plain_boxes[:, :2]
+    heading = np.stack([np.cos(plain_boxes[:, 6]), np.sin(plain_boxes[:, 6])], 1)
+    along = (shift * heading).sum(1)
+    assert (np.abs(along) > 0.05).all()
+    np.testing.assert_allclose(np.hypot(*shift.T), np.abs(along), atol=1e-6)
     for row, frame_id in enumerate(table.frame_id):
         assert bev_iou(table.boxes[[row]], truth[[frame_ids.index(frame_id)]])[0, 0] > 0.7
 

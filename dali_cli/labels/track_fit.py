@@ -18,11 +18,13 @@ width); the top when the roof was seen. Where a side is not
 bounded, the detector's size stays as a prior: the box keeps the detector's length from the one
 seen end (or the points' extent, when longer); with neither end seen, the detector's box is
 shifted just enough to hold the points. The bottom is never seen (the ground is removed): it
-stays the detector's.
+stays the detector's. The width and lateral place stay the detector's unless `across` (TrackFit).
 
 Candidate points of a car in a scan are those in its box grown by `margin_along_m` /
 `margin_across_m`, at least `ground_clearance_m` above its bottom and at most 0.3 m above its
-top, and not within 0.15 m of another box of the scan (another car's). Along and across the
+top, and not within 0.15 m of a box of the scan that outranks the car: a moving car's, or a
+parked car's scored higher (a low-scored box on the front half of a long car, the detector's
+fragment of it, takes none of its points; two cars side by side keep their own). Along and across the
 heading, points beyond an empty stretch of `gap_m` from the box (a car parked just behind, a
 hedge beside) are dropped; the extents are the `quantile` and 1 - `quantile` quantiles.
 
@@ -47,16 +49,20 @@ FACE_MIN_POINTS = 5  # a face is seen only with at least this many points on it
 @dataclass(frozen=True)
 class TrackFit:
     """The fit's parameters (the module docstring); `min_points`: a car with fewer accumulated
-    candidate points keeps its tracked box."""
+    candidate points keeps its tracked box; `across`: fit the width and the lateral position
+    too (off: on drive 0001 the accumulated near side lies ~5 cm beyond the true one, the far
+    side, seen only at an end face's rounded corner, short of it, and the detector's width and
+    lateral place, already fitted to the points scan by scan, scored better)."""
 
     margin_along_m: float = 1.0
     margin_across_m: float = 0.5
-    ground_clearance_m: float = 0.3
+    ground_clearance_m: float = 0.4
     quantile: float = 0.01
     gap_m: float = 0.4
     face_depth_m: float = 0.25
     face_share: float = 0.5
     min_points: int = 30
+    across: bool = False
 
     def __post_init__(self):
         wrong = [
@@ -85,14 +91,29 @@ class TrackFit:
         return asdict(self)
 
 
+def claim_ranks(score: np.ndarray) -> np.ndarray:
+    """`(K,)` int64 rank of each car by `score (K,)`, 0 the highest (ties: the lower index)."""
+    rank = np.empty(len(score), np.int64)
+    rank[np.lexsort((np.arange(len(score)), -np.asarray(score, np.float64)))] = np.arange(
+        len(score)
+    )
+    return rank
+
+
 def scan_points(
-    cars: np.ndarray, pose: np.ndarray, points: np.ndarray, others: np.ndarray, fit: TrackFit
+    cars: np.ndarray,
+    score: np.ndarray,
+    pose: np.ndarray,
+    points: np.ndarray,
+    others: np.ndarray,
+    fit: TrackFit,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The candidate points of one scan for each car (the module docstring).
 
-    cars : (K, 7) world boxes; pose : (4, 4) the scan's LiDAR pose; points : (M, >=3) in its
-    LiDAR frame; others : (J, 7) world boxes of the scan's other cars (moving ones), whose
-    points are no parked car's. Returns car (n,) int64 index into `cars`, uvz (n, 3) float64
+    cars : (K, 7) world boxes; score : (K,) their scores (a car's points are taken by a higher
+    scored car's box); pose : (4, 4) the scan's LiDAR pose; points : (M, >=3) in its LiDAR
+    frame; others : (J, 7) world boxes of the scan's other cars (moving ones), whose points are
+    no parked car's. Returns car (n,) int64 index into `cars`, uvz (n, 3) float64
     the point in that car's box frame (u along its heading, v to its left, z up from its
     bottom) and sensor (n, 3) float64 the scan's sensor (its LiDAR origin) in the same frame."""
     cars = np.asarray(cars, np.float64).reshape(-1, 7)
@@ -107,11 +128,12 @@ def scan_points(
     keep &= np.abs(frame[:, 1]) <= half[:, 1] + fit.margin_across_m
     keep &= frame[:, 2] >= -half[:, 2] + fit.ground_clearance_m
     keep &= frame[:, 2] <= half[:, 2] + TOP_MARGIN_M
-    claimers = np.concatenate([cars, np.asarray(others, np.float64).reshape(-1, 7)])
-    claim_point, claim_box = point_box_pairs(xyz, claimers, CLAIM_MARGIN_M)
-    claims = np.bincount(claim_point, minlength=len(xyz))  # (M,) boxes claiming each point
-    own = np.all(np.abs(frame) <= half + CLAIM_MARGIN_M, axis=1)  # does the pair's car claim it?
-    keep &= claims[point] - own == 0  # claimed by no other box
+    others = np.asarray(others, np.float64).reshape(-1, 7)
+    rank = np.r_[claim_ranks(score), np.full(len(others), -1)]  # (K + J,): moving cars first
+    claim_point, claim_box = point_box_pairs(xyz, np.concatenate([cars, others]), CLAIM_MARGIN_M)
+    top = np.full(len(xyz), len(cars), np.int64)  # (M,) the best rank claiming each point
+    np.minimum.at(top, claim_point, rank[claim_box])
+    keep &= top[point] >= rank[car]  # no box outranking the car claims the point
     bottom = np.c_[np.zeros((keep.sum(), 2)), half[keep, 2]]  # (n, 3): z from the box's bottom
     sensor = points_in_box_frames(np.broadcast_to(pose[:3, 3], (len(cars), 3)), cars)  # (K, 3)
     return car[keep], frame[keep] + bottom, sensor[car[keep]] + bottom
@@ -119,16 +141,19 @@ def scan_points(
 
 def accumulate(
     cars: np.ndarray,
+    score: np.ndarray,
     poses: np.ndarray,
     points_of: Callable[[int], np.ndarray],
     others_of: Callable[[int], np.ndarray],
     fit: TrackFit,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """scan_points over every scan `f` of a drive (poses (F, 4, 4), points_of(f) -> (M, >=3),
+    """scan_points over every scan `f` of a drive (cars (K, 7) and their score (K,), poses
+    (F, 4, 4), points_of(f) -> (M, >=3),
     others_of(f) -> (J, 7) world boxes), concatenated: car (n,) int64, uvz (n, 3) and sensor
     (n, 3) float64."""
     parts = [
-        scan_points(cars, poses[f], points_of(f), others_of(f), fit) for f in range(len(poses))
+        scan_points(cars, score, poses[f], points_of(f), others_of(f), fit)
+        for f in range(len(poses))
     ]
     if not parts:
         return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3))
@@ -212,8 +237,12 @@ def fit_car(box: np.ndarray, uvz: np.ndarray, sensor: np.ndarray, fit: TrackFit)
     roof = face_seen(z, u, sz, top, 1, along, fit)
     u_low, u_high = bounded_interval(u_low, u_high, *ends, -length / 2, length / 2)
     any_end = ends[0] or ends[1]
-    v_low, v_high = bounded_interval(
-        v_low, v_high, sides[0] or any_end, sides[1] or any_end, -width / 2, width / 2
+    v_low, v_high = (
+        bounded_interval(
+            v_low, v_high, sides[0] or any_end, sides[1] or any_end, -width / 2, width / 2
+        )
+        if fit.across
+        else (-width / 2, width / 2)
     )
     _, top = bounded_interval(0.0, top, True, roof, 0.0, height)
     du, dv = (u_low + u_high) / 2, (v_low + v_high) / 2

@@ -341,7 +341,7 @@ def track_boxes(
     if fit is not None and len(car_boxes):
         moving_frame, moving_world = frame[moving_rows], world[moving_rows]
         owner, uvz, sensor = accumulate(
-            car_boxes, poses, points_of, lambda f: moving_world[moving_frame == f], fit
+            car_boxes, car_scores, poses, points_of, lambda f: moving_world[moving_frame == f], fit
         )
         car_boxes, _ = fit_cars(car_boxes, owner, uvz, sensor, fit)
     parts = []
