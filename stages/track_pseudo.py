@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 
 from dali_cli.labels import tracks
-from dali_cli.labels.track_fit import TrackFit
 from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.store.artifacts import BoxTable, FrameSet, read_boxes, write_boxes
 from dali_cli.store.manifest import BuildResult, StageOutcome, run_stage
@@ -41,7 +40,6 @@ def track_pseudo(
     track_score_min: float = tracks.TRACK_SCORE_MIN,
     params: tracks.TrackParams = tracks.TrackParams(),
     poses_dir: str | Path | None = None,
-    fit: TrackFit | None = None,
     force: bool = False,
     dry_run: bool = False,
 ) -> StageOutcome:
@@ -49,8 +47,7 @@ def track_pseudo(
     `target_dir` (its sequence table's poses and its points, never its labels), keep the tracked
     boxes scored >= `track_score_min` (a parked car: its boxes' median score; a moving track: its mean).
     `poses_dir`: read the poses and recordings from its sequence.parquet (`dali register`'s
-    output) instead of the target's. `fit`: fit each parked car's box to its points of every
-    scan (dali_cli.labels.track_fit) before placing it; None: its tracked box as it is."""
+    output) instead of the target's."""
     pseudo_dir, target_dir = Path(pseudo_dir), Path(target_dir)
     sequence_dir = Path(poses_dir) if poses_dir is not None else target_dir
     for name, value in asdict(params).items():
@@ -59,8 +56,6 @@ def track_pseudo(
     if not 0 <= track_score_min <= 1:
         raise ParameterError("track_score_min", f"must be in [0, 1], got {track_score_min}")
     stage_params = {"track_score_min": track_score_min, **asdict(params)}
-    if fit is not None:  # recorded only when used: runs without it keep their manifests
-        stage_params["track_fit"] = fit.record()
     # the poses are an input (hashed) only when given: runs without them keep their manifests
     inputs = {"pseudo": pseudo_dir, "target": target_dir, "poses": poses_dir}
 
@@ -90,7 +85,7 @@ def track_pseudo(
         tracked = tracks.track_recordings(
             recordings, frame, table.boxes, np.asarray(table["score"], np.float64),
             np.asarray(table["num_points"]), poses,
-            lambda f: frames.frame(frame_ids[f]), params, fit,
+            lambda f: frames.frame(frame_ids[f]), params,
         )  # fmt: skip
         keep = tracked.score >= track_score_min
         label = np.full(len(tracked.frame), "Car", dtype=object)

@@ -241,36 +241,6 @@ def test_track_pseudo_places_the_parked_car_in_every_scan_and_drops_clutter(tmp_
     assert len(read_boxes(tmp_path / "strict")) == 0
 
 
-def test_fit_track_points_is_recorded_and_fits_the_car_to_its_points(tmp_path):
-    target, pseudo, truth, frame_ids = sequence_target(tmp_path)
-    plain, fitted = tmp_path / "plain", tmp_path / "fitted"
-    assert (
-        invoke("track-pseudo", "--pseudo", pseudo, "--data", target, "--out", plain).exit_code == 0
-    )
-    result = invoke(
-        "track-pseudo", "--pseudo", pseudo, "--data", target, "--fit-track-points", "--out", fitted
-    )  # fmt: skip
-    assert result.exit_code == 0, result.output
-    params = json.loads((fitted / "manifest.json").read_text())["params"]
-    assert params["track_fit"]["margin_along_m"] > 0
-    assert "track_fit" not in json.loads((plain / "manifest.json").read_text())["params"]
-    table, before = read_boxes(fitted), read_boxes(plain)
-    assert sorted(table.frame_id) == frame_ids
-    # the car's points fill 90 % of its box (car_points) and the ego stays behind it: the box
-    # moves along its heading onto the points' rear end, the detector's length and width kept
-    # (the front never faced the sensor), and stays on the car
-    order = np.argsort(table.frame_id), np.argsort(before.frame_id)
-    fitted_boxes, plain_boxes = table.boxes[order[0]], before.boxes[order[1]]
-    np.testing.assert_allclose(fitted_boxes[:, 3:5], plain_boxes[:, 3:5])
-    shift = fitted_boxes[:, :2] - plain_boxes[:, :2]
-    heading = np.stack([np.cos(plain_boxes[:, 6]), np.sin(plain_boxes[:, 6])], 1)
-    along = (shift * heading).sum(1)
-    assert (np.abs(along) > 0.05).all()
-    np.testing.assert_allclose(np.hypot(*shift.T), np.abs(along), atol=1e-6)
-    for row, frame_id in enumerate(table.frame_id):
-        assert bev_iou(table.boxes[[row]], truth[[frame_ids.index(frame_id)]])[0, 0] > 0.7
-
-
 def test_track_pseudo_without_poses_says_how_to_get_them(tmp_path):
     target, pseudo, _, _ = sequence_target(tmp_path, frames=4)
     (target / "sequence.parquet").unlink()

@@ -13,7 +13,6 @@ from dali_cli.commands.common import (
     tuning_option,
 )
 from dali_cli.commands.kinds import DISTANCE_M, MARGIN_M
-from dali_cli.labels.track_fit import TrackFit
 from dali_cli.labels.tracks import TRACK_SCORE_MIN, TrackParams
 
 DEFAULTS = TrackParams()
@@ -43,13 +42,8 @@ DEFAULTS = TrackParams()
 @tuning_option("--min-points", type=click.IntRange(min=1), default=DEFAULTS.min_points,
                show_default=True, help="Points a scan must hold in a parked car's box for the "
                                        "box to be placed there.")  # fmt: skip
-@tuning_option("--fit-track-points", is_flag=True,
-               help="Fit each parked car's box to its points of every scan (moved by the "
-                    "poses): its length, width and height where the points bound them, the "
-                    "detector's where a side was never seen; the heading stays the track's.")  # fmt: skip
 @stage_options
-def command(pseudo, target, poses_dir, out, track_score_min, fit_track_points, force, dry_run,
-            **params):  # fmt: skip
+def command(pseudo, target, poses_dir, out, track_score_min, force, dry_run, **params):
     """Keep the pseudo boxes that persist over DATA's scans: the boxes go into one world frame
     by the scans' poses and are linked scan by scan (nearest within --gate-m of where the
     track's velocity puts it); a parked car (its track moves < --parked-m-per-frame a scan; its
@@ -69,8 +63,7 @@ def command(pseudo, target, poses_dir, out, track_score_min, fit_track_points, f
 
     outcome = track_pseudo(
         pseudo, target, out, track_score_min=track_score_min, params=TrackParams(**params),
-        poses_dir=poses_dir, fit=TrackFit() if fit_track_points else None, force=force,
-        dry_run=dry_run,
+        poses_dir=poses_dir, force=force, dry_run=dry_run,
     )  # fmt: skip
     if outcome.manifest and outcome.status == "ran":
         counts = outcome.manifest["outputs"]["counts"]

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from dali_cli.geometry import count_points_in_boxes, wrap_angle
-from dali_cli.labels.track_fit import TrackFit, accumulate, fit_cars
 
 # a tracked car is kept when its score (a parked car's median, a moving track's mean) is at least
 # this: on drive 2011_09_26_drive_0001 the true cars' lie at 0.50-0.55, clutter's mostly < 0.45
@@ -316,7 +315,6 @@ def track_boxes(
     poses: np.ndarray,
     points_of,
     params: TrackParams = TrackParams(),
-    fit: TrackFit | None = None,
 ) -> TrackedBoxes:
     """Pseudo boxes of a sequence turned into tracked boxes: linked in the world frame
     (link_tracks); each parked car (parked_cars, found in >= min_hits scans) as one world box
@@ -327,8 +325,7 @@ def track_boxes(
 
     frame : (N,) int scan position (0..F-1); boxes : (N, 7) LiDAR frames; score : (N,);
     num_points : (N,) the points in each input box; poses : (F, 4, 4) LiDAR poses;
-    points_of : callable(f) -> (M, >=3) points of scan f; fit: each parked car's box fitted to
-    its points of every scan (dali_cli.labels.track_fit) before it is placed; None: not.
+    points_of : callable(f) -> (M, >=3) points of scan f.
     """
     world = np.empty_like(boxes, dtype=np.float64)
     for f in np.unique(frame):
@@ -337,17 +334,11 @@ def track_boxes(
     car, car_boxes, car_scores = parked_cars(track, frame, world, score, params)
     moving = (car < 0) & (track_lengths(track) >= params.min_hits)
     moving &= ~parked_tracks(track, frame, world, params)
-    moving_rows = np.flatnonzero(moving)
-    if fit is not None and len(car_boxes):
-        moving_frame, moving_world = frame[moving_rows], world[moving_rows]
-        owner, uvz, sensor = accumulate(
-            car_boxes, car_scores, poses, points_of, lambda f: moving_world[moving_frame == f], fit
-        )
-        car_boxes, _ = fit_cars(car_boxes, owner, uvz, sensor, fit)
     parts = []
     for f in range(len(poses)):
         index, local, counts = place_in_scan(car_boxes, poses[f], points_of(f), params.min_points)
         parts.append((np.full(len(index), f), local, car_scores[index], counts, index))
+    moving_rows = np.flatnonzero(moving)
     _, moving_id = np.unique(track[moving_rows], return_inverse=True)
     motion = motion_headings(track, frame, world, params)[moving_rows]
     moving_boxes = boxes[moving_rows].astype(np.float64, copy=True)
@@ -379,7 +370,6 @@ def track_recordings(
     poses: np.ndarray,
     points_of,
     params: TrackParams = TrackParams(),
-    fit: TrackFit | None = None,
 ) -> TrackedBoxes:
     """track_boxes on each recording (drive) of a set on its own: `recording` (F,) names the
     recording of each scan; scans of different recordings (poses in different world frames)
@@ -393,7 +383,7 @@ def track_recordings(
         rows = np.flatnonzero(np.isin(frame, positions))
         tracked = track_boxes(
             np.searchsorted(positions, frame[rows]), boxes[rows], score[rows], num_points[rows],
-            poses[positions], lambda f, positions=positions: points_of(int(positions[f])), params, fit,
+            poses[positions], lambda f, positions=positions: points_of(int(positions[f])), params,
         )  # fmt: skip
         moving = tracked.source_row >= 0
         tracked.frame = positions[tracked.frame]
@@ -403,7 +393,7 @@ def track_recordings(
         parts.append(tracked)
     fields = ("frame", "boxes", "score", "num_points", "car", "parked", "source_row")
     if not parts:
-        return track_boxes(frame, boxes, score, num_points, poses, points_of, params, fit)
+        return track_boxes(frame, boxes, score, num_points, poses, points_of, params)
     return TrackedBoxes(
         **{name: np.concatenate([getattr(part, name) for part in parts]) for name in fields}
     )
