@@ -223,6 +223,20 @@ def publish(staging: Path, out: Path) -> None:
         staging.rename(out)
 
 
+def use_lines(model: Path, has_scale: bool, config: dict) -> str:
+    """The card's "Use": detect on one's own scans (at the model's scale.json, in the front view
+    it was adapted on, model.json's config front_deg: detect's default) and eval."""
+    front = config.get("front_deg")
+    seen = [*(["at the model's scale.json"] if has_scale else []),
+            *([f"in the front {front:g}° it was adapted on; --front-deg 360: every point"]
+              if front else [])]  # fmt: skip
+    return (f"dali detect SCANS --model {model} --out OUT    # your own scans: .bin, .pcd, .npy, "
+            "a KITTI drive" + (f" ({', '.join(seen)})" if seen else "") + "\n    "
+            f"dali eval --model {model} --data DATA" + (
+                f" --scale-from {model}" if has_scale else "") + " --out OUT"
+            "    # AP on a labelled frame set")  # fmt: skip
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", type=Path, required=True)
@@ -249,11 +263,7 @@ def main(argv: list[str] | None = None) -> None:
     recipe = {name: [evaluation(d) for d in dirs if (d / "metrics.json").is_file()]
               for name, dirs in named_dirs(args.recipe, "--recipe").items()}  # fmt: skip
     scale = read_json(scale_file)["scale"] if scale_file else 1.0
-    use = (f"dali detect SCANS --model {args.out} --out OUT    # your own scans: .bin, .pcd, .npy, "
-           "a KITTI drive" + (" (at the model's scale.json)" if scale_file else "") + "\n    "
-           f"dali eval --model {args.out} --data DATA" + (
-               f" --scale-from {args.out}" if scale_file else "") + " --out OUT"
-           "    # AP on a labelled frame set")  # fmt: skip
+    use = use_lines(args.out, bool(scale_file), read_json(args.model / "model.json")["config"])
     card = {
         "name": args.name,
         "title": args.title,

@@ -2,10 +2,13 @@
 
 Reads SCANS (dali_cli.importers.scans: scan files, a folder of them, a KITTI raw drive or object
 split, or a dali frame set), runs the detector at the model's test-time scale (its scale.json, or
---scale / --scale-from) and writes OUT/boxes.parquet (LiDAR frame, score, num_points), one
-KITTI label_2 file a scan under OUT/label_2 (camera frame, with calibration) or a LiDAR-frame text
-table OUT/lidar/<frame>.txt (without), and the manifest. Its boxes are the model's own, those
-`dali eval` scores: pseudo-label's size correction and point fit are not applied.
+--scale / --scale-from), on the ground of the scans' sensor (given, by format, else the sensor the
+model is for: detector/scans_for.py) and in the front view the model was adapted on (else
+--front-deg's), and writes OUT/boxes.parquet (LiDAR frame, score, num_points), one KITTI label_2
+file a scan under OUT/label_2 (camera frame, with calibration: the boxes inside the image; those
+outside are counted) or a LiDAR-frame text table OUT/lidar/<frame>.txt (without), and the
+manifest. Its boxes are the model's own, those `dali eval` scores: pseudo-label's size correction
+and point fit are not applied.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dali_cli.detector.scans_for import CAMERA_VIEW_DEG
 from dali_cli.importers.calibration import frame_calib, load_calib
 from dali_cli.runtime import console
 from dali_cli.runtime.errors import StageError
@@ -92,6 +96,7 @@ def build_detect(tmp: Path, detector, source: Source, scale: float, mount, score
     text_dir = tmp / ("label_2" if source.calib is not None else "lidar")
     text_dir.mkdir()
     tables, full_scans, started = [], 0, time.perf_counter()
+    label_2 = {"boxes_written": 0, "boxes_outside_image": 0}
     bar = tqdm(total=source.count, desc="detect", unit="frame", disable=not progress, leave=False)
     batch: list[tuple[str, np.ndarray]] = []
 
@@ -106,9 +111,11 @@ def build_detect(tmp: Path, detector, source: Source, scale: float, mount, score
                                          label="Car", num_points=counts)  # fmt: skip
             tables.append(table)
             path = child_path(text_dir, frame_id, ".txt")
-            if source.calib is not None:
-                lines = frame_label_lines(table, frame_calib(source.calib, frame_id)).lines
-                path.write_text("".join(line + "\n" for line in lines))
+            if source.calib is not None:  # boxes outside the image have no label_2 line
+                export = frame_label_lines(table, frame_calib(source.calib, frame_id))
+                path.write_text("".join(line + "\n" for line in export.lines))
+                label_2["boxes_written"] += len(export.lines)
+                label_2["boxes_outside_image"] += export.outside
             else:
                 path.write_text(lidar_lines(boxes, scores))
             bar.update(1)
@@ -128,7 +135,7 @@ def build_detect(tmp: Path, detector, source: Source, scale: float, mount, score
     table = BoxTable.concat(tables) if tables else BoxTable.empty()
     write_boxes(tmp, table)
     return {"frames": source.count, "boxes": len(table), "full_360_scans": full_scans,
-            "seconds": round(seconds, 2),
+            **(label_2 if source.calib is not None else {}), "seconds": round(seconds, 2),
             "frames_per_s": round(source.count / seconds, 3) if seconds > 0 else None}  # fmt: skip
 
 
@@ -137,9 +144,10 @@ def run_detect(*, model: str | Path, scans: str | Path, out: str | Path, scale=N
                front_deg: float | None = None, batch_size: int = 4, device: str = "auto",
                precision: str = "fp32", progress: bool = True, force: bool = False,
                dry_run: bool = False, sensors_path=None, rerun=None) -> StageOutcome:  # fmt: skip
-    """Run the stage (see the module docstring); `rerun`: also write a Rerun recording of the
+    """Run the stage (see the module docstring); `front_deg` None: the model's own front view
+    (full scans for a model adapted on full scans); `rerun`: also write a Rerun recording of the
     scans and their boxes there (reporting/recording.py)."""
-    from dali_cli.detector.infer import WEIGHTS_NAME, Detector
+    from dali_cli.detector.infer import WEIGHTS_NAME, Detector, read_config
     from dali_cli.runtime.device import resolve_device
     from dali_cli.sensors import get_profile
     from dali_cli.store.scale_file import model_scale
@@ -148,25 +156,32 @@ def run_detect(*, model: str | Path, scans: str | Path, out: str | Path, scale=N
     if not (model / WEIGHTS_NAME).is_file():
         raise StageError(f"{model}: no {WEIGHTS_NAME} here: not a dali model directory")
     scale = model_scale(model, scale, scale_from)
+    config = read_config(model)
     source = scans_source(scans, sensor, Path(calib) if calib is not None else None)
-    mount = get_profile(source.sensor, sensors_path).mount_height_m if source.sensor else None
+    if source.sensor:
+        mount = get_profile(source.sensor, sensors_path).mount_height_m
+        ground = f"{source.sensor}, mount height {mount:g} m"
+    else:  # no sensor of their own (.pcd, .npy): the sensor the model is for
+        mount = config.mount_height_m
+        ground = f"{config.sensor}, the model's sensor, mount height {mount:g} m"
+    front, view = front_view(front_deg, config.front_deg)
     torch_device = resolve_device(device)
-    params = {"scale": scale, "sensor": source.sensor, "score_min": score_min,
-              "front_deg": front_deg, "scans": source.count}  # fmt: skip
+    params = {"scale": scale, "sensor": source.sensor, "mount_height_m": mount,
+              "score_min": score_min, "front_deg": front, "scans": source.count}  # fmt: skip
 
     def build(tmp: Path) -> dict:
         detector = Detector.load(model, device=torch_device, precision=precision)
         console.echo(
-            f"detect: {source.described} ({source.sensor or 'the model mount height'}), scale "
-            f"{scale:.4f}, on {torch_device}"
+            f"detect: {source.described} ({ground}), {view}, scale {scale:.4f}, on {torch_device}"
         )
-        counts = build_detect(tmp, detector, source, scale, mount, score_min, front_deg,
+        counts = build_detect(tmp, detector, source, scale, mount, score_min, front,
                               batch_size, progress)  # fmt: skip
         if counts["full_360_scans"]:
             console.echo(
                 f"detect: {counts['full_360_scans']} of {source.count} scans cover the full "
-                "360°; a model trained on camera-view crops (models/kitti-hdl64e: its card) is "
-                "less reliable off the front: --front-deg 82 crops to KITTI's camera view"
+                "360°; a model adapted on camera-view crops is less reliable off the front: "
+                f"--front-deg DEG keeps the front DEG degrees ({CAMERA_VIEW_DEG:g}: KITTI's "
+                "camera view)"
             )
         return counts
 
@@ -181,7 +196,19 @@ def run_detect(*, model: str | Path, scans: str | Path, out: str | Path, scale=N
         from dali_cli.reporting.recording import Layer, write_recording
         from dali_cli.store.artifacts import read_boxes
 
-        frames = ((i, crop_front(p, front_deg)) for i, p in source.frames())
+        frames = ((i, crop_front(p, front)) for i, p in source.frames())
         counts = write_recording(Path(rerun), frames, [Layer("detections", read_boxes(out))])
         console.echo(f"detect: wrote {rerun} ({counts['frames']} frames); open it: rerun {rerun}")
     return outcome
+
+
+def front_view(front_deg: float | None, model_front_deg: float | None) -> tuple[float | None, str]:
+    """The front view detect crops to (degrees of azimuth, None: every point) and how the log
+    names it: --front-deg's when given, else the view the model was adapted on."""
+    if front_deg is not None:
+        return front_deg, f"the front {front_deg:g}° (--front-deg)"
+    if model_front_deg is not None:
+        return model_front_deg, (
+            f"the front {model_front_deg:g}° (the model's view; --front-deg 360 keeps every point)"
+        )
+    return None, "every point (full scans, as the model's)"

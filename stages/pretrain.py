@@ -66,13 +66,14 @@ def run_pretrain(
 
     def prepare() -> PreparedTraining:
         from dali_cli.detector import DetectorConfig, load_labeled, size_normalize
+        from dali_cli.detector.scans_for import for_scans_of
 
         config = DetectorConfig.from_dict({**(config_overrides or {}), "features": features})
         data = load_labeled(
             source, config, boxes_dir=boxes, labels=labels, sensors_path=sensors_path,
             stream=True,
         )  # fmt: skip
-        config.sensor, config.mount_height_m = data.sensor, data.mount_height_m
+        config = for_scans_of(config, source, sensors_path)
         if data.num_boxes == 0:
             raise StageError(
                 f"{boxes or source}: no '{'/'.join(labels)}' boxes with points to train on"
@@ -111,7 +112,7 @@ def pretrain_meta(
         detector=config.name,
         stage="pretrain",
         source_sensor=data.sensor,
-        mount_height_m=data.mount_height_m,
+        source_mount_height_m=data.mount_height_m,
         source_mean_lwh_m=tuple(float(v) for v in source_mean),
         size_norm=size_norm,
         sn_delta_lwh_m=None if delta is None else tuple(float(v) for v in delta),

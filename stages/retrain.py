@@ -126,9 +126,12 @@ def run_retrain(
 
     def prepare() -> PreparedTraining:
         from dali_cli.detector import Detector
+        from dali_cli.detector.scans_for import for_scans_of
 
         previous = Detector.load(init)
-        load = dict(config=previous.config, labels=labels, sensors_path=sensors_path, stream=True)
+        # adapted to the target: the scans of its PPCG frames (the target's, points replaced)
+        config = for_scans_of(previous.config, ppcg[0], sensors_path)
+        load = dict(config=config, labels=labels, sensors_path=sensors_path, stream=True)
         shift = (target_size, target_profile) if source_size == "sn" else None
         source_data, source_augmentation, card = load_source(
             source, previous.card, load, training, shift
@@ -137,10 +140,10 @@ def run_retrain(
         pooled = len(weights) == 2 and pseudo_sets
         datasets = [source_data, *([pool(pseudo_sets, "ppcg")] if pooled else pseudo_sets)]
         for data in datasets:
-            training_stage.attach_database(data, previous.config, training.augment)
+            training_stage.attach_database(data, config, training.augment)
         augmentations = [source_augmentation] + [training.augmentation() for _ in datasets[1:]]
         state = previous.net.state_dict() if init_from == "previous" else None
-        net = training_stage.seeded_network(previous.config, training.seed, state)
+        net = training_stage.seeded_network(config, training.seed, state)
         meta = retrain_meta(card, datasets, init, init_from, source, ppcg, weights, training.seed)
         return PreparedTraining(
             net, datasets, augmentations, training.settings(mix=mix),

@@ -76,9 +76,10 @@ def run_self_train(
     def prepare() -> PreparedTraining:
         from dali_cli import detector
         from dali_cli.detector.data import scale_about_ground
+        from dali_cli.detector.scans_for import for_scans_of
 
         previous = detector.Detector.load(init)
-        config = previous.config
+        config = for_scans_of(previous.config, target, sensors_path)  # adapted to the target
         # frames from the target, boxes from the pseudo labels: the target's labels stay unread
         data = detector.load_labeled(
             target, config, boxes_dir=pseudo, sensors_path=sensors_path, stream=True

@@ -89,7 +89,7 @@ def test_cards_of_checkpoints_written_before_the_card_existed():
     }  # fmt: skip
     card = ModelCard.from_meta(legacy)
     assert card.ros_range == (0.75, 1.0) and card.ros_factor == pytest.approx(0.875)
-    assert card.source_mean_lwh_m == (4.8, 2.1, 1.8) and card.mount_height_m == 2.1
+    assert card.source_mean_lwh_m == (4.8, 2.1, 1.8) and card.source_mount_height_m == 2.1
     assert ModelCard.from_meta({**legacy, "card": card.to_dict()}) == card  # round trip
 
 
@@ -158,3 +158,20 @@ def test_a_foreign_model_file_is_a_clear_error(ros_world, tmp_path, damage):
         assert result.exit_code == 1, (command[0], result.output)
         assert "Traceback" not in result.output and str(model) in result.output
     assert not (tmp_path / "pseudo").exists() and not (tmp_path / "re").exists()
+
+
+def test_the_front_view_a_frame_set_was_cropped_to():
+    """What training records as the model's front view (model.json config front_deg): an
+    odometry crop's angle, --crop-fov's camera view, a merge's widest when every part was
+    cropped, none as soon as one part holds full scans."""
+    from dali_cli.detector.scans_for import CAMERA_VIEW_DEG, cropped_front_deg
+
+    odometry = {"source_format": "kitti-odometry", "crop_fov": False, "crop_front_deg": 90.0}
+    raw = {"source_format": "kitti-raw", "crop_fov": True}
+    full = {"source_format": "kitti-raw", "crop_fov": False}
+    assert cropped_front_deg(odometry) == 90.0 and cropped_front_deg(raw) == CAMERA_VIEW_DEG
+    assert cropped_front_deg(full) is None and cropped_front_deg({}) is None
+    merged = {"source_format": "merge", "drives": {"a": raw, "b": odometry}}
+    assert cropped_front_deg(merged) == max(90.0, CAMERA_VIEW_DEG)
+    assert cropped_front_deg({"drives": {"a": raw, "b": full}}) is None
+    assert cropped_front_deg({**odometry, "crop_front_deg": float("nan")}) is None

@@ -124,6 +124,25 @@ def test_the_card_names_every_stage_and_the_recipes_spread(tmp_path):
     assert sorted(p.name for p in out.parent.iterdir()) == ["m"]
 
 
+def test_the_cards_use_line_names_the_front_view_detect_defaults_to(tmp_path):
+    """A model adapted on cropped scans (model.json's config front_deg) runs in that view by
+    default: its card's Use says so and how to see every point; a full-scan model's does not."""
+    for front in (None, 75.0):
+        model = fake_model(tmp_path / str(front) / "run" / "model")
+        (model / "model.json").write_text(
+            json.dumps({"detector": "x", "config": {"front_deg": front}})
+        )
+        out = tmp_path / str(front) / "models" / "m"
+        done = run_card("--model", str(model), "--name", "m", "--title", "t", "--summary", "s",
+                        "--eval", f"set={fake_eval(tmp_path / str(front) / 'eval', 50.0)}",
+                        "--out", str(out))  # fmt: skip
+        assert done.returncode == 0, done.stderr
+        detect = json.loads((out / "card.json").read_text())["use"].splitlines()[0]
+        assert detect.startswith("dali detect") and detect in (out / "README.md").read_text()
+        assert ("front 75°" in detect and "--front-deg 360" in detect) == (front is not None)
+        assert ("front" in detect) == (front is not None)
+
+
 def test_a_directory_the_card_did_not_write_is_never_replaced(tmp_path):
     model = fake_model(tmp_path / "run" / "model")
     evaluation = fake_eval(tmp_path / "eval", 50.0)

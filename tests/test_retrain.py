@@ -107,6 +107,15 @@ def test_retrain_cli_from_previous_and_scratch(world):
     assert manifest["outputs"]["counts"]["ppcg_frames"] == 6
     meta = json.loads((out / "model.json").read_text())
     assert meta["provenance"]["size_norm"] == "sn" and meta["provenance"]["init_from"] == "previous"
+    # adapted to the target: model.json is for the PPCG frames' (KITTI-like) sensor, at its mount
+    # height, where the initial model was for the source's; the card keeps the source
+    initial = json.loads((world / "iter0" / "model.json").read_text())["config"]
+    kitti = get_profile("kitti")
+    assert (initial["sensor"], initial["mount_height_m"]) == ("waymo", 2.0)
+    adapted = meta["config"]
+    assert (adapted["sensor"], adapted["mount_height_m"]) == ("kitti", kitti.mount_height_m)
+    assert adapted["front_deg"] is None  # full toy scans
+    assert meta["card"]["source_sensor"] == "waymo"
     # the source keeps the initial model's SN: its boxes are resized to the KITTI mean
     assert np.allclose(
         meta["metrics"]["mean_lwh_m"][str(world / "source")], get_profile("kitti").car_mean_lwh_m

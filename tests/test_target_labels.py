@@ -21,7 +21,7 @@ from dali_cli.cli import main
 from dali_cli.geometry import descale_boxes_about_ground, scale_boxes_about_ground
 from dali_cli.library import procedural_car, write_library
 from dali_cli.sensors import get_profile
-from dali_cli.store.artifacts import FrameSet, read_boxes, write_boxes
+from dali_cli.store.artifacts import FrameSet, read_boxes, write_boxes, write_frameset
 from dali_cli.store.manifest import read_manifest
 
 BIAS = np.array([1.20, 1.29, 1.14])  # Waymo / KITTI per-dimension size ratios
@@ -155,3 +155,27 @@ def test_self_train_learns_in_the_ptsn_scaled_frame(world):
     again = CliRunner().invoke(main, [str(a) for a in base] + ["--out", str(root / "st-still"),
                                                                 "--lr", "1e-12"])  # fmt: skip
     assert again.exit_code == 0 and "up to date" in again.output
+
+
+def test_self_train_writes_the_sensor_it_adapts_to_into_model_json(world):
+    """A self-trained model is for the target's scans: model.json's config names the target's
+    sensor, that profile's mount height and the front view its frames were cropped to, where the
+    init (pretrained on the Waymo-like source) named the source's; the card keeps the source."""
+    root, _, labels = world
+    frames = FrameSet(root / "target")
+    target = root / "target-cropped"
+    write_frameset(target, list(frames.iter_frames()), sensor=frames.sensor,
+                   attrs={"crop_front_deg": 100.0})  # fmt: skip
+    pseudo = root / "cropped-pseudo"
+    pseudo.mkdir()
+    write_boxes(pseudo, labels.with_columns(scale=np.full(len(labels), 1.1)))
+    invoke("self-train", "--init", root / "iter0", "--data", target, "--pseudo", pseudo,
+           "--epochs", "1", "--lr", "1e-12", "--no-progress", "--out", root / "st-cropped")  # fmt: skip
+    init = json.loads((root / "iter0" / "model.json").read_text())
+    meta = json.loads((root / "st-cropped" / "model.json").read_text())
+    kitti, waymo = get_profile("kitti"), get_profile("waymo")
+    scans = ("sensor", "mount_height_m", "front_deg")
+    assert [init["config"][k] for k in scans] == ["waymo", waymo.mount_height_m, None]
+    assert [meta["config"][k] for k in scans] == [frames.sensor, kitti.mount_height_m, 100.0]
+    assert meta["card"]["source_sensor"] == "waymo"
+    assert meta["card"]["source_mount_height_m"] == waymo.mount_height_m

@@ -538,7 +538,7 @@ def calib_option(help: str):
     return click.option(
         "--calib", type=click.Path(exists=True, path_type=Path), default=None,
         help="KITTI calibration: a calib .txt for every frame, a folder of <frame>.txt, or a raw "
-             "drive's date folder. " + help,
+             "drive's date folder (holding calib_cam_to_cam.txt, calib_velo_to_cam.txt). " + help,
     )  # fmt: skip
 
 

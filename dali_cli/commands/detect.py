@@ -32,14 +32,16 @@ from dali_cli.commands.kinds import SCALE, VIEW_DEG
 @click.option("--sensor", default=None,
               help="Sensor profile of the scans (sensors.toml; its mount height sets the ground). "
                    "Default: kitti for .bin, nuscenes for .pcd.bin, a frame set's own; else the "
-                   "model's.")  # fmt: skip
+                   "sensor the model is for (model.json's config: its target's once adapted).")  # fmt: skip
 @calib_option(
-    "With it OUT/label_2 holds camera-frame label_2 files. Default: a KITTI raw "
-    "drive's or object split's own."
+    "With it OUT/label_2 holds camera-frame label_2 files of the boxes inside the image. "
+    "Default: a KITTI raw drive's or object split's own."
 )
 @click.option("--front-deg", type=VIEW_DEG, metavar="DEG", default=None,
               help="Keep only the points within this many degrees of azimuth about the sensor's "
-                   "+x (82: KITTI's camera view, where models/kitti-hdl64e was trained).")  # fmt: skip
+                   "+x (360: every point). Default: the front view the model was adapted on "
+                   "(model.json's config front_deg: 82, KITTI's camera view, for "
+                   "models/kitti-hdl64e), else every point.")  # fmt: skip
 @score_min_option(help="Write only boxes scored at least this.")
 @click.option("--rerun", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Also write a Rerun recording (.rrd) of the scans and their boxes coloured by "
@@ -57,11 +59,13 @@ def command(scans, model, scale, scale_from, sensor, calib, front_deg, score_min
 
     SCANS: a scan file or a folder of them (KITTI .bin, PCD ascii or binary, nuScenes .pcd.bin,
     .npy of (n, >=3)), a KITTI raw drive (velodyne_points/data), a KITTI object split (velodyne/)
-    or a dali frame set. OUT/boxes.parquet holds the boxes (LiDAR frame, score, points inside);
+    or a dali frame set. OUT/boxes.parquet holds every box (LiDAR frame, score, points inside);
     OUT/label_2/<frame>.txt KITTI label_2 lines (camera frame, with --calib or the data's own
-    calib), else OUT/lidar/<frame>.txt lines 'x y z l w h yaw Car score' (metres, radians,
-    LiDAR frame). The boxes are the model's own, at the model's test-time scale: what `dali eval`
-    scores. Written atomically with a manifest; rerun only when an input or option changed.
+    calib) of the boxes inside the image, those outside left out and counted in the summary line;
+    else OUT/lidar/<frame>.txt lines 'x y z l w h yaw Car score' (metres, radians, LiDAR frame).
+    The boxes are the model's own, at the model's test-time scale, on the scans cropped to the
+    model's front view (--front-deg): what `dali eval` scores. Written atomically with a
+    manifest; rerun only when an input or option changed.
     """
     from stages.detect import run_detect
 
@@ -72,7 +76,13 @@ def command(scans, model, scale, scale_from, sensor, calib, front_deg, score_min
         dry_run=dry_run, sensors_path=sensors_path, rerun=rerun,
     )  # fmt: skip
     if (counts := ran_counts(outcome)) is not None:
+        label_2 = (
+            f" ({counts['boxes_written']} written to label_2, {counts['boxes_outside_image']} "
+            "outside the image left out)"
+            if "boxes_written" in counts
+            else ""
+        )
         click.echo(
-            f"  {counts['boxes']} boxes in {counts['frames']} scans, "
+            f"  {counts['boxes']} boxes in {counts['frames']} scans{label_2}, "
             f"{counts['frames_per_s']} frames/s ({counts['seconds']} s)"
         )

@@ -1,4 +1,4 @@
-"""`dali export kitti|openpcdet`: dali artifacts -> other tools' formats."""
+"""`dali export kitti|openpcdet|model`: dali artifacts -> other tools' formats."""
 
 from __future__ import annotations
 
@@ -21,8 +21,9 @@ from dali_cli.commands.kinds import SCALE
 
 @click.group(name="export")
 def command() -> None:
-    """Export dali boxes (and frames) to other tools' formats. Each export is a stage with a
-    manifest.json, written atomically and skipped when up to date."""
+    """Export dali boxes, frames and models to other tools' formats: KITTI label_2 files
+    (kitti), OpenPCDet's custom layout (openpcdet), the detector as ONNX (model). Each export is
+    a stage with a manifest.json, written atomically and skipped when up to date."""
 
 
 MAX_IMAGE_PX = 100_000  # pixels on a side of any camera's image
@@ -140,8 +141,8 @@ def openpcdet_command(data_dir, boxes_dir, split, score_min, out, force, dry_run
 
 @command.command(name="model", short_help="The detector's network as ONNX (onnxruntime).")
 @click.argument("model_dir", type=click.Path(exists=True, file_okay=False))
-@click.option("--onnx", "as_onnx", is_flag=True, required=True,
-              help="Export as ONNX (opset 18; the one format).")  # fmt: skip
+@click.option("--onnx", "as_onnx", is_flag=True,
+              help="Export as ONNX (opset 18): the one format, so also without this flag.")  # fmt: skip
 @click.option("--scale", type=SCALE, default=None,
               help="PTSN scale whose grid the graph runs on. Default: MODEL_DIR/scale.json, "
                    "else 1.")  # fmt: skip
@@ -152,9 +153,9 @@ def model_command(model_dir, as_onnx, scale, scale_from, out, force, dry_run):
     """Write the detector of MODEL_DIR as OUT/detector.onnx (one frame's pillarized points ->
     head maps) and OUT/refiner.onnx (box point features -> residuals and IoU), with OUT/onnx.json
     (opset, grid, inputs; docs/detector.md "ONNX"). Run it with
-    dali_cli.detector.onnx_export.OnnxDetector, or read onnx.json to feed another runtime."""
-    if not as_onnx:
-        raise click.UsageError("--onnx: the only export format of a model")
+    dali_cli.detector.onnx_export.OnnxDetector (at the mount height of the sensor the model is
+    for, onnx.json's config), or read onnx.json to feed another runtime."""
+    del as_onnx  # ONNX with or without the flag: the one format of a model
     from stages.export import export_model
 
     outcome = export_model(

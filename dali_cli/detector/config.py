@@ -29,8 +29,13 @@ class DetectorConfig:
     z_range_m: tuple[float, float] = (-1.27, 2.73)  # ground frame
     pillar_m: float = 0.32
     features: str = "xyz"  # "xyz" or "xyzi"
-    sensor: str = "kitti"  # profile of the (first) training frame set, for provenance
-    mount_height_m: float = 1.73  # its mount height: predict()'s default ground for PTSN scaling
+    # the scans the model is for (detector/scans_for.py): the sensor profile of the frames it was
+    # trained on, or adapted to (retrain, self-train: the target's), its mount height (predict()'s
+    # default ground, the pivot of PTSN scaling) and the front view (degrees of azimuth about +x)
+    # those frames were cropped to, None for full scans (detect's default --front-deg)
+    sensor: str = "kitti"
+    mount_height_m: float = 1.73
+    front_deg: float | None = None
     # network
     pfn_channels: int = 32
     block_channels: tuple[int, int, int] = (32, 64, 128)  # strides 2, 4, 8 (in pillars)
@@ -162,6 +167,7 @@ MAX_FEATURE_BYTES = 16 * 2**30  # one float32 BEV feature map of one frame
 BOUNDS: dict[str, tuple[float | None, float | None]] = {
     "pillar_m": (1e-3, 100.0),
     "mount_height_m": (0.0, 100.0),
+    "front_deg": (1e-3, 360.0),
     "pfn_channels": (1, MAX_CHANNELS),
     "block_channels": (1, MAX_CHANNELS),
     "block_layers": (0, 64),
@@ -199,7 +205,10 @@ PROFILE_NAMES = ("sensor",)
 
 def check_field(name: str, value, default) -> None:
     """`value` has the kind of `default` (bool, str, int, finite float, a tuple of as many of
-    them) and lies within BOUNDS[name]; ValueError naming the field otherwise."""
+    them) and lies within BOUNDS[name]; ValueError naming the field otherwise. A field whose
+    default is None (front_deg) takes None or a number."""
+    if default is None and value is None:
+        return
     if isinstance(default, tuple):
         if not isinstance(value, tuple) or len(value) != len(default):
             shown = repr(value)[:80]

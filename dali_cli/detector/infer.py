@@ -158,6 +158,25 @@ def save_checkpoint(directory: str | Path, net: PillarCenterNet, meta: dict) -> 
     (directory / META_NAME).write_text(json.dumps(document, indent=2, default=str) + "\n")
 
 
+def config_of(meta: dict, meta_path: Path) -> DetectorConfig:
+    """The DetectorConfig of a model.json document (`meta`, read from `meta_path`); an
+    ArtifactError naming the file when it has none or an invalid one."""
+    try:
+        values = dict(meta["config"])
+        # checkpoints from before the second stage existed have no refiner weights
+        values.setdefault("refine", False)
+        # nor, from before the direction classifier, a direction: headings modulo pi
+        values.setdefault("direction", False)
+        return DetectorConfig.from_dict(values)
+    except (KeyError, TypeError, ValueError) as error:
+        raise ArtifactError(f"{meta_path}: invalid model description ({error})") from None
+
+
+def read_config(model_dir: str | Path) -> DetectorConfig:
+    """The DetectorConfig of a model directory's model.json, without loading its weights."""
+    return config_of(read_meta(model_dir), Path(model_dir) / META_NAME)
+
+
 class Detector:
     """A trained detector. `predict` takes sensor-frame points and returns sensor-frame boxes."""
 
@@ -202,15 +221,7 @@ class Detector:
         meta = read_meta(model_dir)
         if not weights_path.is_file():
             raise ArtifactError(f"{weights_path}: not found (is {model_dir} a model directory?)")
-        try:
-            values = dict(meta["config"])
-            # checkpoints from before the second stage existed have no refiner weights
-            values.setdefault("refine", False)
-            # nor, from before the direction classifier, a direction: headings modulo pi
-            values.setdefault("direction", False)
-            config = DetectorConfig.from_dict(values)
-        except (KeyError, TypeError, ValueError) as error:
-            raise ArtifactError(f"{meta_path}: invalid model description ({error})") from None
+        config = config_of(meta, meta_path)
         named = meta.get("detector", config.name)
         if named not in (config.name, "pillar-centerpoint-iou", "pillar-centerpoint-iou-refine"):
             raise ArtifactError(

@@ -6,8 +6,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from dali_cli.importers.common import ImportFormatError
 from dali_cli.importers.kitti import Calibration
 from dali_cli.runtime.errors import StageError
+
+# a KITTI raw drive's date folder holds its calibration as these files (the first two needed)
+RAW_CALIB_FILES = ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt", "calib_imu_to_velo.txt")
+TAKES = (
+    "--calib takes a KITTI object calib file (P2, R0_rect, Tr_velo_to_cam), a KITTI raw date "
+    f"folder holding {' and '.join(RAW_CALIB_FILES[:2])}, or a folder of <frame>.txt calib files"
+)
 
 
 def load_calib(calib: Path | None) -> Calibration | Path | None:
@@ -20,8 +28,16 @@ def load_calib(calib: Path | None) -> Calibration | Path | None:
         return None
     calib = Path(calib)
     if calib.is_file():
-        return read_calib(calib)
-    if (calib / "calib_cam_to_cam.txt").is_file():
+        if calib.name in RAW_CALIB_FILES:
+            raise StageError(
+                f"{calib}: one file of a KITTI raw drive's calibration; pass its date folder "
+                f"({calib.parent}, holding {' and '.join(RAW_CALIB_FILES[:2])}) instead"
+            )
+        try:
+            return read_calib(calib)
+        except ImportFormatError as error:
+            raise ImportFormatError(f"{error}; {TAKES}") from None
+    if (calib / RAW_CALIB_FILES[0]).is_file():
         return read_raw_calib(calib)[0]
     return calib
 

@@ -63,7 +63,7 @@ class ModelCard:
     detector: str | None = None  # network name, e.g. pillar-centerpoint-iou-refine
     stage: str | None = None  # pretrain | retrain | self-train: the stage that wrote it
     source_sensor: str | None = None  # sensor profile of the labelled source frames
-    mount_height_m: float | None = None  # the source sensor's height above the ground
+    source_mount_height_m: float | None = None  # the source sensor's height above the ground
     source_mean_lwh_m: tuple[float, float, float] | None = None  # mean labelled source car
     size_norm: str = "none"  # none | sn | ros
     sn_delta_lwh_m: tuple[float, float, float] | None = None  # SN: size offset added to labels
@@ -103,7 +103,7 @@ class ModelCard:
                 "detector": _text(meta.get("detector")) or _text(config.get("name")),
                 "stage": provenance.get("stage"),
                 "source_sensor": _text(provenance.get("source_sensor")) or config.get("sensor"),
-                "mount_height_m": config.get("mount_height_m"),
+                "source_mount_height_m": config.get("mount_height_m"),
                 "source_mean_lwh_m": metrics.get("source_mean_lwh_m"),
                 "size_norm": provenance.get("size_norm"),
                 "sn_delta_lwh_m": provenance.get("sn_delta_lwh"),
@@ -115,13 +115,15 @@ class ModelCard:
     @classmethod
     def _from_card(cls, card: dict) -> ModelCard:
         """A card from a JSON block, every field type-checked (a bad value reads as unknown)."""
-        mount = card.get("mount_height_m")
+        # cards written before model.json's config named the adapted-to sensor called it
+        # mount_height_m: one name now has one meaning, the height of the sensor a model is for
+        mount = card.get("source_mount_height_m", card.get("mount_height_m"))
         size_norm = card.get("size_norm")
         return cls(
             detector=_text(card.get("detector")),
             stage=_text(card.get("stage")),
             source_sensor=_profile(card.get("source_sensor")),
-            mount_height_m=mount
+            source_mount_height_m=mount
             if (mount := finite_number(mount)) is not None
             and quantities.MOUNT_HEIGHT_M.problem(mount) is None
             else None,
