@@ -26,6 +26,8 @@ from pathlib import Path
 
 from click.testing import CliRunner
 
+from dali_cli.runtime.machine import cpu_model
+
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT.parent / "shared" / "data"
 RESULTS = ROOT / "bench" / "results" / "importers.json"
@@ -43,17 +45,6 @@ def timed(*arguments) -> float:
     if result.exit_code != 0:
         sys.exit(f"dali {' '.join(map(str, arguments))} failed:\n{result.output}")
     return seconds
-
-
-def cpu_model() -> str:
-    """The CPU's model name (/proc/cpuinfo), else what platform knows."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def kitti_root(base: Path, frames: int) -> Path:
@@ -132,7 +123,7 @@ def main() -> None:
         "frames": args.frames,
         "machine": {
             "python": platform.python_version(),
-            "cpu": cpu_model(),
+            "cpu": cpu_model(),  # dali_cli.runtime.machine
         },
         "seconds": {k: round(v, 3) for k, v in seconds.items()},
         "seconds_per_frame": {
