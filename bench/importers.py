@@ -4,9 +4,12 @@ Builds a KITTI root with FRAMES copies of frame 000008 (velodyne, label_2, calib
 of FRAMES copies of the nuScenes sweep with a CSV naming each box's frame, then times
 `dali import kitti`, `dali export kitti` (of the imported labels), `dali import nuscenes` and
 `dali view`, in-process (no subprocess start-up), and reports seconds per frame and points per
-second. Writes bench/results/importers.json.
+second. Beam removal: `dali import kitti --beams 16` of the same copies and, with `--drive`, `dali
+import kitti-raw` of a whole raw drive (full 360-degree scans, about 120,000 points each) plain
+and with `--beams 16`; `beams16_cost` is each pair's ratio (the KITTI pair after a first, warm-up import) of seconds per scan (target: <= 2).
+Writes bench/results/importers.json.
 
-    .venv/bin/python bench/importers.py [--frames 50]
+    .venv/bin/python bench/importers.py [--frames 50] [--drive raw/2011_09_26/2011_09_26_drive_0001_sync]
 """
 
 from __future__ import annotations
@@ -22,6 +25,8 @@ import time
 from pathlib import Path
 
 from click.testing import CliRunner
+
+from dali_cli.runtime.machine import cpu_model
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT.parent / "shared" / "data"
@@ -71,6 +76,7 @@ def nuscenes_dir(base: Path, frames: int) -> tuple[Path, Path]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=50)
+    parser.add_argument("--drive", type=Path, default=None, help="a KITTI raw synced drive")
     args = parser.parse_args()
     if not NUSCENES_SCAN.is_file():
         sys.exit(f"fixtures not found under {DATA}")
@@ -96,18 +102,37 @@ def main() -> None:
             "view_nuscenes_frame": timed(
                 "view", base / "n", "--frame", "0", "--side", "--out", base / "v.png"
             ),
+            # the pair compared runs warm (the first import above also loads the modules)
+            "import_kitti_again": timed("import", "kitti", kitti, "--out", base / "k2"),
+            "import_kitti_again_beams16": timed(
+                "import", "kitti", kitti, "--beams", "16", "--out", base / "k16"
+            ),
         }
+        scans = {key: args.frames for key in seconds}
+        if args.drive is not None:
+            drive = ["import", "kitti-raw", args.drive, "--no-labels"]
+            seconds["import_kitti_raw"] = timed(*drive, "--out", base / "r")
+            seconds["import_kitti_raw_beams16"] = timed(
+                *drive, "--beams", "16", "--out", base / "r16"
+            )
+            count = len(list((args.drive / "velodyne_points" / "data").glob("*.bin")))
+            scans.update(import_kitti_raw=count, import_kitti_raw_beams16=count)
     points = {"import_kitti": 17238 * args.frames, "import_nuscenes_csv": 34688 * args.frames}
     result = {
         "benchmark": "importers",
         "frames": args.frames,
         "machine": {
             "python": platform.python_version(),
-            "cpu": platform.processor() or platform.machine(),
+            "cpu": cpu_model(),  # dali_cli.runtime.machine
         },
         "seconds": {k: round(v, 3) for k, v in seconds.items()},
         "seconds_per_frame": {
-            k: round(v / args.frames, 4) for k, v in seconds.items() if k != "view_nuscenes_frame"
+            k: round(v / scans[k], 4) for k, v in seconds.items() if k != "view_nuscenes_frame"
+        },
+        "beams16_cost": {
+            plain: round(seconds[f"{plain}_beams16"] / seconds[plain], 2)
+            for plain in ("import_kitti_again", "import_kitti_raw")
+            if plain in seconds
         },
         "points_per_second": {k: round(points[k] / seconds[k]) for k in points},
     }

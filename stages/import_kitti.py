@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Unpack
 
+from dali_cli.importers.beams import BeamThinning
 from dali_cli.importers.common import ImportRun, check_sensor, run_import
 from dali_cli.store.manifest import StageOutcome
 
@@ -19,6 +20,8 @@ def import_kitti(
     label_dir: str | Path | None = None,
     crop_fov: bool = False,
     sensor: str = "kitti",
+    beams: int = 64,
+    beams_azimuth_half: bool = False,
     intensity_max: float = 1.0,
     **run: Unpack[ImportRun],
 ) -> StageOutcome:
@@ -27,6 +30,8 @@ def import_kitti(
     from dali_cli.importers.kitti import KittiLayout, build_import
     from dali_cli.store.regular_files import check_present_files
 
+    thinning = BeamThinning.of(beams, beams_azimuth_half)
+    sensor = thinning.sensor(sensor)  # kitti -> kitti-16 with --beams 16
     check_sensor(sensor, run)  # an unknown profile fails before any work
     layout = KittiLayout.of(root, split, label_dir)
     frame_ids = layout.frame_ids(read_id_list(ids_path) if ids_path else None)
@@ -43,13 +48,14 @@ def import_kitti(
         "import-kitti",
         out,
         inputs,
-        params,
+        params | thinning.params(),
         lambda tmp: build_import(
             tmp,
             layout,
             frame_ids,
             crop_fov=crop_fov,
             sensor=sensor,
+            thinning=thinning,
             progress=run.get("progress", True),
             intensity_max=intensity_max,
         ),

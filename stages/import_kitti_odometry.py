@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Unpack
 
+from dali_cli.importers.beams import BeamThinning
 from dali_cli.importers.common import ImportRun, check_sensor, run_import
 from dali_cli.runtime.errors import ParameterError
 from dali_cli.store.manifest import StageOutcome
@@ -21,6 +22,8 @@ def import_kitti_odometry(
     crop_fov: bool = False,
     crop_front_deg: float | None = None,
     sensor: str = "kitti",
+    beams: int = 64,
+    beams_azimuth_half: bool = False,
     **run: Unpack[ImportRun],
 ) -> StageOutcome:
     """Import the sequence SEQUENCE_DIR into `out`. Its calib (when present), times and poses
@@ -32,6 +35,8 @@ def import_kitti_odometry(
         read_odometry_calib,
     )
 
+    thinning = BeamThinning.of(beams, beams_azimuth_half)
+    sensor = thinning.sensor(sensor)  # kitti -> kitti-16 with --beams 16
     check_sensor(sensor, run)  # an unknown profile fails before any work
     if crop_fov and crop_front_deg is not None:
         raise ParameterError(("crop_fov", "crop_front_deg"), "give one crop, not both")
@@ -64,7 +69,7 @@ def import_kitti_odometry(
         "import-kitti-odometry",
         out,
         inputs,
-        params,
+        params | thinning.params(),
         lambda tmp: build_import(
             tmp,
             sequence,
@@ -74,6 +79,7 @@ def import_kitti_odometry(
             crop_fov=crop_fov,
             crop_front_deg=crop_front_deg,
             sensor=sensor,
+            thinning=thinning,
             progress=run.get("progress", True),
         ),
         run,

@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Unpack
 
+from dali_cli.importers.beams import BeamThinning
 from dali_cli.importers.common import ImportRun, check_sensor, run_import
 from dali_cli.store.manifest import StageOutcome
 
@@ -20,6 +21,8 @@ def import_kitti_raw(
     labels: bool = True,
     crop_fov: bool = False,
     sensor: str = "kitti",
+    beams: int = 64,
+    beams_azimuth_half: bool = False,
     poses: bool = False,
     **run: Unpack[ImportRun],
 ) -> StageOutcome:
@@ -27,6 +30,8 @@ def import_kitti_raw(
     the scans' LiDAR poses from the OXTS records when `poses`)."""
     from dali_cli.importers.kitti_raw import RawDrive, build_import
 
+    thinning = BeamThinning.of(beams, beams_azimuth_half)
+    sensor = thinning.sensor(sensor)  # kitti -> kitti-16 with --beams 16
     check_sensor(sensor, run)  # an unknown profile fails before any work
     drive = RawDrive.of(drive_dir, calib_dir, tracklets, labels)
     frame_ids = drive.frame_ids()
@@ -49,13 +54,14 @@ def import_kitti_raw(
         "import-kitti-raw",
         out,
         inputs,
-        params,
+        params | thinning.params(),
         lambda tmp: build_import(
             tmp,
             drive,
             frame_ids,
             crop_fov=crop_fov,
             sensor=sensor,
+            thinning=thinning,
             progress=run.get("progress", True),
             poses=poses,
         ),

@@ -308,6 +308,37 @@ def import_options(default_sensor: str | None):
     return decorate
 
 
+BEAMS_NOTE = (
+    "--beams 32 or 16 thins each scan to that many of its 64 beams, a sparser LiDAR's stand-in "
+    "(the frames' sensor becomes kitti-32 or kitti-16)."
+)
+
+
+def beams_options(function):
+    """--beams and --beams-azimuth-half of the KITTI imports (kitti, kitti-raw, kitti-odometry;
+    dali_cli.importers.beams.BeamThinning): handed to their stage as `beams` and
+    `beams_azimuth_half`. Both are tuning options (a research protocol); each command's text
+    names --beams (BEAMS_NOTE, added to its help here), so that its default --help lists it."""
+    function.__doc__ = f"{(function.__doc__ or '').rstrip()}\n\n    {BEAMS_NOTE}\n"
+    function = tuning_option(
+        "--beams-azimuth-half",
+        is_flag=True,
+        help="With --beams 32 or 16: also keep every 2nd point of each kept beam, in azimuth "
+        "order (the protocol's 32* and 16*; sensor kitti-N-half).",
+    )(function)
+    return tuning_option(
+        "--beams",
+        type=click.Choice(["64", "32", "16"]),
+        default="64",
+        show_default=True,
+        callback=lambda _ctx, _param, value: int(value),
+        help="Beams of the 64 to keep per scan, a sparser LiDAR's stand-in (LiDAR Distillation, "
+        "Wei et al. 2022): each scan's points are clustered into 64 beams by k-means of their "
+        "elevation angle and beams 0, 2, 4, ... (32) or 0, 4, 8, ... (16), counted from the "
+        "lowest, are kept. The frames' sensor becomes kitti-32 / kitti-16.",
+    )(function)
+
+
 def device_options(function):
     """--device and --precision, shared by every command that runs the detector (pretrain,
     retrain, self-train, ptsn-sweep, pseudo-label, eval)."""

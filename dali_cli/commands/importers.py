@@ -6,7 +6,13 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import choice_option, import_options, ran_counts, tuning_option
+from dali_cli.commands.common import (
+    beams_options,
+    choice_option,
+    import_options,
+    ran_counts,
+    tuning_option,
+)
 from dali_cli.commands.kinds import INTENSITY_MAX, VIEW_DEG
 
 
@@ -48,6 +54,7 @@ def _summary(outcome) -> None:
 @click.option("--intensity-max", type=INTENSITY_MAX, default=1.0, show_default=True,
               help="Reflectances are divided by this (255 for 8-bit ones); after it they must lie "
                    "in [0, 1].")  # fmt: skip
+@beams_options
 @import_options("kitti")
 def kitti_command(
     root, split, ids_path, label_dir, crop_fov, intensity_max, sensor, out, no_progress, **run
@@ -89,6 +96,7 @@ def kitti_command(
               help="Also keep each scan's LiDAR pose (from DRIVE_DIR/oxts/data and the calib "
                    "folder's calib_imu_to_velo.txt) as OUT/sequence.parquet, for "
                    "`dali track-pseudo`.")  # fmt: skip
+@beams_options
 @import_options("kitti")
 def kitti_raw_command(
     drive_dir, calib_dir, tracklets, no_labels, crop_fov, poses, sensor, out, no_progress, **run
@@ -127,6 +135,7 @@ def kitti_raw_command(
               metavar="DEG",
               help="Keep only points within ±DEG/2 of straight ahead in azimuth (for a sequence "
                    "without calib; KITTI's camera 2 sees about 82 degrees).")  # fmt: skip
+@beams_options
 @import_options("kitti")
 def kitti_odometry_command(
     sequence_dir, calib, poses, crop_fov, crop_front_deg, sensor, out, no_progress, **run

@@ -21,6 +21,7 @@ import numpy as np
 from dali_cli.columns import Columns
 from dali_cli.geometry import count_points_in_boxes, wrap_angle
 from dali_cli.importers import kitti_label
+from dali_cli.importers.beams import BeamThinning
 from dali_cli.importers.common import (
     ImportFormatError,
     check_id,
@@ -391,13 +392,20 @@ def objects_to_lidar_columns(objects: CameraObjects, calib: Calibration) -> tupl
 
 
 def load_frame(
-    layout: KittiLayout, frame_id: str, crop_fov: bool = False, intensity_max: float = 1.0
+    layout: KittiLayout,
+    frame_id: str,
+    crop_fov: bool = False,
+    intensity_max: float = 1.0,
+    thinning: BeamThinning | None = None,
 ):
-    """One frame: points `(n, 4)` float32 and its BoxTable, or None when it has no label file.
+    """One frame: points `(n, 4)` float32 and its BoxTable, or None when it has no label file
+    (`thinning`: the beams kept, before the crop; the in-box counts are of the kept points).
 
     The calib file is required when the frame has labels or `crop_fov` is set.
     """
     points = read_velodyne(layout.velodyne_dir / f"{frame_id}.bin", intensity_max)
+    if thinning is not None:
+        points = thinning.apply(points)
     label_path = layout.label_dir / f"{frame_id}.txt"
     has_labels = label_path.is_file()
     if not has_labels and (label_path.exists() or label_path.is_symlink()):
@@ -436,16 +444,18 @@ def build_import(
     sensor: str = "kitti",
     progress: bool = True,
     intensity_max: float = 1.0,
+    thinning: BeamThinning = BeamThinning(),
 ) -> BuildResult:
     """Stage body of `dali import kitti`: read every frame, write FrameSet + boxes into `out`
-    (`progress`: a progress bar on stderr); reflectances are divided by `intensity_max`."""
+    (`progress`: a progress bar on stderr); reflectances are divided by `intensity_max`;
+    `thinning`: the beams each scan keeps."""
 
     def frames():
         for frame_id in frame_ids:
-            points, table = load_frame(layout, frame_id, crop_fov, intensity_max)
+            points, table = load_frame(layout, frame_id, crop_fov, intensity_max, thinning)
             yield frame_id, points, table
 
-    attrs = {"source_format": "kitti", "crop_fov": bool(crop_fov)}
+    attrs = {"source_format": "kitti", "crop_fov": bool(crop_fov), **thinning.params()}
     return write_imported(
         out,
         frames(),
@@ -456,6 +466,7 @@ def build_import(
         notes=[
             "boxes: label_2 through calib (R0_rect, Tr_velo_to_cam) to the LiDAR frame, geometric centre",
             "DontCare rows: zero-size boxes at the origin; their 2D region is kept in bbox_*",
+            *thinning.notes(),
         ],
     )
 

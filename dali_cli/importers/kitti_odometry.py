@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
+from dali_cli.importers.beams import BeamThinning
 from dali_cli.importers.common import (
     ImportFormatError,
     indexed_scan_ids,
@@ -190,15 +191,16 @@ def build_import(
     crop_front_deg: float | None = None,
     sensor: str = "kitti",
     progress: bool = True,
+    thinning: BeamThinning = BeamThinning(),
 ) -> BuildResult:
     """Stage body of `dali import kitti-odometry`: every scan (unlabeled; cropped to camera 2's
     image through `calib` with `crop_fov`, to the front `crop_front_deg` degrees of azimuth), and
     `table` (`OdometrySequence.sequence_table`) as OUT/sequence.parquet (`progress`: a progress
-    bar on stderr)."""
+    bar on stderr; `thinning`: the beams each scan keeps, before the crops)."""
     from dali_cli.store.sequence import write_table
 
     image_size = sequence.image_size()
-    notes = ["points: velodyne scans (LiDAR frame), no labels"]
+    notes = ["points: velodyne scans (LiDAR frame), no labels", *thinning.notes()]
     if crop_fov:
         notes.append(
             f"cropped to camera 2's image ({image_size[0]} x {image_size[1]}) by P2 and Tr"
@@ -208,7 +210,7 @@ def build_import(
 
     def frames():
         for frame_id in frame_ids:
-            points = read_velodyne(sequence.velodyne_dir / f"{frame_id}.bin")
+            points = thinning.apply(read_velodyne(sequence.velodyne_dir / f"{frame_id}.bin"))
             if crop_fov:
                 points = points[camera_fov_mask(points, calib, image_size)]
             if crop_front_deg is not None:
@@ -219,6 +221,7 @@ def build_import(
         "source_format": "kitti-odometry",
         "crop_fov": bool(crop_fov),
         "crop_front_deg": crop_front_deg,
+        **thinning.params(),
     }
     result = write_imported(out, frames(), sensor, attrs, total=len(frame_ids), progress=progress)
     if table is not None:

@@ -30,6 +30,7 @@ import numpy as np
 
 from dali_cli.columns import Columns
 from dali_cli.geometry import count_points_in_boxes, wrap_angle
+from dali_cli.importers.beams import BeamThinning
 from dali_cli.importers.camera import kitti_label_columns
 from dali_cli.importers.common import (
     ImportFormatError,
@@ -321,14 +322,15 @@ def build_import(
     sensor: str = "kitti",
     progress: bool = True,
     poses: bool = False,
+    thinning: BeamThinning = BeamThinning(),
 ) -> BuildResult:
     """Stage body of `dali import kitti-raw`: every scan, and its tracklet boxes when labelled
     (`progress`: a progress bar on stderr); `poses`: the scans' LiDAR poses from the drive's OXTS
-    records as OUT/sequence.parquet."""
+    records as OUT/sequence.parquet; `thinning`: the beams each scan keeps, before the crop."""
     calib, image_size = read_raw_calib(drive.calib_dir)
     lidar_poses = drive.lidar_poses(frame_ids) if poses else None  # read first: fail early
     poses = read_tracklets(drive.tracklets) if drive.tracklets is not None else None
-    notes = ["points: velodyne_points/data scans (LiDAR frame)"]
+    notes = ["points: velodyne_points/data scans (LiDAR frame)", *thinning.notes()]
     if poses is not None:
         indices = np.array([int(frame_id) for frame_id in frame_ids], np.int64)
         outside = int((~np.isin(poses.frame, indices)).sum())
@@ -340,7 +342,7 @@ def build_import(
 
     def frames():
         for frame_id in frame_ids:
-            points = read_velodyne(drive.velodyne_dir / f"{frame_id}.bin")
+            points = thinning.apply(read_velodyne(drive.velodyne_dir / f"{frame_id}.bin"))
             if crop_fov:
                 points = points[camera_fov_mask(points, calib, image_size)]
             table = None
@@ -353,7 +355,7 @@ def build_import(
                 )
             yield frame_id, points, table
 
-    attrs = {"source_format": "kitti-raw", "crop_fov": bool(crop_fov)}
+    attrs = {"source_format": "kitti-raw", "crop_fov": bool(crop_fov), **thinning.params()}
     result = write_imported(out, frames(), sensor, attrs, total=len(frame_ids), progress=progress)
     if lidar_poses is not None:
         write_sequence(out, frame_ids, lidar_poses)
