@@ -78,9 +78,34 @@ def evaluation(directory: Path) -> dict:
         "ceiling": ceiling,
         **{header: headline(metrics, block, kind) for block, kind, header in METRICS},
     }
+    entry.update(box_quality(metrics))
     if ceiling is not None and ceiling < 100.0:
         entry.update(exact_recall(directory, car["protocol"]))
     return entry
+
+
+QUALITY = ("backwards", "|dl| m", "l spread")  # box_quality's keys, as the card shows them
+
+
+def box_quality(metrics: dict) -> dict:
+    """How the true positives face and fit (the headline group, moderate or all): how many face
+    backwards (of those matched at IoU 0.7, BEV), their median |length error| (m) and their
+    lengths' 5-95 % range over the labels' (the error breakdown's, BEV IoU > 0.5). Empty for an
+    evaluation written before these existed."""
+    car = metrics.get("Car", {})
+    heading = car.get("heading", {})
+    heading = heading.get("moderate", heading.get("all"))
+    tps = (metrics.get("errors") or {}).get("true_positives", {})
+    length = tps.get("all", {}).get("l_m", {})
+    spread = tps.get("sizes", {}).get("l_m", {})
+    quality = {}
+    if heading and heading.get("tp"):
+        quality["backwards"] = f"{heading['backwards']}/{heading['tp']}"
+    if length.get("median_abs") is not None:
+        quality["|dl| m"] = round(float(length["median_abs"]), 3)
+    if spread.get("spread_ratio") is not None:
+        quality["l spread"] = round(float(spread["spread_ratio"]), 2)
+    return quality
 
 
 def exact_recall(directory: Path, protocol: str) -> dict:
@@ -160,6 +185,17 @@ def card_text(card: dict) -> str:
     for name, entry in card["evaluations"].items():
         cells = ["-" if entry.get(h) is None else f"{entry[h]:.1f}" for h in headers]
         lines.append(f"| {name} | {entry['frames']} | " + " | ".join(cells) + " |")
+    quality = [(name, entry) for name, entry in card["evaluations"].items()
+               if any(key in entry for key in QUALITY)]  # fmt: skip
+    if quality:
+        lines += ["", "How the found cars' boxes face and fit: true positives facing backwards (at "
+                  "IoU 0.7, BEV), their median |length error| (m) and their lengths' 5-95 % range "
+                  "over their labels' (1: as varied as the cars; 0: one length for every car).",
+                  "", "| set | " + " | ".join(QUALITY) + " |", "|---|" + "---|" * len(QUALITY)]  # fmt: skip
+        for name, entry in quality:
+            lines.append(
+                f"| {name} | " + " | ".join(str(entry.get(k, "-")) for k in QUALITY) + " |"
+            )
     if card["recipe"]:
         lines += ["", f"The recipe over {card['recipe_seeds']} seeds (mean ± std; this model is one "
                   "of them):", "", "| set | seeds | " + " | ".join(headers) + " |",

@@ -124,6 +124,30 @@ def test_the_card_names_every_stage_and_the_recipes_spread(tmp_path):
     assert sorted(p.name for p in out.parent.iterdir()) == ["m"]
 
 
+def test_the_card_shows_how_the_true_positives_face_and_fit(tmp_path):
+    """The backwards count, the median |length error| and the length spread come from the
+    evaluation's heading and error blocks; an evaluation without them gets no such row."""
+    model = fake_model(tmp_path / "run" / "model")
+    fitted, older = fake_eval(tmp_path / "fitted", 80.0), fake_eval(tmp_path / "older", 70.0)
+    metrics = json.loads((fitted / "metrics.json").read_text())
+    metrics["Car"]["heading"] = {"moderate": {"tp": 40, "backwards": 3}}
+    metrics["errors"] = {"true_positives": {"all": {"l_m": {"median_abs": 0.1734}},
+                                            "sizes": {"l_m": {"spread_ratio": 0.231}}}}  # fmt: skip
+    (fitted / "metrics.json").write_text(json.dumps(metrics))
+    out = tmp_path / "models" / "m"
+    done = run_card("--model", str(model), "--name", "m", "--title", "t", "--summary", "s",
+                    "--eval", f"fitted={fitted}", "--eval", f"older={older}", "--out", str(out))  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    card = json.loads((out / "card.json").read_text())["evaluations"]
+    assert card["fitted"]["backwards"] == "3/40" and card["fitted"]["|dl| m"] == 0.173
+    assert card["fitted"]["l spread"] == 0.23 and "backwards" not in card["older"]
+    readme = (out / "README.md").read_text()
+    assert (
+        "| fitted | 3/40 | 0.173 | 0.23 |" in readme
+        and "| older | " not in readme.split("How the found cars")[1].split("##")[0]
+    )
+
+
 def test_the_cards_use_line_names_the_front_view_detect_defaults_to(tmp_path):
     """A model adapted on cropped scans (model.json's config front_deg) runs in that view by
     default: its card's Use says so and how to see every point; a full-scan model's does not."""
