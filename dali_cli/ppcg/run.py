@@ -139,12 +139,9 @@ class PpcgStageOptions(PpcgOptions, total=False):
     top_k: int  # pick at random among the K best models (per-box seed); 1 = the best
     seed: int
     ground_margin_m: float  # frame.ground_heights' margin (m)
-    # turn a box round when its model fits its points better that way (dali_cli.ppcg.orient;
-    # None: with mesh models only)
-    orient_models: bool | None
+    orient_models: bool | None  # turn a box round when its model fits better (None: meshes only)
     point_margin_m: float  # a box's points are those in the box grown by this (m)
-    # (l, w, h) room a box leaves around its car: the model fills the box shrunk by it (m)
-    label_slack_m: tuple[float, float, float]
+    label_slack_m: tuple[float, float, float]  # (l, w, h) room a box leaves around its car (m)
 
 
 PPCG_STAGE_DEFAULTS = {
