@@ -6,8 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Unpack
 
-from dali_cli.importers.beams import BeamThinning
-from dali_cli.importers.common import ImportRun, check_sensor, run_import
+from dali_cli.importers.common import ImportRun, run_thinned_import, thinned_sensor
 from dali_cli.store.manifest import StageOutcome
 
 
@@ -30,9 +29,7 @@ def import_kitti(
     from dali_cli.importers.kitti import KittiLayout, build_import
     from dali_cli.store.regular_files import check_present_files
 
-    thinning = BeamThinning.of(beams, beams_azimuth_half)
-    sensor = thinning.sensor(sensor)  # kitti -> kitti-16 with --beams 16
-    check_sensor(sensor, run)  # an unknown profile fails before any work
+    thinning, sensor = thinned_sensor(sensor, beams, beams_azimuth_half, run)
     layout = KittiLayout.of(root, split, label_dir)
     frame_ids = layout.frame_ids(read_id_list(ids_path) if ids_path else None)
     check_point_files([layout.velodyne_dir / f"{frame_id}.bin" for frame_id in frame_ids])
@@ -44,20 +41,8 @@ def import_kitti(
             inputs[name] = path
     params = {"split": split, "crop_fov": crop_fov, "sensor": sensor, "frames": len(frame_ids),
               "intensity_max": intensity_max}  # fmt: skip
-    return run_import(
-        "import-kitti",
-        out,
-        inputs,
-        params | thinning.params(),
-        lambda tmp: build_import(
-            tmp,
-            layout,
-            frame_ids,
-            crop_fov=crop_fov,
-            sensor=sensor,
-            thinning=thinning,
-            progress=run.get("progress", True),
-            intensity_max=intensity_max,
-        ),
-        run,
-    )
+
+    def build(tmp, **common):
+        return build_import(tmp, layout, frame_ids, intensity_max=intensity_max, **common)
+
+    return run_thinned_import("import-kitti", out, inputs, params, run, thinning, build)

@@ -7,8 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Unpack
 
-from dali_cli.importers.beams import BeamThinning
-from dali_cli.importers.common import ImportRun, check_sensor, run_import
+from dali_cli.importers.common import ImportRun, run_thinned_import, thinned_sensor
 from dali_cli.runtime.errors import ParameterError
 from dali_cli.store.manifest import StageOutcome
 
@@ -35,9 +34,7 @@ def import_kitti_odometry(
         read_odometry_calib,
     )
 
-    thinning = BeamThinning.of(beams, beams_azimuth_half)
-    sensor = thinning.sensor(sensor)  # kitti -> kitti-16 with --beams 16
-    check_sensor(sensor, run)  # an unknown profile fails before any work
+    thinning, sensor = thinned_sensor(sensor, beams, beams_azimuth_half, run)
     if crop_fov and crop_front_deg is not None:
         raise ParameterError(("crop_fov", "crop_front_deg"), "give one crop, not both")
     sequence = OdometrySequence.of(sequence_dir, calib, poses)
@@ -65,22 +62,10 @@ def import_kitti_odometry(
         "sensor": sensor,
         "frames": len(frame_ids),
     }
-    return run_import(
-        "import-kitti-odometry",
-        out,
-        inputs,
-        params | thinning.params(),
-        lambda tmp: build_import(
-            tmp,
-            sequence,
-            frame_ids,
-            camera,
-            table,
-            crop_fov=crop_fov,
-            crop_front_deg=crop_front_deg,
-            sensor=sensor,
-            thinning=thinning,
-            progress=run.get("progress", True),
-        ),
-        run,
-    )
+
+    def build(tmp, **common):
+        return build_import(
+            tmp, sequence, frame_ids, camera, table, crop_front_deg=crop_front_deg, **common
+        )
+
+    return run_thinned_import("import-kitti-odometry", out, inputs, params, run, thinning, build)

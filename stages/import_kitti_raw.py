@@ -7,8 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Unpack
 
-from dali_cli.importers.beams import BeamThinning
-from dali_cli.importers.common import ImportRun, check_sensor, run_import
+from dali_cli.importers.common import ImportRun, run_thinned_import, thinned_sensor
 from dali_cli.store.manifest import StageOutcome
 
 
@@ -30,9 +29,7 @@ def import_kitti_raw(
     the scans' LiDAR poses from the OXTS records when `poses`)."""
     from dali_cli.importers.kitti_raw import RawDrive, build_import
 
-    thinning = BeamThinning.of(beams, beams_azimuth_half)
-    sensor = thinning.sensor(sensor)  # kitti -> kitti-16 with --beams 16
-    check_sensor(sensor, run)  # an unknown profile fails before any work
+    thinning, sensor = thinned_sensor(sensor, beams, beams_azimuth_half, run)
     drive = RawDrive.of(drive_dir, calib_dir, tracklets, labels)
     frame_ids = drive.frame_ids()
     inputs = {
@@ -50,20 +47,8 @@ def import_kitti_raw(
         "frames": len(frame_ids),
         **({"poses": "oxts"} if poses else {}),
     }
-    return run_import(
-        "import-kitti-raw",
-        out,
-        inputs,
-        params | thinning.params(),
-        lambda tmp: build_import(
-            tmp,
-            drive,
-            frame_ids,
-            crop_fov=crop_fov,
-            sensor=sensor,
-            thinning=thinning,
-            progress=run.get("progress", True),
-            poses=poses,
-        ),
-        run,
-    )
+
+    def build(tmp, **common):
+        return build_import(tmp, drive, frame_ids, poses=poses, **common)
+
+    return run_thinned_import("import-kitti-raw", out, inputs, params, run, thinning, build)

@@ -6,11 +6,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Unpack
 
-from dali_cli.ppcg.frame import DEFAULT_POINT_MARGIN_M
-from dali_cli.ppcg.run import PpcgOptions, run_ppcg_stage
+from dali_cli.ppcg.run import PpcgStageOptions, run_ppcg_stage
 from dali_cli.runtime.errors import ParameterError
 from dali_cli.store.manifest import StageOutcome
-from dali_cli.world.cars import LABEL_SLACK_M
 
 
 def ppcg_cf(
@@ -20,23 +18,14 @@ def ppcg_cf(
     out: str | Path,
     *,
     range_m: tuple[float, float] = (20.0, 50.0),
-    top_k: int = 1,
-    seed: int = 0,
-    ground_margin_m: float = 0.1,
-    orient_models: bool | None = None,
-    point_margin_m: float = DEFAULT_POINT_MARGIN_M,
-    label_slack_m: tuple[float, float, float] = tuple(LABEL_SLACK_M),
-    **options: Unpack[PpcgOptions],
+    **options: Unpack[PpcgStageOptions],
 ) -> StageOutcome:
-    """CF pseudo point clouds (see dali_cli.ppcg.cf); `orient_models`, `point_margin_m`,
-    `label_slack_m` and `options` as ppcg_rc's."""
+    """CF pseudo point clouds (see dali_cli.ppcg.cf) of boxes moved to a centre range drawn
+    from `range_m`; `options` as ppcg_rc's."""
     low, high = (float(v) for v in range_m)
     if not 0 < low <= high:
         raise ParameterError("range_m", f"need 0 < LOW <= HIGH, got {low}:{high}")
-    shared = {"top_k": top_k, "seed": seed, "ground_margin_m": ground_margin_m}
+    method = {"range_m": (low, high)}
     return run_ppcg_stage(
-        "cf", target_dir, boxes_dir, library_dir, out,
-        method={"range_m": (low, high)}, shared=shared,
-        orient_models=orient_models, point_margin_m=point_margin_m, label_slack_m=label_slack_m,
-        options=options,
-    )  # fmt: skip
+        "cf", target_dir, boxes_dir, library_dir, out, method=method, options=options
+    )

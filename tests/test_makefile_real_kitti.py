@@ -110,6 +110,19 @@ def named(commands, *verb: str) -> list[list[str]]:
     return [words for words in commands if tuple(words[: len(verb)]) == verb]
 
 
+def by_out(commands, *verb: str) -> dict[str, list[str]]:
+    """The `verb` commands keyed by their --out."""
+    return {option(w, "--out"): w for w in named(commands, *verb)}
+
+
+def assert_self_trained_like(mine: list[str], theirs: list[str], init: str, pseudo: str):
+    """`mine` fine-tunes `init` on `pseudo` with the budget and flags of `theirs`."""
+    assert option(mine, "--init") == init
+    assert option(mine, "--pseudo") == pseudo
+    skip = ("--init", "--pseudo", "--out")
+    assert options(mine, skip) == options(theirs, skip)
+
+
 def test_every_drive_is_imported_unlabeled_and_merged_into_the_target(setup):
     data, commands = setup["data"], setup["commands"]
     imports = {
@@ -181,19 +194,17 @@ def test_every_row_is_evaluated_on_every_set_in_every_seed(setup):
 def test_control_st_is_pseudo_labelled_and_self_trained_like_x2_st(setup):
     commands = setup["commands"]
     run = f"{setup['run']}-s0"
-    pseudo = {option(w, "--out"): w for w in named(commands, "pseudo-label")}
+    pseudo = by_out(commands, "pseudo-label")
     x2, control = pseudo[f"{run}/iter3/pseudo"], pseudo[f"{run}/baselines/source_x2_budget/pseudo"]
     assert option(control, "--model") == f"{run}/baselines/source_x2_budget/model"
     assert option(control, "--scale-from") == f"{run}/baselines/source_x2_budget/ptsn"
     skip = ("--model", "--scale-from", "--out")
     assert options(control, skip) == options(x2, skip)
-    train = {option(w, "--out"): w for w in named(commands, "self-train")}
+    train = by_out(commands, "self-train")
     x2_st = train[f"{run}/iter2_st/model"]
     control_st = train[f"{run}/baselines/source_x2_budget_st/model"]
-    assert option(control_st, "--init") == f"{run}/baselines/source_x2_budget/model"
-    assert option(control_st, "--pseudo") == f"{run}/baselines/source_x2_budget/pseudo"
-    skip = ("--init", "--pseudo", "--out")
-    assert options(control_st, skip) == options(x2_st, skip)
+    baseline = f"{run}/baselines/source_x2_budget"
+    assert_self_trained_like(control_st, x2_st, f"{baseline}/model", f"{baseline}/pseudo")
     assert option(control_st, "--epochs") == option(x2_st, "--epochs") is not None
 
 
@@ -206,9 +217,9 @@ def test_tracked_rows_self_train_like_st_on_labels_tracked_over_registered_scans
     poses = option(registers[0], "--out")
     for seed in SEEDS:
         run = f"{setup['run']}-s{seed}"
-        pseudo = {option(w, "--out"): w for w in named(commands, "pseudo-label")}
-        tracks = {option(w, "--out"): w for w in named(commands, "track-pseudo")}
-        train = {option(w, "--out"): w for w in named(commands, "self-train")}
+        pseudo = by_out(commands, "pseudo-label")
+        tracks = by_out(commands, "track-pseudo")
+        train = by_out(commands, "self-train")
         for labels, row, plain in (
             ("iter3", "iter2_tst", "iter2_st"),
             ("baselines/source_x2_budget", "baselines/source_x2_budget_tst",
@@ -235,25 +246,18 @@ def test_the_second_tracked_round_relabels_with_the_first_at_its_own_scale(setup
             f"{run}/baselines/source_x2_budget_tst",
             f"{run}/baselines/source_x2_budget_tst2",
         )
-        sweeps = {option(w, "--out"): w for w in named(commands, "ptsn-sweep")}
+        sweeps = by_out(commands, "ptsn-sweep")
         assert option(sweeps[f"{first}/ptsn"], "--model") == f"{first}/model"
-        low = {option(w, "--out"): w for w in named(commands, "pseudo-label")}[
-            f"{first}/pseudo_low"
-        ]
+        low = by_out(commands, "pseudo-label")[f"{first}/pseudo_low"]
         assert option(low, "--model") == f"{first}/model"
         assert option(low, "--scale-from") == f"{first}/ptsn"
-        tracked = {option(w, "--out"): w for w in named(commands, "track-pseudo")}[
-            f"{first}/tracked"
-        ]
+        tracked = by_out(commands, "track-pseudo")[f"{first}/tracked"]
         assert option(tracked, "--pseudo") == f"{first}/pseudo_low"
-        train = {option(w, "--out"): w for w in named(commands, "self-train")}
+        train = by_out(commands, "self-train")
         mine, theirs = train[f"{second}/model"], train[f"{first}/model"]
-        assert option(mine, "--init") == f"{first}/model"
-        assert option(mine, "--pseudo") == f"{first}/tracked"
         # the same self-training budget and flags as the first round
-        skip = ("--init", "--pseudo", "--out")
-        assert options(mine, skip) == options(theirs, skip)
-        evals = {option(w, "--out"): w for w in named(commands, "eval")}
+        assert_self_trained_like(mine, theirs, f"{first}/model", f"{first}/tracked")
+        evals = by_out(commands, "eval")
         assert option(evals[f"{second}/eval"], "--scale-from") == f"{first}/ptsn"
 
 
@@ -277,7 +281,7 @@ def test_make_models_builds_the_recipe_row_on_every_seed(setup):
 
 def test_the_pairs_are_compared_on_every_set_with_a_paired_bootstrap(setup):
     data, commands = setup["data"], setup["commands"]
-    compares = {option(w, "--out"): w for w in named(commands, "compare")}
+    compares = by_out(commands, "compare")
     truth = {"drive": f"{data}/drive_labels", "objects_adapted": f"{data}/objects_adapted",
              "objects_other": f"{data}/objects_other"}  # fmt: skip
     for seed in SEEDS:
@@ -325,7 +329,7 @@ def test_the_object_frames_are_split_by_their_drive(setup):
     adapted = (data / "objects_adapted.txt").read_text().split()
     other = (data / "objects_other.txt").read_text().split()
     assert adapted == ["000001", "000003"] and other == ["000002", "000004"]
-    imports = {option(w, "--out"): w for w in named(setup["commands"], "import", "kitti")}
+    imports = by_out(setup["commands"], "import", "kitti")
     for set_name in ("objects_adapted", "objects_other"):
         words = imports[f"{data}/{set_name}"]
         assert option(words, "--ids") == f"{data}/{set_name}.txt" and "--crop-fov" in words

@@ -257,13 +257,18 @@ def sensors_option(function, *, shown: bool = False):
     )(function)
 
 
+def artifact_options(help: str = "Output directory.", *, progress: bool = True):
+    """--out DIR (out_dir_option), --no-progress unless not `progress`, and the stage switches:
+    the options of every command whose stage writes one artifact directory."""
+    options = [out_dir_option(help), *([no_progress_option] if progress else []), stage_options]
+    return lambda function: apply_options(function, options)
+
+
 def model_target_out_options(model_help: str):
     """--model, --data and --out of the stages that run a model on the target frame set."""
 
     def decorate(function):
-        function = click.option(
-            "--out", required=True, type=click.Path(file_okay=False), help="Output directory."
-        )(function)
+        function = out_dir_option()(function)
         function = data_option(
             "target_dir", "Target frame set (frames.zarr). Its labels, if any, are never read."
         )(function)
@@ -280,11 +285,7 @@ def model_target_out_options(model_help: str):
 
 def output_options(function):
     """--out DIR, --sensors and the stage switches of commands that write one artifact."""
-    function = stage_options(function)
-    function = sensors_option(function)
-    return click.option(
-        "--out", "out", type=click.Path(file_okay=False), required=True, help="Output directory."
-    )(function)
+    return apply_options(function, [out_dir_option(), sensors_option, stage_options])
 
 
 def import_options(default_sensor: str | None):

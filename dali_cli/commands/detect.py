@@ -8,15 +8,13 @@ import click
 
 from dali_cli.commands.common import (
     BATCH,
+    artifact_options,
     calib_option,
     device_options,
-    no_progress_option,
-    out_dir_option,
     ran_counts,
     scale_from_option,
     score_min_option,
     sensors_option,
-    stage_options,
     tuning_option,
 )
 from dali_cli.commands.kinds import SCALE, VIEW_DEG
@@ -48,11 +46,9 @@ from dali_cli.commands.kinds import SCALE, VIEW_DEG
                    "score (rerun-sdk).")  # fmt: skip
 @tuning_option("--batch-size", type=BATCH, default=4, show_default=True,
               help="Scans per network pass.")  # fmt: skip
-@out_dir_option()
 @device_options
 @sensors_option
-@no_progress_option
-@stage_options
+@artifact_options()
 def command(scans, model, scale, scale_from, sensor, calib, front_deg, score_min, rerun,
             batch_size, out, device, precision, sensors_path, no_progress, force, dry_run):  # fmt: skip
     """Detect cars in SCANS with MODEL and write OUT.

@@ -8,12 +8,10 @@ import click
 
 from dali_cli.commands.common import (
     FRACTION,
+    artifact_options,
     choice_option,
-    no_progress_option,
-    out_dir_option,
     ran_counts,
     scale_from_option,
-    stage_options,
     tuning_option,
 )
 from dali_cli.commands.kinds import SCALE
@@ -70,9 +68,7 @@ def _parse_image_size(_ctx, _param, value: str | None) -> tuple[int, int] | None
                    "the KITTI label columns (an imported label set).")  # fmt: skip
 @click.option("--no-score", is_flag=True,
               help="Write 15-field lines (ground-truth format) without the score.")  # fmt: skip
-@out_dir_option()
-@no_progress_option
-@stage_options
+@artifact_options()
 def kitti_command(
     boxes_dir,
     calib_root,
@@ -121,8 +117,7 @@ def kitti_command(
 @click.option(
     "--score-min", type=FRACTION, default=None, help="Write only boxes with score >= this."
 )
-@out_dir_option()
-@stage_options
+@artifact_options(progress=False)
 def openpcdet_command(data_dir, boxes_dir, split, score_min, out, force, dry_run):
     """Write the FrameSet DATA_DIR in OpenPCDet's custom format: OUT/points/<frame>.npy
     ((n, 4) float32) and, with boxes, OUT/labels/<frame>.txt (x y z dx dy dz heading class)."""
@@ -147,8 +142,7 @@ def openpcdet_command(data_dir, boxes_dir, split, score_min, out, force, dry_run
               help="PTSN scale whose grid the graph runs on. Default: MODEL_DIR/scale.json, "
                    "else 1.")  # fmt: skip
 @scale_from_option(tuning=True)
-@out_dir_option()
-@stage_options
+@artifact_options(progress=False)
 def model_command(model_dir, as_onnx, scale, scale_from, out, force, dry_run):
     """Write the detector of MODEL_DIR as OUT/detector.onnx (one frame's pillarized points ->
     head maps) and OUT/refiner.onnx (box point features -> residuals and IoU), with OUT/onnx.json

@@ -9,10 +9,8 @@ import click
 from dali_cli import quantities
 from dali_cli.commands.common import (
     SEED,
-    no_progress_option,
-    out_dir_option,
+    artifact_options,
     ran_counts,
-    stage_options,
     tuning_option,
 )
 
@@ -66,9 +64,7 @@ def _parse_range(_ctx, _param, value: str | None) -> tuple[float, float] | None:
 @tuning_option("--min-points", type=click.IntRange(min=1), default=300, show_default=True,
               help="Point models: instances with at least this many points in their box.")  # fmt: skip
 @click.option("--label", default="Car", show_default=True, help="Point models: box label to use.")
-@out_dir_option("Output library directory.")
-@no_progress_option
-@stage_options
+@artifact_options("Output library directory.")
 def build_command(out, no_progress, **options):
     """Build a model library OUT from any combination of --cad, --procedural and --points.
 

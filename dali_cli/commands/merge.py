@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import no_progress_option, out_dir_option, ran_counts, stage_options
+from dali_cli.commands.common import artifact_options, ran_counts
 
 
 @click.command(name="merge")
@@ -13,9 +13,7 @@ from dali_cli.commands.common import no_progress_option, out_dir_option, ran_cou
                    "its frame ids: NAME-<frame id>.")  # fmt: skip
 @click.option("--no-labels", is_flag=True,
               help="Merge the frames only, without any set's boxes (an unlabeled target).")  # fmt: skip
-@out_dir_option()
-@stage_options
-@no_progress_option
+@artifact_options()
 def command(specs, no_labels, out, force, dry_run, no_progress):
     """Write the frames of every --in set as one frame set OUT, e.g. an unlabeled target of
     several drives: `dali merge --in 2011_09_26_drive_0005=data/d0005 --in data/odometry_04

@@ -5,11 +5,9 @@ from __future__ import annotations
 import click
 
 from dali_cli.commands.common import (
+    artifact_options,
     data_option,
-    no_progress_option,
-    out_dir_option,
     ran_counts,
-    stage_options,
     tuning_option,
 )
 from dali_cli.commands.kinds import DISTANCE_M, MARGIN_M, TOLERANCE
@@ -21,7 +19,6 @@ DEFAULTS = RegistrationParams()
 @click.command(name="register")
 @data_option("target", help="The frame set whose scans to register (frames.zarr; its "
              "sequence.parquet, when it has one, gives the scans' order and recordings).")  # fmt: skip
-@out_dir_option()
 @tuning_option("--voxel-m", type=DISTANCE_M, default=DEFAULTS.voxel_m, show_default=True,
                help="Map voxel (m); a scan is kept at half of it and registered at 1.5 times it.")  # fmt: skip
 @tuning_option("--min-range-m", type=DISTANCE_M, default=DEFAULTS.min_range_m,
@@ -43,8 +40,7 @@ DEFAULTS = RegistrationParams()
 @tuning_option("--max-points-per-voxel", type=click.IntRange(1, 10_000),
                default=DEFAULTS.max_points_per_voxel, show_default=True,
                help="Map points a voxel keeps (the oldest).")  # fmt: skip
-@stage_options
-@no_progress_option
+@artifact_options()
 def command(target, out, force, dry_run, no_progress, **params):
     """Estimate each scan's LiDAR pose by registering it to a local map of the scans before it
     (point-to-plane ICP with a constant-velocity motion prior and a robust kernel, on points

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import input_dir_option, out_dir_option, stage_options
+from dali_cli.commands.common import artifact_options, input_dir_option
 from dali_cli.commands.kinds import SIZE_DELTA
 
 
@@ -17,8 +17,7 @@ from dali_cli.commands.kinds import SIZE_DELTA
               help="Shift every box's l, w, h by these metres instead (e.g. -0.76,-0.47,-0.22).")  # fmt: skip
 @click.option("--label", "labels", multiple=True, default=("Car",), show_default=True,
               help="Box labels to shift (repeatable); other rows and their points stay.")  # fmt: skip
-@out_dir_option()
-@stage_options
+@artifact_options(progress=False)
 def command(data, like_model, delta_lwh, labels, out, force, dry_run):
     """Write DATA with every box of --label resized by a fixed l, w, h delta (bottom centre and
     yaw kept) and the points inside it moved with it: the view of the source that a model

@@ -7,12 +7,10 @@ import click
 from dali_cli.commands.common import (
     BATCH,
     SEED,
+    artifact_options,
     executor_options,
-    no_progress_option,
-    out_dir_option,
     ran_counts,
     sensors_option,
-    stage_options,
     tuning_option,
     workers_option,
 )
@@ -33,10 +31,8 @@ from dali_cli.commands.common import (
 @tuning_option("--threads", type=BATCH, default=1, show_default=True,
               help="Ray casting threads per worker (embreex releases the GIL). The output does "
                    "not depend on it.")  # fmt: skip
-@out_dir_option()
 @sensors_option
-@no_progress_option
-@stage_options
+@artifact_options()
 def command(
     sensor,
     cars_profile,

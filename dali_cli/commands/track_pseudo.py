@@ -6,10 +6,10 @@ import click
 
 from dali_cli.commands.common import (
     FRACTION,
+    artifact_options,
     data_option,
     input_dir_option,
-    out_dir_option,
-    stage_options,
+    ran_counts,
     tuning_option,
 )
 from dali_cli.commands.kinds import DISTANCE_M, MARGIN_M
@@ -27,7 +27,6 @@ DEFAULTS = TrackParams()
 @input_dir_option("--poses", "poses_dir", required=False,
                   help="Read the scans' LiDAR poses (and recordings) from this directory's "
                        "sequence.parquet instead of DATA's: a `dali register` output.")  # fmt: skip
-@out_dir_option()
 @click.option("--track-score-min", type=FRACTION, default=TRACK_SCORE_MIN, show_default=True,
               help="Keep a parked car whose boxes' median score, a moving track whose mean "
                    "score, is at least this.")  # fmt: skip
@@ -42,7 +41,7 @@ DEFAULTS = TrackParams()
 @tuning_option("--min-points", type=click.IntRange(min=1), default=DEFAULTS.min_points,
                show_default=True, help="Points a scan must hold in a parked car's box for the "
                                        "box to be placed there.")  # fmt: skip
-@stage_options
+@artifact_options(progress=False)
 def command(pseudo, target, poses_dir, out, track_score_min, force, dry_run, **params):
     """Keep the pseudo boxes that persist over DATA's scans: the boxes go into one world frame
     by the scans' poses and are linked scan by scan (nearest within --gate-m of where the
@@ -65,8 +64,7 @@ def command(pseudo, target, poses_dir, out, track_score_min, force, dry_run, **p
         pseudo, target, out, track_score_min=track_score_min, params=TrackParams(**params),
         poses_dir=poses_dir, force=force, dry_run=dry_run,
     )  # fmt: skip
-    if outcome.manifest and outcome.status == "ran":
-        counts = outcome.manifest["outputs"]["counts"]
+    if (counts := ran_counts(outcome)) is not None:
         click.echo(
             f"track-pseudo: {counts['input_boxes']} boxes -> {counts['boxes']} "
             f"({counts['parked_cars']} parked cars placed {counts['boxes_placed']} times, "

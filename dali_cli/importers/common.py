@@ -269,3 +269,27 @@ def run_import(stage: str, out, inputs: dict, params: dict, build, run: ImportRu
 
     force, dry_run = run.get("force", False), run.get("dry_run", False)
     return run_stage(stage, out, inputs, params, build, force=force, dry_run=dry_run)
+
+
+def thinned_sensor(sensor: str, beams: int, azimuth_half: bool, run: ImportRun):
+    """The BeamThinning of a KITTI import's --beams options and the sensor profile its frames
+    get (kitti -> kitti-16 with --beams 16), checked: an unknown profile fails before any work."""
+    from dali_cli.importers.beams import BeamThinning
+
+    thinning = BeamThinning.of(beams, azimuth_half)
+    sensor = thinning.sensor(sensor)
+    check_sensor(sensor, run)
+    return thinning, sensor
+
+
+def run_thinned_import(
+    stage: str, out, inputs: dict, params: dict, run: ImportRun, thinning, build
+):
+    """run_import of a KITTI import whose scans `thinning` thins (its parameters join `params`):
+    `build(tmp, **common)` writes the frame set, common being the crop_fov and sensor recorded in
+    `params`, `thinning` and the progress flag of `run`."""
+    common = {"crop_fov": params["crop_fov"], "sensor": params["sensor"], "thinning": thinning,
+              "progress": run.get("progress", True)}  # fmt: skip
+    return run_import(
+        stage, out, inputs, params | thinning.params(), lambda tmp: build(tmp, **common), run
+    )

@@ -18,27 +18,19 @@ import numpy as np
 
 from dali_cli.geometry import shrink_boxes
 from dali_cli.ppcg.fitting import box_rng, box_uniform
-from dali_cli.ppcg.frame import CF, BoxRecords, assemble, car_points, ground_heights
+from dali_cli.ppcg.frame import CF, BoxRecords, PpcgParams, assemble, car_points, ground_heights
 from dali_cli.ppcg.models import ModelBank
 from dali_cli.ppcg.orient import flips, turned
 from dali_cli.ppcg.window import box_windows, windows_directions
 from dali_cli.sensors import SensorProfile
-from dali_cli.world.cars import LABEL_SLACK_M
 
 
-@dataclass(frozen=True)
-class CfParams:
-    """CF settings. range_m: (low, high) centre range in metres; theta_rad, orient,
-    point_margin_m and label_slack_m as in RcParams."""
+@dataclass(frozen=True, kw_only=True)
+class CfParams(PpcgParams):
+    """CF settings: the shared ones (frame.PpcgParams) and range_m, the (low, high) centre
+    range in metres."""
 
-    theta_rad: float
     range_m: tuple[float, float] = (20.0, 50.0)
-    top_k: int = 1
-    seed: int = 0
-    ground_margin_m: float = 0.1
-    orient: bool | None = False
-    point_margin_m: float = 0.0
-    label_slack_m: tuple[float, float, float] = tuple(LABEL_SLACK_M)
 
 
 def move_radially(boxes: np.ndarray, ranges_m: np.ndarray) -> np.ndarray:

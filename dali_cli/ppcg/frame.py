@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dali_cli.ppcg.inbox import points_per_box
+from dali_cli.world.cars import LABEL_SLACK_M
 
 # the stages' point margin (ppcg-rc/ppcg-cf --point-margin-m): 42 % of the true cars' points lay
 # outside their pseudo boxes (demo scale, docs/ppcg.md)
@@ -21,6 +22,26 @@ DEFAULT_POINT_MARGIN_M = 0.3
 # ppcg column values and reasons recorded per box
 RC, CF, RAW = "rc", "cf", "raw"
 REASONS = ("ok", "dense", "too_few_points", "no_hits")
+
+
+@dataclass(frozen=True, kw_only=True)
+class PpcgParams:
+    """What RC and CF settings share. theta_rad: point-model angular threshold
+    (point_models.angular_threshold_rad); top_k, seed: a box's model drawn among the K best by a
+    per-box seed; ground_margin_m: the ground rule's margin (module doc); orient: turn boxes
+    whose model fits better the other way round (mesh models only; None: with mesh models,
+    decided by the stage, run.resolve_orient); point_margin_m: a box's points are those in the
+    box grown by this (car_points); label_slack_m: (l, w, h) room the boxes leave around their
+    cars, as the source's labels do (the model fills the box shrunk by it,
+    geometry.shrink_boxes; the synthetic world's default)."""
+
+    theta_rad: float
+    top_k: int = 1
+    seed: int = 0
+    ground_margin_m: float = 0.1
+    orient: bool | None = False
+    point_margin_m: float = 0.0
+    label_slack_m: tuple[float, float, float] = tuple(LABEL_SLACK_M)
 
 
 def ground_heights(boxes: np.ndarray, mount_height_m: float, ground_margin_m: float) -> np.ndarray:

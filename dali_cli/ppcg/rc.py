@@ -18,31 +18,19 @@ import numpy as np
 
 from dali_cli.geometry import shrink_boxes
 from dali_cli.ppcg.fitting import box_rng
-from dali_cli.ppcg.frame import RC, BoxRecords, assemble, car_points, ground_heights
+from dali_cli.ppcg.frame import RC, BoxRecords, PpcgParams, assemble, car_points, ground_heights
 from dali_cli.ppcg.models import ModelBank
 from dali_cli.ppcg.orient import flips, turned
-from dali_cli.world.cars import LABEL_SLACK_M
 
 
-@dataclass(frozen=True)
-class RcParams:
-    """RC settings. theta_rad: point-model angular threshold (point_models.angular_threshold_rad);
-    orient: turn boxes whose model fits better the other way round (mesh models only; None:
-    with mesh models, decided by the stage, run.resolve_orient);
-    point_margin_m: a box's points are those in the box grown by this (frame.car_points);
-    label_slack_m: (l, w, h) room the boxes leave around their cars, as the source's labels do
-    (the model fills the box shrunk by it, geometry.shrink_boxes; the synthetic world's default)."""
+@dataclass(frozen=True, kw_only=True)
+class RcParams(PpcgParams):
+    """RC settings: the shared ones (frame.PpcgParams), the sensor's mount height (m) and the
+    boxes processed, those with min_points <= points < max_points."""
 
     mount_height_m: float
-    theta_rad: float
     max_points: int = 300
     min_points: int = 3
-    top_k: int = 1
-    seed: int = 0
-    ground_margin_m: float = 0.1
-    orient: bool | None = False
-    point_margin_m: float = 0.0
-    label_slack_m: tuple[float, float, float] = tuple(LABEL_SLACK_M)
 
 
 def rc_frame(

@@ -24,6 +24,7 @@ from dali_cli.executors import make_executor, run_on
 from dali_cli.labels import plausibility
 from dali_cli.ppcg.cf import CfParams
 from dali_cli.ppcg.driver import Job, run_frames
+from dali_cli.ppcg.frame import DEFAULT_POINT_MARGIN_M
 from dali_cli.ppcg.models import ModelBank
 from dali_cli.ppcg.orient import turned
 from dali_cli.ppcg.point_models import angular_threshold_rad
@@ -34,6 +35,7 @@ from dali_cli.runtime.errors import ParameterError, StageError
 from dali_cli.sensors import get_profile
 from dali_cli.store.artifacts import BoxTable, FrameSet, FrameSetWriter, read_boxes, write_boxes
 from dali_cli.store.manifest import BuildResult, StageOutcome, check_made_from, run_stage
+from dali_cli.world.cars import LABEL_SLACK_M
 
 
 def resolve_orient(params: RcParams | CfParams, models: str) -> RcParams | CfParams:
@@ -130,6 +132,28 @@ class PpcgOptions(TypedDict, total=False):
     ray_address: str | None
 
 
+class PpcgStageOptions(PpcgOptions, total=False):
+    """PpcgOptions and the settings of the stage functions that ppcg-rc and ppcg-cf share
+    (stages.ppcg_rc, stages.ppcg_cf; defaults in PPCG_STAGE_DEFAULTS)."""
+
+    top_k: int  # pick at random among the K best models (per-box seed); 1 = the best
+    seed: int
+    ground_margin_m: float  # frame.ground_heights' margin (m)
+    orient_models: bool | None  # turn a box round when its model fits better (None: meshes only)
+    point_margin_m: float  # a box's points are those in the box grown by this (m)
+    label_slack_m: tuple[float, float, float]  # (l, w, h) room a box leaves around its car (m)
+
+
+PPCG_STAGE_DEFAULTS = {
+    "top_k": 1,
+    "seed": 0,
+    "ground_margin_m": 0.1,
+    "orient_models": None,
+    "point_margin_m": DEFAULT_POINT_MARGIN_M,
+    "label_slack_m": tuple(LABEL_SLACK_M),  # the synthetic world's labels
+}
+
+
 def run_ppcg_stage(
     mode: str,
     target_dir: str | Path,
@@ -138,18 +162,17 @@ def run_ppcg_stage(
     out: str | Path,
     *,
     method: dict,
-    shared: dict,
-    orient_models: bool | None,
-    point_margin_m: float,
-    label_slack_m: tuple[float, float, float],
-    options: PpcgOptions,
+    options: PpcgStageOptions,
 ) -> StageOutcome:
     """ppcg-rc or ppcg-cf from its stage function's arguments (stages.ppcg_rc, stages.ppcg_cf):
-    `method` the mode's own parameters and `shared` top_k, seed and ground_margin_m (both
+    `method` the mode's own parameters and, of `options`, top_k, seed and ground_margin_m (both
     recorded as given); the angular threshold (and RC's mount height) from the target's profile;
     run_ppcg checks the margin and the slack, resolves the orientation (it knows the model kind)
     and records each only when used."""
-    check_options(options, PpcgOptions, f"ppcg_{mode}")
+    check_options(options, PpcgStageOptions, f"ppcg_{mode}")
+    options = dict(options)  # the caller's keywords stay as given
+    stage = {name: options.pop(name, default) for name, default in PPCG_STAGE_DEFAULTS.items()}
+    shared = {name: stage[name] for name in ("top_k", "seed", "ground_margin_m")}
     _, profile = target_profile(
         FrameSet(target_dir), options.get("sensor"), options.get("sensors_path")
     )
@@ -159,9 +182,9 @@ def run_ppcg_stage(
     params = params_class(
         **of_profile,
         theta_rad=angular_threshold_rad(profile.points_per_beam),
-        orient=orient_models,
-        point_margin_m=float(point_margin_m),
-        label_slack_m=tuple(float(v) for v in label_slack_m),
+        orient=stage["orient_models"],
+        point_margin_m=float(stage["point_margin_m"]),
+        label_slack_m=tuple(float(v) for v in stage["label_slack_m"]),
         **method,
         **shared,
     )
