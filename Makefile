@@ -40,6 +40,7 @@ help:
 	@echo "make report RUN=DIR - the AP table, sizes and plots of a run"
 	@echo "make experiment  - the full synthetic benchmark (docs/RESULTS.md)"
 	@echo "make real-kitti  - adapt to real KITTI drives over seeds: every row on labelled real frames (docs/data.md)"
+	@echo "make real-kitti-beams BEAMS=16 - adapt models/kitti-hdl64e to the drives at 32 or 16 beams (docs/data.md)"
 	@echo "make models      - rebuild models/waymo-like-source and models/kitti-hdl64e with their cards"
 	@echo "make bench       - run the benchmarks (results in bench/results/*.json)"
 	@echo "make pareto      - run time vs error of every stage's speed knobs (docs/pareto.md; pareto-quick: smoke test)"
@@ -180,6 +181,8 @@ data: $(SOURCE)/manifest.json $(TARGET)/manifest.json $(TARGET_VAL)/manifest.jso
 SOURCE_MODEL ?=
 iter_model = $(if $(and $(filter 0,$(1)),$(SOURCE_MODEL)),$(SOURCE_MODEL),$(RUN)/iter$(1)/model)
 iter_model_target = $(if $(and $(filter 0,$(1)),$(SOURCE_MODEL)),$(SOURCE_MODEL)/model.json,$(RUN)/iter$(1)/model/manifest.json)
+# a model named by its directory in the run (iter2/model): iter0/model is SOURCE_MODEL when given
+run_model = $(if $(filter iter0/model,$(1)),$(call iter_model,0),$(RUN)/$(1))
 $(RUN)/iter0/model/manifest.json: $(SOURCE)/manifest.json
 	$(TRAIN_DALI) pretrain --source $(SOURCE) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/iter0/eval/manifest.json: $(call iter_model_target,0) $(TARGET_VAL)/manifest.json
@@ -187,6 +190,10 @@ $(RUN)/iter0/eval/manifest.json: $(call iter_model_target,0) $(TARGET_VAL)/manif
 $(RUN)/iter0/eval_ptsn/manifest.json: $(RUN)/iter1/ptsn/manifest.json $(TARGET_VAL)/manifest.json
 	$(DALI) eval $(DEVICE_FLAG) --model $(call iter_model,0) --data $(TARGET_VAL) --scale-from $(RUN)/iter1/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 iter0: $(RUN)/iter0/eval/manifest.json $(RUN)/iter0/eval_ptsn/manifest.json
+# direct transfer: a SOURCE_MODEL that ships its test-time scale (scale.json: models/kitti-hdl64e)
+# at that scale
+$(RUN)/iter0/eval_direct/manifest.json: $(call iter_model_target,0) $(TARGET_VAL)/manifest.json
+	$(DALI) eval $(DEVICE_FLAG) --model $(call iter_model,0) --data $(TARGET_VAL) --scale-from $(call iter_model,0) $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 
 # SOURCE_SIZE=sn (default): retraining shifts the source cars to the sweep's label-free E_est,
 # so source and PPCG labels agree on the target's size (docs/method.md); SOURCE_SIZE=init keeps the initial model's sizes (the paper's).
@@ -258,8 +265,6 @@ X1_BUDGET = $(if $(MINUTES),--minutes $$(( 2 * $(MINUTES) )),--epochs $$(( $(EPO
 X2_BUDGET = $(if $(MINUTES),--minutes $$(( 3 * $(MINUTES) )),--epochs $$(( $(EPOCHS) + 2 * ($(RETRAIN_EPOCHS_1) + $(RETRAIN_EPOCHS_2)) )))
 $(RUN)/baselines/source_x1_budget/model/manifest.json: $(SOURCE)/manifest.json
 	$(TRAIN_DALI) pretrain --source $(SOURCE) --seed $(SEED) $(X1_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
-$(RUN)/baselines/source_x2_budget/model/manifest.json: $(SOURCE)/manifest.json
-	$(TRAIN_DALI) pretrain --source $(SOURCE) --seed $(SEED) $(X2_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/oracle_x2_budget/model/manifest.json: $(TARGET)/manifest.json
 	$(TRAIN_DALI) pretrain --source $(TARGET) --seed $(SEED) $(X2_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 # self-training (the paper's ‡): fine-tune x2 on the target with its own pseudo labels at its PTSN
@@ -268,9 +273,10 @@ ST_EPOCHS ?= $(RETRAIN_EPOCHS)
 ST_FLAGS  ?= --lr 1e-3
 ST_BUDGET  = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(ST_EPOCHS))
 # a self-trained row: its directory, the model it starts from, its pseudo labels, their PTSN scale
+# and the name of its budget's variable (default ST_BUDGET)
 define SELF_TRAIN
 $(RUN)/$(1)/model/manifest.json: $(RUN)/$(3)/manifest.json $(TARGET)/manifest.json
-	$(TRAIN_DALI) self-train --init $(RUN)/$(2) --data $(TARGET) --pseudo $(RUN)/$(3) --seed $(SEED) $(ST_BUDGET) $(ST_FLAGS) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $$(@D)
+	$(TRAIN_DALI) self-train --init $(call run_model,$(2)) --data $(TARGET) --pseudo $(RUN)/$(3) --seed $(SEED) $$($(or $(5),ST_BUDGET)) $(ST_FLAGS) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $$(@D)
 $(RUN)/$(1)/eval/manifest.json: $(RUN)/$(1)/model/manifest.json $(TARGET_VAL)/manifest.json
 	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/$(1)/model --data $(TARGET_VAL) --scale-from $(RUN)/$(4) $(EVAL_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 endef
@@ -292,7 +298,7 @@ $(TARGET_POSES)/manifest.json: $(TARGET)/manifest.json
 # tracked labels in (1) by the model (2) at its PTSN scale (3)
 define TRACKED_LABELS
 $(RUN)/$(1)/pseudo_low/manifest.json: $(RUN)/$(3)/manifest.json
-	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(RUN)/$(2) --data $(TARGET) --scale-from $(RUN)/$(3) --score-min $(TRACK_PSEUDO_MIN) $(PSEUDO_FLAGS) $(EXEC_FLAGS) --out $$(@D)
+	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(call run_model,$(2)) --data $(TARGET) --scale-from $(RUN)/$(3) --score-min $(TRACK_PSEUDO_MIN) $(PSEUDO_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 $(RUN)/$(1)/tracked/manifest.json: $(RUN)/$(1)/pseudo_low/manifest.json $(TARGET_POSES)/manifest.json
 	$(DALI) track-pseudo --pseudo $(RUN)/$(1)/pseudo_low --data $(TARGET) --poses $(TARGET_POSES) --out $$(@D)
 endef
@@ -304,6 +310,34 @@ $(eval $(call SELF_TRAIN,baselines/source_x2_budget_tst,baselines/source_x2_budg
 # its own PTSN scale, its labels are tracked the same way and it self-trains on them, from itself
 $(eval $(call TRACKED_LABELS,baselines/source_x2_budget_tst,baselines/source_x2_budget_tst/model,baselines/source_x2_budget_tst/ptsn))
 $(eval $(call SELF_TRAIN,baselines/source_x2_budget_tst2,baselines/source_x2_budget_tst/model,baselines/source_x2_budget_tst/tracked,baselines/source_x2_budget_tst/ptsn))
+# the x2-budget control (baselines/source_x2_budget/model). CONTROL=pretrain (default): the source
+# model trained from scratch on SOURCE as long as iter0 and x2's retrainings together (X2_BUDGET).
+# CONTROL=tracked-st, for a trained SOURCE_MODEL that adapts further (make real-kitti-beams): such
+# a model has no labelled source frames of its own domain to be trained longer on (models/kitti-hdl64e
+# was adapted to its KITTI drives without a label; the synthetic frames it started from would undo
+# that), so the control is the label-free alternative to DALI on the same target with x2's
+# training: SOURCE_MODEL self-trained on its own pseudo labels of the target at its PTSN scale
+# (iter1/ptsn, iteration 1's), kept by track-pseudo as for x2 + tracked ST, for as many frames as
+# x2's two retrainings see (CONTROL_ST_BUDGET); it then gets its own sweep (eval_ptsn) like the
+# pretrained control, so control + tracked ST and the comparisons with x2 stay as they are
+CONTROL ?= pretrain
+ifeq ($(filter pretrain tracked-st,$(CONTROL)),)
+$(error CONTROL must be pretrain or tracked-st, got '$(CONTROL)')
+endif
+# x2's retrainings in self-training epochs: 2 x (RETRAIN_EPOCHS_1 + RETRAIN_EPOCHS_2) x |SOURCE|
+# frames (a retraining epoch: the source frames and as many PPCG frames, --mix 1:1), a
+# self-training epoch |TARGET| frames; both counts from the frame sets' manifests, when it runs
+CONTROL_ST_BUDGET = $(if $(MINUTES),--minutes $$(( 2 * $(MINUTES) )),--epochs $$($(BIN)/python -c \
+    'import json, sys; s, t = (json.load(open(f"{d}/manifest.json"))["outputs"]["counts"]["frames"] for d in sys.argv[2:]); print(int(sys.argv[1]) * s / t)' \
+    $$(( 2 * ($(RETRAIN_EPOCHS_1) + $(RETRAIN_EPOCHS_2)) )) $(SOURCE) $(TARGET)))
+ifeq ($(CONTROL),tracked-st)
+$(eval $(call TRACKED_LABELS,iter1,iter0/model,iter1/ptsn))
+$(eval $(call SELF_TRAIN,baselines/source_x2_budget,iter0/model,iter1/tracked,iter1/ptsn,CONTROL_ST_BUDGET))
+$(RUN)/baselines/source_x2_budget/model/manifest.json: $(SOURCE)/manifest.json
+else
+$(RUN)/baselines/source_x2_budget/model/manifest.json: $(SOURCE)/manifest.json
+	$(TRAIN_DALI) pretrain --source $(SOURCE) --seed $(SEED) $(X2_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
+endif
 # KITTI easy / moderate / hard of the same predictions (synthetic labels carry KITTI's columns)
 KITTI_EVAL_FLAGS ?= --protocol kitti --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
 $(RUN)/%/metrics_kitti.json: $(RUN)/%/manifest.json
@@ -395,11 +429,22 @@ REAL_OBJECTS ?= tests/fixtures/real/kitti/training
 REAL_FRAMES_TABLE ?= $(firstword $(wildcard $(REAL_OBJECTS)/frames.tsv $(REAL_OBJECTS)/../frames.tsv))
 REAL_FRONT_DEG ?= 82
 REAL_RUN     ?= runs/real-kitti
-REAL_DATA    ?= $(REAL_RUN)-data
-REAL_REPORT  ?= $(REAL_RUN)-report
+# BEAMS=32 or 16: the target's drives, the labelled drive and the object frames imported thinned to
+# that many beams (`dali import ... --beams`, docs/data.md; sensor kitti-<BEAMS>), into a data
+# directory of their own (REAL_RUN-<BEAMS>beams-data); 64: every point, as before
+BEAMS        ?= 64
+ifeq ($(filter 64 32 16,$(BEAMS)),)
+$(error BEAMS must be 64, 32 or 16, got '$(BEAMS)')
+endif
+beams_suffix  = $(if $(filter-out 64,$(BEAMS)),-$(BEAMS)beams)
+BEAMS_FLAG    = $(if $(filter-out 64,$(BEAMS)), --beams $(BEAMS))
+REAL_DATA    ?= $(REAL_RUN)$(beams_suffix)-data
+REAL_REPORT  ?= $(REAL_RUN)$(beams_suffix)-report
 REAL_EVAL_FLAGS = --protocol kitti --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
-REAL_VARS = FRAMES=$(DEMO_FRAMES) EPOCHS=$(DEMO_EPOCHS) EVAL_FLAGS="$(REAL_EVAL_FLAGS)" REAL_DATA=$(REAL_DATA) \
-    TARGET=$(REAL_DATA)/target TARGET_VAL=$(REAL_DATA)/drive_labels
+# the real target's variables for the recursive makes, with its data directory (1)
+real_vars = FRAMES=$(DEMO_FRAMES) EPOCHS=$(DEMO_EPOCHS) EVAL_FLAGS="$(REAL_EVAL_FLAGS)" REAL_DATA=$(1) \
+    TARGET=$(1)/target TARGET_VAL=$(1)/drive_labels$(if $(beams_suffix), BEAMS=$(BEAMS) SENSOR=kitti-$(BEAMS))
+REAL_VARS = $(call real_vars,$(REAL_DATA))
 # KITTI odometry devkit: the raw drive of each sequence (for the object frames' split)
 ODOMETRY_RAW_DRIVES ?= 00=2011_10_03_drive_0027 01=2011_10_03_drive_0042 02=2011_10_03_drive_0034 \
     03=2011_09_26_drive_0067 04=2011_09_30_drive_0016 05=2011_09_30_drive_0018 06=2011_09_30_drive_0020 \
@@ -419,28 +464,32 @@ REAL_OBJECT_SETS = $(if $(REAL_FRAMES_TABLE),$(if $(shell $(call real_object_ids
 # a target drive's import (unlabeled, camera field of view)
 define REAL_DRIVE_IMPORT
 $(REAL_DATA)/drives/$(call drive_name,$(1))/manifest.json: | install
-	$(if $(call is_raw_drive,$(1)),$(DALI) import kitti-raw $(1) --no-labels --crop-fov,$(DALI) import kitti-odometry $(1) $(if $(wildcard $(1)/calib.txt),--crop-fov,--crop-front-deg $(REAL_FRONT_DEG))) --out $$(@D)
+	$(if $(call is_raw_drive,$(1)),$(DALI) import kitti-raw $(1) --no-labels --crop-fov,$(DALI) import kitti-odometry $(1) $(if $(wildcard $(1)/calib.txt),--crop-fov,--crop-front-deg $(REAL_FRONT_DEG)))$(BEAMS_FLAG) --out $$(@D)
 endef
 $(foreach drive,$(REAL_DRIVES),$(eval $(call REAL_DRIVE_IMPORT,$(drive))))
 $(REAL_DATA)/target/manifest.json: $(foreach name,$(REAL_DRIVE_NAMES),$(REAL_DATA)/drives/$(name)/manifest.json)
 	$(DALI) merge $(foreach name,$(REAL_DRIVE_NAMES),--in $(name)=$(REAL_DATA)/drives/$(name)) --no-labels --out $(@D)
 # the drive's tracklets, its frame ids named as in the target (for the pseudo-label diagnostic)
 $(REAL_DATA)/drive_tracklets/manifest.json: | install
-	$(DALI) import kitti-raw $(REAL_DRIVE) --crop-fov --out $(@D)
+	$(DALI) import kitti-raw $(REAL_DRIVE) --crop-fov$(BEAMS_FLAG) --out $(@D)
 $(REAL_DATA)/drive_labels/manifest.json: $(REAL_DATA)/drive_tracklets/manifest.json
 	$(DALI) merge --in $(call drive_name,$(REAL_DRIVE))=$(REAL_DATA)/drive_tracklets --out $(@D)
 $(REAL_DATA)/objects/manifest.json: | install
-	$(DALI) import kitti $(REAL_OBJECTS) --crop-fov --out $(@D)
+	$(DALI) import kitti $(REAL_OBJECTS) --crop-fov$(BEAMS_FLAG) --out $(@D)
 $(REAL_DATA)/objects_adapted.txt $(REAL_DATA)/objects_other.txt: $(REAL_FRAMES_TABLE)
 	@mkdir -p $(@D)
 	$(call real_object_ids,$(if $(findstring adapted,$(@F)),1,0)) > $@.tmp && mv $@.tmp $@
 $(REAL_DATA)/objects_%/manifest.json: $(REAL_DATA)/objects_%.txt | install
-	$(DALI) import kitti $(REAL_OBJECTS) --ids $< --crop-fov --out $(@D)
+	$(DALI) import kitti $(REAL_OBJECTS) --ids $< --crop-fov$(BEAMS_FLAG) --out $(@D)
 # the sim oracle: the oracle of the x2 budget trained on the synthetic KITTI-like frames
 $(RUN)/baselines/sim_oracle_x2_budget/model/manifest.json: $(RUN)/data/target/manifest.json
 	$(TRAIN_DALI) pretrain --source $(RUN)/data/target --seed $(SEED) $(X2_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
-# the rows: name, model, drive evaluation, the scale flag of that evaluation
-REAL_ROWS = source:iter0/model:iter0/eval:--scale=1.0 \
+# the rows: name, model, drive evaluation, the scale flag of that evaluation; REAL_ROW_NAMES are
+# built (direct: only with a SOURCE_MODEL that ships its scale.json, make real-kitti-beams)
+REAL_ROW_NAMES ?= source ptsn x1 x2 x2_st control control_st x2_tst control_tst control_tst2 oracle
+REAL_ROWS = $(foreach name,$(REAL_ROW_NAMES),$(filter $(name):%,$(REAL_ROW_TABLE)))
+REAL_ROW_TABLE = source:iter0/model:iter0/eval:--scale=1.0 \
+    direct:iter0/model:iter0/eval_direct:--scale-from=$(call iter_model,0) \
     ptsn:iter0/model:iter0/eval_ptsn:--scale-from=$(RUN)/iter1/ptsn \
     x1:iter1/model:iter1/eval:--scale-from=$(RUN)/iter2/ptsn \
     x2:iter2/model:iter2/eval:--scale-from=$(RUN)/iter3/ptsn \
@@ -455,13 +504,13 @@ row_field = $(word $(2),$(subst :, ,$(1)))
 # a row (1) on an object set (2): the row's model at the scale its drive evaluation used
 define OBJECTS_ROW
 $(RUN)/$(2)/$(call row_field,$(1),1)/manifest.json: $(RUN)/$(call row_field,$(1),3)/manifest.json $(REAL_DATA)/$(2)/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/$(call row_field,$(1),2) --data $(REAL_DATA)/$(2) $(subst =, ,$(call row_field,$(1),4)) $(EVAL_FLAGS) $(EXEC_FLAGS) --out $$(@D)
+	$(DALI) eval $(DEVICE_FLAG) --model $(call run_model,$(call row_field,$(1),2)) --data $(REAL_DATA)/$(2) $(subst =, ,$(call row_field,$(1),4)) $(EVAL_FLAGS) $(EXEC_FLAGS) --out $$(@D)
 endef
 $(foreach set,$(REAL_OBJECT_SETS),$(foreach row,$(REAL_ROWS),$(eval $(call OBJECTS_ROW,$(row),$(set)))))
 # x2 against the control and x2 + ST against control + ST on each set: a paired bootstrap over its
 # frames (KITTI R40, IoU 0.7); the predictions are the rows' evaluations'
 REAL_PAIRS = x2:control x2_st:control_st x2_tst:control_tst
-real_eval_dir = $(if $(filter drive,$(2)),$(call row_field,$(filter $(1):%,$(REAL_ROWS)),3),$(2)/$(1))
+real_eval_dir = $(if $(filter drive,$(2)),$(call row_field,$(filter $(1):%,$(REAL_ROW_TABLE)),3),$(2)/$(1))
 real_truth = $(if $(filter drive,$(1)),$(TARGET_VAL),$(REAL_DATA)/$(1))
 define REAL_COMPARE
 $(RUN)/compare_real/$(2)-$(call row_field,$(1),1).json: $(RUN)/$(call real_eval_dir,$(call row_field,$(1),1),$(2))/manifest.json $(RUN)/$(call real_eval_dir,$(call row_field,$(1),2),$(2))/manifest.json
@@ -486,12 +535,45 @@ real-kitti-pseudo: $(foreach dir,$(REAL_PSEUDO),$(RUN)/$(dir)/manifest.json) $(T
 real-kitti: install
 	$(MAKE) $(SUBMAKE_FLAGS) real-kitti-data $(REAL_VARS)
 	@for seed in $(SEEDS); do \
-	    $(MAKE) $(SUBMAKE_FLAGS) real-kitti-rows real-kitti-pseudo RUN=$(REAL_RUN)-s$$seed SEED=$$seed $(REAL_VARS) || exit 1; \
+	    $(MAKE) $(SUBMAKE_FLAGS) real-kitti-rows real-kitti-pseudo RUN=$(REAL_RUN)$(beams_suffix)-s$$seed SEED=$$seed $(REAL_VARS) || exit 1; \
 	done
 	@mkdir -p $(REAL_REPORT)
-	$(BIN)/python bench/real_kitti_table.py $(foreach seed,$(SEEDS),$(REAL_RUN)-s$(seed)) --data $(REAL_DATA) \
+	$(BIN)/python bench/real_kitti_table.py $(foreach seed,$(SEEDS),$(REAL_RUN)$(beams_suffix)-s$(seed)) --data $(REAL_DATA) \
 	    --sets drive $(REAL_OBJECT_SETS) --out $(REAL_REPORT)/real-kitti.md
 .PHONY: real-kitti real-kitti-data real-kitti-rows real-kitti-pseudo
+
+# KITTI at fewer beams (make real-kitti-beams BEAMS=16 SEEDS="0 1 2" REAL_DRIVE=... REAL_DRIVES=...
+# REAL_OBJECTS=...; docs/data.md): the shipped 64-beam model BEAMS_SOURCE_MODEL
+# (models/kitti-hdl64e, adapted without a label, with its scale.json) as SOURCE_MODEL, adapted to
+# the drives of REAL_DRIVES imported at BEAMS beams (REAL_RUN-<BEAMS>beams-data) and evaluated on
+# REAL_DRIVE's tracklets and the object frames at BEAMS beams, once per seed (BEAMS_RUN-s<seed>:
+# REAL_RUN-<BEAMS>beams-kitti-hdl64e-s<seed>), through real-kitti-rows' targets. Rows (BEAMS_ROWS):
+# direct (the model at its scale.json), ptsn (at its PTSN scale on the sparse target), x1 and x2
+# (DALI from the model; the labelled source of their retrainings is SOURCE, the 48 synthetic
+# Waymo-like frames per seed the model's own training started from, shifted to the target's size),
+# control (CONTROL=tracked-st above: the model self-trained on its tracked pseudo labels for x2's
+# frames), control + tracked ST, x2 + tracked ST; PPCG ray-casts with the thinned profile
+# (REAL_VARS: SENSOR=kitti-<BEAMS>). Then the upper reference, once (REAL_RUN-reference): the direct
+# row on the 64-beam sets of REAL_RUN-data, the data directory of `make real-kitti`
+BEAMS_SOURCE_MODEL ?= models/kitti-hdl64e
+BEAMS_RUN    = $(REAL_RUN)$(beams_suffix)-$(notdir $(BEAMS_SOURCE_MODEL))
+BEAMS_ROWS  ?= direct ptsn x1 x2 control control_tst x2_tst
+BEAMS_PAIRS ?= x2:control x2_tst:control_tst
+BEAMS_PSEUDO = iter1/pseudo iter2/pseudo iter1/tracked iter3/tracked baselines/source_x2_budget/tracked
+BEAMS_VARS = SOURCE_MODEL=$(BEAMS_SOURCE_MODEL) CONTROL=tracked-st \
+    REAL_ROW_NAMES="$(BEAMS_ROWS)" REAL_PAIRS="$(BEAMS_PAIRS)" REAL_PSEUDO="$(BEAMS_PSEUDO)"
+ifneq ($(and $(filter real-kitti-beams,$(MAKECMDGOALS)),$(filter 64,$(BEAMS))),)
+$(error make real-kitti-beams needs BEAMS=32 or 16 (64: make real-kitti))
+endif
+real-kitti-beams: install
+	$(MAKE) $(SUBMAKE_FLAGS) real-kitti-data $(REAL_VARS)
+	@for seed in $(SEEDS); do \
+	    $(MAKE) $(SUBMAKE_FLAGS) real-kitti-rows real-kitti-pseudo RUN=$(BEAMS_RUN)-s$$seed SEED=$$seed \
+	        $(REAL_VARS) $(BEAMS_VARS) || exit 1; \
+	done
+	$(MAKE) $(SUBMAKE_FLAGS) real-kitti-rows RUN=$(REAL_RUN)-reference $(call real_vars,$(REAL_RUN)-data) BEAMS=64 \
+	    SOURCE_MODEL=$(BEAMS_SOURCE_MODEL) REAL_ROW_NAMES=direct REAL_PAIRS=
+.PHONY: real-kitti-beams
 
 # The shipped models (make models; docs/models.md): models/waymo-like-source, the source model of
 # the real benchmark's seed MODELS_SEED that the recipe starts from (MODELS_SOURCE), and

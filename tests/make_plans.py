@@ -21,3 +21,29 @@ def dali_commands(*args: str) -> list[str]:
     run = make("-n", *args)
     assert run.returncode == 0, run.stderr
     return [line.strip() for line in run.stdout.splitlines() if "dali " in line]
+
+
+def option(words: list[str], name: str) -> str | None:
+    return words[words.index(name) + 1] if name in words else None
+
+
+def values(words: list[str], name: str) -> list[str]:
+    """Every value of a repeated option, in order."""
+    return [words[i + 1] for i, word in enumerate(words[:-1]) if word == name]
+
+
+def options(words: list[str], skip: tuple[str, ...]) -> list[str]:
+    """The words of a command without the options `skip` and their values."""
+    kept, drop = [], False
+    for word in words:
+        if drop:
+            drop = False
+        elif word in skip:
+            drop = True
+        else:
+            kept.append(word)
+    return kept
+
+
+def named(commands, *verb: str) -> list[list[str]]:
+    return [words for words in commands if tuple(words[: len(verb)]) == verb]

@@ -11,7 +11,7 @@ import shutil
 from pathlib import Path
 
 import pytest
-from make_plans import dali_commands, make
+from make_plans import dali_commands, make, named, option, options, values
 
 pytestmark = pytest.mark.skipif(shutil.which("make") is None, reason="make is not installed")
 
@@ -82,32 +82,6 @@ def setup(tmp_path_factory) -> dict:
         "variables": variables,
         "commands": commands,
     }
-
-
-def option(words: list[str], name: str) -> str | None:
-    return words[words.index(name) + 1] if name in words else None
-
-
-def values(words: list[str], name: str) -> list[str]:
-    """Every value of a repeated option, in order."""
-    return [words[i + 1] for i, word in enumerate(words[:-1]) if word == name]
-
-
-def options(words: list[str], skip: tuple[str, ...]) -> list[str]:
-    """The words of a command without the options `skip` and their values."""
-    kept, drop = [], False
-    for word in words:
-        if drop:
-            drop = False
-        elif word in skip:
-            drop = True
-        else:
-            kept.append(word)
-    return kept
-
-
-def named(commands, *verb: str) -> list[list[str]]:
-    return [words for words in commands if tuple(words[: len(verb)]) == verb]
 
 
 def by_out(commands, *verb: str) -> dict[str, list[str]]:
