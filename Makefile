@@ -132,7 +132,12 @@ NPROC          ?=
 DEVICE         ?=
 PRECISION      ?=
 TRAIN_DALI      = $(if $(NPROC),$(BIN)/torchrun --standalone --nproc-per-node $(NPROC) $(DALI),$(DALI))
-DEVICE_FLAG     = $(if $(DEVICE),--device $(DEVICE)) $(if $(PRECISION),--precision $(PRECISION))
+# THREADS=N: torch threads of every model stage (training and inference; unset: every core the
+# stage may use). The float sums, so a model's and the boxes' last bits, follow the thread count:
+# the same SEED and THREADS give the same artifacts, another THREADS other last bits, and four
+# epochs carry those into other figures (docs/RESULTS.md, "The tiny run")
+THREADS        ?=
+DEVICE_FLAG     = $(if $(DEVICE),--device $(DEVICE)) $(if $(PRECISION),--precision $(PRECISION))$(if $(THREADS), --threads $(THREADS))
 # --minutes makes results depend on the machine and its load; epochs (the default) do not
 TRAIN_BUDGET    = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(EPOCHS))
 RETRAIN_BUDGET  = $(if $(MINUTES),--minutes $(MINUTES),--epochs $(or $(RETRAIN_EPOCHS_$(1)),$(RETRAIN_EPOCHS)))
@@ -647,13 +652,16 @@ DEMO_FRAMES ?= 48
 DEMO_EPOCHS ?= 6
 # the demo: one DALI iteration from the shipped source (models/waymo-like-source, no pretraining)
 # on DEMO_TARGET_FRAMES synthetic KITTI-like target frames, and the rows it is read against
-# (source only, PTSN only), then `dali report`; a few minutes on a 2-core VM (README.md)
+# (source only, PTSN only), then `dali report`; a few minutes on a 2-core VM (README.md). Its
+# model stages run on DEMO_THREADS torch threads, not on every core, so that its figures do not
+# depend on the machine's core count (empty: every core, faster on a larger machine)
 DEMO_RUN ?= runs/demo
 DEMO_TARGET_FRAMES ?= 48
 DEMO_RETRAIN_EPOCHS ?= 4
+DEMO_THREADS ?= 2
 demo: install
 	$(MAKE) $(SUBMAKE_FLAGS) iter1 RUN=$(DEMO_RUN) SOURCE_MODEL=models/waymo-like-source \
-	    FRAMES=$(DEMO_TARGET_FRAMES) EPOCHS=$(DEMO_RETRAIN_EPOCHS) LIBRARY_MODELS=8
+	    FRAMES=$(DEMO_TARGET_FRAMES) EPOCHS=$(DEMO_RETRAIN_EPOCHS) LIBRARY_MODELS=8 THREADS=$(DEMO_THREADS)
 	$(DALI) report $(DEMO_RUN)
 	@echo
 	@echo "This was the demo ($(DEMO_RUN)): DALI's first iteration from models/waymo-like-source."
@@ -662,14 +670,16 @@ demo: install
 
 # the tiny run: one DALI iteration on TINY_FRAMES frames, enough training that PTSN finds a scale,
 # pseudo-label keeps boxes at the default score cut and RC and CF replace them; then what each
-# step kept. Training on one thread: a model is byte-reproducible for a fixed thread count only,
-# so this gives the README's counts on any machine (tests/test_readme.py holds them to it)
+# step kept. Every model stage on TINY_THREADS torch threads: a model and its boxes are
+# byte-reproducible for a fixed thread count only, so this gives the README's counts on any
+# machine (tests/test_readme.py holds them to it; tests/test_repeat_run.py: two runs, one result)
 TINY_RUN    ?= runs/tiny
 TINY_FRAMES ?= 16
 TINY_EPOCHS ?= 4
+TINY_THREADS ?= 1
 tiny: install
 	$(MAKE) $(SUBMAKE_FLAGS) iter1 RUN=$(TINY_RUN) FRAMES=$(TINY_FRAMES) VAL_FRAMES=8 \
-	    EPOCHS=$(TINY_EPOCHS) LIBRARY_MODELS=8 TRAIN_FLAGS="--threads 1 $(TRAIN_FLAGS)"
+	    EPOCHS=$(TINY_EPOCHS) LIBRARY_MODELS=8 THREADS=$(TINY_THREADS)
 	@$(BIN)/python bench/tools/run_counts.py $(TINY_RUN)
 	@echo "next: dali report $(TINY_RUN)"
 .PHONY: tiny

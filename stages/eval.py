@@ -68,10 +68,12 @@ def resolve_scale(scale: float | None, scale_from: str | Path | None) -> float:
 
 
 def predict(
-    model, data, scale: float, device, precision: str, engine=None, near=None, progress=True
-) -> BoxTable:
+    model, data, scale: float, device, precision: str, engine=None, near=None, progress=True,
+    threads: int | None = None,
+) -> BoxTable:  # fmt: skip
     """Every prediction (all scores) of the model of `model` on the frame set `data`, on the
-    torch `device` at `precision`, on `engine` (dali_cli.executors; None: this process); a
+    torch `device` at `precision`, on `engine` (dali_cli.executors; None: this process, on
+    `threads` torch threads, default every core it may use); a
     parallel engine's shards go to a temporary folder in `near` (workers must see it);
     `progress`: a progress bar on stderr."""
     import shutil
@@ -84,8 +86,9 @@ def predict(
     from dali_cli.executors import run_on
 
     options = dict(
-        scale=scale, score_min=0.0, progress=progress, device=device, precision=precision
-    )
+        scale=scale, score_min=0.0, progress=progress, device=device, precision=precision,
+        threads=threads,
+    )  # fmt: skip
     if engine is None or engine.serial:  # the reference path: in this process
         if engine is None:
             return predict_frameset(model, data, **options)
@@ -201,6 +204,7 @@ def warn_if_made_at_another_scale(
 def predictions_and_truth(
     pred_path, gt_path, model, data, scale, scale_from, device="auto", precision="fp32",
     engine=None, near=None, progress=True, size_correction="none", class_name="Car",
+    threads=None,
 ):  # fmt: skip
     """(pred, gt, frame ids evaluated or None, source record, gt path, runtime or None) from
     either the model route (`model` on `data`) or the table route (`pred_path` vs `gt_path`),
@@ -221,7 +225,9 @@ def predictions_and_truth(
         chosen_scale = resolve_scale(scale, scale_from)
         frame_ids = FrameSet(data).frame_ids
         gt_path = Path(data) if gt_path is None else gt_path
-        pred = predict(model, data, chosen_scale, torch_device, precision, engine, near, progress)
+        pred = predict(
+            model, data, chosen_scale, torch_device, precision, engine, near, progress, threads
+        )
         source = {"model": str(model), "data": str(data), "scale": chosen_scale}
         runtime = {**inference_runtime(torch_device), "precision": precision}
     else:
@@ -276,6 +282,7 @@ def run_eval(
     progress: bool = True,
     size_correction: str = "none",
     calib: str | Path | None = None,
+    threads: int | None = None,
 ) -> EvalResult:
     """Evaluate (see the module docstring). `out`: None (print only), a metrics file (.json) or
     an artifact directory; `force` applies to the directory, `dry_run` to both (a metrics file
@@ -296,7 +303,7 @@ def run_eval(
         scale_from=scale_from, device=device, precision=precision,
         engine=make_executor(executor, workers, ray_address),
         near=Path(out).parent if out is not None else None, progress=progress,
-        size_correction=size_correction, class_name=class_name, calib=calib,
+        size_correction=size_correction, class_name=class_name, calib=calib, threads=threads,
     )  # fmt: skip
     inputs = {"model": model, "data": data, "pred": pred_path, "gt": gt_path, "scale": scale_from}
     if calib is not None:  # absent without: older artifacts stay up to date

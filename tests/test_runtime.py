@@ -76,3 +76,33 @@ def test_pretrain_uses_every_core_and_records_the_machine(
 
     manifest, _ = pretrain(source, tmp_path / "one", "--threads", "1")
     assert manifest["runtime"]["threads"] == 1 and torch.get_num_threads() == 1
+
+
+def test_inference_sets_its_threads_instead_of_torchs_default(monkeypatch, restore_threads):
+    """torch's own default follows OMP_NUM_THREADS (a shell's, a Ray worker's) and the physical
+    cores; the thread count decides the float sums, so an inference stage sets it as training
+    does: every core this process may use, or what it is given."""
+    from dali_cli.runtime.device import inference_setup
+
+    monkeypatch.setattr(cores.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    torch.set_num_threads(1)  # what OMP_NUM_THREADS=1 leaves torch with
+    inference_setup({}, "ptsn_sweep")
+    assert torch.get_num_threads() == 2
+    inference_setup({"threads": 1}, "pseudo_label")
+    assert torch.get_num_threads() == 1
+
+
+def test_pseudo_label_runs_on_the_threads_it_is_given(
+    source, tmp_path, monkeypatch, restore_threads
+):
+    monkeypatch.setattr(cores.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    pretrain(source, tmp_path / "model", "--threads", "1")
+    for threads in ("1", "2"):
+        torch.set_num_threads(3 - int(threads))  # the other count before the stage
+        out = tmp_path / f"pseudo{threads}"
+        args = ["pseudo-label", "--model", str(tmp_path / "model"), "--data",
+                str(source / "source"), "--scale", "1.0", "--threads", threads, "--out", str(out),
+                "--no-progress"]  # fmt: skip
+        result = CliRunner().invoke(main, args)
+        assert result.exit_code == 0, result.output
+        assert read_manifest(out)["runtime"]["threads"] == int(threads)

@@ -496,6 +496,19 @@ def target_profile_option(dest: str = "target_profile"):
     )
 
 
+def inference_threads_option(function):
+    """--threads of the commands that run the detector on frames (ptsn-sweep, pseudo-label,
+    eval): torch threads in the stage's own process (workers run one each)."""
+    return tuning_option(
+        "--threads",
+        type=BATCH,
+        default=None,
+        help="torch threads of the detector in this process (default: every core this process "
+        "may use; --workers > 1: one per worker). The boxes' last bits follow the thread count: "
+        "give it to reproduce a run on another machine (recorded in the manifest's runtime).",
+    )(function)
+
+
 def target_scaling_options(function):
     """--batch-size and --no-progress of the commands that run the model on the target scaled
     about the ground (ptsn-sweep, pseudo-label; the pivot is the target profile's mount height),
@@ -508,6 +521,7 @@ def target_scaling_options(function):
             show_default=True,
             help="Frames per detector pass (the output does not depend on it).",
         ),
+        inference_threads_option,
         no_progress_option,
         device_options,
         sensors_option,

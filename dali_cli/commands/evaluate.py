@@ -13,6 +13,7 @@ from dali_cli.commands.common import (
     choice_option,
     device_options,
     executor_options,
+    inference_threads_option,
     no_progress_option,
     protocol_options,
     scale_from_option,
@@ -98,6 +99,7 @@ each kind costs; docs/evaluation.md). With --calib each block also holds "bbox" 
                    "predictions.parquet beside metrics.json (read by `dali report` for size "
                    "plots).")  # fmt: skip
 @device_options
+@inference_threads_option
 @workers_option("1")
 @executor_options
 @no_progress_option
@@ -122,6 +124,7 @@ def command(
     save_predictions,
     device,
     precision,
+    threads,
     workers,
     executor,
     ray_address,
@@ -143,6 +146,7 @@ def command(
         save_predictions=save_predictions, device=device, precision=precision, executor=executor,
         workers=workers, ray_address=ray_address, force=force, dry_run=dry_run,
         progress=not no_progress, size_correction=size_correction, calib=calib,
+        threads=threads,
     )  # fmt: skip
     if result.status == "dry-run":
         return

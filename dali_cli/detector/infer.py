@@ -318,10 +318,12 @@ def predict_frameset(
     precision: str = "fp32",
     executor=None,
     shards_dir: str | Path | None = None,
+    threads: int | None = None,
 ) -> BoxTable:
     """Run the detector of `model_dir` on every frame of the FrameSet `data_dir` on `device`
-    (default: the CPU) with `precision` (fp32 or bf16 autocast), in this process or (a parallel
-    `executor` of dali_cli.executors) as shards written under `shards_dir`.
+    (default: the CPU) with `precision` (fp32 or bf16 autocast), in this process on `threads`
+    torch threads (default: every core it may use) or (a parallel `executor` of
+    dali_cli.executors) as shards written under `shards_dir`, one thread a worker.
 
     The ground (for the network and for PTSN scaling) is the frame set's sensor profile mount height.
     Returns a BoxTable with score and num_points (points of the original frame inside each box).
@@ -329,10 +331,10 @@ def predict_frameset(
     from tqdm import tqdm
 
     from dali_cli.labels.pseudo_labeler import FrameLabeler
-    from dali_cli.runtime.machine import available_cores
+    from dali_cli.runtime.device import set_inference_threads
     from dali_cli.sensors import get_profile
 
-    torch.set_num_threads(available_cores())
+    set_inference_threads(threads)
     frames = FrameSet(data_dir)
     mount = (
         get_profile(frames.sensor, sensors_path).mount_height_m if frames.sensor else None

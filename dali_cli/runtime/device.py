@@ -82,12 +82,14 @@ def check_precision(precision: str, device) -> None:
 class InferenceOptions(TypedDict, total=False):
     """How an inference stage (ptsn-sweep, pseudo-label) runs the detector: `device` (auto |
     cpu | cuda | cuda:N, default auto), `precision` (fp32 | bf16, default fp32), `batch_size`
-    frames per forward pass (default 8), `progress` (a bar, default True) and, for tests,
+    frames per forward pass (default 8), `threads` torch threads (default: every core this
+    process may use, as training), `progress` (a bar, default True) and, for tests,
     `detector_loader(model_dir)` in place of the stage's own loader."""
 
     device: str
     precision: str
     batch_size: int
+    threads: int | None
     progress: bool
     detector_loader: Callable | None
 
@@ -105,8 +107,23 @@ def inference_setup(inference: dict, where: str):
     keywords a TypeError naming `where`; a missing GPU or an unsupported precision an error
     before anything is written)."""
     check_options(inference, InferenceOptions, where)
+    set_inference_threads(inference.get("threads"))
     precision = inference.get("precision", "fp32")
     return inference_device(inference.get("device", "auto"), precision), precision
+
+
+def set_inference_threads(requested: int | None = None) -> int:
+    """Give torch `requested` threads, else every core this process may use (training's rule,
+    runtime.machine.training_threads), and return the count. Set, not left to torch's default:
+    that follows OMP_NUM_THREADS / MKL_NUM_THREADS (a shell's, a Ray worker's) and physical cores
+    on SMT machines, and the thread count decides the float sums, so the boxes' last bits."""
+    import torch
+
+    from dali_cli.runtime.machine import training_threads
+
+    threads = training_threads(requested)
+    torch.set_num_threads(threads)
+    return threads
 
 
 def inference_device(spec: str, precision: str):
