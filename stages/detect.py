@@ -80,8 +80,9 @@ def lidar_lines(boxes: np.ndarray, scores: np.ndarray) -> str:
 
 
 def build_detect(tmp: Path, detector, source: Source, scale: float, mount, score_min: float,
-                 front_deg, batch_size: int, progress: bool) -> dict:  # fmt: skip
-    """Write boxes.parquet and the per-scan text files into `tmp`; returns the counts."""
+                 front_deg, batch_size: int, progress: bool, fusion=None) -> dict:  # fmt: skip
+    """Write boxes.parquet and the per-scan text files into `tmp`; returns the counts. `fusion`:
+    a detector.fusion.TestTimeFusion (several passes, fused) or None."""
     from tqdm import tqdm
 
     from dali_cli.export import frame_label_lines
@@ -97,7 +98,11 @@ def build_detect(tmp: Path, detector, source: Source, scale: float, mount, score
 
     def flush():
         nonlocal full_scans
-        found = detector.predict([points for _, points in batch], scale, mount, batch_size)
+        clouds = [points for _, points in batch]
+        if fusion is not None:
+            found = fusion.predict(detector, clouds, scale, mount, batch_size)
+        else:
+            found = detector.predict(clouds, scale, mount, batch_size)
         for (frame_id, points), (boxes, scores) in zip(batch, found, strict=True):
             keep = scores >= score_min
             boxes, scores = boxes[keep], scores[keep]
@@ -136,9 +141,12 @@ def run_detect(*, model: str | Path, scans: str | Path, out: str | Path, scale=N
                scale_from=None, sensor: str | None = None, calib=None, score_min: float = 0.3,
                front_deg: float | None = None, batch_size: int = 4, device: str = "auto",
                precision: str = "fp32", progress: bool = True, force: bool = False,
-               dry_run: bool = False, sensors_path=None, rerun=None) -> StageOutcome:  # fmt: skip
+               dry_run: bool = False, sensors_path=None, rerun=None,
+               tta=None) -> StageOutcome:  # fmt: skip
     """Run the stage (see the module docstring); `rerun`: also write a Rerun recording of the
-    scans and their boxes there (reporting/recording.py)."""
+    scans and their boxes there (reporting/recording.py); `tta`: test-time fusion's (flip, scale
+    factors, IoU) (dali_cli.detector.fusion)."""
+    from dali_cli.detector.fusion import fusion_of
     from dali_cli.detector.infer import WEIGHTS_NAME, Detector
     from dali_cli.runtime.device import resolve_device
     from dali_cli.sensors import get_profile
@@ -153,15 +161,19 @@ def run_detect(*, model: str | Path, scans: str | Path, out: str | Path, scale=N
     torch_device = resolve_device(device)
     params = {"scale": scale, "sensor": source.sensor, "score_min": score_min,
               "front_deg": front_deg, "scans": source.count}  # fmt: skip
+    fusion = fusion_of(tta)
+    if fusion is not None:  # absent without: older artifacts stay up to date
+        params["test_time_fusion"] = fusion.record()
 
     def build(tmp: Path) -> dict:
         detector = Detector.load(model, device=torch_device, precision=precision)
+        passes = f", {len(fusion.passes)} passes fused" if fusion is not None else ""
         console.echo(
             f"detect: {source.described} ({source.sensor or 'the model mount height'}), scale "
-            f"{scale:.4f}, on {torch_device}"
+            f"{scale:.4f}{passes}, on {torch_device}"
         )
         counts = build_detect(tmp, detector, source, scale, mount, score_min, front_deg,
-                              batch_size, progress)  # fmt: skip
+                              batch_size, progress, fusion)  # fmt: skip
         if counts["full_360_scans"]:
             console.echo(
                 f"detect: {counts['full_360_scans']} of {source.count} scans cover the full "

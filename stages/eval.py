@@ -68,12 +68,13 @@ def resolve_scale(scale: float | None, scale_from: str | Path | None) -> float:
 
 
 def predict(
-    model, data, scale: float, device, precision: str, engine=None, near=None, progress=True
-) -> BoxTable:
+    model, data, scale: float, device, precision: str, engine=None, near=None, progress=True,
+    fusion=None,
+) -> BoxTable:  # fmt: skip
     """Every prediction (all scores) of the model of `model` on the frame set `data`, on the
     torch `device` at `precision`, on `engine` (dali_cli.executors; None: this process); a
     parallel engine's shards go to a temporary folder in `near` (workers must see it);
-    `progress`: a progress bar on stderr."""
+    `progress`: a progress bar on stderr; `fusion`: a detector.fusion.TestTimeFusion or None."""
     import shutil
     import tempfile
 
@@ -84,8 +85,9 @@ def predict(
     from dali_cli.executors import run_on
 
     options = dict(
-        scale=scale, score_min=0.0, progress=progress, device=device, precision=precision
-    )
+        scale=scale, score_min=0.0, progress=progress, device=device, precision=precision,
+        fusion=fusion,
+    )  # fmt: skip
     if engine is None or engine.serial:  # the reference path: in this process
         if engine is None:
             return predict_frameset(model, data, **options)
@@ -201,6 +203,7 @@ def warn_if_made_at_another_scale(
 def predictions_and_truth(
     pred_path, gt_path, model, data, scale, scale_from, device="auto", precision="fp32",
     engine=None, near=None, progress=True, size_correction="none", class_name="Car",
+    fusion=None,
 ):  # fmt: skip
     """(pred, gt, frame ids evaluated or None, source record, gt path, runtime or None) from
     either the model route (`model` on `data`) or the table route (`pred_path` vs `gt_path`),
@@ -221,8 +224,12 @@ def predictions_and_truth(
         chosen_scale = resolve_scale(scale, scale_from)
         frame_ids = FrameSet(data).frame_ids
         gt_path = Path(data) if gt_path is None else gt_path
-        pred = predict(model, data, chosen_scale, torch_device, precision, engine, near, progress)
+        pred = predict(
+            model, data, chosen_scale, torch_device, precision, engine, near, progress, fusion
+        )
         source = {"model": str(model), "data": str(data), "scale": chosen_scale}
+        if fusion is not None:
+            source["test_time_fusion"] = fusion.record()
         runtime = {**inference_runtime(torch_device), "precision": precision}
     else:
         if scale is not None or (scale_from is not None and size_correction == "none"):
@@ -276,14 +283,17 @@ def run_eval(
     progress: bool = True,
     size_correction: str = "none",
     calib: str | Path | None = None,
+    tta: tuple[bool, tuple[float, ...], float] | None = None,
 ) -> EvalResult:
     """Evaluate (see the module docstring). `out`: None (print only), a metrics file (.json) or
     an artifact directory; `force` applies to the directory, `dry_run` to both (a metrics file
     is always recomputed, so a dry run only says so and writes nothing); `progress`: the
-    detector's progress bar (with --model)."""
+    detector's progress bar (with --model); `tta`: test-time fusion's (flip, scale factors,
+    IoU) (dali_cli.detector.fusion; with --model only)."""
     check_ious(tuple(ious))
     # before any work or output
     check_size_correction(size_correction, scale, scale_from)
+    fusion = test_time_fusion(tta, model)
     options = dict(
         ious=tuple(ious), size_score_min=size_score_min, recall_positions=int(recall_positions),
         protocol=protocol, front_only=front_only, class_name=class_name,
@@ -296,7 +306,7 @@ def run_eval(
         scale_from=scale_from, device=device, precision=precision,
         engine=make_executor(executor, workers, ray_address),
         near=Path(out).parent if out is not None else None, progress=progress,
-        size_correction=size_correction, class_name=class_name, calib=calib,
+        size_correction=size_correction, class_name=class_name, calib=calib, fusion=fusion,
     )  # fmt: skip
     inputs = {"model": model, "data": data, "pred": pred_path, "gt": gt_path, "scale": scale_from}
     if calib is not None:  # absent without: older artifacts stay up to date
@@ -319,6 +329,20 @@ def run_eval(
         keep = keeps_predictions(save_predictions, model, size_correction)
         written = write_outputs(out, metrics, pred if keep else None)
     return EvalResult(metrics, written)
+
+
+def test_time_fusion(tta, model):
+    """The TestTimeFusion of `tta` (None when it asks for one pass); a ParameterError when it
+    asks for several passes without a model to run them."""
+    if tta is None or (not tta[0] and tuple(tta[1]) == (1.0,)):
+        return None
+    if model is None:
+        raise ParameterError(
+            ("tta_flip", "tta_scales"), "test-time fusion runs the detector: give --model"
+        )
+    from dali_cli.detector.fusion import fusion_of
+
+    return fusion_of(tta)
 
 
 def keeps_predictions(save_predictions: bool, model, size_correction: str) -> bool:
@@ -483,6 +507,8 @@ def eval_artifact(out, inputs, routes, options, save_predictions, force, dry_run
     }
     if routes["size_correction"] != "none":  # absent when off: older artifacts stay up to date
         params["size_correction"] = routes["size_correction"]
+    if routes["fusion"] is not None:  # likewise
+        params["test_time_fusion"] = routes["fusion"].record()
     outcome = run_stage(
         "eval", out, inputs, params, build, force=force, dry_run=dry_run,
         derived=(KITTI_METRICS_NAME,),

@@ -12,7 +12,14 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.kinds import CAR_SIZE, EPOCHS, LEARNING_RATE, LOCAL_WORKERS, MINUTES
+from dali_cli.commands.kinds import (
+    CAR_SIZE,
+    EPOCHS,
+    LEARNING_RATE,
+    LOCAL_WORKERS,
+    MINUTES,
+    SCALE_LIST,
+)
 
 INPUT_DIR = click.Path(exists=True, file_okay=False)
 """An existing directory (a frame set, a model, a library...)."""
@@ -316,6 +323,35 @@ def device_options(function):
         metavar="auto|cpu|cuda|cuda:N",
         help="Where the network runs. auto: CUDA when available, else the CPU. cuda under "
         "torchrun: the GPU of the local rank. A missing GPU is an error (nothing written).",
+    )(function)
+
+
+def tta_options(function):
+    """--tta-flip, --tta-scales and --tta-iou: the detector run on each scan's mirror image too
+    and at several scales about ŝ, the passes' boxes fused (dali_cli.detector.fusion); one
+    definition for detect and eval."""
+    function = tuning_option(
+        "--tta-iou",
+        type=FRACTION,
+        default=0.55,
+        show_default=True,
+        help="Test-time fusion: boxes of the passes whose BEV IoU with a cluster's best box is "
+        "at least this join its cluster.",
+    )(function)
+    function = tuning_option(
+        "--tta-scales",
+        type=SCALE_LIST,
+        default="1",
+        show_default=True,
+        metavar="F1,F2,...",
+        help="Test-time fusion: run at ŝ times each factor (e.g. 0.95,1,1.05) and fuse the boxes.",
+    )(function)
+    return tuning_option(
+        "--tta-flip/--no-tta-flip",
+        default=False,
+        show_default=True,
+        help="Test-time fusion: also run on each scan's mirror image (y -> -y) and fuse the "
+        "boxes, mirrored back, with the others (2x the passes).",
     )(function)
 
 

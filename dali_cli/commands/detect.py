@@ -16,6 +16,7 @@ from dali_cli.commands.common import (
     score_min_option,
     sensors_option,
     stage_options,
+    tta_options,
     tuning_option,
 )
 from dali_cli.commands.kinds import SCALE, VIEW_DEG
@@ -46,12 +47,14 @@ from dali_cli.commands.kinds import SCALE, VIEW_DEG
 @tuning_option("--batch-size", type=BATCH, default=4, show_default=True,
               help="Scans per network pass.")  # fmt: skip
 @out_dir_option()
+@tta_options
 @device_options
 @sensors_option
 @no_progress_option
 @stage_options
 def command(scans, model, scale, scale_from, sensor, calib, front_deg, score_min, rerun,
-            batch_size, out, device, precision, sensors_path, no_progress, force, dry_run):  # fmt: skip
+            batch_size, out, tta_flip, tta_scales, tta_iou, device, precision, sensors_path,
+            no_progress, force, dry_run):  # fmt: skip
     """Detect cars in SCANS with MODEL and write OUT.
 
     SCANS: a scan file or a folder of them (KITTI .bin, PCD ascii or binary, nuScenes .pcd.bin,
@@ -69,6 +72,7 @@ def command(scans, model, scale, scale_from, sensor, calib, front_deg, score_min
         calib=calib, score_min=score_min, front_deg=front_deg, batch_size=batch_size,
         device=device, precision=precision, progress=not no_progress, force=force,
         dry_run=dry_run, sensors_path=sensors_path, rerun=rerun,
+        tta=(tta_flip, tuple(tta_scales), tta_iou),
     )  # fmt: skip
     if outcome.status == "ran":
         counts = outcome.manifest["outputs"]["counts"]

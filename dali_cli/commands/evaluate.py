@@ -18,6 +18,7 @@ from dali_cli.commands.common import (
     scale_from_option,
     score_min_option,
     stage_options,
+    tta_options,
     tuning_option,
     workers_option,
 )
@@ -97,6 +98,7 @@ each kind costs; docs/evaluation.md). With --calib each block also holds "bbox" 
               help="With --model and --out: also write the predictions (all scores) as "
                    "predictions.parquet beside metrics.json (read by `dali report` for size "
                    "plots).")  # fmt: skip
+@tta_options
 @device_options
 @workers_option("1")
 @executor_options
@@ -120,6 +122,9 @@ def command(
     size_correction,
     out,
     save_predictions,
+    tta_flip,
+    tta_scales,
+    tta_iou,
     device,
     precision,
     workers,
@@ -143,6 +148,7 @@ def command(
         save_predictions=save_predictions, device=device, precision=precision, executor=executor,
         workers=workers, ray_address=ray_address, force=force, dry_run=dry_run,
         progress=not no_progress, size_correction=size_correction, calib=calib,
+        tta=(tta_flip, tuple(tta_scales), tta_iou),
     )  # fmt: skip
     if result.status == "dry-run":
         return

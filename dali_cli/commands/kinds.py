@@ -29,20 +29,20 @@ class QuantityType(click.ParamType):
 
 
 class FloatTuple(click.ParamType):
-    """'a,b,c': `count` comma-separated numbers, each converted by the click type `each`;
-    `increasing` asks for a strictly increasing sequence (a 'lo,hi' range)."""
+    """'a,b,c': `count` comma-separated numbers (None: one or more), each converted by the click
+    type `each`; `increasing` asks for a strictly increasing sequence (a 'lo,hi' range)."""
 
-    def __init__(self, count: int, each: click.ParamType, increasing: bool = False):
+    def __init__(self, count: int | None, each: click.ParamType, increasing: bool = False):
         self.count = count
         self.each = each
         self.increasing = increasing
-        self.name = f"{count} numbers"
+        self.name = f"{count} numbers" if count is not None else "numbers"
 
     def convert(self, value, param, ctx):
         if isinstance(value, tuple):
             return value
         parts = str(value).split(",")
-        if len(parts) != self.count:
+        if self.count is not None and len(parts) != self.count:
             self.fail(f"expected {self.count} comma-separated numbers, got '{value}'", param, ctx)
         numbers = []
         for part in parts:
@@ -62,6 +62,8 @@ SIZE_DELTA = FloatTuple(3, QuantityType(quantities.SIZE_DELTA_M))
 """'dl,dw,dh' in metres."""
 SCALE_PAIR = FloatTuple(2, SCALE, increasing=True)
 """'lo,hi': two scale factors, lo < hi."""
+SCALE_LIST = FloatTuple(None, SCALE, increasing=True)
+"""'a,b,c': one or more scale factors, increasing."""
 DISTANCE_M = QuantityType(quantities.DISTANCE_M)
 MARGIN_M = QuantityType(quantities.MARGIN_M)
 LEARNING_RATE = QuantityType(quantities.LEARNING_RATE)

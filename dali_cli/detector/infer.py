@@ -307,10 +307,12 @@ def predict_frameset(
     precision: str = "fp32",
     executor=None,
     shards_dir: str | Path | None = None,
+    fusion=None,
 ) -> BoxTable:
     """Run the detector of `model_dir` on every frame of the FrameSet `data_dir` on `device`
     (default: the CPU) with `precision` (fp32 or bf16 autocast), in this process or (a parallel
-    `executor` of dali_cli.executors) as shards written under `shards_dir`.
+    `executor` of dali_cli.executors) as shards written under `shards_dir`; `fusion` (a
+    detector.fusion.TestTimeFusion): several passes (mirror image, scales about `scale`), fused.
 
     The ground (for the network and for PTSN scaling) is the frame set's sensor profile mount height.
     Returns a BoxTable with score and num_points (points of the original frame inside each box).
@@ -328,7 +330,7 @@ def predict_frameset(
     )  # None: the checkpoint's
     predictor = FrameLabeler(
         str(model_dir), str(data_dir), scale, mount, None, score_min, 1.0, batch_size,
-        Detector.load, raw=True, device=device, precision=precision,
+        Detector.load, raw=True, device=device, precision=precision, fusion=fusion,
     )  # fmt: skip
     ids, all_boxes, all_scores, all_counts = [], [], [], []
     bar = tqdm(total=len(frames), desc="predict", unit="frame", disable=not progress, leave=False)

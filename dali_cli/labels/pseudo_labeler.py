@@ -68,6 +68,7 @@ class FrameLabeler:
         None  # a --device spec (str, resolved where the detector loads) or a torch.device
     )
     precision: str = "fp32"
+    fusion: object = None  # a detector.fusion.TestTimeFusion: several passes, fused
 
     def load(self):
         """The detector, loaded and placed on this process's device (dali_cli.runtime.device)."""
@@ -104,10 +105,15 @@ class FrameLabeler:
         self, detector, points_list: list[np.ndarray]
     ) -> list[tuple[np.ndarray, np.ndarray]]:
         """Every frame's [(boxes (M, 7) in the original frame, scores (M,))]: the detector run at
-        ŝ on the points."""
-        predictions = detector.predict(
-            points_list, scale=self.scale, mount_height_m=self.mount_height_m
-        )
+        ŝ on the points (with `fusion`, its passes fused)."""
+        if self.fusion is not None and self.fusion.active:
+            predictions = self.fusion.predict(
+                detector, points_list, self.scale, self.mount_height_m, len(points_list)
+            )
+        else:
+            predictions = detector.predict(
+                points_list, scale=self.scale, mount_height_m=self.mount_height_m
+            )
         if len(predictions) != len(points_list):
             raise StageError(
                 f"{self.model_dir}: detector returned {len(predictions)} results for "
