@@ -13,43 +13,33 @@ import click
 from dali_cli import __version__
 from dali_cli.runtime.errors import ParameterError, StageError
 
-# command name -> module under dali_cli.commands (each defines `command`)
-COMMANDS: dict[str, tuple[str, str]] = {
-    "sensors": ("sensors", "List the LiDAR sensor profiles of sensors.toml."),
-    "synth": ("synth", "Synthesize a labelled LiDAR frame set (a domain)."),
-    "library": ("library", "Build a 3D model library (CAD, procedural, point models)."),
-    "eval": ("evaluate", "KITTI-protocol AP of predictions against labels."),
-    "compare": ("compare", "AP of several prediction tables with a paired frame bootstrap."),
-    "compare-domains": (
-        "compare_domains",
-        "Point and car statistics of frame sets side by side (real vs synthetic).",
-    ),
-    "import": (
-        "importers",
-        "Import real data: kitti, kitti-raw, kitti-odometry, nuscenes, openpcdet, waymo.",
-    ),
-    "merge": ("merge", "One frame set from several (e.g. a target of several drives)."),
-    "export": ("export", "Export boxes, frames and models: KITTI label_2, OpenPCDet, ONNX."),
-    "view": ("view", "Draw a frame with boxes as a PNG, or every frame as a Rerun recording."),
-    "detect": ("detect", "Boxes of a trained model on your own scans (.bin, .pcd, .npy, drives)."),
-    "size-norm": ("size_norm", "A labelled frame set with cars resized to a model's SN size."),
-    "pretrain": ("pretrain", "Step 1: train the detector on the labelled source."),
-    "ptsn-sweep": ("ptsn_sweep", "Step 2: find the PTSN scale for the target."),
-    "pseudo-label": ("pseudo_label", "Step 3: pseudo-label the target at the PTSN scale."),
-    "register": (
-        "register",
-        "Optional before track-pseudo: scan poses of a target without them (registration).",
-    ),
-    "track-pseudo": (
-        "track_pseudo",
-        "Optional after step 3: keep pseudo labels that persist over a scan sequence.",
-    ),
-    "ppcg-rc": ("ppcg_rc", "Step 4: ray-constrained pseudo point clouds."),
-    "ppcg-cf": ("ppcg_cf", "Step 5: constraint-free pseudo point clouds."),
-    "retrain": ("retrain", "Step 6: retrain on source + RC + CF frames."),
-    "self-train": ("self_train", "Optional: fine-tune on the target with its own pseudo labels."),
-    "report": ("report", "Tables and plots of a run."),
+# command name -> its line in `dali --help`; the module under dali_cli.commands that defines its
+# `command` is the name with "_" for "-", but for those in MODULES
+COMMANDS: dict[str, str] = {
+    "sensors": "List the LiDAR sensor profiles of sensors.toml.",
+    "synth": "Synthesize a labelled LiDAR frame set (a domain).",
+    "library": "Build a 3D model library (CAD, procedural, point models).",
+    "eval": "KITTI-protocol AP of predictions against labels.",
+    "compare": "AP of several prediction tables with a paired frame bootstrap.",
+    "compare-domains": "Point and car statistics of frame sets side by side (real vs synthetic).",
+    "import": "Import real data: kitti, kitti-raw, kitti-odometry, nuscenes, openpcdet, waymo.",
+    "merge": "One frame set from several (e.g. a target of several drives).",
+    "export": "Export boxes, frames and models: KITTI label_2, OpenPCDet, ONNX.",
+    "view": "Draw a frame with boxes as a PNG, or every frame as a Rerun recording.",
+    "detect": "Boxes of a trained model on your own scans (.bin, .pcd, .npy, drives).",
+    "size-norm": "A labelled frame set with cars resized to a model's SN size.",
+    "pretrain": "Step 1: train the detector on the labelled source.",
+    "ptsn-sweep": "Step 2: find the PTSN scale for the target.",
+    "pseudo-label": "Step 3: pseudo-label the target at the PTSN scale.",
+    "register": "Optional before track-pseudo: scan poses of a target without them (registration).",
+    "track-pseudo": "Optional after step 3: keep pseudo labels that persist over a scan sequence.",
+    "ppcg-rc": "Step 4: ray-constrained pseudo point clouds.",
+    "ppcg-cf": "Step 5: constraint-free pseudo point clouds.",
+    "retrain": "Step 6: retrain on source + RC + CF frames.",
+    "self-train": "Optional: fine-tune on the target with its own pseudo labels.",
+    "report": "Tables and plots of a run.",
 }
+MODULES = {"eval": "evaluate", "import": "importers"}
 
 
 class LazyGroup(click.Group):
@@ -61,7 +51,9 @@ class LazyGroup(click.Group):
     def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
         if name not in COMMANDS:
             return None
-        module = importlib.import_module(f"dali_cli.commands.{COMMANDS[name][0]}")
+        module = importlib.import_module(
+            f"dali_cli.commands.{MODULES.get(name, name.replace('-', '_'))}"
+        )
         from dali_cli.commands.common import stage_command_class
 
         return stage_command_class(module.command)
@@ -87,7 +79,7 @@ class LazyGroup(click.Group):
             ) from None
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
-        rows = [(name, help_text) for name, (_, help_text) in COMMANDS.items()]
+        rows = list(COMMANDS.items())
         with formatter.section("Commands"):
             formatter.write_dl(rows)
 

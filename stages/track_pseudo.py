@@ -82,10 +82,10 @@ def track_pseudo(
                 f"{target_dir} ({len(unknown)} such frames): pseudo labels of another target?"
             )
         frame = np.array([position[f] for f in table.frame_id], np.int64)
-        tracked = tracks.track_recordings(
-            recordings, frame, table.boxes, np.asarray(table["score"], np.float64),
+        tracked = tracks.track_boxes(
+            frame, table.boxes, np.asarray(table["score"], np.float64),
             np.asarray(table["num_points"]), poses,
-            lambda f: frames.frame(frame_ids[f]), params,
+            lambda f: frames.frame(frame_ids[f]), params, recording=recordings,
         )  # fmt: skip
         keep = tracked.score >= track_score_min
         label = np.full(len(tracked.frame), "Car", dtype=object)

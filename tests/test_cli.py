@@ -139,13 +139,13 @@ def test_the_import_summary_names_every_importer():
     importers = main.get_command(None, "import").commands
     assert len(importers) >= 5
     for name in importers:
-        assert name in COMMANDS["import"][1], name
+        assert name in COMMANDS["import"], name
 
 
 def test_step_numbers_follow_the_pipeline():
     steps = ["pretrain", "ptsn-sweep", "pseudo-label", "ppcg-rc", "ppcg-cf", "retrain"]
     for number, name in enumerate(steps, 1):
-        assert COMMANDS[name][1].startswith(f"Step {number}:"), name
+        assert COMMANDS[name].startswith(f"Step {number}:"), name
 
 
 def test_one_name_per_concept_across_commands_and_the_former_names_still_work():

@@ -6,14 +6,7 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import (
-    FRACTION,
-    artifact_options,
-    choice_option,
-    ran_counts,
-    scale_from_option,
-    tuning_option,
-)
+from dali_cli.commands import common
 from dali_cli.commands.kinds import SCALE
 
 
@@ -47,18 +40,18 @@ def _parse_image_size(_ctx, _param, value: str | None) -> tuple[int, int] | None
 @click.argument("boxes_dir", type=click.Path(exists=True))
 @click.option("--calib-root", type=click.Path(exists=True, file_okay=False), required=True,
               help="KITTI root (ROOT/SPLIT/calib or ROOT/calib) or the calib directory itself.")  # fmt: skip
-@choice_option("--split", choices=["training", "testing"], default="training",
-               help="Split directory under --calib-root.")  # fmt: skip
+@common.choice_option("--split", choices=["training", "testing"], default="training",
+                      help="Split directory under --calib-root.")  # fmt: skip
 @click.option("--frames", "frames_dir", type=click.Path(exists=True, file_okay=False),
               default=None,
               help="FrameSet whose frames all get a file (frames without boxes an empty one). "
                    "Default: BOXES_DIR when it holds frames.zarr, else the frames of the box "
                    "table.")  # fmt: skip
-@tuning_option("--image-size", default=None, callback=_parse_image_size,
-              help="WIDTHxHEIGHT for clipping 2D boxes. Default: each frame's image_2 PNG, else "
-                   "1242x375.")  # fmt: skip
+@common.tuning_option("--image-size", default=None, callback=_parse_image_size,
+                     help="WIDTHxHEIGHT for clipping 2D boxes. Default: each frame's image_2 PNG, else "
+                          "1242x375.")  # fmt: skip
 @click.option(
-    "--score-min", type=FRACTION, default=None, help="Export only boxes with score >= this."
+    "--score-min", type=common.FRACTION, default=None, help="Export only boxes with score >= this."
 )
 @click.option("--keep-outside", is_flag=True,
               help="Also write boxes behind the camera or outside the image (default: left out, "
@@ -68,7 +61,7 @@ def _parse_image_size(_ctx, _param, value: str | None) -> tuple[int, int] | None
                    "the KITTI label columns (an imported label set).")  # fmt: skip
 @click.option("--no-score", is_flag=True,
               help="Write 15-field lines (ground-truth format) without the score.")  # fmt: skip
-@artifact_options()
+@common.artifact_options()
 def kitti_command(
     boxes_dir,
     calib_root,
@@ -100,7 +93,7 @@ def kitti_command(
         score_min=score_min, keep_outside=keep_outside, project_bbox=project_bbox,
         with_score=not no_score, force=force, dry_run=dry_run, progress=not no_progress,
     )  # fmt: skip
-    if (counts := ran_counts(outcome)) is not None:
+    if (counts := common.ran_counts(outcome)) is not None:
         click.echo(
             f"  {counts['boxes_written']} boxes in {counts['frames']} files under {Path(out) / 'data'}, "
             f"{counts['boxes_outside_image']} outside the image left out"
@@ -115,9 +108,9 @@ def kitti_command(
               help="Box table to write as labels. Default: DATA_DIR/boxes.parquet when present.")  # fmt: skip
 @click.option("--split", default=None, help="Also write ImageSets/SPLIT.txt listing the frames.")
 @click.option(
-    "--score-min", type=FRACTION, default=None, help="Write only boxes with score >= this."
+    "--score-min", type=common.FRACTION, default=None, help="Write only boxes with score >= this."
 )
-@artifact_options(progress=False)
+@common.artifact_options(progress=False)
 def openpcdet_command(data_dir, boxes_dir, split, score_min, out, force, dry_run):
     """Write the FrameSet DATA_DIR in OpenPCDet's custom format: OUT/points/<frame>.npy
     ((n, 4) float32) and, with boxes, OUT/labels/<frame>.txt (x y z dx dy dz heading class)."""
@@ -141,8 +134,8 @@ def openpcdet_command(data_dir, boxes_dir, split, score_min, out, force, dry_run
 @click.option("--scale", type=SCALE, default=None,
               help="PTSN scale whose grid the graph runs on. Default: MODEL_DIR/scale.json, "
                    "else 1.")  # fmt: skip
-@scale_from_option(tuning=True)
-@artifact_options(progress=False)
+@common.scale_from_option(tuning=True)
+@common.artifact_options(progress=False)
 def model_command(model_dir, as_onnx, scale, scale_from, out, force, dry_run):
     """Write the detector of MODEL_DIR as OUT/detector.onnx (one frame's pillarized points ->
     head maps) and OUT/refiner.onnx (box point features -> residuals and IoU), with OUT/onnx.json
@@ -155,5 +148,5 @@ def model_command(model_dir, as_onnx, scale, scale_from, out, force, dry_run):
     outcome = export_model(
         model_dir, out, scale=scale, scale_from=scale_from, force=force, dry_run=dry_run
     )
-    if (counts := ran_counts(outcome)) is not None:
+    if (counts := common.ran_counts(outcome)) is not None:
         click.echo(f"  opset {counts['opset']}, grid {counts['rows']} x {counts['cols']} pillars")

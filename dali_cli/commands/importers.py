@@ -6,13 +6,7 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import (
-    beams_options,
-    choice_option,
-    import_options,
-    ran_counts,
-    tuning_option,
-)
+from dali_cli.commands import common
 from dali_cli.commands.kinds import INTENSITY_MAX, VIEW_DEG
 
 
@@ -27,7 +21,7 @@ def command() -> None:
 
 
 def _summary(outcome) -> None:
-    if (counts := ran_counts(outcome)) is not None:
+    if (counts := common.ran_counts(outcome)) is not None:
         by_label = ", ".join(f"{k} {v}" for k, v in counts.get("boxes_by_label", {}).items())
         click.echo(
             f"  {counts['frames']} frames, {counts['points']} points, "
@@ -41,8 +35,8 @@ def _summary(outcome) -> None:
 
 @command.command(name="kitti", short_help="KITTI velodyne + label_2 + calib.")
 @click.argument("root", type=click.Path(exists=True, file_okay=False))
-@choice_option("--split", choices=["training", "testing"], default="training",
-               help="Split directory under ROOT (ignored when ROOT itself holds velodyne/).")  # fmt: skip
+@common.choice_option("--split", choices=["training", "testing"], default="training",
+                      help="Split directory under ROOT (ignored when ROOT itself holds velodyne/).")  # fmt: skip
 @click.option("--ids", "ids_path", type=click.Path(exists=True, dir_okay=False), default=None,
               help="Text file of frame ids, one per line (e.g. ImageSets/val.txt). Default: "
                    "every scan.")  # fmt: skip
@@ -54,8 +48,8 @@ def _summary(outcome) -> None:
 @click.option("--intensity-max", type=INTENSITY_MAX, default=1.0, show_default=True,
               help="Reflectances are divided by this (255 for 8-bit ones); after it they must lie "
                    "in [0, 1].")  # fmt: skip
-@beams_options
-@import_options("kitti")
+@common.beams_options
+@common.import_options("kitti")
 def kitti_command(
     root, split, ids_path, label_dir, crop_fov, intensity_max, sensor, out, no_progress, **run
 ):
@@ -96,8 +90,8 @@ def kitti_command(
               help="Also keep each scan's LiDAR pose (from DRIVE_DIR/oxts/data and the calib "
                    "folder's calib_imu_to_velo.txt) as OUT/sequence.parquet, for "
                    "`dali track-pseudo`.")  # fmt: skip
-@beams_options
-@import_options("kitti")
+@common.beams_options
+@common.import_options("kitti")
 def kitti_raw_command(
     drive_dir, calib_dir, tracklets, no_labels, crop_fov, poses, sensor, out, no_progress, **run
 ):
@@ -131,12 +125,12 @@ def kitti_raw_command(
                    "SEQUENCE_DIR/../../poses/<NN>.txt (the devkit layout), when present.")  # fmt: skip
 @click.option("--crop-fov", is_flag=True,
               help="Keep only points that project into camera 2's image (needs the calib).")  # fmt: skip
-@tuning_option("--crop-front-deg", type=VIEW_DEG, default=None,
-              metavar="DEG",
-              help="Keep only points within ±DEG/2 of straight ahead in azimuth (for a sequence "
-                   "without calib; KITTI's camera 2 sees about 82 degrees).")  # fmt: skip
-@beams_options
-@import_options("kitti")
+@common.tuning_option("--crop-front-deg", type=VIEW_DEG, default=None,
+                     metavar="DEG",
+                     help="Keep only points within ±DEG/2 of straight ahead in azimuth (for a sequence "
+                          "without calib; KITTI's camera 2 sees about 82 degrees).")  # fmt: skip
+@common.beams_options
+@common.import_options("kitti")
 def kitti_odometry_command(
     sequence_dir, calib, poses, crop_fov, crop_front_deg, sensor, out, no_progress, **run
 ):
@@ -176,10 +170,10 @@ def kitti_odometry_command(
                    "frames.")  # fmt: skip
 @click.option("--max-frames", type=click.IntRange(min=1), default=None,
               help="Import only the first N key frames (in time order per scene).")  # fmt: skip
-@tuning_option("--lidar-frame", is_flag=True,
-              help="Keep nuScenes' LiDAR axes (x right, y forward) instead of turning them to "
-                   "dali's x forward, y left.")  # fmt: skip
-@import_options("nuscenes")
+@common.tuning_option("--lidar-frame", is_flag=True,
+                     help="Keep nuScenes' LiDAR axes (x right, y forward) instead of turning them to "
+                          "dali's x forward, y left.")  # fmt: skip
+@common.import_options("nuscenes")
 def nuscenes_command(
     path,
     version,
@@ -230,7 +224,7 @@ def nuscenes_command(
 @click.option("--intensity-max", type=INTENSITY_MAX, default=1.0,
               show_default=True,
               help="Intensities are divided by this (255 for 8-bit intensities).")  # fmt: skip
-@import_options(None)
+@common.import_options(None)
 def openpcdet_command(root, split, car_classes, intensity_max, sensor, out, no_progress, **run):
     """Import OpenPCDet's custom format from ROOT.
 
@@ -259,12 +253,12 @@ def openpcdet_command(root, split, car_classes, intensity_max, sensor, out, no_p
 @click.option("--split", default=None, help="Read ROOT/SPLIT (e.g. training, validation).")
 @click.option("--every", type=click.IntRange(min=1), default=1, show_default=True,
               help="Keep every K-th frame of each segment (the paper trains on every 5th).")  # fmt: skip
-@choice_option("--lidars", choices=["top", "all"], default="top",
-               help="Points of the TOP LiDAR only, or of all five.")  # fmt: skip
+@common.choice_option("--lidars", choices=["top", "all"], default="top",
+                      help="Points of the TOP LiDAR only, or of all five.")  # fmt: skip
 @click.option("--returns", type=click.IntRange(1, 2), default=1, show_default=True,
               help="First return only, or both returns.")  # fmt: skip
 @click.option("--segments", default=None, help="Comma-separated segment names (default: all).")
-@import_options("waymo")
+@common.import_options("waymo")
 def waymo_command(
     root, fmt, split, every, lidars, returns, segments, sensor, out, no_progress, **run
 ):

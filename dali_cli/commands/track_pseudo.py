@@ -4,14 +4,7 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import (
-    FRACTION,
-    artifact_options,
-    data_option,
-    input_dir_option,
-    ran_counts,
-    tuning_option,
-)
+from dali_cli.commands import common
 from dali_cli.commands.kinds import DISTANCE_M, MARGIN_M
 from dali_cli.labels.tracks import TRACK_SCORE_MIN, TrackParams
 
@@ -19,29 +12,29 @@ DEFAULTS = TrackParams()
 
 
 @click.command(name="track-pseudo")
-@input_dir_option("--pseudo", help="Pseudo labels of `dali pseudo-label` on DATA (best made "
-                  "with a low `pseudo-label --score-min`, e.g. 0.1: the tracks do the filtering).")  # fmt: skip
-@data_option("target", help="The target frame set the pseudo labels were made on, with "
-             "its scans' LiDAR poses (sequence.parquet: `dali import kitti-raw --poses`, or "
-                  "kitti-odometry with poses and calib.txt) unless --poses gives them.")  # fmt: skip
-@input_dir_option("--poses", "poses_dir", required=False,
-                  help="Read the scans' LiDAR poses (and recordings) from this directory's "
-                       "sequence.parquet instead of DATA's: a `dali register` output.")  # fmt: skip
-@click.option("--track-score-min", type=FRACTION, default=TRACK_SCORE_MIN, show_default=True,
+@common.input_dir_option("--pseudo", help="Pseudo labels of `dali pseudo-label` on DATA (best made "
+                         "with a low `pseudo-label --score-min`, e.g. 0.1: the tracks do the filtering).")  # fmt: skip
+@common.data_option("target", help="The target frame set the pseudo labels were made on, with "
+                    "its scans' LiDAR poses (sequence.parquet: `dali import kitti-raw --poses`, or "
+                         "kitti-odometry with poses and calib.txt) unless --poses gives them.")  # fmt: skip
+@common.input_dir_option("--poses", "poses_dir", required=False,
+                         help="Read the scans' LiDAR poses (and recordings) from this directory's "
+                              "sequence.parquet instead of DATA's: a `dali register` output.")  # fmt: skip
+@click.option("--track-score-min", type=common.FRACTION, default=TRACK_SCORE_MIN, show_default=True,
               help="Keep a parked car whose boxes' median score, a moving track whose mean "
                    "score, is at least this.")  # fmt: skip
-@tuning_option("--gate-m", type=DISTANCE_M, default=DEFAULTS.gate_m,
-               show_default=True, help="BEV distance (m) within which a box joins a track.")  # fmt: skip
-@tuning_option("--max-gap", type=click.IntRange(min=0), default=DEFAULTS.max_gap,
-               show_default=True, help="Scans a track may miss before it ends.")  # fmt: skip
-@tuning_option("--parked-m-per-frame", type=MARGIN_M, default=DEFAULTS.parked_m_per_frame,
-               show_default=True, help="A track moving less than this (m a scan) is parked.")  # fmt: skip
-@tuning_option("--min-hits", type=click.IntRange(min=1), default=DEFAULTS.min_hits,
-               show_default=True, help="Scans a car must be found in (else it is clutter).")  # fmt: skip
-@tuning_option("--min-points", type=click.IntRange(min=1), default=DEFAULTS.min_points,
-               show_default=True, help="Points a scan must hold in a parked car's box for the "
-                                       "box to be placed there.")  # fmt: skip
-@artifact_options(progress=False)
+@common.tuning_option("--gate-m", type=DISTANCE_M, default=DEFAULTS.gate_m,
+                      show_default=True, help="BEV distance (m) within which a box joins a track.")  # fmt: skip
+@common.tuning_option("--max-gap", type=click.IntRange(min=0), default=DEFAULTS.max_gap,
+                      show_default=True, help="Scans a track may miss before it ends.")  # fmt: skip
+@common.tuning_option("--parked-m-per-frame", type=MARGIN_M, default=DEFAULTS.parked_m_per_frame,
+                      show_default=True, help="A track moving less than this (m a scan) is parked.")  # fmt: skip
+@common.tuning_option("--min-hits", type=click.IntRange(min=1), default=DEFAULTS.min_hits,
+                      show_default=True, help="Scans a car must be found in (else it is clutter).")  # fmt: skip
+@common.tuning_option("--min-points", type=click.IntRange(min=1), default=DEFAULTS.min_points,
+                      show_default=True, help="Points a scan must hold in a parked car's box for the "
+                                              "box to be placed there.")  # fmt: skip
+@common.artifact_options(progress=False)
 def command(pseudo, target, poses_dir, out, track_score_min, force, dry_run, **params):
     """Keep the pseudo boxes that persist over DATA's scans: the boxes go into one world frame
     by the scans' poses and are linked scan by scan (nearest within --gate-m of where the
@@ -64,7 +57,7 @@ def command(pseudo, target, poses_dir, out, track_score_min, force, dry_run, **p
         pseudo, target, out, track_score_min=track_score_min, params=TrackParams(**params),
         poses_dir=poses_dir, force=force, dry_run=dry_run,
     )  # fmt: skip
-    if (counts := ran_counts(outcome)) is not None:
+    if (counts := common.ran_counts(outcome)) is not None:
         click.echo(
             f"track-pseudo: {counts['input_boxes']} boxes -> {counts['boxes']} "
             f"({counts['parked_cars']} parked cars placed {counts['boxes_placed']} times, "

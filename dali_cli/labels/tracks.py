@@ -315,6 +315,7 @@ def track_boxes(
     poses: np.ndarray,
     points_of,
     params: TrackParams = TrackParams(),
+    recording: list[str] | np.ndarray | None = None,
 ) -> TrackedBoxes:
     """Pseudo boxes of a sequence turned into tracked boxes: linked in the world frame
     (link_tracks); each parked car (parked_cars, found in >= min_hits scans) as one world box
@@ -325,8 +326,12 @@ def track_boxes(
 
     frame : (N,) int scan position (0..F-1); boxes : (N, 7) LiDAR frames; score : (N,);
     num_points : (N,) the points in each input box; poses : (F, 4, 4) LiDAR poses;
-    points_of : callable(f) -> (M, >=3) points of scan f.
+    points_of : callable(f) -> (M, >=3) points of scan f; recording : (F,) the recording
+    (drive) of each scan, each tracked on its own (None: one recording).
     """
+    if recording is not None:
+        args = (frame, boxes, score, num_points, poses, points_of, params)
+        return _track_recordings(np.asarray(recording, dtype=object), *args)
     world = np.empty_like(boxes, dtype=np.float64)
     for f in np.unique(frame):
         world[frame == f] = boxes_to_world(boxes[frame == f], poses[f])
@@ -361,22 +366,12 @@ def track_boxes(
     )
 
 
-def track_recordings(
-    recording: list[str] | np.ndarray,
-    frame: np.ndarray,
-    boxes: np.ndarray,
-    score: np.ndarray,
-    num_points: np.ndarray,
-    poses: np.ndarray,
-    points_of,
-    params: TrackParams = TrackParams(),
-) -> TrackedBoxes:
+def _track_recordings(recording, frame, boxes, score, num_points, poses, points_of, params):
     """track_boxes on each recording (drive) of a set on its own: `recording` (F,) names the
     recording of each scan; scans of different recordings (poses in different world frames)
     are never linked, nor is a parked car placed in another recording's scans. Each
     recording's scans keep their order in the set. Returns the rows of every recording, frame
     positions (0..F-1), car ids (unique over the set) and source rows of the whole input."""
-    recording = np.asarray(recording, dtype=object)
     parts, offset = [], 0
     for name in dict.fromkeys(recording.tolist()):
         positions = np.flatnonzero(recording == name)  # (Fr,) ascending
