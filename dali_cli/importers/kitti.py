@@ -450,24 +450,18 @@ def build_import(
     (`progress`: a progress bar on stderr); reflectances are divided by `intensity_max`;
     `thinning`: the beams each scan keeps."""
 
-    def frames():
-        for frame_id in frame_ids:
-            points, table = load_frame(layout, frame_id, crop_fov, intensity_max, thinning)
-            yield frame_id, points, table
-
+    frames = (
+        (frame_id, *load_frame(layout, frame_id, crop_fov, intensity_max, thinning))
+        for frame_id in frame_ids
+    )
     attrs = {"source_format": "kitti", "crop_fov": bool(crop_fov), **thinning.params()}
+    notes = [
+        "boxes: label_2 through calib (R0_rect, Tr_velo_to_cam) to the LiDAR frame, geometric centre",
+        "DontCare rows: zero-size boxes at the origin; their 2D region is kept in bbox_*",
+        *thinning.notes(),
+    ]
     return write_imported(
-        out,
-        frames(),
-        sensor,
-        attrs,
-        total=len(frame_ids),
-        progress=progress,
-        notes=[
-            "boxes: label_2 through calib (R0_rect, Tr_velo_to_cam) to the LiDAR frame, geometric centre",
-            "DontCare rows: zero-size boxes at the origin; their 2D region is kept in bbox_*",
-            *thinning.notes(),
-        ],
+        out, frames, sensor, attrs, len(frame_ids), notes=notes, progress=progress
     )
 
 
