@@ -138,16 +138,11 @@ def test_ppcg_on_ray_equals_serial_and_loads_the_library_once_per_actor(
 
 @pytest.mark.slow  # a local Ray cluster, end to end
 def test_pseudo_label_on_ray_equals_serial_at_the_same_torch_threads(data, ray_session, tmp_path):
-    """Each worker runs torch on one thread; the serial reference does too (torch's results
-    differ in the last bits between thread counts, whatever the engine)."""
+    """Each worker runs torch on one thread; the serial reference does too (`--threads 1`:
+    torch's results differ in the last bits between thread counts, whatever the engine)."""
     args = ["pseudo-label", "--model", data / "model", "--data", data / "target",
             "--scale", "1.05", "--score-min", "0.05", "--batch-size", 2, "--no-progress"]  # fmt: skip
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        dali(*args, "--out", tmp_path / "serial")
-    finally:
-        torch.set_num_threads(threads)
+    dali(*args, "--threads", 1, "--out", tmp_path / "serial")
     dali(*args, "--executor", "ray", "--workers", 2, "--out", tmp_path / "ray")
     manifest = same_artifact(tmp_path / "serial", tmp_path / "ray")
     assert manifest["outputs"]["counts"]["boxes"] > 0
