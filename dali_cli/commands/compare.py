@@ -6,14 +6,8 @@ from pathlib import Path
 
 import click
 
-from dali_cli.commands.common import (
-    FRACTION,
-    PROTOCOLS_HELP,
-    SEED,
-    no_progress_option,
-    protocol_options,
-    tuning_option,
-)
+from dali_cli.commands.common import FRACTION, SEED, no_progress_option, tuning_option
+from dali_cli.commands.protocol_options import PROTOCOLS_HELP, protocol_options
 
 EPILOG = (
     """\b

@@ -9,15 +9,14 @@ import click
 from dali_cli.commands.common import (
     BATCH,
     artifact_options,
-    calib_option,
-    device_options,
     ran_counts,
     scale_from_option,
-    score_min_option,
     sensors_option,
     tuning_option,
 )
+from dali_cli.commands.detector_options import device_options, score_min_option
 from dali_cli.commands.kinds import SCALE, VIEW_DEG
+from dali_cli.commands.protocol_options import calib_option
 
 
 @click.command(name="detect")

@@ -8,21 +8,21 @@ import click
 
 from dali_cli.commands.common import (
     FRACTION,
-    PROTOCOLS_HELP,
-    calib_option,
     choice_option,
-    device_options,
     executor_options,
-    inference_threads_option,
     no_progress_option,
-    protocol_options,
     scale_from_option,
-    score_min_option,
     stage_options,
     tuning_option,
     workers_option,
 )
+from dali_cli.commands.detector_options import (
+    device_options,
+    inference_threads_option,
+    score_min_option,
+)
 from dali_cli.commands.kinds import SCALE
+from dali_cli.commands.protocol_options import PROTOCOLS_HELP, calib_option, protocol_options
 
 EPILOG = (
     """\b

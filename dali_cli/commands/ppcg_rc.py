@@ -14,10 +14,10 @@ from dali_cli.commands.common import (
     out_dir_option,
     sensors_option,
     stage_options,
-    target_profile_option,
     tuning_option,
     workers_option,
 )
+from dali_cli.commands.detector_options import target_profile_option
 from dali_cli.commands.kinds import MARGIN_M
 from dali_cli.ppcg.frame import DEFAULT_POINT_MARGIN_M
 from dali_cli.world.cars import LABEL_SLACK_M

@@ -8,11 +8,10 @@ from dali_cli.commands.common import (
     choice_option,
     input_dir_option,
     out_dir_option,
-    run_training_command,
     target_size_options,
-    training_options,
     tuning_option,
 )
+from dali_cli.commands.detector_options import run_training_command, training_options
 from dali_cli.commands.kinds import SCALE_PAIR
 
 

@@ -10,11 +10,13 @@ from dali_cli.commands.common import (
     finite_range,
     model_target_out_options,
     scale_from_option,
+    tuning_option,
+    workers_option,
+)
+from dali_cli.commands.detector_options import (
     score_min_option,
     target_profile_option,
     target_scaling_options,
-    tuning_option,
-    workers_option,
 )
 from dali_cli.commands.kinds import SCALE
 

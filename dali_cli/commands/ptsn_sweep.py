@@ -10,10 +10,12 @@ from dali_cli.commands.common import (
     finite_range,
     model_target_out_options,
     renamed_option,
+    tuning_option,
+)
+from dali_cli.commands.detector_options import (
     score_min_option,
     target_profile_option,
     target_scaling_options,
-    tuning_option,
 )
 from dali_cli.commands.kinds import TOLERANCE
 from dali_cli.ptsn import ScaleRange, parse_scale_range

@@ -9,11 +9,10 @@ from dali_cli.commands.common import (
     input_dir_option,
     out_dir_option,
     renamed_option,
-    run_training_command,
     target_size_options,
-    training_options,
     tuning_option,
 )
+from dali_cli.commands.detector_options import run_training_command, training_options
 
 
 class GreedyOption(click.Option):

@@ -4,13 +4,8 @@ from __future__ import annotations
 
 import click
 
-from dali_cli.commands.common import (
-    data_option,
-    input_dir_option,
-    out_dir_option,
-    run_training_command,
-    training_options,
-)
+from dali_cli.commands.common import data_option, input_dir_option, out_dir_option
+from dali_cli.commands.detector_options import run_training_command, training_options
 from dali_cli.commands.kinds import SCALE
 
 

@@ -1,7 +1,7 @@
 """Where a training or inference run executes: how many torch threads it uses and a record of
 the machine (CPU model, device, torch version) for every training and inference manifest.
 
-Imports nothing of dali_cli but `runtime.cores`; torch is imported inside the functions."""
+Imports nothing of dali_cli but `runtime.cores` and `runtime.kernels`; torch is imported inside the functions."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import platform
 from pathlib import Path
 
 from dali_cli.runtime.cores import available_cores
+from dali_cli.runtime.kernels import kernel_record
 
 CPUINFO = Path("/proc/cpuinfo")
 
@@ -38,8 +39,9 @@ def cpu_model(cpuinfo: Path = CPUINFO) -> str:
 
 def runtime_info(threads: int, device=None, world=None) -> dict:
     """What a training manifest records about the run's machine: threads (per process), device
-    (GPU model for CUDA), CPU model, available cores, torch and Python versions, and for a
-    torchrun run the world size, the backend and the processes per machine."""
+    (GPU model for CUDA), CPU model, the CPU kernel path (runtime/kernels.py), available cores,
+    torch and Python versions, and for a torchrun run the world size, the backend and the
+    processes per machine."""
     import torch
 
     record = {
@@ -52,6 +54,7 @@ def runtime_info(threads: int, device=None, world=None) -> dict:
     return {
         **record,
         "cpu_model": cpu_model(),
+        **kernel_record(),
         "cores_available": available_cores(),
         "torch_version": torch.__version__,
         "python_version": platform.python_version(),
