@@ -96,6 +96,7 @@ def remove_tree(directory: Path) -> None:
             shutil.rmtree(child, ignore_errors=True)
         else:
             child.unlink(missing_ok=True)
+    after_step("emptied")
     unmark(directory)
     shutil.rmtree(directory, ignore_errors=True)
 
@@ -198,6 +199,7 @@ def make_temporary(out: Path, token: str | None = None) -> Path:
     remove_own(temporary, out, "tmp")
     temporary.mkdir()
     try:
+        after_step("created")
         mark_leftover(temporary, out, "tmp")
     except BaseException:
         remove_tree(temporary)
