@@ -74,7 +74,7 @@ def stage_args(world: Path, stage: str, out: Path) -> list[str]:
                     w["library"], "--no-progress"],
         "ppcg-cf": ["ppcg-cf", "--data", w["target"], "--boxes", w["target"], "--library",
                     w["library"], "--no-progress"],
-        "export-kitti": ["export", "kitti", w["target"], "--calib-root", kitti],
+        "export-kitti": ["export", "kitti", str(world / "kitti-set"), "--calib-root", kitti],
         "register": ["register", "--data", w["target"], "--no-progress"],
         "track-pseudo": ["track-pseudo", "--pseudo", w["pseudo"], "--data", w["target"],
                          "--poses", w["reg"]],
@@ -120,6 +120,8 @@ def build_world(world: Path) -> None:
         ["pseudo-label", "--model", world / "model", "--data", world / "target", "--scale", "1",
          "--score-min", "0.01", "--no-progress", "--out", world / "pseudo"],
         ["register", "--data", world / "target", "--no-progress", "--out", world / "reg"],
+        ["import", "kitti", ROOT / "tests" / "fixtures" / "real" / "kitti", "--out",
+         world / "kitti-set"],
     ]  # fmt: skip
     for step in steps:
         code, output, _ = run([*DALI, *map(str, step)])
@@ -243,7 +245,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--mode", choices=["crash", "disk", "both"], default="both")
     parser.add_argument("--stages", default=",".join(STAGES))
-    parser.add_argument("--work", type=Path, default=Path("/tmp/dali-crash-probe"))
+    parser.add_argument("--work", type=Path, default=Path("runs/crash-probe"))
     args = parser.parse_args(argv)
     stages = [s for s in args.stages.split(",") if s]
     unknown = sorted(set(stages) - set(STAGES))
