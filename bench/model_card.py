@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import secrets
 import shutil
 import sys
 from pathlib import Path
@@ -251,7 +252,7 @@ def publish(staging: Path, out: Path) -> None:
             shutil.rmtree(staging)
             raise SystemExit(f"model_card: {out} exists and was not written by model_card "
                              f"(no {CARD_NAME}): not replaced")  # fmt: skip
-        old = out.with_name(f".{out.name}.old-{os.getpid()}")
+        old = out.with_name(f".{out.name}.old-{os.getpid()}-{secrets.token_hex(8)}")
         out.rename(old)
         staging.rename(out)
         shutil.rmtree(old)
@@ -319,7 +320,7 @@ def main(argv: list[str] | None = None) -> None:
         "limits": args.limit,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    staging = args.out.with_name(f".{args.out.name}.tmp-{os.getpid()}")
+    staging = args.out.with_name(f".{args.out.name}.tmp-{os.getpid()}-{secrets.token_hex(8)}")
     staging.mkdir()
     for name in COPIED:
         shutil.copy2(args.model / name, staging / name)

@@ -4,6 +4,7 @@ the next run recovers; skip decisions hash the input files; one writer per outpu
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shutil
@@ -167,6 +168,7 @@ CRASH_SCRIPT = textwrap.dedent(
     from dali_cli.store.manifest import BuildResult, run_stage
 
     out, step, exchange, value = sys.argv[1], sys.argv[2], sys.argv[3] == "1", float(sys.argv[4])
+    print(os.getpid(), flush=True)
     if not exchange:
         atomic_dir._exchange = lambda a, b: False
     def after_step(name):
@@ -193,10 +195,15 @@ def _value_at(out: Path) -> float | None:
     "exchange, step",
     [
         (True, "build"),
+        (True, "created"),
+        (True, "marked"),
         (True, "exchanged"),
+        (True, "unmarked"),
+        (True, "emptied"),
         (False, "build"),
         (False, "retired"),
         (False, "renamed"),
+        (False, "emptied"),
     ],
 )
 def test_a_replace_killed_at_any_step_loses_nothing_and_the_next_run_recovers(
@@ -228,8 +235,67 @@ def test_a_replace_killed_at_any_step_loses_nothing_and_the_next_run_recovers(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
     if step == "retired":
         assert any("restored" in m for m in messages) and outcome.status == "ran"
-    if step == "renamed" or step == "exchanged":
+    if step in ("renamed", "exchanged", "unmarked", "emptied"):
         assert outcome.status == "skipped"  # the new artifact was complete: up to date
+
+
+def pid_namespaces_unavailable() -> str | None:
+    """Why a process cannot be started in a fresh PID namespace here (None when it can)."""
+    if shutil.which("unshare") is None:
+        return "no unshare(1) on this machine"
+    for flags in (["-pf", "--mount-proc"], ["-Upf", "--mount-proc"]):
+        probe = subprocess.run(["unshare", *flags, "true"], capture_output=True, timeout=30)
+        if probe.returncode == 0:
+            return None
+    return "unshare -pf / -Upf is not permitted here (no CAP_SYS_ADMIN, no user namespaces)"
+
+
+def in_fresh_pid_namespace(*args: str) -> subprocess.CompletedProcess:
+    """CRASH_SCRIPT with `args` as the first process of a new PID namespace, as in a container
+    restart: every start gets the same pid."""
+    flags = ["-pf", "--mount-proc"]
+    if subprocess.run(["unshare", *flags, "true"], capture_output=True).returncode != 0:
+        flags = ["-Upf", "--mount-proc"]
+    env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    command = ["unshare", *flags, sys.executable, "-c", CRASH_SCRIPT, *args]
+    return subprocess.run(command, env=env, capture_output=True, text=True, timeout=120)
+
+
+KILL_STEPS = [  # (exchange, step, replacing an artifact)
+    *[(True, step, True) for step in ("build", "created", "marked", "exchanged", "unmarked",
+                                       "emptied")],
+    *[(False, step, True) for step in ("retired", "renamed", "emptied")],
+    *[(True, step, False) for step in ("build", "created", "renamed")],
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("exchange, step, replacing", KILL_STEPS)
+def test_a_run_killed_at_any_step_in_a_fresh_pid_namespace_is_finished_by_the_rerun(
+    tmp_path, exchange, step, replacing
+):
+    """In a container every restart has the same pid: a run killed right after it created its
+    temporary directory (before marking it), or while deleting the artifact it replaced, must
+    not leave anything the rerun (same pid) refuses or leaves behind."""
+    reason = pid_namespaces_unavailable()
+    if reason:
+        pytest.skip(reason)
+    out = tmp_path / "out"
+    if replacing:
+        run_stage("demo", out, {}, {"v": 1.0}, build_boxes(1.0), echo=quiet)
+    flag = "1" if exchange else "0"
+    crashed = in_fresh_pid_namespace(str(out), step, flag, "2.0")
+    assert crashed.returncode == 137, crashed.stderr
+    if out.exists():  # never half an artifact, never none when there was one
+        assert _value_at(out) in (1.0, 2.0)
+    else:
+        assert not replacing or any(_value_at(p) == 1.0 for p in tmp_path.glob("out.old-*"))
+    assert len(list(tmp_path.iterdir())) > 1, "the kill left nothing to recover: no test"
+    rerun = in_fresh_pid_namespace(str(out), "none", flag, "2.0")
+    assert rerun.returncode == 0, rerun.stderr
+    assert rerun.stdout.split()[0] == crashed.stdout.split()[0]  # the same pid again
+    assert "Traceback" not in rerun.stderr
+    assert _value_at(out) == 2.0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no remnant, no lock
 
 
 def test_recovery_restores_the_newest_complete_retired_artifact_only_when_out_is_missing(tmp_path):
@@ -271,14 +337,17 @@ def test_recovery_never_adopts_a_directory_by_its_name(tmp_path):
     assert _value_at(out) == 3.0 and {p: snapshot(p) for p in (backup, scratch)} == before
 
 
-def test_a_directory_dali_did_not_create_under_its_temporary_name_is_refused(tmp_path):
+def test_a_directory_named_like_this_runs_temporary_is_neither_used_nor_refused(tmp_path):
+    """Temporary names carry a run token, not only the pid: a directory `out.tmp-<my pid>`
+    (a user's, or one a run with this pid left in another PID namespace) is never this run's
+    name, so the run neither writes into it nor stops at it."""
     out = tmp_path / "out"
     mine = tmp_path / f"out.tmp-{os.getpid()}"
     mine.mkdir()
     (mine / "keep.txt").write_text("mine")
-    with pytest.raises(OutputPathError, match="not created by dali"):
-        run_stage("demo", out, {}, {}, build_boxes(1.0), echo=quiet)
-    assert (mine / "keep.txt").read_text() == "mine" and not out.exists()
+    assert run_stage("demo", out, {}, {}, build_boxes(1.0), echo=quiet).status == "ran"
+    assert snapshot(mine) == {"keep.txt": b"mine"} and _value_at(out) == 1.0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", mine.name]
 
 
 def test_the_lock_file_never_follows_a_symbolic_link(tmp_path):
@@ -469,3 +538,66 @@ def test_a_file_output_inside_an_artifact_only_where_the_artifact_allows_it(tmp_
         refused = CliRunner().invoke(main, [*base, "--out", str(tmp_path / "pseudo-label" / name)])
         assert refused.exit_code == 1 and "inside the dali artifact" in refused.output
     assert snapshot(tmp_path / "pseudo-label") == before
+
+
+# --- a full disk -------------------------------------------------------------------------------
+
+
+def test_a_lock_that_cannot_be_written_on_a_full_disk_is_named_and_not_left(tmp_path, monkeypatch):
+    from dali_cli.runtime.errors import WriteError
+    from dali_cli.store import atomic_dir
+
+    def full(*_args):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(atomic_dir.os, "pwrite", full)
+    out = tmp_path / "out"
+    with pytest.raises(WriteError, match=rf"^{out}: writing failed: No space left on device"):
+        run_stage("demo", out, {}, {}, build_boxes(1.0), echo=quiet)
+    assert list(tmp_path.iterdir()) == []  # no 0-byte .out.lock
+
+
+def test_torch_save_on_a_full_disk_is_a_write_error_with_the_bytes_it_needed(tmp_path, monkeypatch):
+    import torch
+
+    from dali_cli.runtime.errors import WriteError
+    from dali_cli.store import disk_space
+
+    def torn(value, path):
+        Path(path).write_bytes(b"PK" * 100)  # what torch's writer got out before the disk filled
+        raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 1544768")
+
+    monkeypatch.setattr(torch, "save", torn)
+    monkeypatch.setattr(disk_space, "free_bytes", lambda path: 4096)
+    out = tmp_path / "out"
+    run_stage("demo", out, {}, {"v": 1}, build_boxes(1.0), echo=quiet)
+    before = snapshot(out)
+
+    def build(tmp):
+        build_boxes(2.0)(tmp)
+        disk_space.save_torch({"w": torch.zeros(1000)}, tmp / "model.pt")
+
+    with pytest.raises(WriteError) as caught:
+        run_stage("demo", out, {}, {"v": 2}, build, echo=quiet)
+    message = str(caught.value)
+    assert message.startswith(f"{out}: writing failed: No space left on device")
+    assert "model.pt; needs 4.0 kB (4000 bytes), 4.1 kB (4096 bytes) free" in message
+    assert "\n" not in message and "nothing was replaced" in message
+    assert snapshot(out) == before and sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_a_torch_writer_failure_with_room_left_is_an_io_error_not_a_traceback(
+    tmp_path, monkeypatch
+):
+    import torch
+
+    from dali_cli.store import disk_space
+
+    def broken(value, path):
+        raise RuntimeError("PytorchStreamWriter failed writing file data/0: file write failed")
+
+    monkeypatch.setattr(torch, "save", broken)
+    with pytest.raises(OSError) as caught:
+        disk_space.save_torch({"w": torch.zeros(4)}, tmp_path / "m.pt")
+    assert caught.value.errno == errno.EIO and "file write failed" in caught.value.strerror
+    assert caught.value.filename == str(tmp_path / "m.pt")

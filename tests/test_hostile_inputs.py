@@ -467,3 +467,46 @@ def test_a_hostile_scale_file_is_refused_naming_it(world, tmp_path, how):
     args = ["eval", "--model", world / "model", "--data", world / "target", "--scale-from",
             sweep, "--out", tmp_path / "m.json", "--no-progress"]  # fmt: skip
     expect_refused(tmp_path, args, tmp_path / "m.json", "scale.json")
+
+
+def test_a_training_stage_refuses_a_disk_too_small_for_its_model_before_it_trains(
+    world, tmp_path, monkeypatch
+):
+    import dali_cli.detector
+    from dali_cli.store import disk_space
+
+    def never(*_args, **_kwargs):
+        raise AssertionError("trained although the model could not be saved")
+
+    monkeypatch.setattr(dali_cli.detector, "train", never)
+    monkeypatch.setattr(disk_space, "free_bytes", lambda path: 200_000)
+    out = tmp_path / "model"
+    args = ["pretrain", "--source", world / "source", "--out", out, "--epochs", "1",
+            "--detector-config", world / "detector.json", "--no-progress"]  # fmt: skip
+    result = invoke(*args)
+    assert result.exit_code == 1 and isinstance(result.exception, SystemExit), result.output
+    assert f"{out}: writing failed: No space left on device" in result.output
+    assert "needs" in result.output and "200.0 kB (200000 bytes) free" in result.output
+    assert "Traceback" not in result.output and list(tmp_path.iterdir()) == []
+
+
+def test_torch_save_failing_on_a_full_disk_ends_pretrain_with_one_line(
+    world, tmp_path, monkeypatch
+):
+    from dali_cli.store import disk_space
+
+    def torn(value, path):
+        raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 1544768")
+
+    free = iter([10**12])  # room when training starts, none when the model is saved
+    monkeypatch.setattr(disk_space, "free_bytes", lambda path: next(free, 1000))
+    monkeypatch.setattr(torch, "save", torn)
+    out = tmp_path / "model"
+    args = ["pretrain", "--source", world / "source", "--out", out, "--epochs", "1",
+            "--detector-config", world / "detector.json", "--no-progress"]  # fmt: skip
+    result = invoke(*args)
+    assert result.exit_code == 1 and isinstance(result.exception, SystemExit), result.output
+    assert f"{out}: writing failed: No space left on device" in result.output
+    assert "model.pt; needs" in result.output and "inline_container" not in result.output
+    assert "Traceback" not in result.output
+    assert sorted(p.name for p in tmp_path.iterdir()) in ([], ["model.resume"])

@@ -5,8 +5,9 @@ run and DataLoader worker that uses it.
 
 Layout of one entry, `<cache>/gt_database/<key>/`: boxes.npy (k, 7) float64, offsets.npy
 (k + 1,) int64, points.f32 (offsets[-1], 4) float32 raw, database.json (counts, region). An
-entry is written into `<key>.tmp-<pid>` and renamed into place, so a reader sees a complete
-one or none; it is never written inside an input artifact.
+entry is written into `<key>.tmp-<pid>-<token>` under the entry's lock and renamed into place,
+so a reader sees a complete one or none; what a killed build left is removed by the next one
+(store.atomic_dir); it is never written inside an input artifact.
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +22,13 @@ import numpy as np
 from dali_cli.detector.augment import ObjectDatabase, frame_instances
 from dali_cli.runtime import console
 from dali_cli.runtime.errors import StageError
-from dali_cli.store.atomic_dir import is_leftover, mark_leftover, unmark
+from dali_cli.store.atomic_dir import (
+    OutputLock,
+    make_temporary,
+    recover_interrupted,
+    remove_tree,
+    unmark,
+)
 from dali_cli.store.regular_files import read_json_file
 
 CACHE_ENV = "DALI_CACHE_DIR"  # where caches go instead of beside the training data
@@ -97,54 +103,42 @@ def cached_database(
     """`ObjectDatabase.build(frames.points, frames.boxes, min_points, region)`, the same
     instances in the same order, from the cache under `root` (default `cache_root` of the
     frames' directory), built there first when absent (one pass over the frames; memory: one
-    frame and the boxes)."""
+    frame and the boxes). The entry is built under its lock (a second run building it waits,
+    then reuses it) in a marked `<key>.tmp-<pid>-<token>`, then renamed into place."""
     root = Path(root) if root is not None else cache_root(first_directory(frames.points))
     directory = root / "gt_database" / database_key(frames, region, min_points)
     directory.parent.mkdir(parents=True, exist_ok=True)
     remove_abandoned(directory.parent)
     if (directory / "database.json").is_file():
         return load_database(directory)
-    tmp = directory.with_name(f"{directory.name}.tmp-{os.getpid()}")
-    if tmp.exists() and not is_leftover(tmp, directory, "tmp"):
-        raise StageError(f"{tmp}: exists and was not written by dali; move it away")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
-    mark_leftover(tmp, directory, "tmp")
-    try:
-        write_database(tmp, frames, region, min_points)
-        unmark(tmp)
-        try:
-            tmp.rename(directory)
-        except OSError:  # another run wrote the same entry meanwhile: keep theirs
-            shutil.rmtree(tmp, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    console.info(f"gt database: {directory}")
+    with OutputLock(directory, wait=True) as lock:
+        recover_interrupted(directory, console.info, lock.inherited)
+        if not (directory / "database.json").is_file():  # not built by a run we waited for
+            tmp = make_temporary(directory, lock.token)
+            try:
+                write_database(tmp, frames, region, min_points)
+                os.rename(tmp, directory)
+            except BaseException:
+                remove_tree(tmp)
+                raise
+            unmark(directory)
+            console.info(f"gt database: {directory}")
     return load_database(directory)
 
 
-def process_alive(pid: int) -> bool:
-    """Whether a process `pid` exists (a reused pid reads as alive: the entry is then kept, and
-    a later call removes it)."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except (PermissionError, OverflowError):
-        return True
-    return True
-
-
 def remove_abandoned(folder: Path) -> None:
-    """Remove the half-written entries (`<key>.tmp-<pid>`) that dali marked as its own
-    (store.atomic_dir's leftover marker) and whose process is gone; anything else is left."""
-    for tmp in folder.glob("*.tmp-*"):
-        key, _, pid = tmp.name.rpartition(".tmp-")
-        if not pid.isdigit() or not is_leftover(tmp, tmp.with_name(key), "tmp"):
+    """Clean what killed builds left in `folder`: for each entry with a `<key>.tmp-*` or a lock
+    file `.<key>.lock` beside it that no live process holds, the leftovers recover_interrupted
+    recognizes as dali's (marked, or named with a token its lock file recorded) and the lock
+    file. Whatever else has such a name is left as it is; an entry being built is skipped."""
+    keys = {path.name.rpartition(".tmp-")[0] for path in folder.glob("*.tmp-*")}
+    keys |= {path.name[1 : -len(".lock")] for path in folder.glob(".*.lock")}
+    for key in sorted(key for key in keys if key):
+        try:
+            with OutputLock(folder / key) as lock:
+                recover_interrupted(folder / key, console.info, lock.inherited)
+        except StageError:  # being built (busy), or a lock file that is not dali's
             continue
-        if not process_alive(int(pid)):
-            shutil.rmtree(tmp, ignore_errors=True)
 
 
 def write_database(directory: Path, frames, region, min_points: int) -> None:

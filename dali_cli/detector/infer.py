@@ -152,8 +152,10 @@ def load_weights_only(path: Path, what: str, advice: str = ""):
 
 def save_checkpoint(directory: str | Path, net: PillarCenterNet, meta: dict) -> None:
     """Write model.pt (weights) and model.json (config + meta) into `directory`."""
+    from dali_cli.store.disk_space import save_torch
+
     directory = Path(directory)
-    torch.save(net.state_dict(), directory / WEIGHTS_NAME)
+    save_torch(net.state_dict(), directory / WEIGHTS_NAME)
     document = {"detector": net.config.name, "config": net.config.to_dict(), **meta}
     (directory / META_NAME).write_text(json.dumps(document, indent=2, default=str) + "\n")
 

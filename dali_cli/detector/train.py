@@ -398,6 +398,7 @@ def save_resume_state(
 ) -> None:
     """Everything needed to continue: weights, optimizer, step, elapsed time, log (atomic write)."""
     from dali_cli.store.atomic_file import write_atomically
+    from dali_cli.store.disk_space import save_torch
 
     state = {
         "key": key,
@@ -407,4 +408,4 @@ def save_resume_state(
         "elapsed_s": elapsed,
         "log": log,
     }
-    write_atomically(path, lambda temporary: torch.save(state, temporary))
+    write_atomically(path, lambda temporary: save_torch(state, temporary))

@@ -196,6 +196,8 @@ def fit_and_save(
     from dali_cli.detector.distributed import SINGLE
 
     world = world or SINGLE
+    if tmp is not None:  # refused before it trains, not after
+        check_training_space(tmp.parent, job.net)
     result = train(
         job.net, job.datasets, job.augmentations, job.settings, resume, key, progress=progress,
         device=world.device, world=world,
@@ -214,6 +216,31 @@ def fit_and_save(
         notes=notes,
         extra={"runtime": result.runtime},
     )
+
+
+# model.pt once, the resume state (weights and AdamW's two moments) twice while it is rewritten
+TRAINING_SPACE_FACTOR = 1 + 2 * 3
+TRAINING_SPACE_MARGIN = 1 << 20  # the training log, model.json, the manifest
+
+
+def training_space(net) -> int:
+    """Bytes a training run of `net` may write beside its output: its weights' size (4 bytes
+    a parameter in fp32) x TRAINING_SPACE_FACTOR, plus a margin for the small files."""
+    from dali_cli.store.disk_space import tensor_bytes
+
+    return tensor_bytes(net.state_dict()) * TRAINING_SPACE_FACTOR + TRAINING_SPACE_MARGIN
+
+
+def check_training_space(directory: Path, net) -> None:
+    """A DiskSpaceError naming `directory` when its disk cannot hold what training `net`
+    writes there (training_space): a full disk is found before the training, not after."""
+    from dali_cli.store.disk_space import DiskSpaceError, free_bytes
+
+    needed, free = training_space(net), free_bytes(directory)
+    if free is not None and free < needed:
+        raise DiskSpaceError(
+            f"{directory}, for model.pt and the training's resume state", needed, free
+        )
 
 
 def report_ranks(result, world) -> None:

@@ -17,6 +17,7 @@ The contract every stage uses (docs/scale-out.md):
 
 from __future__ import annotations
 
+import errno
 import os
 import shutil
 import socket
@@ -80,6 +81,30 @@ class ShardsFailed(StageError):
             + "\n  ".join(lines)
         )
         self.failures = failures
+
+
+DISK_REASONS = {code: os.strerror(code) for code in (errno.ENOSPC, errno.EDQUOT, errno.EROFS)}
+
+
+def disk_error(errors: list[BaseException], directory: Path) -> OSError | None:
+    """The write error behind shards that failed writing into `directory`, when it is the
+    disk's (full, over quota, read-only; seen through a worker's pickled error or, for a short
+    write without an errno, through the disk's free space), else None."""
+    from dali_cli.store.disk_space import NEARLY_FULL, DiskSpaceError, free_bytes
+
+    for error in errors:
+        code = getattr(error, "errno", None)
+        if code in DISK_REASONS:
+            return OSError(code, DISK_REASONS[code], getattr(error, "filename", None))
+        text = str(error)
+        for code, reason in DISK_REASONS.items():
+            if reason in text:
+                return OSError(code, reason, str(directory))
+    if any(isinstance(e, OSError) or "OSError" in str(e) for e in errors):
+        free = free_bytes(directory)
+        if free is not None and free < NEARLY_FULL:
+            return DiskSpaceError(directory, None, free)
+    return None
 
 
 @contextmanager
@@ -215,10 +240,12 @@ class Executor:
         self._stopping = False
         done: dict[int, tuple[Shard, dict]] = {}
         failures: list[tuple[Shard, str]] = []
+        errors: list[BaseException] = []
         following = 0
         for shard, result in self._completions(factory, shards, directory):
             if isinstance(result, BaseException):
                 failures.append((shard, _describe_error(result)))
+                errors.append(result)
                 self.stop()
                 continue
             self._record(result)
@@ -227,6 +254,9 @@ class Executor:
                 yield done.pop(following)
                 following += 1
         if failures:
+            disk = disk_error(errors, directory)
+            if disk is not None:  # the stage runner names the output: one line, no shard list
+                raise disk
             raise ShardsFailed(self.name, sorted(failures, key=lambda item: item[0].index))
         while following in done:  # pragma: no cover - completions always end in order here
             yield done.pop(following)

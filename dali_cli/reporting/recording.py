@@ -90,13 +90,14 @@ def write_recording(path: Path, frames: Iterable[tuple[str, np.ndarray]], layers
     `point_step`: log every k-th point. Returns the counts {frames, entities, boxes}. Written to
     a temporary file beside `path` and moved into place when complete."""
     import os
+    import secrets
 
     import rerun as rr
 
     from dali_cli.store.output_paths import RECORDING_APPLICATION
 
     path = Path(path)
-    temporary = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    temporary = path.with_name(f".{path.name}.tmp-{os.getpid()}-{secrets.token_hex(8)}")
     recording = rr.RecordingStream(RECORDING_APPLICATION)
     recording.save(str(temporary))
     try:

@@ -32,17 +32,36 @@ class StageError(Exception):
 
 
 class WriteError(StageError):
-    """Writing an output failed (disk full, permissions, an I/O error): nothing was committed,
-    so the previous output at that path, if any, is intact."""
+    """Writing an output failed (disk full, quota, read-only, permissions, an I/O error):
+    nothing was committed, so the previous output at that path, if any, is intact. The message
+    names the output, the file when it differs, the system's reason and, for a full disk, the
+    bytes it needed and had where known (`error.needed`, `error.free`)."""
 
     def __init__(self, out, error: OSError):
         reason = error.strerror or str(error) or type(error).__name__
-        where = f" ({error.filename})" if error.filename and str(error.filename) != str(out) else ""
+        details = []
+        if error.filename and str(error.filename) != str(out):
+            details.append(str(error.filename))
+        needed, free = getattr(error, "needed", None), getattr(error, "free", None)
+        if needed:
+            details.append(
+                f"needs {size_text(needed)}"
+                + (f", {size_text(free)} free" if free is not None else "")
+            )
+        where = f" ({'; '.join(details)})" if details else ""
         super().__init__(
-            f"{out}: writing failed: {reason}{where}; nothing was replaced (the previous output, "
-            "if any, is intact)",
+            f"{out}: writing failed: {reason}{where}; nothing was replaced or changed (the "
+            "previous output, if any, is intact)",
             path=str(out),
         )
+
+
+def size_text(count: int) -> str:
+    """`count` bytes for a person: 1544768 -> "1.5 MB (1544768 bytes)"."""
+    for unit, size in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if count >= size:
+            return f"{count / size:.1f} {unit} ({count} bytes)"
+    return f"{count} bytes"
 
 
 class ParameterError(StageError):

@@ -2,7 +2,7 @@
 
 A stage is a pure function of (input artifacts, parameters) → an output directory. `run_stage`
 checks that `--out` may be written (`output_paths`), takes the output's lock, restores or cleans
-what an interrupted run left (`atomic_dir`), builds the output in `<out>.tmp-<pid>`, writes
+what an interrupted run left (`atomic_dir`), builds the output in `<out>.tmp-<pid>-<token>`, writes
 `manifest.json` last, and commits the directory in one atomic exchange, so a crash never leaves a
 half-written artifact and never loses the previous one. A rerun with the same inputs (hashed from
 their files, `file_hashes`), parameters and dali version, over an output whose files are intact,
@@ -12,7 +12,6 @@ is skipped. docs/data-safety.md says what this guarantees.
 from __future__ import annotations
 
 import json
-import shutil
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -27,6 +26,7 @@ from dali_cli.store.atomic_dir import (
     OutputLock,
     make_temporary,
     recover_interrupted,
+    remove_tree,
     replace_directory,
 )
 from dali_cli.store.atomic_file import write_text_atomically
@@ -272,8 +272,8 @@ def run_stage(
             refuse_foreign_files(given, out, stage, derived)
         echo(f"{stage}: would run -> {given} ({reason or 'forced'})")
         return StageOutcome("dry-run", reason or "forced")
-    with OutputLock(out):
-        recover_interrupted(out, echo)
+    with OutputLock(out) as lock:
+        recover_interrupted(out, echo, lock.inherited)
         records = _input_records(inputs)
         reason, intact = why_stale(out, stage, records, params, derived)
         if reason is None and not force:
@@ -282,7 +282,9 @@ def run_stage(
         if not intact:
             refuse_foreign_files(given, out, stage, derived)
         reason = reason or "forced"
-        manifest, wall = _build_and_commit(stage, out, records, params, build, seed, derived)
+        manifest, wall = _build_and_commit(
+            stage, out, records, params, build, seed, derived, lock.token
+        )
     echo(f"{stage}: wrote {given} ({wall:.1f} s)")
     return StageOutcome("ran", reason, manifest)
 
@@ -295,10 +297,15 @@ def _build_and_commit(
     build: Callable,
     seed: int | None,
     derived: tuple[str, ...] = (),
+    token: str | None = None,
 ) -> tuple[dict, float]:
-    """Build into `<out>.tmp-<pid>`, write the manifest last, commit atomically; on any error
-    (or Ctrl-C) remove the temporary directory and leave `out` as it was."""
-    temporary = make_temporary(out)
+    """Build into `<out>.tmp-<pid>-<token>`, write the manifest last, commit atomically; on
+    any error (or Ctrl-C) remove the temporary directory and leave `out` as it was. A write
+    error (a full disk included) is a WriteError naming `out`."""
+    try:
+        temporary = make_temporary(out, token)
+    except OSError as error:
+        raise WriteError(out, error) from None
     started = time.perf_counter()
     try:
         result = build(temporary)
@@ -327,11 +334,11 @@ def _build_and_commit(
             "content_hash": hash_tree(temporary, (MANIFEST_NAME, *derived)),
         }
         _write_json_atomic(temporary / MANIFEST_NAME, manifest)
-        replace_directory(temporary, out)
+        replace_directory(temporary, out, token=token)
     except OSError as error:
-        shutil.rmtree(temporary, ignore_errors=True)
+        remove_tree(temporary)
         raise WriteError(out, error) from None
     except BaseException:
-        shutil.rmtree(temporary, ignore_errors=True)
+        remove_tree(temporary)
         raise
     return manifest, wall
