@@ -48,37 +48,58 @@ def test_the_goal_scan_sees_what_it_must():
     assert goals_named("```\nmake demo    # all\n```") == {"demo"}
 
 
+# ŝ a-b, a-b pseudo boxes, RC a-b, CF a-b: each a range over the CPU kernel paths
+RANGE = r"(?P<{0}_lo>[0-9.]+)-(?P<{0}_hi>[0-9.]+)"
 TINY_FIGURES = re.compile(
-    r"ŝ (?P<scale>[0-9.]+), (?P<pseudo>\d+) pseudo boxes, RC (?P<rc>\d+), CF (?P<cf>\d+)"
+    rf"ŝ {RANGE.format('scale')}, {RANGE.format('pseudo')} pseudo boxes, "
+    rf"RC {RANGE.format('rc')}, CF {RANGE.format('cf')}"
 )
+# what a CPU whose kernels were not among those measured may add to the README's range: the
+# stability targets of docs/RESULTS.md ("Numerical stability"), ŝ ± 0.01 and counts ± 5 %
+SCALE_MARGIN, COUNT_MARGIN = 0.01, 0.05
 
 
-@pytest.mark.slow  # runs `make tiny` (about 2 minutes on 2 idle cores)
+def within_stated(printed: float, stated: re.Match, name: str, margin: float) -> bool:
+    low, high = float(stated[f"{name}_lo"]), float(stated[f"{name}_hi"])
+    return low - margin <= printed <= high + margin
+
+
+def test_the_tiny_figures_read_as_ranges():
+    """A property of the check: the README's sentence form parses, and a count outside the
+    range and its margin fails."""
+    stated = TINY_FIGURES.search("ŝ 1.19-1.21, 100-110 pseudo boxes, RC 70-71, CF 100-110")
+    assert stated and stated["pseudo_hi"] == "110"
+    assert within_stated(1.215, stated, "scale", SCALE_MARGIN)
+    assert not within_stated(1.23, stated, "scale", SCALE_MARGIN)
+    assert within_stated(115, stated, "pseudo", COUNT_MARGIN * 110)
+    assert not within_stated(117, stated, "pseudo", COUNT_MARGIN * 110)
+
+
+@pytest.mark.slow  # runs `make tiny` (about 3 minutes on 2 idle cores)
 @pytest.mark.skipif(shutil.which("make") is None, reason="make is not installed")
 def test_the_readmes_tiny_run_figures_are_what_make_tiny_prints(tmp_path):
-    """The README's `make tiny` sentence holds the figures the code prints today: ŝ within 0.05
-    and each count within 25 %. make tiny trains on one thread, so one commit prints the same
-    counts on 1 and 2 cores (docs/RESULTS.md); the margin is for another CPU's floating point.
-    A changed world or pipeline moves them far more (126 pseudo boxes against 239 was such a
-    drift, which this test exists to catch)."""
+    """`make tiny` on this machine prints figures inside the README's ranges. The ranges are
+    the spread `bench/numerical_stability.py --chain tiny` measured over the CPU kernel paths
+    (torch's default, avx2 and avx512 kernels with MKL's and oneDNN's matching settings); a CPU
+    whose kernels were not measured may add the stated margins (ŝ 0.01, counts 5 % of the
+    range's top). A changed world or pipeline moves them far more (126 pseudo boxes against 239
+    was such a drift, which this test exists to catch)."""
     stated = TINY_FIGURES.search(README)
-    assert stated, "README.md no longer states the tiny run's figures"
+    assert stated, "README.md no longer states the tiny run's figures as ranges"
     run = tmp_path / "tiny"
     result = subprocess.run(
         ["make", "--no-print-directory", "tiny", f"TINY_RUN={run}"],
-        cwd=ROOT, capture_output=True, text=True, timeout=1200,
+        cwd=ROOT, capture_output=True, text=True, timeout=1800,
         env={k: v for k, v in os.environ.items() if not k.startswith("MAKE")},
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-2000:]
     out = result.stdout
-    scale = float(re.search(r"ptsn-sweep: scale ([0-9.]+)", out).group(1))
-    pseudo = int(re.search(r"pseudo-label: (\d+) boxes kept", out).group(1))
-    rc = int(re.search(r"ppcg-rc: (\d+) of", out).group(1))
-    cf = int(re.search(r"ppcg-cf: (\d+) of", out).group(1))
-    assert abs(scale - float(stated["scale"])) <= 0.05, (scale, stated["scale"])
-    for printed, name in ((pseudo, "pseudo"), (rc, "rc"), (cf, "cf")):
-        assert abs(printed - int(stated[name])) <= 0.25 * int(stated[name]), (
-            name,
-            printed,
-            stated[name],
-        )
+    printed = {
+        "scale": float(re.search(r"ptsn-sweep: scale ([0-9.]+)", out).group(1)),
+        "pseudo": int(re.search(r"pseudo-label: (\d+) boxes kept", out).group(1)),
+        "rc": int(re.search(r"ppcg-rc: (\d+) of", out).group(1)),
+        "cf": int(re.search(r"ppcg-cf: (\d+) of", out).group(1)),
+    }
+    for name, value in printed.items():
+        margin = SCALE_MARGIN if name == "scale" else COUNT_MARGIN * int(stated[f"{name}_hi"])
+        assert within_stated(value, stated, name, margin), (name, value, stated.groupdict())
