@@ -52,8 +52,8 @@ SCALE_RANGE = ScaleRangeType()
 @tuning_option("--frames", type=click.IntRange(min=1), default=None,
                help=f"Sweep on N frames, evenly spread over the target (one drawn, seeded, from "
                     f"each of N equal runs of frames). Default: {FRAME_CAP} (every frame of a "
-                    f"smaller target); docs/ptsn.md has the error of ŝ against every frame's sweep "
-                    f"on six real drives.")  # fmt: skip
+                    f"smaller target): on six real drives and their 514 frames ŝ within 0.0013 of the "
+                    f"sweep of every frame (docs/ptsn.md).")  # fmt: skip
 @tuning_option("--frame-fraction", type=finite_range(0, 1, min_open=True), default=None,
               help="Sweep on this fraction of the frames instead, evenly spread (seeded); 1: "
                    "every frame.")  # fmt: skip

@@ -12,12 +12,10 @@ metres, turns in radians.
 from __future__ import annotations
 
 from functools import lru_cache
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from dali_cli.labels.box_fit import PointFit
+from dali_cli.labels.point_fit import PointFit
 
 PRUNE_BLOCKS = ((4, 17), (2, 6))  # best_pose's blocks (along x across steps, one turn each)
 BOUND_RELATIVE, BOUND_PER_POINT = 1e-3, 1e-5  # block_lower_bounds' allowance for float32 rounding
