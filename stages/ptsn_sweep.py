@@ -160,6 +160,8 @@ def ptsn_sweep(
     torch_device, precision = inference_setup(inference, "ptsn_sweep")
     if frames is not None and frame_fraction is not None:
         raise ParameterError(("frames", "frame_fraction"), "give one of the two, not both")
+    if frames is None and frame_fraction is None:
+        frames = ptsn.FRAME_CAP  # recorded as such: a sweep of every frame is another output
     if not model_dir.is_dir():
         raise StageError(f"{model_dir}: model directory not found")
     target = FrameSet(target_dir)

@@ -12,7 +12,8 @@ import pytest
 from stub_stage import pseudo_label_cli, write_stub_inputs
 
 from dali_cli.geometry import count_points_in_boxes, wrap_angle
-from dali_cli.labels.box_fit import PointFit, fit_boxes, pose_costs
+from dali_cli.labels.box_fit import PointFit, fit_boxes
+from dali_cli.labels.pose_search import pose_costs
 from dali_cli.store.artifacts import read_boxes
 
 MOUNT = 1.73

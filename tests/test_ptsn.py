@@ -288,6 +288,21 @@ def test_select_frames_is_seeded_and_sized():
     assert np.array_equal(ptsn.select_frames(5, None, None, 0), np.arange(5))
 
 
+@pytest.mark.parametrize("count, frames", [(514, 64), (108, 64), (65, 64), (1000, 7)])
+def test_select_frames_draws_one_frame_from_each_of_equal_runs(count, frames):
+    picked = ptsn.select_frames(count, frames, None, seed=0)
+    runs = np.arange(frames + 1) * count // frames  # the runs' edges
+    assert len(picked) == frames and np.all(np.diff(picked) > 0)
+    assert np.array_equal(np.searchsorted(runs, picked, side="right") - 1, np.arange(frames))
+    if count >= 2 * frames:  # every run has a choice: another seed draws another sample
+        assert not np.array_equal(picked, ptsn.select_frames(count, frames, None, seed=1))
+
+
+def test_select_frames_caps_a_large_target_by_default():
+    assert len(ptsn.select_frames(514, None, None, 0)) == ptsn.FRAME_CAP
+    assert np.array_equal(ptsn.select_frames(514, None, 1.0, 0), np.arange(514))
+
+
 def test_ros_expected_size():
     assert np.allclose(ptsn.ros_expected_size(SOURCE_LWH, 0.875), SOURCE_LWH * 0.875)
 

@@ -169,17 +169,25 @@ def test_training_on_streamed_frames_equals_training_in_memory(toy, config, tmp_
         assert all(torch.equal(reference[k], weights[k]) for k in reference), workers
 
 
-def test_loader_workers_default_to_none_on_the_cpu_and_to_the_spare_cores_on_a_gpu(monkeypatch):
-    """On the CPU the training step computes on every core, so the default keeps the input
-    pipeline in process; on a GPU the spare cores (one kept for the step) feed it."""
+def test_loader_workers_default_to_a_spare_core_on_the_cpu_and_to_the_spare_cores_on_a_gpu(
+    monkeypatch,
+):
+    """On the CPU the training step computes on its threads: one worker when they leave a core
+    spare, else the input pipeline in process; on a GPU the spare cores (one kept for the step)
+    feed it."""
     from dali_cli.detector import loader
 
     monkeypatch.setattr("dali_cli.runtime.cores.available_cores", lambda: 6)
     assert loader.default_loader_workers(1, "cpu") == 0
+    assert loader.default_loader_workers(1, "cpu", threads=6) == 0
+    assert loader.default_loader_workers(1, "cpu", threads=1) == 1
+    assert loader.default_loader_workers(2, "cpu", threads=3) == 0  # two ranks: 3 cores each
     assert loader.default_loader_workers(1, "cuda") == 5
     assert loader.default_loader_workers(2, "cuda") == 2  # two ranks share the six cores
     monkeypatch.setattr("dali_cli.runtime.cores.available_cores", lambda: 64)
     assert loader.default_loader_workers(1, "cuda") == loader.MAX_DEFAULT_WORKERS
+    monkeypatch.setattr("dali_cli.runtime.cores.available_cores", lambda: 2)
+    assert loader.default_loader_workers(1, "cpu", threads=1) == 1  # the shipped chain's run
 
 
 def test_prepared_frames_are_bounded_least_recently_used_first_out_and_read_only():

@@ -94,8 +94,9 @@ def training_options(function):
             default=None,
             help="Processes that read, augment and batch the training frames ahead of the "
             "training step (default on a GPU: the cores this process may use, less one, at "
-            "most 8; on the CPU 0: in the training process, whose step uses every core). The batches do not depend on it; recorded in the "
-            "manifest's runtime.",
+            "most 8; on the CPU 1 when --threads leaves a core spare, else 0: in the training "
+            "process, whose step uses every core). The batches do not depend on it; recorded in "
+            "the manifest's runtime.",
         ),
         tuning_option(
             "--no-augment",

@@ -24,16 +24,21 @@ from dali_cli.detector.targets import Targets, build_targets
 MAX_DEFAULT_WORKERS = 8
 
 
-def default_loader_workers(local_processes: int = 1, device_type: str = "cuda") -> int:
+def default_loader_workers(
+    local_processes: int = 1, device_type: str = "cuda", threads: int | None = None
+) -> int:
     """Loader workers per training process when not given. On a GPU: one less than its share of
-    the available cores (the training process keeps one), at most MAX_DEFAULT_WORKERS. On the CPU
-    none: there the training step itself computes on every core, and a worker would take cores
-    from it (measured ~2x slower on a 2-core machine, docs/scale-out-measurements.md)."""
+    the available cores (the training process keeps one), at most MAX_DEFAULT_WORKERS. On the
+    CPU: one when the step's torch `threads` leave a core of the process's share spare (the
+    shipped chain's --threads 1 on 2 cores: the batches are made there while the step runs,
+    docs/detector.md "Where a training step's time goes"), else none: the step computes on every
+    core, and a worker would take cores from it (measured ~2x slower on a 2-core machine,
+    docs/scale-out-measurements.md)."""
     from dali_cli.runtime.cores import available_cores
 
-    if device_type != "cuda":
-        return 0
     share = available_cores() // max(1, local_processes)
+    if device_type != "cuda":
+        return 1 if threads is not None and threads < share else 0
     return max(0, min(MAX_DEFAULT_WORKERS, share - 1))
 
 

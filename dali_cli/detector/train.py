@@ -151,7 +151,7 @@ def train(
     mine = rank_slice(world, settings.batch_size)  # this rank's positions in the global batch
     global_batch = settings.batch_size * world.size
     workers = (
-        default_loader_workers(world.local_size, device.type)
+        default_loader_workers(world.local_size, device.type, threads)
         if settings.loader_workers is None
         else settings.loader_workers
     )

@@ -18,7 +18,9 @@ heading and ±`across_m` across it and turned by up to ±`turn_deg` (a grid); ea
            (distance outside the box)²
 
 so the sides move onto the visible faces while every point stays inside; the cheapest pose wins
-(the unmoved pose is on the grid, so the fit never scores worse than the box it started from).
+(the unmoved pose is on the grid, so the fit never scores worse than the box it started from;
+dali_cli.labels.pose_search finds it without scoring every pose on every point, the same pose
+bit for bit).
 Boxes with fewer than `min_points` candidate points are kept as they are.
 
 All lengths in metres, angles in the boxes' yaw convention (rad; the options in degrees).
@@ -26,69 +28,16 @@ All lengths in metres, angles in the boxes' yaw convention (rad; the options in 
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
-
 import numpy as np
 
 from dali_cli.geometry import point_box_pairs, wrap_angle
+from dali_cli.labels.point_fit import PointFit
+from dali_cli.labels.pose_search import best_pose
+
+__all__ = ["PointFit", "candidate_points", "fit_boxes"]
 
 TOP_MARGIN_M = 0.3  # candidate points may reach this far above the box (its height is a guess)
 CLAIM_MARGIN_M = 0.15  # a point this close to another box belongs to that car
-
-
-@dataclass(frozen=True)
-class PointFit:
-    """The grid and cost of the fit (see the module docstring); `max_points`: a box with more
-    candidate points is scored on an evenly strided subset of that many (bounded work per box:
-    grid x points)."""
-
-    along_m: float = 1.0
-    across_m: float = 0.2
-    turn_deg: float = 8.0
-    along_step_m: float = 0.05
-    across_step_m: float = 0.025
-    turn_step_deg: float = 1.0
-    margin_m: float = 0.6
-    ground_clearance_m: float = 0.2
-    min_points: int = 10
-    side_cap_m: float = 0.5
-    outside_weight: float = 30.0
-    max_points: int = 512
-
-    def __post_init__(self):
-        for name in ("along_m", "across_m", "turn_deg", "margin_m", "ground_clearance_m"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        for name in ("along_step_m", "across_step_m", "turn_step_deg", "side_cap_m"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        if self.min_points < 1 or self.max_points < self.min_points:
-            raise ValueError("need 1 <= min_points <= max_points")
-
-    def axes(self) -> tuple[np.ndarray, np.ndarray]:
-        """The grid's shifts `(D, 2)` (along m, across m; across varies fastest) and turns `(T,)`
-        rad, each axis symmetric about and holding 0."""
-
-        def axis(half: float, step: float) -> np.ndarray:
-            count = int(np.floor(half / step + 1e-9))
-            return np.arange(-count, count + 1) * step
-
-        along = axis(self.along_m, self.along_step_m)
-        across = axis(self.across_m, self.across_step_m)
-        shifts = np.stack(np.meshgrid(along, across, indexing="ij"), -1).reshape(-1, 2)
-        return shifts, np.radians(axis(self.turn_deg, self.turn_step_deg))
-
-    def grid(self) -> np.ndarray:
-        """Candidate (along m, across m, turn rad) offsets `(G = D * T, 3)`, the zero offset
-        included; pose g is shift g // T turned by turn g % T (the order of pose_costs)."""
-        shifts, turns = self.axes()
-        return np.concatenate(
-            [np.repeat(shifts, len(turns), 0), np.tile(turns, len(shifts))[:, None]], 1
-        )
-
-    def record(self) -> dict:
-        """The manifest's record of the fit (its every parameter)."""
-        return asdict(self)
 
 
 def candidate_points(boxes: np.ndarray, points: np.ndarray, fit: PointFit) -> list[np.ndarray]:
@@ -123,43 +72,6 @@ def candidate_points(boxes: np.ndarray, points: np.ndarray, fit: PointFit) -> li
     return result
 
 
-def pose_costs(uv: np.ndarray, half_lw: np.ndarray, fit: PointFit, chunk: int = 64) -> np.ndarray:
-    """The cost of each pose of `fit.grid()` `(G,)` float64 for one box's points `uv (n, 2)` (its
-    frame) and half length and width `(2,)`.
-
-    A point's coordinates in the box shifted by (du, dv) and turned by t are its coordinates
-    turned by t minus the shift turned by t, so the points are turned once per turn `(T, n)`
-    and each shift only subtracts; float32 elementwise (the sums in float64), `chunk` shifts at
-    a time (the work stays in cache): 7-9 times the plain float64 grid's speed, the same poses
-    on the demo-scale labels of three seeds."""
-    shifts, turns = fit.axes()
-    cos, sin = np.cos(turns).astype(np.float32), np.sin(turns).astype(np.float32)  # (T,)
-    u, v = (np.asarray(uv, np.float32)[:, i] for i in (0, 1))
-    a0 = cos[:, None] * u + sin[:, None] * v  # (T, n): along the turned box, unshifted
-    b0 = -sin[:, None] * u + cos[:, None] * v
-    du, dv = (shifts[:, i, None].astype(np.float32) for i in (0, 1))  # (D, 1)
-    shift_a, shift_b = cos * du + sin * dv, -sin * du + cos * dv  # (D, T)
-    half_l, half_w = (np.float32(x) for x in half_lw)
-    cap = np.float32(fit.side_cap_m)
-    costs = np.empty(shift_a.shape, np.float64)
-    for s in range(0, len(shifts), chunk):
-        a = np.abs(a0 - shift_a[s : s + chunk, :, None])  # (c, T, n)
-        b = np.abs(b0 - shift_b[s : s + chunk, :, None])
-        side = np.minimum(half_l - a, half_w - b)
-        np.clip(side, 0, cap, out=side)
-        side *= side
-        a -= half_l  # a, b become the distances outside the box along and across
-        np.maximum(a, 0, out=a)
-        b -= half_w
-        np.maximum(b, 0, out=b)
-        a += b
-        a *= a
-        costs[s : s + chunk] = side.sum(-1, dtype=np.float64) + fit.outside_weight * a.sum(
-            -1, dtype=np.float64
-        )
-    return costs.reshape(-1)
-
-
 def fit_boxes(
     boxes: np.ndarray, points: np.ndarray, fit: PointFit | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -173,14 +85,11 @@ def fit_boxes(
     if not len(boxes):
         return fitted, used
     grid = fit.grid()
-    zero = int(np.argmin(np.abs(grid).sum(1)))  # the unmoved pose: wins ties
     for k, uv in enumerate(candidate_points(boxes, points, fit)):
         used[k] = len(uv)
         if len(uv) < fit.min_points:
             continue
-        cost = pose_costs(uv, boxes[k, 3:5] / 2, fit)
-        best = zero if cost[zero] <= cost.min() else int(np.argmin(cost))
-        du, dv, turn = grid[best]
+        du, dv, turn = grid[best_pose(uv, boxes[k, 3:5] / 2, fit)]
         c, s = np.cos(boxes[k, 6]), np.sin(boxes[k, 6])
         fitted[k, 0] += c * du - s * dv
         fitted[k, 1] += s * du + c * dv

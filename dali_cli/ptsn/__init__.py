@@ -23,7 +23,12 @@ sweep's boxes kept, E_pred(ŝ) over a stricter score cut from them). I/O is the 
 """
 
 from dali_cli.ptsn.cache import DetectionCache
-from dali_cli.ptsn.frames import crop_for_scales, select_frames, subsample_for_bracket
+from dali_cli.ptsn.frames import (
+    FRAME_CAP,
+    crop_for_scales,
+    select_frames,
+    subsample_for_bracket,
+)
 from dali_cli.ptsn.search import (
     Evaluation,
     SearchResult,
@@ -83,5 +88,6 @@ __all__ = [
     "parse_size",
     "ros_expected_size",
     "select_frames",
+    "FRAME_CAP",
     "subsample_for_bracket",
 ]

@@ -8,17 +8,24 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+FRAME_CAP = 64  # frames a sweep runs on when neither a count nor a fraction is given
+
 
 def select_frames(count: int, frames: int | None, fraction: float | None, seed: int) -> np.ndarray:
-    """Sorted indices `(k,)` of a seeded subsample of `count` frames (all when both are None)."""
+    """Sorted indices `(k,)` of a seeded, evenly spread sample of `count` frames: the frames cut
+    into k runs of (nearly) equal length in their order, one frame drawn from each run, so a
+    drive's every stretch is represented. k is `frames`, else `fraction` of the frames, else
+    FRAME_CAP (every frame when k >= count). docs/ptsn.md has the error of ŝ this costs."""
     if frames is not None and fraction is not None:
         raise ValueError("give either a frame count or a frame fraction, not both")
     if fraction is not None:
         frames = max(1, int(round(fraction * count)))
-    if frames is None or frames >= count:
+    frames = FRAME_CAP if frames is None else frames
+    if frames >= count:
         return np.arange(count, dtype=np.int64)
-    rng = np.random.default_rng(seed)
-    return np.sort(rng.choice(count, size=frames, replace=False)).astype(np.int64)
+    starts = np.arange(frames + 1, dtype=np.int64) * count // frames  # (k + 1,) run edges
+    offsets = np.random.default_rng(seed).integers(0, np.diff(starts))  # each run >= 1 frame
+    return (starts[:-1] + offsets).astype(np.int64)
 
 
 def subsample_for_bracket(
