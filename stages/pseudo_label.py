@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import math
 import sys
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Unpack
 
@@ -97,25 +97,35 @@ def pseudo_label(
 ) -> StageOutcome:
     """Run the pseudo-label stage (see the module docstring). `point_fit`: move each box
     onto its points after the size correction (default: the standard fit; None: off).
-    `executor`, `workers`,
-    `ray_address`: the engine of the detector runs (dali_cli.executors); `inference`: device,
-    precision, batch size, progress and (tests) the detector loader (InferenceOptions)."""
+    `executor`, `workers`, `ray_address`: the engine of the detector runs (dali_cli.executors);
+    `inference`: device, precision, batch size, progress and (tests) the detector loader
+    (InferenceOptions)."""
     model_dir, target_dir = Path(model_dir), Path(target_dir)
     torch_device, precision = inference_setup(inference, "pseudo_label")
     used, scale_source = used_scale(model_dir, scale, scale_from)
-    scale = used.scale  # ŝ exactly as the sweep found it (or the option's)
     e_est = list(used.e_est) if used.e_est is not None else None
     if mount_height_m is None and used.pivot_m is not None:
         mount_height_m = used.pivot_m  # scale about the very point the sweep scaled about
-    method = correction_method(size_correction_method, e_est)
     target = FrameSet(target_dir)
     target_profile, mount_height_m, max_range_m = target_scaling(
         target, target_profile, mount_height_m, sensors_path
     )
+    run = LabelRun(
+        labeler=FrameLabeler(
+            str(model_dir), str(target_dir), used.scale, mount_height_m, max_range_m,
+            score_min, nms_iou,
+            inference.get("batch_size", 8), inference.get("detector_loader") or load_detector,
+            device=torch_device, precision=precision,
+        ),
+        target=target, used=used, scale_source=scale_source, mount_height_m=mount_height_m,
+        method=correction_method(size_correction_method, e_est),
+        requested_method=size_correction_method, e_est=e_est, score_min=score_min,
+        point_fit=point_fit, device=torch_device, progress=inference.get("progress", True),
+    )  # fmt: skip
     params = {
-        "scale": scale, "score_min": score_min, "nms_iou": nms_iou,
+        "scale": used.scale, "score_min": score_min, "nms_iou": nms_iou,
         "target_profile": target_profile, "mount_height_m": mount_height_m,
-        "size_correction": method,
+        "size_correction": run.method,
         # recorded only when not the default: an option whose default changes nothing leaves
         # the parameters, and so the up-to-date check of every existing artifact, as they are
         **({"precision": precision} if precision != "fp32" else {}),
@@ -123,55 +133,67 @@ def pseudo_label(
     }  # fmt: skip
     inputs = {"model": model_dir, "target": target_dir}
     inputs.update({"scale_from": scale_from} if scale_from is not None else {})
-
     engine = make_executor(executor, workers, ray_address)
-    labeler = FrameLabeler(
-        str(model_dir), str(target_dir), scale, mount_height_m, max_range_m,
-        score_min, nms_iou,
-        inference.get("batch_size", 8), inference.get("detector_loader") or load_detector,
-        device=torch_device, precision=precision,
-    )  # fmt: skip
 
     def build(directory: Path) -> BuildResult:
-        return run_on(engine, "pseudo-label", lambda pool: build_on(pool, directory))
-
-    def build_on(pool, directory: Path) -> BuildResult:
-        table, implausible, seconds = label_frames(
-            labeler, pool, directory, target, inference.get("progress", True)
-        )
-        correction = fitted = None
-        if method != "none" and len(table):
-            table, correction = correct_table(table, e_est, score_min)
-        if correction is not None or point_fit is not None:
-            # boxes changed: one more pass
-            table, fitted = place_on_points(table, target, point_fit)
-        fits = {"point_fit": fitted} if fitted is not None else {}
-        write_outputs(
-            directory, table,
-            scale_record(used, scale_source, mount_height_m),
-            summarize(table, len(target), e_est),
-            {"boxes_implausible": implausible, "size_correction": correction, **fits},
-        )  # fmt: skip
-        skipped_correction = method != size_correction_method
-        return BuildResult(
-            counts={
-                "frames": len(target),
-                "boxes": len(table),
-                "boxes_implausible": implausible,
-            },  # fmt: skip
-            timings={"detector_seconds": round(seconds, 3)},
-            notes=pseudo_label_notes(implausible, skipped_correction, len(table), score_min),
-            extra={
-                "pseudo_label": {"scale_source": scale_source},
-                "runtime": inference_runtime(torch_device),
-                "size_correction": correction or {"method": method},
-                **fits,
-                "executor": pool.report(),
-            },
-        )
+        return run_on(engine, "pseudo-label", lambda pool: build_labels(run, pool, directory))
 
     return run_stage(
         STAGE, out, inputs=inputs, params=params, build=build, force=force, dry_run=dry_run
+    )
+
+
+@dataclass(frozen=True)
+class LabelRun:
+    """What one pseudo-label build works with, resolved from the stage's options: the frame
+    labeler (detector at ŝ, cut, NMS), the target, the scale it was found at and where, the
+    size correction in effect (`method`; `requested_method` the option's) and the point fit."""
+
+    labeler: FrameLabeler
+    target: FrameSet
+    used: ScaleResult
+    scale_source: str
+    mount_height_m: float | None
+    method: str
+    requested_method: str
+    e_est: list | None
+    score_min: float
+    point_fit: box_fit.PointFit | None
+    device: object
+    progress: bool
+
+
+def build_labels(run: LabelRun, pool, directory: Path) -> BuildResult:
+    """Label the target on the executor `pool`, correct sizes, fit boxes to their points and
+    write the artifact's files into `directory`; the stage's counts, timings and notes."""
+    table, implausible, seconds = label_frames(
+        run.labeler, pool, directory, run.target, run.progress
+    )
+    correction = fitted = None
+    if run.method != "none" and len(table):
+        table, correction = correct_table(table, run.e_est, run.score_min)
+    if correction is not None or run.point_fit is not None:  # boxes changed: one more pass
+        table, fitted = place_on_points(table, run.target, run.point_fit)
+    fits = {"point_fit": fitted} if fitted is not None else {}
+    write_outputs(
+        directory, table,
+        scale_record(run.used, run.scale_source, run.mount_height_m),
+        summarize(table, len(run.target), run.e_est),
+        {"boxes_implausible": implausible, "size_correction": correction, **fits},
+    )  # fmt: skip
+    return BuildResult(
+        counts={"frames": len(run.target), "boxes": len(table), "boxes_implausible": implausible},
+        timings={"detector_seconds": round(seconds, 3)},
+        notes=pseudo_label_notes(
+            implausible, run.method != run.requested_method, len(table), run.score_min
+        ),
+        extra={
+            "pseudo_label": {"scale_source": run.scale_source},
+            "runtime": inference_runtime(run.device),
+            "size_correction": correction or {"method": run.method},
+            **fits,
+            "executor": pool.report(),
+        },
     )
 
 
