@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -57,16 +56,6 @@ def cpu_flags() -> set[str]:
     except OSError:
         pass
     return set()
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def available_paths(requested: list[str]) -> list[str]:
@@ -320,6 +309,8 @@ def main() -> None:
         else None
     )
     import torch
+
+    from dali_cli.runtime.machine import cpu_model
 
     document = {
         "chain": args.chain,
