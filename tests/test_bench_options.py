@@ -12,8 +12,8 @@ from cli_commands import cli_commands, option_words
 
 BENCH = Path(__file__).resolve().parents[1] / "bench"
 OTHER_TOOLS = {
-    # pip, torchrun, Ray, nvidia-smi, make
-    "--no-index", "--no-deps", "--no-compile", "--no-cache-dir", "--upgrade", "--standalone",
+    # pip, torchrun, Ray, nvidia-smi, make, unshare
+    "--mount-proc", "--no-index", "--no-deps", "--no-compile", "--no-cache-dir", "--upgrade", "--standalone",
     "--nproc-per-node", "--head", "--block", "--num-cpus", "--object-store-memory",
     "--include-dashboard", "--disable-usage-stats", "--query-gpu", "--no-print-directory",
 }  # fmt: skip
