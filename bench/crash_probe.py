@@ -14,7 +14,7 @@ Counted: tracebacks, failures whose message does not name --out, remnants (a loc
 temporary) beside a failed or finished --out, exit codes other than 0/1.
 
 Needs root (unshare, mount). Usage:
-    python bench/crash_probe.py [--mode crash|disk|both] [--stages synth,pretrain,...] [--work DIR]
+    python bench/crash_probe.py --mode crash|disk|both [--stages synth,pretrain,...] [--work DIR]
 """
 
 from __future__ import annotations
@@ -243,7 +243,7 @@ def repr_arg(arg) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--mode", choices=["crash", "disk", "both"], default="both")
+    parser.add_argument("--mode", choices=["crash", "disk", "both"], required=True)
     parser.add_argument("--stages", default=",".join(STAGES))
     parser.add_argument("--work", type=Path, default=Path("runs/crash-probe"))
     args = parser.parse_args(argv)
