@@ -9,8 +9,8 @@ is much larger than its input's amplifies rounding.
     .venv/bin/python bench/numerical_stability.py [--chain tiny] [--paths native avx2 avx512 default]
         [--threads 1] [--isolate] [--out bench/results/numerical_stability_tiny.json]
     .venv/bin/python bench/numerical_stability.py --chain demo --threads 2
-    .venv/bin/python bench/numerical_stability.py --chain real --data D --labels D_LABELS
-        --model models/kitti-hdl64e        (the inference stages only: ptsn-sweep, pseudo-label, eval)
+    .venv/bin/python bench/numerical_stability.py --chain real --data D [--labels L]
+        [--model models/kitti-hdl64e]    (the inference stages only: ptsn-sweep, pseudo-label, eval)
 
 Chains: `tiny` and `demo` are `make tiny` / `make demo` (each path its own run directory under
 --runs); `real` runs a shipped model's inference stages on an imported real frame set.
@@ -148,24 +148,33 @@ def run_make_chain(chain: str, path: str, threads: int, runs: Path, make_vars: l
 
 
 def run_real_chain(args, path: str, threads: int, runs: Path) -> dict:
-    """ptsn-sweep, pseudo-label and eval of `args.model` on `args.data` under `path`."""
+    """ptsn-sweep, pseudo-label and eval of `args.model` on `args.data` under `path`; eval at the
+    model's own scale against `args.labels` (default: the frame set's boxes)."""
     out = runs / f"real-{path}-t{threads}"
-    env, common = path_env(path), ["--threads", str(threads)]
-    seconds = run([str(DALI), "ptsn-sweep", "--model", args.model, "--data", args.data, "--target-profile",
-                   args.profile, *common, "--out", str(out / "ptsn")], env, runs / f"{out.name}-ptsn.log")  # fmt: skip
-    seconds += run([str(DALI), "pseudo-label", "--model", args.model, "--data", args.data, "--scale-from",
-                    str(out / "ptsn"), *common, "--out", str(out / "pseudo")], env, runs / f"{out.name}-pseudo.log")  # fmt: skip
-    outputs = {
+    env, common = path_env(path), ["--threads", str(threads), "--no-progress"]
+    seconds = run([str(DALI), "ptsn-sweep", "--model", args.model, "--data", args.data,
+                   "--target-size", "sn", *common, "--out", str(out / "ptsn")],
+                  env, runs / f"{out.name}-ptsn.log")  # fmt: skip
+    seconds += run([str(DALI), "pseudo-label", "--model", args.model, "--data", args.data,
+                    "--scale-from", str(out / "ptsn"), *common, "--out", str(out / "pseudo")],
+                   env, runs / f"{out.name}-pseudo.log")  # fmt: skip
+    labels = ["--gt", args.labels] if args.labels else []
+    seconds += run([str(DALI), "eval", "--model", args.model, "--scale-from", args.model,
+                    "--data", args.data, *labels, "--protocol", "kitti", "--iou", "0.7", *common,
+                    "--out", str(out / "eval")], env, runs / f"{out.name}-eval.log")  # fmt: skip
+    car = json.loads((out / "eval" / "metrics.json").read_text())["Car"]
+    return {
+        "run": str(out),
+        "seconds": seconds,
         "scale": json.loads((out / "ptsn" / "scale.json").read_text())["scale"],
         "pseudo_boxes": manifest_counts(out / "pseudo").get("boxes"),
-        "ap": {},
+        "ap": {
+            "model (moderate)": {
+                "bev": round(car["bev"]["moderate"], 2),
+                "3d": round(car["3d"]["moderate"], 2),
+            }
+        },  # fmt: skip
     }
-    if args.labels:
-        seconds += run([str(DALI), "eval", "--model", args.model, "--scale-from", args.model, "--data", args.data,
-                        "--gt", args.labels, "--protocol", "kitti", "--iou", "0.7", *common,
-                        "--out", str(out / "eval")], env, runs / f"{out.name}-eval.log")  # fmt: skip
-        outputs["ap"]["model"] = eval_ap(out / "eval")
-    return {"run": str(out), "seconds": seconds, **outputs}
 
 
 # the stages `--isolate` reruns: their output under the run directory, and what is compared
@@ -270,10 +279,7 @@ def main() -> None:
     parser.add_argument("--runs", type=Path, default=ROOT / "runs" / "numerical_stability")
     parser.add_argument("--model", default="models/kitti-hdl64e", help="real chain: the model")
     parser.add_argument("--data", help="real chain: an imported frame set")
-    parser.add_argument("--labels", help="real chain: its labels (dali eval --gt), optional")
-    parser.add_argument(
-        "--profile", default="kitti", help="real chain: the target's sensor profile"
-    )
+    parser.add_argument("--labels", help="real chain: labels for eval (default: --data's boxes)")
     parser.add_argument("--out", type=Path)
     parser.add_argument("--isolate", action="store_true",
                         help="tiny, demo: also rerun each stage alone on the first path's inputs")  # fmt: skip
