@@ -69,10 +69,10 @@ def test_point_features_gather_every_point_in_the_grown_box():
         assert np.allclose(faces[:, :3] + faces[:, 3:], boxes[k, 3:6], atol=1e-4)
 
 
-@pytest.mark.slow  # trains the refiner to convergence
-def test_refiner_learns_to_correct_disturbed_boxes():
-    """Trained on toy scans of box-shaped cars with disturbed ground truth as proposals, the
-    refiner raises the 3D IoU of new disturbed boxes and its IoU head ranks them."""
+def trained_refiner_on_toy_scans(seed: int):
+    """A refiner trained 400 steps on toy scans of box-shaped cars with disturbed ground truth
+    as proposals (torch seed `seed`), then run on disturbed boxes of a held-out scan: the
+    proposals' 3D IoU with the truth before and after refinement, and the predicted IoU."""
     config = DetectorConfig(refine=True, refine_points=64)
     kitti = get_profile("kitti")
     rng = np.random.default_rng(2)
@@ -85,7 +85,7 @@ def test_refiner_learns_to_correct_disturbed_boxes():
         points[:, 2] += kitti.mount_height_m
         cars[:, 2] += kitti.mount_height_m
         frames.append((points, cars))
-    torch.manual_seed(0)
+    torch.manual_seed(seed)
     refiner = BoxRefiner(config)
     optimizer = torch.optim.Adam(refiner.parameters(), lr=1e-3)
     for step in range(400):
@@ -107,9 +107,23 @@ def test_refiner_learns_to_correct_disturbed_boxes():
     truth = np.repeat(cars, 4, axis=0)
     with torch.no_grad():
         refined, predicted_iou = refine_boxes(refiner, points, proposals, config)
-    before, after = iou_3d_pairs(proposals, truth), iou_3d_pairs(refined, truth)
-    assert after.mean() > before.mean() + 0.1  # measured: 0.59 -> 0.74
-    assert np.corrcoef(predicted_iou, after)[0, 1] > 0.25  # measured: 0.37
+    return iou_3d_pairs(proposals, truth), iou_3d_pairs(refined, truth), predicted_iou
+
+
+@pytest.mark.slow  # trains the refiner to convergence, three times
+def test_refiner_learns_to_correct_disturbed_boxes():
+    """Trained on toy scans, the refiner raises the 3D IoU of new disturbed boxes and its IoU
+    head ranks them. Training turns a change in the last bits (another CPU's kernels, MKL's
+    mode) into another model, as another seed would (docs/RESULTS.md, "Numerical stability"):
+    the head's correlation measured 0.15-0.45 over six seeds and two MKL modes on one CPU
+    (0.15 once), so the ranking is asserted on the median of three seeds, one run being a
+    draw from that spread."""
+    correlations = []
+    for seed in range(3):
+        before, after, predicted_iou = trained_refiner_on_toy_scans(seed)
+        assert after.mean() > before.mean() + 0.1  # measured: 0.59 -> 0.74
+        correlations.append(np.corrcoef(predicted_iou, after)[0, 1])
+    assert np.median(correlations) > 0.25, correlations  # measured: 0.34
 
 
 def toy_frames(count: int, seed: int):
