@@ -68,7 +68,9 @@ def command(source, out, labels, **options):
     Reads SOURCE/frames.zarr and SOURCE/boxes.parquet (or --boxes). Writes OUT/model.pt (weights),
     OUT/model.json (config, provenance, metrics), OUT/train_log.parquet (step, loss terms, lr,
     frames/s) and OUT/manifest.json. An interrupted run keeps its state in OUT.resume/ and the
-    same command resumes it. Training is deterministic for a given --seed and thread count.
+    same command resumes it. Training is deterministic for a given --seed, thread count and CPU
+    kernel path (the manifest's runtime records both); another CPU's rounding trains another
+    model, as another seed would (docs/RESULTS.md, "Numerical stability").
 
     Distributed: `torchrun --nproc-per-node N $(which dali) pretrain ...` trains with
     DistributedDataParallel (gloo on the CPU, nccl on CUDA), --batch-size frames per process;
