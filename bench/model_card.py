@@ -210,6 +210,7 @@ def card_text(card: dict) -> str:
         lines += ["", f"On the repository's test frame (tests/fixtures/real/kitti, {entry['frames']} "
                   f"frame): AP_BEV / AP_3D@0.7 {entry['AP_BEV@0.7']} / {entry['AP_3D@0.7']}; "
                   "tests/test_models.py reruns it."]  # fmt: skip
+    lines += gate_lines(card.get("against_replaced"))
     total = sum(step["wall_seconds"] or 0 for step in card["provenance"])
     lines += ["", "## How it was made", "",
               "Every stage that led to the weights, inputs first (from the manifests; `make models` "
@@ -224,6 +225,26 @@ def card_text(card: dict) -> str:
                      f"{step['machine']} |")  # fmt: skip
     lines += ["", "## Limits", "", *[f"- {limit}" for limit in card["limits"]], ""]
     return "\n".join(lines)
+
+
+def gate_lines(gate: dict | None) -> list[str]:
+    """The comparison with the model this one replaced (bench/model_gate.py), paired over each
+    set's frames: AP_3D@0.7 moderate of both, the difference and its 95 % interval."""
+    if not gate:
+        return []
+    lines = ["", "## Against the model it replaces", "",
+             f"{gate['metric']}, paired over each set's frames (bootstrap, 95 %); "
+             f"{'refused' if gate['refused'] else 'passed'}: a rebuilt model is refused where "
+             "the interval lies wholly below zero.", "",
+             "| set | frames | replaced | this model | difference [95 %] |", "|---|---|---|---|---|"]  # fmt: skip
+    if gate.get("note"):
+        lines[3:3] = [gate["note"], ""]
+    for name, line in gate["sets"].items():
+        cell = line["3d moderate"]
+        low, high = cell["delta_interval_95"]
+        lines.append(f"| {name} | {line['frames']} | {cell['shipped']:.1f} | {cell['candidate']:.1f}"
+                     f" | {cell['delta']:+.1f} [{low:+.1f}, {high:+.1f}] |")  # fmt: skip
+    return lines
 
 
 def ceiling_lines(card: dict) -> list[str]:
@@ -285,6 +306,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--eval", action="append", default=[], metavar="SET=DIR")
     parser.add_argument("--recipe", action="append", default=[], metavar="SET=DIR,DIR,...")
     parser.add_argument("--fixture-eval", type=Path)
+    parser.add_argument("--gate", type=Path, help="bench/model_gate.py's verdict against the "
+                        "model this one replaces")  # fmt: skip
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
 
@@ -318,6 +341,7 @@ def main(argv: list[str] | None = None) -> None:
         ),
         "provenance": provenance(args.model.resolve()),
         "limits": args.limit,
+        "against_replaced": read_json(args.gate) if args.gate else None,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     staging = args.out.with_name(f".{args.out.name}.tmp-{os.getpid()}-{secrets.token_hex(8)}")
