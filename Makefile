@@ -534,9 +534,10 @@ real-kitti-rows: $(foreach row,$(REAL_ROWS),$(RUN)/$(call row_field,$(row),3)/ma
 # pseudo-label quality on the drive's frames (cars with >= 5 points, BEV IoU >= 0.5)
 REAL_PSEUDO = iter1/pseudo iter2/pseudo iter3/pseudo baselines/source_x2_budget/pseudo \
     iter3/tracked baselines/source_x2_budget/tracked
+# (REAL_PSEUDO empty, e.g. BEAMS_PSEUDO= for the first rows only: nothing to measure)
 real-kitti-pseudo: $(foreach dir,$(REAL_PSEUDO),$(RUN)/$(dir)/manifest.json) $(TARGET_VAL)/manifest.json
-	$(BIN)/python bench/pseudo_labels.py --target $(TARGET_VAL) --pseudo $(foreach dir,$(REAL_PSEUDO),$(RUN)/$(dir)) \
-	    --iou 0.5 --min-points 5 --out $(RUN)/pseudo_labels.json
+	$(if $(strip $(REAL_PSEUDO)),$(BIN)/python bench/pseudo_labels.py --target $(TARGET_VAL) \
+	    --pseudo $(foreach dir,$(REAL_PSEUDO),$(RUN)/$(dir)) --iou 0.5 --min-points 5 --out $(RUN)/pseudo_labels.json)
 # the data once, then every seed's rows, then the table over the seeds
 real-kitti: install
 	$(MAKE) $(SUBMAKE_FLAGS) real-kitti-data $(REAL_VARS)
