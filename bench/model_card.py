@@ -232,13 +232,12 @@ def gate_lines(gate: dict | None) -> list[str]:
     set's frames: AP_3D@0.7 moderate of both, the difference and its 95 % interval."""
     if not gate:
         return []
-    lines = ["", "## Against the model it replaces", "",
-             f"{gate['metric']}, paired over each set's frames (bootstrap, 95 %); "
-             f"{'refused' if gate['refused'] else 'passed'}: a rebuilt model is refused where "
-             "the interval lies wholly below zero.", "",
-             "| set | frames | replaced | this model | difference [95 %] |", "|---|---|---|---|---|"]  # fmt: skip
-    if gate.get("note"):
-        lines[3:3] = [gate["note"], ""]
+    lines = ["", "## Against the model it replaces", ""]
+    lines += [gate["note"], ""] if gate.get("note") else []
+    lines += [f"{gate['metric']}, paired over each set's frames (bootstrap, 95 %); "
+              f"{'refused' if gate['refused'] else 'passed'}: a rebuilt model is refused where "
+              "the interval lies wholly below zero.", "",
+              "| set | frames | replaced | this model | difference [95 %] |", "|---|---|---|---|---|"]  # fmt: skip
     for name, line in gate["sets"].items():
         cell = line["3d moderate"]
         low, high = cell["delta_interval_95"]

@@ -469,6 +469,16 @@ def test_a_hostile_scale_file_is_refused_naming_it(world, tmp_path, how):
     expect_refused(tmp_path, args, tmp_path / "m.json", "scale.json")
 
 
+def pretrain_on_a_full_disk(world, out):
+    """`dali pretrain --out OUT` of the small world, which must stop at exit 1 with the one line
+    a full disk gives (naming OUT): the result, for the caller's further checks."""
+    result = invoke("pretrain", "--source", world / "source", "--out", out, "--epochs", "1",
+                    "--detector-config", world / "detector.json", "--no-progress")  # fmt: skip
+    assert result.exit_code == 1 and isinstance(result.exception, SystemExit), result.output
+    assert f"{out}: writing failed: No space left on device" in result.output
+    return result
+
+
 def test_a_training_stage_refuses_a_disk_too_small_for_its_model_before_it_trains(
     world, tmp_path, monkeypatch
 ):
@@ -481,11 +491,7 @@ def test_a_training_stage_refuses_a_disk_too_small_for_its_model_before_it_train
     monkeypatch.setattr(dali_cli.detector, "train", never)
     monkeypatch.setattr(disk_space, "free_bytes", lambda path: 200_000)
     out = tmp_path / "model"
-    args = ["pretrain", "--source", world / "source", "--out", out, "--epochs", "1",
-            "--detector-config", world / "detector.json", "--no-progress"]  # fmt: skip
-    result = invoke(*args)
-    assert result.exit_code == 1 and isinstance(result.exception, SystemExit), result.output
-    assert f"{out}: writing failed: No space left on device" in result.output
+    result = pretrain_on_a_full_disk(world, out)
     assert "needs" in result.output and "200.0 kB (200000 bytes) free" in result.output
     assert "Traceback" not in result.output and list(tmp_path.iterdir()) == []
 
@@ -502,11 +508,7 @@ def test_torch_save_failing_on_a_full_disk_ends_pretrain_with_one_line(
     monkeypatch.setattr(disk_space, "free_bytes", lambda path: next(free, 1000))
     monkeypatch.setattr(torch, "save", torn)
     out = tmp_path / "model"
-    args = ["pretrain", "--source", world / "source", "--out", out, "--epochs", "1",
-            "--detector-config", world / "detector.json", "--no-progress"]  # fmt: skip
-    result = invoke(*args)
-    assert result.exit_code == 1 and isinstance(result.exception, SystemExit), result.output
-    assert f"{out}: writing failed: No space left on device" in result.output
+    result = pretrain_on_a_full_disk(world, out)
     assert "model.pt; needs" in result.output and "inline_container" not in result.output
     assert "Traceback" not in result.output
     assert sorted(p.name for p in tmp_path.iterdir()) in ([], ["model.resume"])
