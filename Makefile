@@ -124,6 +124,9 @@ RETRAIN_EPOCHS_1 ?= $(shell echo $$(( $(RETRAIN_EPOCHS) / 2 > 0 ? $(RETRAIN_EPOC
 RETRAIN_EPOCHS_2 ?= $(shell echo $$(( 2 * $(RETRAIN_EPOCHS) - $(RETRAIN_EPOCHS_1) )))
 # extra pretrain/retrain flags, e.g. TRAIN_FLAGS="--threads 1" for `make -j2` on a 2-core machine
 TRAIN_FLAGS    ?=
+# extra flags of pretraining alone (every model trained from scratch), e.g.
+# PRETRAIN_FLAGS="--detector-config FILE.json" with {"direction": false}: a detector without the direction head
+PRETRAIN_FLAGS ?=
 # NPROC=N: pretrain, retrain and self-train run as N data-parallel processes under torchrun
 # (DDP: gloo on the CPU, nccl on GPUs; --batch-size frames per process; rank 0 writes the model).
 # Unset: one process, as before. DEVICE=cuda (or cpu, cuda:N) is passed to every model stage.
@@ -190,7 +193,7 @@ iter_model_target = $(if $(and $(filter 0,$(1)),$(SOURCE_MODEL)),$(SOURCE_MODEL)
 # a model named by its directory in the run (iter2/model): iter0/model is SOURCE_MODEL when given
 run_model = $(if $(filter iter0/model,$(1)),$(call iter_model,0),$(RUN)/$(1))
 $(RUN)/iter0/model/manifest.json: $(SOURCE)/manifest.json
-	$(TRAIN_DALI) pretrain --source $(SOURCE) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
+	$(TRAIN_DALI) pretrain --source $(SOURCE) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) $(PRETRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/iter0/eval/manifest.json: $(call iter_model_target,0) $(TARGET_VAL)/manifest.json
 	$(DALI) eval $(DEVICE_FLAG) --model $(call iter_model,0) --data $(TARGET_VAL) --scale 1.0 $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 $(RUN)/iter0/eval_ptsn/manifest.json: $(RUN)/iter1/ptsn/manifest.json $(TARGET_VAL)/manifest.json
@@ -244,11 +247,11 @@ x1-long: iter0 $(RUN)/x1_long/eval/manifest.json
 
 # Baselines and ablations for the results table (make experiment)
 $(RUN)/baselines/sn/model/manifest.json: $(SOURCE)/manifest.json
-	$(TRAIN_DALI) pretrain --source $(SOURCE) --size-norm sn --target-profile $(SENSOR) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
+	$(TRAIN_DALI) pretrain --source $(SOURCE) --size-norm sn --target-profile $(SENSOR) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) $(PRETRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/ros/model/manifest.json: $(SOURCE)/manifest.json
-	$(TRAIN_DALI) pretrain --source $(SOURCE) --size-norm ros --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
+	$(TRAIN_DALI) pretrain --source $(SOURCE) --size-norm ros --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) $(PRETRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/oracle/model/manifest.json: $(TARGET)/manifest.json
-	$(TRAIN_DALI) pretrain --source $(TARGET) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
+	$(TRAIN_DALI) pretrain --source $(TARGET) --seed $(SEED) $(TRAIN_BUDGET) $(TRAIN_FLAGS) $(PRETRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/rc_only/model/manifest.json: $(RUN)/iter1/rc/manifest.json $(SOURCE)/manifest.json
 	$(TRAIN_DALI) retrain --init $(RUN)/iter0/model --source $(SOURCE) --ppcg $(RUN)/iter1/rc $(call SOURCE_SIZE_FLAGS,1) --seed $(SEED) $(call RETRAIN_BUDGET,1) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/cf_only/model/manifest.json: $(RUN)/iter1/cf/manifest.json $(SOURCE)/manifest.json
@@ -270,9 +273,9 @@ $(RUN)/baselines/%/eval_ptsn_sized/manifest.json: $(RUN)/baselines/%/eval_ptsn/m
 X1_BUDGET = $(if $(MINUTES),--minutes $$(( 2 * $(MINUTES) )),--epochs $$(( $(EPOCHS) + 2 * $(RETRAIN_EPOCHS_1) )))
 X2_BUDGET = $(if $(MINUTES),--minutes $$(( 3 * $(MINUTES) )),--epochs $$(( $(EPOCHS) + 2 * ($(RETRAIN_EPOCHS_1) + $(RETRAIN_EPOCHS_2)) )))
 $(RUN)/baselines/source_x1_budget/model/manifest.json: $(SOURCE)/manifest.json
-	$(TRAIN_DALI) pretrain --source $(SOURCE) --seed $(SEED) $(X1_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
+	$(TRAIN_DALI) pretrain --source $(SOURCE) --seed $(SEED) $(X1_BUDGET) $(TRAIN_FLAGS) $(PRETRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 $(RUN)/baselines/oracle_x2_budget/model/manifest.json: $(TARGET)/manifest.json
-	$(TRAIN_DALI) pretrain --source $(TARGET) --seed $(SEED) $(X2_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
+	$(TRAIN_DALI) pretrain --source $(TARGET) --seed $(SEED) $(X2_BUDGET) $(TRAIN_FLAGS) $(PRETRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 # self-training (the paper's ‡): fine-tune x2 on the target with its own pseudo labels at its PTSN
 # scale (iter3/ptsn, iter3/pseudo), in that scaled frame, and evaluate at the same scale
 ST_EPOCHS ?= $(RETRAIN_EPOCHS)
@@ -342,7 +345,7 @@ $(eval $(call SELF_TRAIN,baselines/source_x2_budget,iter0/model,iter1/tracked,it
 $(RUN)/baselines/source_x2_budget/model/manifest.json: $(SOURCE)/manifest.json
 else
 $(RUN)/baselines/source_x2_budget/model/manifest.json: $(SOURCE)/manifest.json
-	$(TRAIN_DALI) pretrain --source $(SOURCE) --seed $(SEED) $(X2_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
+	$(TRAIN_DALI) pretrain --source $(SOURCE) --seed $(SEED) $(X2_BUDGET) $(TRAIN_FLAGS) $(PRETRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 endif
 # KITTI easy / moderate / hard of the same predictions (synthetic labels carry KITTI's columns)
 KITTI_EVAL_FLAGS ?= --protocol kitti --iou 0.7 --iou 0.5 --size-score-min $(SCORE_MIN)
@@ -489,7 +492,7 @@ $(REAL_DATA)/objects_%/manifest.json: $(REAL_DATA)/objects_%.txt | install
 	$(DALI) import kitti $(REAL_OBJECTS) --ids $< --crop-fov$(BEAMS_FLAG) --out $(@D)
 # the sim oracle: the oracle of the x2 budget trained on the synthetic KITTI-like frames
 $(RUN)/baselines/sim_oracle_x2_budget/model/manifest.json: $(RUN)/data/target/manifest.json
-	$(TRAIN_DALI) pretrain --source $(RUN)/data/target --seed $(SEED) $(X2_BUDGET) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
+	$(TRAIN_DALI) pretrain --source $(RUN)/data/target --seed $(SEED) $(X2_BUDGET) $(TRAIN_FLAGS) $(PRETRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
 # the rows: name, model, drive evaluation, the scale flag of that evaluation; REAL_ROW_NAMES are
 # built (direct: only with a SOURCE_MODEL that ships its scale.json, make real-kitti-beams)
 REAL_ROW_NAMES ?= source ptsn x1 x2 x2_st control control_st x2_tst control_tst control_tst2 oracle
@@ -505,7 +508,8 @@ REAL_ROW_TABLE = source:iter0/model:iter0/eval:--scale=1.0 \
     x2_tst:iter2_tst/model:iter2_tst/eval:--scale-from=$(RUN)/iter3/ptsn \
     control_tst:baselines/source_x2_budget_tst/model:baselines/source_x2_budget_tst/eval:--scale-from=$(RUN)/baselines/source_x2_budget/ptsn \
     control_tst2:baselines/source_x2_budget_tst2/model:baselines/source_x2_budget_tst2/eval:--scale-from=$(RUN)/baselines/source_x2_budget_tst/ptsn \
-    oracle:baselines/sim_oracle_x2_budget/model:baselines/sim_oracle_x2_budget/eval:--scale=1.0
+    oracle:baselines/sim_oracle_x2_budget/model:baselines/sim_oracle_x2_budget/eval:--scale=1.0 \
+    dense_tst:dense_tst/model:dense_tst/eval:--scale-from=$(SOURCE_MODEL)
 row_field = $(word $(2),$(subst :, ,$(1)))
 # a row (1) on an object set (2): the row's model at the scale its drive evaluation used
 define OBJECTS_ROW
@@ -561,12 +565,30 @@ real-kitti: install
 # control (CONTROL=tracked-st above: the model self-trained on its tracked pseudo labels for x2's
 # frames), control + tracked ST, x2 + tracked ST; PPCG ray-casts with the thinned profile
 # (REAL_VARS: SENSOR=kitti-<BEAMS>). Then the upper reference, once (REAL_RUN-reference): the direct
-# row on the 64-beam sets of REAL_RUN-data, the data directory of `make real-kitti`
+# row on the 64-beam sets of REAL_RUN-data, the data directory of `make real-kitti`. Row dense_tst,
+# the dense teacher: the model's pseudo labels of the same drives' full scans (DENSE_DATA, every
+# beam) at its own scale, kept by track-pseudo over the full scans' registration, and the model
+# self-trained on the thinned frames with them (dali self-train --pseudo-from; the thinned
+# frames share the full scans' frame ids): the 64-beam model labels what the 16-beam one sees
 BEAMS_SOURCE_MODEL ?= models/kitti-hdl64e
 BEAMS_RUN    = $(REAL_RUN)$(beams_suffix)-$(notdir $(BEAMS_SOURCE_MODEL))
-BEAMS_ROWS  ?= direct ptsn x1 x2 control control_tst x2_tst
-BEAMS_PAIRS ?= x2:control x2_tst:control_tst
-BEAMS_PSEUDO = iter1/pseudo iter2/pseudo iter1/tracked iter3/tracked baselines/source_x2_budget/tracked
+BEAMS_ROWS  ?= direct ptsn x1 x2 control control_tst x2_tst dense_tst
+BEAMS_PAIRS ?= x2:control x2_tst:control_tst dense_tst:control_tst
+BEAMS_PSEUDO = iter1/pseudo iter2/pseudo iter1/tracked iter3/tracked baselines/source_x2_budget/tracked \
+    $(if $(filter dense_tst,$(BEAMS_ROWS)),dense/tracked)
+DENSE_DATA  ?= $(REAL_RUN)-data
+ifneq ($(DENSE_DATA),$(REAL_DATA))
+$(DENSE_DATA)/target/manifest.json $(DENSE_DATA)/target_poses/manifest.json:
+	@test -f $@ || { echo "$@ is missing: make real-kitti-beams imports and registers the full scans first" >&2; exit 1; }
+endif
+$(RUN)/dense/pseudo_low/manifest.json: $(DENSE_DATA)/target/manifest.json
+	$(DALI) pseudo-label $(DEVICE_FLAG) --model $(SOURCE_MODEL) --data $(DENSE_DATA)/target --scale-from $(SOURCE_MODEL) --score-min $(TRACK_PSEUDO_MIN) $(PSEUDO_FLAGS) $(EXEC_FLAGS) --out $(@D)
+$(RUN)/dense/tracked/manifest.json: $(RUN)/dense/pseudo_low/manifest.json $(DENSE_DATA)/target_poses/manifest.json
+	$(DALI) track-pseudo --pseudo $(RUN)/dense/pseudo_low --data $(DENSE_DATA)/target --poses $(DENSE_DATA)/target_poses --out $(@D)
+$(RUN)/dense_tst/model/manifest.json: $(RUN)/dense/tracked/manifest.json $(TARGET)/manifest.json
+	$(TRAIN_DALI) self-train --init $(SOURCE_MODEL) --data $(TARGET) --pseudo $(RUN)/dense/tracked --pseudo-from $(DENSE_DATA)/target --seed $(SEED) $(ST_BUDGET) $(ST_FLAGS) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
+$(RUN)/dense_tst/eval/manifest.json: $(RUN)/dense_tst/model/manifest.json $(TARGET_VAL)/manifest.json
+	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/dense_tst/model --data $(TARGET_VAL) --scale-from $(SOURCE_MODEL) $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 BEAMS_VARS = SOURCE_MODEL=$(BEAMS_SOURCE_MODEL) CONTROL=tracked-st \
     REAL_ROW_NAMES="$(BEAMS_ROWS)" REAL_PAIRS="$(BEAMS_PAIRS)" REAL_PSEUDO="$(BEAMS_PSEUDO)"
 ifneq ($(and $(filter real-kitti-beams,$(MAKECMDGOALS)),$(filter 64,$(BEAMS))),)
@@ -574,6 +596,8 @@ $(error make real-kitti-beams needs BEAMS=32 or 16 (64: make real-kitti))
 endif
 real-kitti-beams: install
 	$(MAKE) $(SUBMAKE_FLAGS) real-kitti-data $(REAL_VARS)
+	$(if $(filter dense_tst,$(BEAMS_ROWS)),$(MAKE) $(SUBMAKE_FLAGS) real-kitti-data $(DENSE_DATA)/target_poses/manifest.json \
+	    $(call real_vars,$(DENSE_DATA)) BEAMS=64)
 	@for seed in $(SEEDS); do \
 	    $(MAKE) $(SUBMAKE_FLAGS) real-kitti-rows real-kitti-pseudo RUN=$(BEAMS_RUN)-s$$seed SEED=$$seed \
 	        $(REAL_VARS) $(BEAMS_VARS) || exit 1; \

@@ -87,6 +87,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work", type=Path, required=True, help="its evaluations go here")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--report-only", action="store_true", help="exit 0 even when refused")
+    parser.add_argument("--note", help="what the shipped model is, when not the model of the same "
+                        "name (e.g. another model's direct transfer); the card prints it")  # fmt: skip
     args = parser.parse_args(argv)
     models = {
         "shipped": (args.shipped, args.shipped),
@@ -104,6 +106,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--set {pair}: expected NAME=DATA[:GT] with DATA a frame set")
         sets[name] = set_verdict(compare_on(name, data, gt or data, models, args.work))
     document = {"shipped": str(args.shipped), "candidate": str(args.candidate), **gate(sets)}
+    if args.note:
+        document["note"] = args.note
     staging = args.out.with_name(f".{args.out.name}.{os.getpid()}.part")
     staging.write_text(json.dumps(document, indent=1) + "\n")
     os.replace(staging, args.out)

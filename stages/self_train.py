@@ -60,18 +60,22 @@ def run_self_train(
     *,
     training: TrainingOptions = TrainingOptions(),
     scale: float | None = None,
+    pseudo_from: str | Path | None = None,
     sensors_path: str | Path | None = None,
     force: bool = False,
     dry_run: bool = False,
 ) -> StageOutcome:
     """Fine-tune the model of `init` on `target`'s frames with the boxes of `pseudo` (made from
-    `target`), both scaled by ŝ (default: the pseudo labels' own scale), with `training`;
+    `target`, or from `pseudo_from`: the same scans at more beams, whose frame ids `target`
+    shares), both scaled by ŝ (default: the pseudo labels' own scale), with `training`;
     write to `out`."""
     init, target, pseudo, out = Path(init), Path(target), Path(pseudo), Path(out)
-    check_made_from(pseudo, "target", target)
+    check_made_from(pseudo, "target", target if pseudo_from is None else pseudo_from)
     train_scale = pseudo_label_scale(pseudo) if scale is None else float(scale)
     params = {"scale": train_scale}
     inputs = {"init": init, "target": target, "pseudo": pseudo}
+    if pseudo_from is not None:
+        inputs["pseudo_from"] = Path(pseudo_from)
 
     def prepare() -> PreparedTraining:
         from dali_cli import detector

@@ -38,6 +38,7 @@ ROWS = {  # row -> (model, drive evaluation, scale flag and value)
         ("--scale-from", "baselines/source_x2_budget/ptsn"),
     ),
     "x2_tst": ("iter2_tst/model", "iter2_tst/eval", ("--scale-from", "iter3/ptsn")),
+    "dense_tst": ("dense_tst/model", "dense_tst/eval", ("--scale-from", MODEL)),
 }
 
 
@@ -83,9 +84,12 @@ def test_every_import_is_at_16_beams_into_the_beams_data(plan):
         assert option(imports[out], "--beams") == "16", out
     for out in outs - {f"{data}/drive_tracklets", *(f"{data}/{name}" for name in SETS)}:
         assert "--no-labels" in imports[out] and "--crop-fov" in imports[out]
-    # the only other imports: the upper reference's 64-beam sets, where `make real-kitti` has them
+    # the only other imports: the full scans of the drives (the dense teacher's) and the upper
+    # reference's 64-beam sets, where `make real-kitti` has them
     others = set(imports) - outs
-    assert others == {f"{plan['root']}/run-data/{name}" for name in ("drive_tracklets", *SETS)}
+    full = {f"{plan['root']}/run-data/drives/{name}" for name in ("2011_09_26_drive_0001",
+                                                                  "2011_09_26_drive_0005")}  # fmt: skip
+    assert others == full | {f"{plan['root']}/run-data/{name}" for name in ("drive_tracklets", *SETS)}
     assert not any("--beams" in imports[out] for out in others)
     merges = {option(w, "--out"): w for w in named(commands, "merge")}
     assert f"{data}/target" in merges and "--no-labels" in merges[f"{data}/target"]
@@ -106,6 +110,7 @@ def test_the_rows_start_from_the_shipped_model_without_pretraining(plan):
             assert option(by_out[f"{run}/iter1/{stage}"], "--target-profile") == "kitti-16"
     adapting = [
         w for w in commands if w[0] in ("ptsn-sweep", "pseudo-label", "ppcg-rc", "self-train")
+        and "/dense/" not in option(w, "--out")  # the dense teacher labels the full scans
     ]
     assert adapting and all(option(w, "--data") == f"{data}/target" for w in adapting)
 
@@ -187,12 +192,40 @@ def test_the_control_self_trains_the_model_on_its_tracked_labels_with_x2_budget(
     assert float(epochs) == pytest.approx(retrain * 2 * 48 / 1000)
 
 
+def test_the_dense_teacher_labels_the_full_scans_and_trains_on_the_thinned_ones(plan):
+    """dense_tst: the shipped model's tracked pseudo labels of the 64-beam target (imported and
+    registered before any seed's rows), the model self-trained with them on the 16-beam target
+    frames (--pseudo-from names the full scans), as long as the other tracked self-trainings."""
+    data, dense = plan["data"], f"{plan['root']}/run-data"
+    commands = plan["commands"]
+    by_out = {option(w, "--out"): w for w in commands}
+    order = [option(w, "--out") for w in commands]
+    assert option(by_out[f"{dense}/target_poses"], "--data") == f"{dense}/target"
+    for seed in SEEDS:
+        run = f"{plan['root']}/run-16beams-kitti-hdl64e-s{seed}"
+        low = by_out[f"{run}/dense/pseudo_low"]
+        assert option(low, "--model") == MODEL and option(low, "--scale-from") == MODEL
+        assert option(low, "--data") == f"{dense}/target"
+        assert order.index(f"{dense}/target_poses") < order.index(f"{run}/dense/pseudo_low")
+        tracked = by_out[f"{run}/dense/tracked"]
+        assert option(tracked, "--poses") == f"{dense}/target_poses"
+        assert option(tracked, "--data") == f"{dense}/target"
+        student = by_out[f"{run}/dense_tst/model"]
+        assert student[0] == "self-train" and option(student, "--init") == MODEL
+        assert option(student, "--data") == f"{data}/target"
+        assert option(student, "--pseudo") == f"{run}/dense/tracked"
+        assert option(student, "--pseudo-from") == f"{dense}/target"
+        x2_tst = by_out[f"{run}/iter2_tst/model"]
+        assert options(student, ("--init", "--pseudo", "--pseudo-from", "--out")) == options(
+            x2_tst, ("--init", "--pseudo", "--out"))
+
+
 def test_the_pairs_are_x2_against_the_control_and_with_tracked_st(plan):
     compares = {option(w, "--out") for w in named(plan["commands"], "compare")}
     for seed in SEEDS:
         run = f"{plan['root']}/run-16beams-kitti-hdl64e-s{seed}"
         expected = {f"{run}/compare_real/{name}-{row}.json" for name in ("drive", *SETS)
-                    for row in ("x2", "x2_tst")}  # fmt: skip
+                    for row in ("x2", "x2_tst", "dense_tst")}  # fmt: skip
         assert {out for out in compares if out.startswith(f"{run}/")} == expected
 
 

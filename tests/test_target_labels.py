@@ -179,3 +179,39 @@ def test_self_train_writes_the_sensor_it_adapts_to_into_model_json(world):
     assert [meta["config"][k] for k in scans] == [frames.sensor, kitti.mount_height_m, 100.0]
     assert meta["card"]["source_sensor"] == "waymo"
     assert meta["card"]["source_mount_height_m"] == waymo.mount_height_m
+
+
+def test_self_train_learns_from_labels_of_the_same_scans_at_more_beams(world, monkeypatch):
+    """--pseudo-from: labels made on the full scans train on the same frames thinned (their ids
+    shared); without it such labels are refused as another target's, and a thinned set that
+    lacks a labelled frame is refused naming that frame."""
+    root, oracle, _ = world
+    import stages.pseudo_label
+
+    monkeypatch.setattr(stages.pseudo_label, "load_detector", lambda _: oracle)
+    full, dense = root / "target", root / "dense-pseudo"
+    invoke("pseudo-label", "--model", root / "iter0", "--data", full, "--scale", "1.1",
+           "--out", dense, "--no-progress")  # fmt: skip
+    frames = FrameSet(full)
+    scans = list(frames.iter_frames())
+    thinned = root / "target-thinned"
+    write_frameset(thinned, [(fid, points[::4]) for fid, points in scans], sensor=frames.sensor)
+    base = ["self-train", "--init", root / "iter0", "--data", thinned, "--pseudo", dense,
+            "--epochs", "1", "--lr", "1e-12", "--no-progress"]  # fmt: skip
+    refused = CliRunner().invoke(main, [str(a) for a in [*base, "--out", root / "st-refused"]])
+    assert refused.exit_code != 0 and "made from target" in refused.output
+    assert not (root / "st-refused").exists()
+    invoke(*base, "--pseudo-from", full, "--out", root / "st-thinned")
+    manifest = read_manifest(root / "st-thinned")
+    assert Path(manifest["inputs"]["pseudo_from"][0]["path"]).resolve() == full.resolve()
+    meta = json.loads((root / "st-thinned" / "model.json").read_text())
+    assert 0 < meta["metrics"]["boxes"] <= len(read_boxes(dense))
+    assert meta["provenance"]["train_scale"] == pytest.approx(1.1)
+    partial = root / "target-thinned-partial"
+    write_frameset(partial, [(fid, points[::4]) for fid, points in scans[1:]], sensor=frames.sensor)
+    base[4] = partial
+    missing = CliRunner().invoke(
+        main, [str(a) for a in [*base, "--pseudo-from", full, "--out", root / "st-partial"]]
+    )
+    assert missing.exit_code != 0 and scans[0][0] in missing.output
+    assert not (root / "st-partial").exists()

@@ -20,6 +20,11 @@ from dali_cli.commands.kinds import SCALE
 @click.option("--scale", type=SCALE, default=None,
               help="Train in the frame scaled by this s (default: the pseudo labels' own PTSN "
                    "scale ŝ).")  # fmt: skip
+@input_dir_option("--pseudo-from", required=False,
+                  help="The frame set PSEUDO was made from when it is not DATA: the same scans at "
+                       "more beams (DATA imported from them with --beams), so that a dense "
+                       "LiDAR's model labels a sparse one's frames. Every pseudo box's frame "
+                       "must be one of DATA's.")  # fmt: skip
 @training_options
 def command(init, target, pseudo, out, **options):
     """Self-training (the paper's ‡): fine-tune INIT on the raw DATA frames with its own pseudo
