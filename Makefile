@@ -591,8 +591,8 @@ $(RUN)/dense_tst/eval/manifest.json: $(RUN)/dense_tst/model/manifest.json $(TARG
 	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/dense_tst/model --data $(TARGET_VAL) --scale-from $(SOURCE_MODEL) $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 BEAMS_VARS = SOURCE_MODEL=$(BEAMS_SOURCE_MODEL) CONTROL=tracked-st \
     REAL_ROW_NAMES="$(BEAMS_ROWS)" REAL_PAIRS="$(BEAMS_PAIRS)" REAL_PSEUDO="$(BEAMS_PSEUDO)"
-ifneq ($(and $(filter real-kitti-beams,$(MAKECMDGOALS)),$(filter 64,$(BEAMS))),)
-$(error make real-kitti-beams needs BEAMS=32 or 16 (64: make real-kitti))
+ifneq ($(and $(filter real-kitti-beams models-beams,$(MAKECMDGOALS)),$(filter 64,$(BEAMS))),)
+$(error make $(filter real-kitti-beams models-beams,$(MAKECMDGOALS)) needs BEAMS=32 or 16 (64: make real-kitti, make models))
 endif
 real-kitti-beams: install
 	$(MAKE) $(SUBMAKE_FLAGS) real-kitti-data $(REAL_VARS)
@@ -629,11 +629,13 @@ recipe_x2_tst = two DALI iterations then self-training on x2's pseudo labels kep
 # the recipe's evaluation directories, relative to a run: on the drive, then on each object set
 models_eval_dirs = $(foreach set,drive $(REAL_OBJECT_SETS),$(call real_eval_dir,$(MODELS_ROW),$(set)))
 models_evals = $(foreach set,drive $(REAL_OBJECT_SETS),$(set)=$(RUN)/$(call real_eval_dir,$(MODELS_ROW),$(set)))
-models_recipe = $(foreach set,drive $(REAL_OBJECT_SETS),$(set)=$(subst $(space),$(comma),$(foreach seed,$(SEEDS),$(REAL_RUN)-s$(seed)/$(call real_eval_dir,$(MODELS_ROW),$(set)))))
+# the runs of the recipe's seeds, less -s<seed>: the real benchmark's, or at BEAMS the beams task's
+models_runs = $(if $(beams_suffix),$(BEAMS_RUN),$(REAL_RUN))
+models_recipe = $(foreach set,drive $(REAL_OBJECT_SETS),$(set)=$(subst $(space),$(comma),$(foreach seed,$(SEEDS),$(models_runs)-s$(seed)/$(call real_eval_dir,$(MODELS_ROW),$(set)))))
 comma := ,
 space := $(subst ,, )
 $(REAL_DATA)/fixture/manifest.json: | install
-	$(DALI) import kitti $(MODELS_FIXTURE) --crop-fov --out $(@D)
+	$(DALI) import kitti $(MODELS_FIXTURE) --crop-fov$(BEAMS_FLAG) --out $(@D)
 $(RUN)/fixture/$(MODELS_ROW)/manifest.json: $(RUN)/$(call row_field,$(models_row),3)/manifest.json $(REAL_DATA)/fixture/manifest.json
 	$(DALI) eval $(DEVICE_FLAG) --model $(RUN)/$(call row_field,$(models_row),2) --data $(REAL_DATA)/fixture $(subst =, ,$(call row_field,$(models_row),4)) $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
 models/waymo-like-source/card.json: $(RUN)/$(MODELS_SOURCE)/eval_source/manifest.json bench/model_card.py models-always
@@ -644,15 +646,20 @@ models/waymo-like-source/card.json: $(RUN)/$(MODELS_SOURCE)/eval_source/manifest
 	    --limit "Trained on $(FRAMES) frames on a 2-core CPU: where more frames stop helping was not measured." \
 	    --out $(@D)
 # the other seeds' evaluations of the recipe that exist: their card line follows them
-models_recipe_done = $(wildcard $(foreach seed,$(SEEDS),$(foreach dir,$(models_eval_dirs),$(REAL_RUN)-s$(seed)/$(dir)/manifest.json)))
+models_recipe_done = $(wildcard $(foreach seed,$(SEEDS),$(foreach dir,$(models_eval_dirs),$(models_runs)-s$(seed)/$(dir)/manifest.json)))
 # the gate (bench/model_gate.py): the rebuilt model against the shipped models/kitti-hdl64e on
 # every developer set (the drive's tracklets, the object sets), paired over their frames; a fall
 # of AP_3D@0.7 beyond the noise on any set stops make models before anything is replaced
 # (MODEL_GATE_FLAGS=--report-only: replace it anyway, the card still shows the comparison)
+# At BEAMS the model replaced is models/kitti-<BEAMS>beam, or before the first one ships, direct
+# transfer: BEAMS_SOURCE_MODEL at its own scale on the same thinned frames.
 MODEL_GATE_FLAGS ?=
 models_scale_from = $(lastword $(subst =, ,$(call row_field,$(models_row),4)))
+SPARSE_MODEL = models/kitti-$(BEAMS)beam
+models_shipped = $(if $(beams_suffix),$(if $(wildcard $(SPARSE_MODEL)/model.pt),$(SPARSE_MODEL),$(BEAMS_SOURCE_MODEL)),models/kitti-hdl64e)
+models_gate_note = $(if $(and $(beams_suffix),$(filter $(BEAMS_SOURCE_MODEL),$(models_shipped))),--note "No $(BEAMS)-beam model shipped before: the model it replaces is direct transfer$(comma) $(BEAMS_SOURCE_MODEL) at its own scale on the same $(BEAMS)-beam frames.")
 $(RUN)/model_gate.json: bench/model_gate.py $(foreach dir,$(models_eval_dirs),$(RUN)/$(dir)/manifest.json)
-	$(BIN)/python bench/model_gate.py --shipped models/kitti-hdl64e \
+	$(BIN)/python bench/model_gate.py --shipped $(models_shipped) $(models_gate_note) \
 	    --candidate $(RUN)/$(call row_field,$(models_row),2) --candidate-scale-from $(models_scale_from) \
 	    --set drive=$(REAL_DATA)/drive_labels $(foreach set,$(REAL_OBJECT_SETS),--set $(set)=$(REAL_DATA)/$(set)) \
 	    --work $(RUN)/model_gate --out $@ $(MODEL_GATE_FLAGS)
@@ -666,6 +673,33 @@ models/kitti-hdl64e/card.json: bench/model_card.py models-always $(foreach dir,$
 	    --fixture-eval $(RUN)/fixture/$(MODELS_ROW) \
 	    --limit "Other drives' frames are harder than the adapted drives': see the accuracy table and docs/RESULTS.md." \
 	    --out $(@D)
+# The sparse models (MODELS_BEAMS, after kitti-hdl64e, from it): models/kitti-<N>beam, the row
+# SPARSE_MODELS_ROW of `make real-kitti-beams BEAMS=N` (its runs, resumable the same way) on seed
+# MODELS_SEED, with the row over SEEDS on its card and the gate against the model it replaces
+MODELS_BEAMS      ?= 16
+SPARSE_MODELS_ROW ?= dense_tst
+recipe_dense_tst = the dense teacher: its pseudo labels of the same drives' full 64-beam scans, kept by dali track-pseudo over their registration, trained into it on the scans thinned to $(BEAMS) beams (dali self-train --pseudo-from)
+$(SPARSE_MODEL)/card.json: bench/model_card.py models-always $(foreach dir,$(models_eval_dirs),$(RUN)/$(dir)/manifest.json) \
+    $(RUN)/fixture/$(MODELS_ROW)/manifest.json $(models_recipe_done) $(RUN)/model_gate.json
+	$(BIN)/python bench/model_card.py --model $(RUN)/$(call row_field,$(models_row),2) \
+	    --scale-from $(models_scale_from) --name kitti-$(BEAMS)beam --gate $(RUN)/model_gate.json \
+	    --title "a car detector for KITTI's scans at $(BEAMS) beams, no real label went into" \
+	    --summary "Finds cars in $(BEAMS)-beam LiDAR scans of KITTI's kind (the HDL-64E's thinned to $(BEAMS) beams by dali import --beams $(BEAMS), camera field of view, LiDAR frame, scaled by its scale.json): \`dali detect\` on such scans. It is $(BEAMS_SOURCE_MODEL) adapted by $(recipe_$(MODELS_ROW)) on $(words $(REAL_DRIVES)) unlabeled real KITTI drives ($(REAL_DRIVE_NAMES)) without any real label." \
+	    $(foreach pair,$(models_evals),--eval $(pair)) $(foreach pair,$(models_recipe),--recipe $(pair)) \
+	    --fixture-eval $(RUN)/fixture/$(MODELS_ROW) \
+	    --limit "Thinned HDL-64E scans stand in for a $(BEAMS)-beam sensor: a real one's beam pattern, mount and intensities differ; not measured on one." \
+	    --out $(@D)
+models-beams: MODELS_ROW = $(SPARSE_MODELS_ROW)
+models-beams: install
+	$(MAKE) $(SUBMAKE_FLAGS) real-kitti-data $(REAL_DATA)/fixture/manifest.json $(REAL_VARS)
+	$(if $(filter dense_tst,$(SPARSE_MODELS_ROW)),$(MAKE) $(SUBMAKE_FLAGS) real-kitti-data $(DENSE_DATA)/target_poses/manifest.json \
+	    $(call real_vars,$(DENSE_DATA)) BEAMS=64)
+	@for seed in $(filter-out $(MODELS_SEED),$(SEEDS)) $(MODELS_SEED); do \
+	    $(MAKE) $(SUBMAKE_FLAGS) $(addprefix $(BEAMS_RUN)-s$$seed/,$(addsuffix /manifest.json,$(models_eval_dirs))) \
+	        RUN=$(BEAMS_RUN)-s$$seed SEED=$$seed MODELS_ROW=$(MODELS_ROW) $(REAL_VARS) $(BEAMS_VARS) || exit 1; \
+	done
+	$(MAKE) $(SUBMAKE_FLAGS) $(SPARSE_MODEL)/card.json RUN=$(BEAMS_RUN)-s$(MODELS_SEED) SEED=$(MODELS_SEED) \
+	    MODELS_ROW=$(MODELS_ROW) $(REAL_VARS) $(BEAMS_VARS)
 models: install
 	$(MAKE) $(SUBMAKE_FLAGS) real-kitti-data $(REAL_DATA)/fixture/manifest.json $(REAL_VARS)
 	@for seed in $(filter-out $(MODELS_SEED),$(SEEDS)); do \
@@ -674,11 +708,14 @@ models: install
 	done
 	$(MAKE) $(SUBMAKE_FLAGS) models/waymo-like-source/card.json models/kitti-hdl64e/card.json \
 	    RUN=$(REAL_RUN)-s$(MODELS_SEED) SEED=$(MODELS_SEED) $(REAL_VARS)
+	@for beams in $(MODELS_BEAMS); do \
+	    $(MAKE) $(SUBMAKE_FLAGS) models-beams BEAMS=$$beams MODELS_ROW=$(SPARSE_MODELS_ROW) || exit 1; \
+	done
 # the cards are committed: with every run target secondary (.SECONDARY below) a card newer than
 # bench/model_card.py would pass for up to date on a clone without the runs, so they are always
 # rewritten (a second or two) after make has built what they need
 models-always:
-.PHONY: models models-always
+.PHONY: models models-beams models-always
 
 report: | install
 	$(DALI) report $(RUN)

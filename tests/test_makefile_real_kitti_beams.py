@@ -262,3 +262,43 @@ def test_make_real_kitti_at_16_beams_keeps_its_runs_apart(plan):
     assert option(outs[f"{run}/iter0/model"], "--source") == f"{run}/data/source"
     assert option(outs[f"{run}/iter1/rc"], "--target-profile") == "kitti-16"
     assert option(outs[f"{run}/iter1/ptsn"], "--data") == f"{plan['data']}/target"
+
+
+def test_make_models_builds_the_16_beam_model_from_its_row_and_gates_it(plan):
+    """`make models` goes on to models/kitti-16beam: the row SPARSE_MODELS_ROW (dense_tst) of the
+    beams task's runs on every seed, the card from seed 0 with the row over the seeds, its test
+    frame imported at 16 beams, and the gate against the 16-beam model shipped, or before one
+    ships, against direct transfer on the same 16-beam sets."""
+    variables = [v for v in plan["variables"] if not v.startswith("SEEDS=")]
+    lines = make("-n", "models", *variables, "SEEDS=0 1").stdout.splitlines()
+    commands = commands_of([line for line in lines if "/bin/dali " in line])
+    data, by_out = plan["data"], {}
+    for words in commands:
+        by_out.setdefault(option(words, "--out"), words)
+    for seed in SEEDS:
+        run = f"{plan['root']}/run-16beams-kitti-hdl64e-s{seed}"
+        assert by_out[f"{run}/dense_tst/model"][0] == "self-train"
+        assert option(by_out[f"{run}/dense_tst/eval"], "--data") == f"{data}/drive_labels"
+        # the recipe alone: no other row of the task is built for the model
+        assert f"{run}/iter2/model" not in by_out and f"{run}/iter1/ptsn" not in by_out
+    fixture = by_out[f"{data}/fixture"]
+    assert option(fixture, "--beams") == "16" and fixture[:2] == ["import", "kitti"]
+    run0 = f"{plan['root']}/run-16beams-kitti-hdl64e-s0"
+    joined = "\n".join(lines).replace("\\\n", " ").splitlines()  # continuation lines joined
+    gate = next(line for line in joined if "model_gate.py" in line and f"--out {run0}/" in line)
+    shipped = "models/kitti-16beam" if (ROOT / "models/kitti-16beam/model.pt").is_file() else MODEL
+    assert re.search(r"--shipped (\S+)", gate).group(1) == shipped
+    assert (shipped == MODEL) == ("direct transfer" in gate)
+    assert f"--set drive={data}/drive_labels" in gate
+    card = next(line for line in joined if "model_card.py" in line and "kitti-16beam" in line)
+    assert re.search(r"--model (\S+)", card).group(1) == f"{run0}/dense_tst/model"
+    assert re.search(r"--out (\S+)", card).group(1) == "models/kitti-16beam"
+    assert f"--scale-from {MODEL}" in card and "--name kitti-16beam" in card
+    assert f"--gate {run0}/model_gate.json" in card
+    recipe = re.search(r"--recipe drive=(\S+)", card).group(1).split(",")
+    assert recipe == [f"{plan['root']}/run-16beams-kitti-hdl64e-s{s}/dense_tst/eval" for s in SEEDS]
+
+
+def test_models_beams_needs_fewer_than_64_beams():
+    result = make("-n", "models-beams")
+    assert result.returncode != 0 and "BEAMS=32 or 16" in result.stderr
