@@ -40,6 +40,7 @@ help:
 	@echo "make report RUN=DIR - the AP table, sizes and plots of a run"
 	@echo "make experiment  - the full synthetic benchmark (docs/RESULTS.md)"
 	@echo "make real-kitti  - adapt to real KITTI drives over seeds: every row on labelled real frames (docs/data.md)"
+	@echo "make real-kitti-holdout - the same, adapted without REAL_DRIVE: rows judged on a drive never seen"
 	@echo "make real-kitti-beams BEAMS=16 - adapt models/kitti-hdl64e to the drives at 32 or 16 beams (docs/data.md)"
 	@echo "make models      - rebuild models/waymo-like-source and models/kitti-hdl64e with their cards"
 	@echo "make bench       - run the benchmarks (results in bench/results/*.json)"
@@ -552,6 +553,15 @@ real-kitti: install
 	$(BIN)/python bench/real_kitti_table.py $(foreach seed,$(SEEDS),$(REAL_RUN)$(beams_suffix)-s$(seed)) --data $(REAL_DATA) \
 	    --sets drive $(REAL_OBJECT_SETS) --out $(REAL_REPORT)/real-kitti.md
 .PHONY: real-kitti real-kitti-data real-kitti-rows real-kitti-pseudo
+# The yardstick for choosing a recipe (make real-kitti-holdout, same variables): every row adapted
+# on REAL_DRIVES without REAL_DRIVE, so that REAL_DRIVE's tracklets, and the object frames of every
+# drive but those adapted on, judge models on drives they never saw (REAL_RUN-holdout-*: data,
+# runs, report); the winner then ships adapted on every drive (make models)
+real_holdout_drives = $(foreach drive,$(REAL_DRIVES),$(if $(filter $(call real_dir,$(REAL_DRIVE)),$(call real_dir,$(drive))),,$(drive)))
+real-kitti-holdout: install
+	$(if $(filter-out $(words $(REAL_DRIVES)),$(words $(real_holdout_drives))),,$(error REAL_DRIVES must hold REAL_DRIVE for make real-kitti-holdout, which adapts on the others))
+	$(MAKE) $(SUBMAKE_FLAGS) real-kitti REAL_RUN=$(REAL_RUN)-holdout REAL_DRIVES="$(real_holdout_drives)" REAL_PSEUDO=
+.PHONY: real-kitti-holdout
 
 # KITTI at fewer beams (make real-kitti-beams BEAMS=16 SEEDS="0 1 2" REAL_DRIVE=... REAL_DRIVES=...
 # REAL_OBJECTS=...; docs/data.md): the shipped 64-beam model BEAMS_SOURCE_MODEL

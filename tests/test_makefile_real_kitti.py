@@ -315,3 +315,37 @@ def test_without_a_frames_table_all_object_frames_are_one_set(tmp_path):
     outs = {option(shlex.split(line.split("/bin/dali ", 1)[1]), "--out") for line in commands}
     assert f"{tmp_path}/run-data/objects" in outs
     assert not any("objects_" in out for out in outs if out)
+
+
+def test_the_holdout_adapts_on_every_drive_but_the_labelled_one(setup):
+    """`make real-kitti-holdout`: the rows of `make real-kitti` in runs of their own, adapted on
+    REAL_DRIVES without REAL_DRIVE (named with or without a trailing slash), still judged on
+    REAL_DRIVE's tracklets; the object frames of that drive's raw drive count as another drive's."""
+    root = setup["root"]
+    variables = [v for v in setup["variables"] if not v.startswith("REAL_DRIVES=")]
+    drives = [f"{LABELLED}/", RAW, f"{root}/odometry/sequences/04/"]
+    variables.append(f"REAL_DRIVES={' '.join(drives)}")
+    commands = [shlex.split(line.split("/bin/dali ", 1)[1])
+                for line in dali_commands("real-kitti-holdout", *variables)]  # fmt: skip
+    data = f"{root}/run-holdout-data"
+    merges = {option(w, "--out"): w for w in named(commands, "merge")}
+    assert values(merges[f"{data}/target"], "--in") == [
+        f"2011_09_26_drive_0005={data}/drives/2011_09_26_drive_0005",
+        f"odometry_04={data}/drives/odometry_04",
+    ]
+    imports = {option(w, "--out"): w for w in named(commands, "import")}
+    assert imports[f"{data}/drive_tracklets"][:3] == ["import", "kitti-raw", LABELLED]
+    assert not any("2011_09_26_drive_0001" in out for out in imports if "/drives/" in out)
+    evals = [w for w in named(commands, "eval") if option(w, "--out").endswith("/iter2/eval")]
+    assert {option(w, "--data") for w in evals} == {f"{data}/drive_labels"}
+    assert {option(w, "--out") for w in evals} == {
+        f"{root}/run-holdout-s{seed}/iter2/eval" for seed in SEEDS
+    }
+    # the object frames split by the drives adapted on: 0001's raw drive is not among them
+    plan = make("-n", "real-kitti-holdout", *variables).stdout
+    split = [line for line in plan.splitlines() if "awk" in line and "objects_adapted" in line]
+    assert split and all(
+        "drives=' 2011_09_26_drive_0005_sync 2011_09_30_drive_0016_sync '" in line for line in split
+    )
+    result = make("-n", "real-kitti-holdout", *variables[:-1], f"REAL_DRIVES={RAW}")
+    assert result.returncode != 0 and "REAL_DRIVES must hold REAL_DRIVE" in result.stderr
