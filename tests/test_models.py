@@ -5,6 +5,7 @@ never replaces a directory it did not write."""
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -17,7 +18,11 @@ from dali_cli.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
 MODELS = ROOT / "models"
-SHIPPED = ("waymo-like-source", "kitti-hdl64e")
+# every directory of models/ with a card; the two below always ship
+SHIPPED = tuple(sorted(d.name for d in MODELS.iterdir() if (d / "card.json").is_file()))
+# the adapted models: those with a test-time scale; a sparse one (kitti-<N>beam) reads its test
+# frame thinned to N beams, as its own recipe did
+ADAPTED = tuple(name for name in SHIPPED if (MODELS / name / "scale.json").is_file())
 FIXTURE = ROOT / "tests" / "fixtures" / "real" / "kitti" / "training"
 MAX_BYTES = 20 * 1024 * 1024
 CARD_SCRIPT = ROOT / "bench" / "model_card.py"
@@ -25,6 +30,16 @@ CARD_SCRIPT = ROOT / "bench" / "model_card.py"
 
 def card_of(name: str) -> dict:
     return json.loads((MODELS / name / "card.json").read_text())
+
+
+def test_the_source_and_the_kitti_model_ship():
+    assert {"waymo-like-source", "kitti-hdl64e"} <= set(SHIPPED) and "kitti-hdl64e" in ADAPTED
+
+
+def beams_of(name: str) -> list[str]:
+    """`--beams N` for kitti-<N>beam, nothing for the full scans' models."""
+    match = re.fullmatch(r"kitti-(\d+)beam", name)
+    return ["--beams", match.group(1)] if match else []
 
 
 @pytest.mark.parametrize("name", SHIPPED)
@@ -42,9 +57,10 @@ def test_a_shipped_model_is_a_small_dali_model_with_its_card(name):
         assert json.loads((directory / "scale.json").read_text())["scale"] == card["scale"]
 
 
-def test_no_real_label_went_into_the_adapted_model():
-    """Every stage that made kitti-hdl64e read scans only: each real import holds no label."""
-    stages = card_of("kitti-hdl64e")["provenance"]
+@pytest.mark.parametrize("name", ADAPTED)
+def test_no_real_label_went_into_the_adapted_model(name):
+    """Every stage that made an adapted model read scans only: each real import holds no label."""
+    stages = card_of(name)["provenance"]
     imports = [step for step in stages if step["stage"].startswith("import")]
     assert imports
     for step in imports:
@@ -52,21 +68,22 @@ def test_no_real_label_went_into_the_adapted_model():
     assert not any(step["stage"] in ("eval", "compare") for step in stages)
 
 
-def test_the_adapted_model_reproduces_its_cards_figure_on_the_test_frame(tmp_path):
-    """`dali eval` of models/kitti-hdl64e with its own scale on the repository's KITTI frame gives
-    the AP its card states, within 0.1."""
+@pytest.mark.parametrize("name", ADAPTED)
+def test_the_adapted_model_reproduces_its_cards_figure_on_the_test_frame(tmp_path, name):
+    """`dali eval` of an adapted model with its own scale on the repository's KITTI frame
+    (thinned to its beams) gives the AP its card states, within 0.1."""
     runner = CliRunner()
     data, out = tmp_path / "frame", tmp_path / "eval"
-    result = runner.invoke(main, ["import", "kitti", str(FIXTURE), "--crop-fov", "--no-progress",
-                                  "--out", str(data)])  # fmt: skip
+    result = runner.invoke(main, ["import", "kitti", str(FIXTURE), "--crop-fov", *beams_of(name),
+                                  "--no-progress", "--out", str(data)])  # fmt: skip
     assert result.exit_code == 0, result.output
-    model = MODELS / "kitti-hdl64e"
+    model = MODELS / name
     result = runner.invoke(main, ["eval", "--model", str(model), "--data", str(data), "--scale-from",
                                   str(model), "--protocol", "kitti", "--iou", "0.7", "--iou", "0.5",
                                   "--no-progress", "--out", str(out)])  # fmt: skip
     assert result.exit_code == 0, result.output
     metrics = json.loads((out / "metrics.json").read_text())
-    stated = card_of("kitti-hdl64e")["fixture"]
+    stated = card_of(name)["fixture"]
     for block, kind, header in (("Car", "bev", "AP_BEV@0.7"), ("Car", "3d", "AP_3D@0.7"),
                                 ("Car@0.5", "bev", "AP_BEV@0.5"), ("Car@0.5", "3d", "AP_3D@0.5")):  # fmt: skip
         assert metrics[block][kind]["moderate"] == pytest.approx(stated[header], abs=0.1)
