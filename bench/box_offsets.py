@@ -42,7 +42,9 @@ def table(rows: list[tuple[str, dict]], bands: list[str]) -> str:
         for band in bands:
             line = offsets_of(metrics, band)
             if line is None:
-                lines.append(f"| {name} | {band} | 0 | - | " + " | ".join("-" for _ in FIELDS) + " |")
+                lines.append(
+                    f"| {name} | {band} | 0 | - | " + " | ".join("-" for _ in FIELDS) + " |"
+                )
                 continue
             cells = [f"{line[f]:+.3f}" if f in line else "-" for f in FIELDS]
             lines.append(f"| {name} | {band} | {line['count']} | "

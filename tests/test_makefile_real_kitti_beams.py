@@ -89,7 +89,9 @@ def test_every_import_is_at_16_beams_into_the_beams_data(plan):
     others = set(imports) - outs
     full = {f"{plan['root']}/run-data/drives/{name}" for name in ("2011_09_26_drive_0001",
                                                                   "2011_09_26_drive_0005")}  # fmt: skip
-    assert others == full | {f"{plan['root']}/run-data/{name}" for name in ("drive_tracklets", *SETS)}
+    assert others == full | {
+        f"{plan['root']}/run-data/{name}" for name in ("drive_tracklets", *SETS)
+    }
     assert not any("--beams" in imports[out] for out in others)
     merges = {option(w, "--out"): w for w in named(commands, "merge")}
     assert f"{data}/target" in merges and "--no-labels" in merges[f"{data}/target"]
@@ -109,7 +111,9 @@ def test_the_rows_start_from_the_shipped_model_without_pretraining(plan):
         for stage in ("rc", "cf"):
             assert option(by_out[f"{run}/iter1/{stage}"], "--target-profile") == "kitti-16"
     adapting = [
-        w for w in commands if w[0] in ("ptsn-sweep", "pseudo-label", "ppcg-rc", "self-train")
+        w
+        for w in commands
+        if w[0] in ("ptsn-sweep", "pseudo-label", "ppcg-rc", "self-train")
         and "/dense/" not in option(w, "--out")  # the dense teacher labels the full scans
     ]
     assert adapting and all(option(w, "--data") == f"{data}/target" for w in adapting)
@@ -217,7 +221,8 @@ def test_the_dense_teacher_labels_the_full_scans_and_trains_on_the_thinned_ones(
         assert option(student, "--pseudo-from") == f"{dense}/target"
         x2_tst = by_out[f"{run}/iter2_tst/model"]
         assert options(student, ("--init", "--pseudo", "--pseudo-from", "--out")) == options(
-            x2_tst, ("--init", "--pseudo", "--out"))
+            x2_tst, ("--init", "--pseudo", "--out")
+        )
 
 
 def test_the_pairs_are_x2_against_the_control_and_with_tracked_st(plan):
