@@ -674,32 +674,26 @@ $(RUN)/model_gate.json: bench/model_gate.py $(foreach dir,$(models_eval_dirs),$(
 	    --candidate $(RUN)/$(call row_field,$(models_row),2) --candidate-scale-from $(models_scale_from) \
 	    --set drive=$(REAL_DATA)/drive_labels $(foreach set,$(REAL_OBJECT_SETS),--set $(set)=$(REAL_DATA)/$(set)) \
 	    --work $(RUN)/model_gate --out $@ $(MODEL_GATE_FLAGS)
-models/kitti-hdl64e/card.json: bench/model_card.py models-always $(foreach dir,$(models_eval_dirs),$(RUN)/$(dir)/manifest.json) \
+# an adapted model's card: what it needs, and the arguments every adapted model's card has
+models_card_inputs = bench/model_card.py models-always $(foreach dir,$(models_eval_dirs),$(RUN)/$(dir)/manifest.json) \
     $(RUN)/fixture/$(MODELS_ROW)/manifest.json $(models_recipe_done) $(RUN)/model_gate.json
-	$(BIN)/python bench/model_card.py --model $(RUN)/$(call row_field,$(models_row),2) \
-	    --scale-from $(models_scale_from) --name kitti-hdl64e --gate $(RUN)/model_gate.json \
-	    --title "a KITTI HDL-64E car detector no real label went into" \
+models_card = $(BIN)/python bench/model_card.py --model $(RUN)/$(call row_field,$(models_row),2) \
+    --scale-from $(models_scale_from) --gate $(RUN)/model_gate.json --fixture-eval $(RUN)/fixture/$(MODELS_ROW) \
+    $(foreach pair,$(models_evals),--eval $(pair)) $(foreach pair,$(models_recipe),--recipe $(pair)) --out $(@D)
+models/kitti-hdl64e/card.json: $(models_card_inputs)
+	$(models_card) --name kitti-hdl64e --title "a KITTI HDL-64E car detector no real label went into" \
 	    --summary "Finds cars in KITTI's HDL-64E LiDAR scans (camera field of view, LiDAR frame, scaled by its scale.json): \`dali detect\` on your own scans, or a start for adapting further. It is models/waymo-like-source adapted by $(recipe_$(MODELS_ROW)) to $(words $(REAL_DRIVES)) unlabeled real KITTI drives ($(REAL_DRIVE_NAMES)) without any real label." \
-	    $(foreach pair,$(models_evals),--eval $(pair)) $(foreach pair,$(models_recipe),--recipe $(pair)) \
-	    --fixture-eval $(RUN)/fixture/$(MODELS_ROW) \
-	    --limit "Other drives' frames are harder than the adapted drives': see the accuracy table and docs/RESULTS.md." \
-	    --out $(@D)
+	    --limit "Other drives' frames are harder than the adapted drives': see the accuracy table and docs/RESULTS.md."
 # The sparse models (MODELS_BEAMS, after kitti-hdl64e, from it): models/kitti-<N>beam, the row
 # SPARSE_MODELS_ROW of `make real-kitti-beams BEAMS=N` (its runs, resumable the same way) on seed
 # MODELS_SEED, with the row over SEEDS on its card and the gate against the model it replaces
 MODELS_BEAMS      ?= 16
 SPARSE_MODELS_ROW ?= dense_tst
 recipe_dense_tst = the dense teacher: its pseudo labels of the same drives' full 64-beam scans, kept by dali track-pseudo over their registration, trained into it on the scans thinned to $(BEAMS) beams (dali self-train --pseudo-from)
-$(SPARSE_MODEL)/card.json: bench/model_card.py models-always $(foreach dir,$(models_eval_dirs),$(RUN)/$(dir)/manifest.json) \
-    $(RUN)/fixture/$(MODELS_ROW)/manifest.json $(models_recipe_done) $(RUN)/model_gate.json
-	$(BIN)/python bench/model_card.py --model $(RUN)/$(call row_field,$(models_row),2) \
-	    --scale-from $(models_scale_from) --name kitti-$(BEAMS)beam --gate $(RUN)/model_gate.json \
-	    --title "a car detector for KITTI's scans at $(BEAMS) beams, no real label went into" \
+$(SPARSE_MODEL)/card.json: $(models_card_inputs)
+	$(models_card) --name kitti-$(BEAMS)beam --title "a car detector for KITTI's scans at $(BEAMS) beams, no real label went into" \
 	    --summary "Finds cars in $(BEAMS)-beam LiDAR scans of KITTI's kind (the HDL-64E's thinned to $(BEAMS) beams by dali import --beams $(BEAMS), camera field of view, LiDAR frame, scaled by its scale.json): \`dali detect\` on such scans. It is $(BEAMS_SOURCE_MODEL) adapted by $(recipe_$(MODELS_ROW)) on $(words $(REAL_DRIVES)) unlabeled real KITTI drives ($(REAL_DRIVE_NAMES)) without any real label." \
-	    $(foreach pair,$(models_evals),--eval $(pair)) $(foreach pair,$(models_recipe),--recipe $(pair)) \
-	    --fixture-eval $(RUN)/fixture/$(MODELS_ROW) \
-	    --limit "Thinned HDL-64E scans stand in for a $(BEAMS)-beam sensor: a real one's beam pattern, mount and intensities differ; not measured on one." \
-	    --out $(@D)
+	    --limit "Thinned HDL-64E scans stand in for a $(BEAMS)-beam sensor: a real one's beam pattern, mount and intensities differ; not measured on one."
 models-beams: MODELS_ROW = $(SPARSE_MODELS_ROW)
 models-beams: install
 	$(MAKE) $(SUBMAKE_FLAGS) real-kitti-data $(REAL_DATA)/fixture/manifest.json $(REAL_VARS)
