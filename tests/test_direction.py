@@ -75,27 +75,6 @@ def test_a_config_without_a_direction_has_no_direction_outputs():
     assert "dir" in net.head.outputs and net.refiner.residual.out_features == 8
 
 
-def test_a_refiner_without_the_flip_keeps_its_proposals_end_and_never_sees_a_flip():
-    """refine_flip false: the first stage still has its bins, the refiner has no flip logit and
-    its training jitter never turns a target box by pi (so the flip targets are all 0)."""
-    from dali_cli.detector.refine import jitter_boxes
-
-    config = DetectorConfig(**SMALL_NET, refine_flip=False)
-    net = PillarCenterNet(config)
-    assert "dir" in net.head.outputs and net.refiner.residual.out_features == 7
-    rng = np.random.default_rng(3)
-    boxes = np.column_stack([rng.normal(size=(400, 3)), np.full((400, 3), 2.0),
-                             rng.uniform(-np.pi, np.pi, 400)])  # fmt: skip
-    kept = jitter_boxes(boxes, np.random.default_rng(4), flip=False)
-    assert not flip_targets(kept, boxes).any()
-    flipped = jitter_boxes(boxes, np.random.default_rng(4), flip=True)
-    assert 0.4 < flip_targets(flipped, boxes).mean() < 0.6  # what the flip logit learns from
-    from dali_cli.detector.refine import flip_logit
-
-    assert not flip_logit(config) and flip_logit(DetectorConfig(**SMALL_NET))
-    assert not flip_logit(DetectorConfig(**SMALL_NET, direction=False))
-
-
 PLACE = dict(x_range_m=(6.0, 22.0), y_range_m=(-9.0, 9.0))
 SCAN = dict(beams=32, points_per_beam=400, azimuth_range_deg=(-60.0, 60.0), cabins=True)
 

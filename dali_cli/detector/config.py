@@ -59,10 +59,6 @@ class DetectorConfig:
     direction: bool = True
     direction_offset: float = math.pi / 4
     direction_weight: float = 1.0
-    # with the direction classifier: the refiner also learns the flip logit, from half of its
-    # jittered target boxes turned by pi; false: its jitter keeps the true heading, it has no flip
-    # logit, and a refined box keeps the end its first-stage box was given (the bins')
-    refine_flip: bool = True
     # second stage (refine.py): a PointNet on each box's points predicts a residual box + its IoU
     refine: bool = True
     refine_points: int = 128  # points sampled per box

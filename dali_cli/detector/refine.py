@@ -12,8 +12,7 @@ to the six faces, metres; the network adds the same six over the half sizes). Bo
 ground frame. The residual's heading is a turn of less than pi/2 about the proposal's; with a
 direction classifier (config.direction) an eighth output, the flip logit, says whether the car's
 front lies at the other end of the refined box's axis (the points in the box frame show it: the
-windscreen, the taper of the bonnet, the ends' depths), so a refined box faces any way; with
-config.refine_flip false the refiner has no flip logit and keeps its proposal's end.
+windscreen, the taper of the bonnet, the ends' depths), so a refined box faces any way.
 """
 
 from __future__ import annotations
@@ -185,11 +184,6 @@ def encode_residuals(proposals, truth):
     )
 
 
-def flip_logit(config: DetectorConfig) -> bool:
-    """Whether the refiner has the flip logit (an eighth output) and learns it."""
-    return config.direction and config.refine_flip
-
-
 def flip_targets(proposals, truth):
     """(K,) float: 1 where the true heading points away (more than pi/2) from the proposal's, the
     refiner's flip target (numpy or torch, like `proposals`)."""
@@ -243,7 +237,7 @@ class BoxRefiner(nn.Module):
             nn.Linear(2 * c, 2 * c),
             nn.ReLU(inplace=True),
         )
-        self.residual = nn.Linear(2 * c, 8 if flip_logit(config) else 7)
+        self.residual = nn.Linear(2 * c, 8 if config.direction else 7)
         self.iou = nn.Linear(2 * c, 1)
         nn.init.zeros_(self.residual.weight)  # start as the identity refinement
         nn.init.zeros_(self.residual.bias)
@@ -336,7 +330,7 @@ def refine_loss(
     ):
         found = clip_proposals(found)
         if len(objects):
-            jittered = jitter_boxes(objects, rngs[b], flip=flip_logit(config))
+            jittered = jitter_boxes(objects, rngs[b], flip=config.direction)
             if on_device:
                 objects = torch.from_numpy(np.asarray(objects, np.float64)).to(device)
                 jittered = torch.from_numpy(jittered).to(device)
