@@ -42,7 +42,7 @@ help:
 	@echo "make real-kitti  - adapt to real KITTI drives over seeds: every row on labelled real frames (docs/data.md)"
 	@echo "make real-kitti-holdout - the same, adapted without REAL_DRIVE: rows judged on a drive never seen"
 	@echo "make real-kitti-beams BEAMS=16 - adapt models/kitti-hdl64e to the drives at 32 or 16 beams (docs/data.md)"
-	@echo "make models      - rebuild models/waymo-like-source, kitti-hdl64e and kitti-16beam with their cards"
+	@echo "make models      - rebuild models/waymo-like-source, kitti-hdl64e, kitti-16beam and kitti-32beam with their cards"
 	@echo "make models-beams BEAMS=16 - only the sparse model models/kitti-<BEAMS>beam (docs/models.md)"
 	@echo "make bench       - run the benchmarks (results in bench/results/*.json)"
 	@echo "make pareto      - run time vs error of every stage's speed knobs (docs/pareto.md; pareto-quick: smoke test)"
@@ -687,7 +687,7 @@ models/kitti-hdl64e/card.json: $(models_card_inputs)
 # The sparse models (MODELS_BEAMS, after kitti-hdl64e, from it): models/kitti-<N>beam, the row
 # SPARSE_MODELS_ROW of `make real-kitti-beams BEAMS=N` (its runs, resumable the same way) on seed
 # MODELS_SEED, with the row over SEEDS on its card and the gate against the model it replaces
-MODELS_BEAMS      ?= 16
+MODELS_BEAMS      ?= 16 32
 SPARSE_MODELS_ROW ?= dense_tst
 recipe_dense_tst = the dense teacher: its pseudo labels of the same drives' full 64-beam scans, kept by dali track-pseudo over their registration, trained into it on the scans thinned to $(BEAMS) beams (dali self-train --pseudo-from)
 $(SPARSE_MODEL)/card.json: $(models_card_inputs)

@@ -414,12 +414,14 @@ def test_pretrain_cli(toy_dir, tmp_path):
 
 
 def test_retired_config_keys_load_at_their_value_only():
-    """model.json files of earlier models carry refine_passes 1 and flip_test false: they load;
-    any other value is refused with the key named, and the written config no longer has them."""
-    old = {**DetectorConfig(**SMALL).to_dict(), "refine_passes": 1, "flip_test": False}
+    """model.json files of earlier models carry refine_passes 1, flip_test false and refine_flip
+    true: they load; any other value is refused with the key named, and the written config no
+    longer has them."""
+    old = {**DetectorConfig(**SMALL).to_dict(), "refine_passes": 1, "flip_test": False,
+           "refine_flip": True}  # fmt: skip
     assert DetectorConfig.from_dict(old) == DetectorConfig(**SMALL)
-    assert not {"refine_passes", "flip_test"} & set(DetectorConfig().to_dict())
-    for key, value in (("refine_passes", 2), ("flip_test", True)):
+    assert not {"refine_passes", "flip_test", "refine_flip"} & set(DetectorConfig().to_dict())
+    for key, value in (("refine_passes", 2), ("flip_test", True), ("refine_flip", False)):
         with pytest.raises(ValueError, match=key):
             DetectorConfig.from_dict({**old, key: value})
 

@@ -8,8 +8,9 @@ from dataclasses import asdict, dataclass, fields
 from dali_cli.quantities import is_profile_name
 
 # fields earlier models' model.json carry, with the one value still read: a second refinement
-# pass at inference and test-time flip, both measured to be no gain (docs/detector.md)
-RETIRED = {"refine_passes": 1, "flip_test": False}
+# pass at inference, test-time flip and a refiner without the flip logit, each measured to be no
+# gain (docs/detector.md, docs/experiments.md)
+RETIRED = {"refine_passes": 1, "flip_test": False, "refine_flip": True}
 
 
 @dataclass
