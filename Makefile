@@ -588,6 +588,9 @@ BEAMS_PAIRS ?= x2:control x2_tst:control_tst dense_tst:control_tst
 BEAMS_PSEUDO = iter1/pseudo iter2/pseudo iter1/tracked iter3/tracked baselines/source_x2_budget/tracked \
     $(if $(filter dense_tst,$(BEAMS_ROWS)),dense/tracked)
 DENSE_DATA  ?= $(REAL_RUN)-data
+# the sub-make's goals and variables that import and register the full scans (every beam), run
+# where the rows hold the dense teacher ($(MAKE) stays in the recipes: make -n recurses into it)
+DENSE_DATA_GOALS = real-kitti-data $(DENSE_DATA)/target_poses/manifest.json $(call real_vars,$(DENSE_DATA)) BEAMS=64
 ifneq ($(DENSE_DATA),$(REAL_DATA))
 $(DENSE_DATA)/target/manifest.json $(DENSE_DATA)/target_poses/manifest.json:
 	@test -f $@ || { echo "$@ is missing: make real-kitti-beams imports and registers the full scans first" >&2; exit 1; }
@@ -607,8 +610,7 @@ $(error make $(filter real-kitti-beams models-beams,$(MAKECMDGOALS)) needs BEAMS
 endif
 real-kitti-beams: install
 	$(MAKE) $(SUBMAKE_FLAGS) real-kitti-data $(REAL_VARS)
-	$(if $(filter dense_tst,$(BEAMS_ROWS)),$(MAKE) $(SUBMAKE_FLAGS) real-kitti-data $(DENSE_DATA)/target_poses/manifest.json \
-	    $(call real_vars,$(DENSE_DATA)) BEAMS=64)
+	$(if $(filter dense_tst,$(BEAMS_ROWS)),$(MAKE) $(SUBMAKE_FLAGS) $(DENSE_DATA_GOALS))
 	@for seed in $(SEEDS); do \
 	    $(MAKE) $(SUBMAKE_FLAGS) real-kitti-rows real-kitti-pseudo RUN=$(BEAMS_RUN)-s$$seed SEED=$$seed \
 	        $(REAL_VARS) $(BEAMS_VARS) || exit 1; \
@@ -697,8 +699,7 @@ $(SPARSE_MODEL)/card.json: $(models_card_inputs)
 models-beams: MODELS_ROW = $(SPARSE_MODELS_ROW)
 models-beams: install
 	$(MAKE) $(SUBMAKE_FLAGS) real-kitti-data $(REAL_DATA)/fixture/manifest.json $(REAL_VARS)
-	$(if $(filter dense_tst,$(SPARSE_MODELS_ROW)),$(MAKE) $(SUBMAKE_FLAGS) real-kitti-data $(DENSE_DATA)/target_poses/manifest.json \
-	    $(call real_vars,$(DENSE_DATA)) BEAMS=64)
+	$(if $(filter dense_tst,$(SPARSE_MODELS_ROW)),$(MAKE) $(SUBMAKE_FLAGS) $(DENSE_DATA_GOALS))
 	@for seed in $(filter-out $(MODELS_SEED),$(SEEDS)) $(MODELS_SEED); do \
 	    $(MAKE) $(SUBMAKE_FLAGS) $(addprefix $(BEAMS_RUN)-s$$seed/,$(addsuffix /manifest.json,$(models_eval_dirs))) \
 	        RUN=$(BEAMS_RUN)-s$$seed SEED=$$seed MODELS_ROW=$(MODELS_ROW) $(REAL_VARS) $(BEAMS_VARS) || exit 1; \
