@@ -132,7 +132,8 @@ def prediction_digest(directory: Path) -> dict:
 def provenance(model_dir: Path) -> list[dict]:
     """Every stage that led to `model_dir`, inputs first (depth-first over the manifests'
     inputs; each directory once): stage, directory name, shown params, counts, wall seconds,
-    machine."""
+    machine. An input that is a shipped model (no manifest, a card.json) brings its card's own
+    provenance, so a model adapted from a shipped one shows the whole chain."""
     seen, order = set(), []
 
     def visit(directory: Path) -> None:
@@ -141,6 +142,7 @@ def provenance(model_dir: Path) -> list[dict]:
         seen.add(directory)
         manifest = read_json(directory / "manifest.json")
         if manifest is None:
+            order.extend((read_json(directory / "card.json") or {}).get("provenance", []))
             return
         for records in manifest.get("inputs", {}).values():
             for record in records if isinstance(records, list) else [records]:

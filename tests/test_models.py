@@ -141,6 +141,30 @@ def test_the_card_names_every_stage_and_the_recipes_spread(tmp_path):
     assert sorted(p.name for p in out.parent.iterdir()) == ["m"]
 
 
+def test_a_model_adapted_from_a_shipped_one_carries_the_shipped_cards_stages(tmp_path):
+    """Self-training from models/<name> (a card, no manifest) puts that card's provenance first,
+    then the stages that adapted it further."""
+    shipped = tmp_path / "models" / "base"
+    shipped.mkdir(parents=True)
+    step = {"params": {}, "counts": {}, "wall_seconds": 1.0, "machine": "", "created": None}
+    earlier = [{**step, "stage": "synth", "directory": "s0/data/source"},
+               {**step, "stage": "pretrain", "directory": "s0/source/model"}]  # fmt: skip
+    (shipped / "card.json").write_text(json.dumps({"provenance": earlier}))
+    model = tmp_path / "round" / "model"
+    model.mkdir(parents=True)
+    (model / "model.pt").write_bytes(b"weights")
+    (model / "model.json").write_text(json.dumps({"detector": "x", "config": {}}))
+    (model / "manifest.json").write_text(json.dumps(
+        {"stage": "self_train", "params": {"epochs": 6.0},
+         "inputs": {"init": [{"path": str(shipped), "hash": "0"}]}}))  # fmt: skip
+    out = tmp_path / "models" / "next"
+    done = run_card("--model", str(model), "--name", "next", "--title", "t", "--summary", "s",
+                    "--out", str(out))  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    stages = json.loads((out / "card.json").read_text())["provenance"]
+    assert [step["stage"] for step in stages] == ["synth", "pretrain", "self_train"]
+
+
 def test_the_card_shows_how_the_true_positives_face_and_fit(tmp_path):
     """The backwards count, the median |length error| and the length spread come from the
     evaluation's heading and error blocks; an evaluation without them gets no such row."""
