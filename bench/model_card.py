@@ -200,8 +200,9 @@ def card_text(card: dict) -> str:
                 f"| {name} | " + " | ".join(str(entry.get(k, "-")) for k in QUALITY) + " |"
             )
     if card["recipe"]:
-        lines += ["", f"The recipe over {card['recipe_seeds']} seeds (mean ± std; this model is one "
-                  "of them):", "", "| set | seeds | " + " | ".join(headers) + " |",
+        whose = card.get("recipe_note") or "this model is one of them"
+        lines += ["", f"The recipe over {card['recipe_seeds']} seeds (mean ± std; {whose}):", "",
+                  "| set | seeds | " + " | ".join(headers) + " |",
                   "|---|---|" + "---|" * len(headers)]  # fmt: skip
         for name, entries in card["recipe"].items():
             cells = [spread([e[h] for e in entries if e.get(h) is not None]) for h in headers]
@@ -306,6 +307,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--limit", action="append", default=[], help="a limit (repeatable)")
     parser.add_argument("--eval", action="append", default=[], metavar="SET=DIR")
     parser.add_argument("--recipe", action="append", default=[], metavar="SET=DIR,DIR,...")
+    parser.add_argument("--recipe-note", help="how this model relates to the recipe's seeds "
+                        "(default: it is one of them)")  # fmt: skip
     parser.add_argument("--fixture-eval", type=Path)
     parser.add_argument("--gate", type=Path, help="bench/model_gate.py's verdict against the "
                         "model this one replaces")  # fmt: skip
@@ -335,6 +338,7 @@ def main(argv: list[str] | None = None) -> None:
         "evaluations": evaluations,
         "recipe": recipe,
         "recipe_seeds": max((len(v) for v in recipe.values()), default=0),
+        "recipe_note": args.recipe_note,
         "fixture": (
             {**evaluation(args.fixture_eval), "predictions": prediction_digest(args.fixture_eval)}
             if args.fixture_eval

@@ -247,10 +247,10 @@ def test_make_models_builds_the_recipe_row_on_every_seed(setup):
     outs = {option(w, "--out") for w in commands}
     for seed in SEEDS + ("2",):
         run = f"{setup['run']}-s{seed}"
-        assert f"{run}/baselines/source_x2_budget_tst/eval" in outs
-        assert f"{run}/objects_other/control_tst" in outs
+        assert f"{run}/baselines/source_x2_budget_tst2/eval" in outs  # control + tracked ST x2
+        assert f"{run}/objects_other/control_tst2" in outs
         assert f"{run}/iter2/model" not in outs  # DALI's rows are not the recipe
-    assert f"{setup['run']}-s3/baselines/source_x2_budget_tst/eval" not in outs
+    assert f"{setup['run']}-s3/baselines/source_x2_budget_tst2/eval" not in outs
 
 
 def test_the_pairs_are_compared_on_every_set_with_a_paired_bootstrap(setup):
