@@ -65,11 +65,10 @@ def compare_on(name: str, data: str, gt: str, models: dict[str, tuple], work: Pa
     paired; compare's bootstrap block."""
     predictions = []
     for row, (model, scale_from) in models.items():
-        out = work / name / row
-        if not (out / "predictions.parquet").is_file():
-            dali("eval", "--model", str(model), "--scale-from", str(scale_from), "--data", data,
-                 "--gt", gt, "--protocol", "kitti", "--iou", "0.7", "--no-progress",
-                 "--out", str(out), log=work / f"{name}-{row}.log")  # fmt: skip
+        out = work / name / row  # dali eval skips itself while its inputs are the same models
+        dali("eval", "--model", str(model), "--scale-from", str(scale_from), "--data", data,
+             "--gt", gt, "--protocol", "kitti", "--iou", "0.7", "--no-progress",
+             "--out", str(out), log=work / f"{name}-{row}.log")  # fmt: skip
         predictions += ["--pred", f"{row}={out / 'predictions.parquet'}"]
     result = work / name / "compare.json"
     dali("compare", *predictions, "--gt", gt, "--protocol", "kitti", "--iou", "0.7",

@@ -80,3 +80,27 @@ def test_the_gate_refuses_a_directory_that_is_not_a_model(tmp_path, capsys):
                           "--out", str(tmp_path / "gate.json")])  # fmt: skip
     assert stop.value.code == 2 and "is not a model" in capsys.readouterr().err
     assert not (tmp_path / "gate.json").exists()
+
+
+def test_the_gate_evaluates_again_where_an_earlier_run_left_predictions(tmp_path, monkeypatch):
+    """A second round replaces the model in place: predictions left in the work directory by an
+    earlier gate must not stand in for the new model's (dali eval decides, by its manifest)."""
+    work = tmp_path / "work"
+    for row in ("shipped", "candidate"):
+        (work / "drive" / row).mkdir(parents=True)
+        (work / "drive" / row / "predictions.parquet").write_bytes(b"stale")
+    calls = []
+
+    def fake_dali(*args, log):
+        calls.append(args[0])
+        if args[0] == "compare":
+            out = Path(args[args.index("--out") + 1])
+            out.write_text(json.dumps({"bootstrap": bootstrap(1.0, (-2.0, 4.0))}))
+
+    monkeypatch.setattr(gate_module, "dali", fake_dali)
+    models = {
+        "shipped": (tmp_path / "a", tmp_path / "a"),
+        "candidate": (tmp_path / "b", tmp_path / "b"),
+    }
+    gate_module.compare_on("drive", str(tmp_path), str(tmp_path), models, work)
+    assert calls == ["eval", "eval", "compare"]
