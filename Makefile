@@ -668,6 +668,7 @@ models_recipe_done = $(wildcard $(foreach seed,$(SEEDS),$(foreach dir,$(models_e
 # At BEAMS the model replaced is models/kitti-<BEAMS>beam, or before the first one ships, direct
 # transfer: BEAMS_SOURCE_MODEL at its own scale on the same thinned frames.
 MODEL_GATE_FLAGS ?=
+models_gate_sets = $(foreach set,drive $(REAL_OBJECT_SETS),--set $(set)=$(call real_truth,$(set)))
 models_scale_from = $(lastword $(subst =, ,$(call row_field,$(models_row),4)))
 SPARSE_MODEL = models/kitti-$(BEAMS)beam
 models_shipped = $(if $(beams_suffix),$(if $(wildcard $(SPARSE_MODEL)/model.pt),$(SPARSE_MODEL),$(BEAMS_SOURCE_MODEL)),models/kitti-hdl64e)
@@ -675,18 +676,20 @@ models_gate_note = $(if $(and $(beams_suffix),$(filter $(BEAMS_SOURCE_MODEL),$(m
 $(RUN)/model_gate.json: bench/model_gate.py $(foreach dir,$(models_eval_dirs),$(RUN)/$(dir)/manifest.json)
 	$(BIN)/python bench/model_gate.py --shipped $(models_shipped) $(models_gate_note) \
 	    --candidate $(RUN)/$(call row_field,$(models_row),2) --candidate-scale-from $(models_scale_from) \
-	    --set drive=$(REAL_DATA)/drive_labels $(foreach set,$(REAL_OBJECT_SETS),--set $(set)=$(REAL_DATA)/$(set)) \
-	    --work $(RUN)/model_gate --out $@ $(MODEL_GATE_FLAGS)
+	    $(models_gate_sets) --work $(RUN)/model_gate --out $@ $(MODEL_GATE_FLAGS)
 # an adapted model's card: what it needs, and the arguments every adapted model's card has
 models_card_inputs = bench/model_card.py models-always $(foreach dir,$(models_eval_dirs),$(RUN)/$(dir)/manifest.json) \
     $(RUN)/fixture/$(MODELS_ROW)/manifest.json $(models_recipe_done) $(RUN)/model_gate.json
 models_card = $(BIN)/python bench/model_card.py --model $(RUN)/$(call row_field,$(models_row),2) \
     --scale-from $(models_scale_from) --gate $(RUN)/model_gate.json --fixture-eval $(RUN)/fixture/$(MODELS_ROW) \
     $(foreach pair,$(models_evals),--eval $(pair)) $(foreach pair,$(models_recipe),--recipe $(pair)) --out $(@D)
+# models/kitti-hdl64e's card: what it is for (both ways it is made: make models, make models-round)
+kitti_hdl64e_card = --name kitti-hdl64e --title "a KITTI HDL-64E car detector no real label went into" \
+    --limit "Other drives' frames are harder than the adapted drives': see the accuracy table and docs/RESULTS.md."
+kitti_hdl64e_use = Finds cars in KITTI's HDL-64E LiDAR scans (camera field of view, LiDAR frame, scaled by its scale.json): \`dali detect\` on your own scans, or a start for adapting further.
 models/kitti-hdl64e/card.json: $(models_card_inputs)
-	$(models_card) --name kitti-hdl64e --title "a KITTI HDL-64E car detector no real label went into" \
-	    --summary "Finds cars in KITTI's HDL-64E LiDAR scans (camera field of view, LiDAR frame, scaled by its scale.json): \`dali detect\` on your own scans, or a start for adapting further. It is models/waymo-like-source adapted by $(recipe_$(MODELS_ROW)) to $(words $(REAL_DRIVES)) unlabeled real KITTI drives ($(REAL_DRIVE_NAMES)) without any real label." \
-	    --limit "Other drives' frames are harder than the adapted drives': see the accuracy table and docs/RESULTS.md."
+	$(models_card) $(kitti_hdl64e_card) \
+	    --summary "$(kitti_hdl64e_use) It is models/waymo-like-source adapted by $(recipe_$(MODELS_ROW)) to $(words $(REAL_DRIVES)) unlabeled real KITTI drives ($(REAL_DRIVE_NAMES)) without any real label."
 # The sparse models (MODELS_BEAMS, after kitti-hdl64e, from it): models/kitti-<N>beam, the row
 # SPARSE_MODELS_ROW of `make real-kitti-beams BEAMS=N` (its runs, resumable the same way) on seed
 # MODELS_SEED, with the row over SEEDS on its card and the gate against the model it replaces
@@ -738,16 +741,16 @@ $(ROUND_RUN)/tracked/manifest.json: $(ROUND_RUN)/pseudo_low/manifest.json $(TARG
 	$(DALI) track-pseudo --pseudo $(ROUND_RUN)/pseudo_low --data $(TARGET) --poses $(TARGET_POSES) --out $(@D)
 $(ROUND_RUN)/model/manifest.json: $(ROUND_RUN)/tracked/manifest.json
 	$(TRAIN_DALI) self-train --init $(ROUND_BASE) --data $(TARGET) --pseudo $(ROUND_RUN)/tracked --seed $(SEED) $(ST_BUDGET) $(ST_FLAGS) $(TRAIN_FLAGS) $(DEVICE_FLAG) --out $(@D)
-$(ROUND_RUN)/fixture/manifest.json: $(ROUND_RUN)/model/manifest.json $(REAL_DATA)/fixture/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(ROUND_RUN)/model --data $(REAL_DATA)/fixture --scale-from $(ROUND_RUN)/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
-$(ROUND_RUN)/eval/drive/manifest.json: $(ROUND_RUN)/model/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(ROUND_RUN)/model --data $(REAL_DATA)/drive_labels --scale-from $(ROUND_RUN)/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
-$(ROUND_RUN)/eval/%/manifest.json: $(ROUND_RUN)/model/manifest.json $(REAL_DATA)/%/manifest.json
-	$(DALI) eval $(DEVICE_FLAG) --model $(ROUND_RUN)/model --data $(REAL_DATA)/$* --scale-from $(ROUND_RUN)/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $(@D)
+# the round's model evaluated into (1) on the frame set (2)
+define ROUND_EVAL
+$(ROUND_RUN)/$(1)/manifest.json: $(ROUND_RUN)/model/manifest.json $(2)/manifest.json
+	$(DALI) eval $(DEVICE_FLAG) --model $(ROUND_RUN)/model --data $(2) --scale-from $(ROUND_RUN)/ptsn $(EVAL_FLAGS) $(EXEC_FLAGS) --out $$(@D)
+endef
+$(eval $(call ROUND_EVAL,fixture,$(REAL_DATA)/fixture))
+$(foreach set,drive $(REAL_OBJECT_SETS),$(eval $(call ROUND_EVAL,eval/$(set),$(call real_truth,$(set)))))
 $(ROUND_RUN)/model_gate.json: bench/model_gate.py $(ROUND_RUN)/model/manifest.json
 	$(BIN)/python bench/model_gate.py --shipped $(ROUND_BASE) --candidate $(ROUND_RUN)/model --candidate-scale-from $(ROUND_RUN)/ptsn \
-	    --set drive=$(REAL_DATA)/drive_labels $(foreach set,$(REAL_OBJECT_SETS),--set $(set)=$(REAL_DATA)/$(set)) \
-	    --work $(ROUND_RUN)/model_gate --out $@ $(MODEL_GATE_FLAGS)
+	    $(models_gate_sets) --work $(ROUND_RUN)/model_gate --out $@ $(MODEL_GATE_FLAGS)
 models-round: install
 	$(MAKE) $(SUBMAKE_FLAGS) real-kitti-data $(REAL_DATA)/fixture/manifest.json $(REAL_VARS)
 	$(MAKE) $(SUBMAKE_FLAGS) $(ROUND_RUN)/model_gate.json $(ROUND_RUN)/fixture/manifest.json \
@@ -755,9 +758,8 @@ models-round: install
 	$(BIN)/python bench/model_card.py --model $(ROUND_RUN)/model --scale-from $(ROUND_RUN)/ptsn \
 	    --gate $(ROUND_RUN)/model_gate.json --fixture-eval $(ROUND_RUN)/fixture $(round_evals) $(round_recipe) \
 	    --recipe-note "control_tst2 rebuilt from the source on each seed; this model is the shipped one's round, not one of them" \
-	    --name kitti-hdl64e --title "a KITTI HDL-64E car detector no real label went into" \
-	    --summary "Finds cars in KITTI's HDL-64E LiDAR scans (camera field of view, LiDAR frame, scaled by its scale.json): \`dali detect\` on your own scans, or a start for adapting further. It is the previous models/kitti-hdl64e adapted one round further by tracked self-training on its own labels at its own PTSN scale (make models-round), on $(words $(REAL_DRIVES)) unlabeled real KITTI drives ($(REAL_DRIVE_NAMES)) without any real label: models/waymo-like-source adapted by $(recipe_control_tst2)." \
-	    --limit "Other drives' frames are harder than the adapted drives': see the accuracy table and docs/RESULTS.md." \
+	    $(kitti_hdl64e_card) \
+	    --summary "$(kitti_hdl64e_use) It is the previous models/kitti-hdl64e adapted one round further by tracked self-training on its own labels at its own PTSN scale (make models-round), on $(words $(REAL_DRIVES)) unlabeled real KITTI drives ($(REAL_DRIVE_NAMES)) without any real label: models/waymo-like-source adapted by $(recipe_control_tst2)." \
 	    --out $(ROUND_BASE)
 .PHONY: models-round
 
