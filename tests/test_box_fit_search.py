@@ -112,6 +112,8 @@ def test_block_bounds_never_exceed_a_cost_of_their_block(seed):
         np.minimum.at(least, pose_block, costs)
         assert (bounds <= least).all()
         assert (bounds > 0.5 * least).mean() > 0.2  # and they bound: most are not trivial
+        every = block_lower_bounds(uv, half, PointFit(), block, None)  # the broadcast path
+        np.testing.assert_allclose(every, bounds, rtol=1e-6, atol=1e-9)
 
 
 @pytest.mark.parametrize("seed", range(3))

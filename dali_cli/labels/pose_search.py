@@ -2,8 +2,8 @@
 poses on its points, and the cheapest pose found by branch and bound over blocks of the grid
 (bounded from below, most never scored) -- the very pose the exhaustive search of every pose on
 every point picks, bit for bit (tests/test_box_fit_search.py). On drive 0001's 2,773 pseudo
-boxes the fitted boxes are bitwise those of the exhaustive search, in 2.5-3x less time
-(docs/RESULTS.md, "Pseudo-label at the detector's speed").
+boxes the fitted boxes are bitwise those of the exhaustive search, in a fraction of its time
+(docs/ptsn.md, "Speed: pseudo-label against `dali detect`"; bench/pose_search_speed.py).
 
 Poses: the grid of PointFit.grid(), pose g = shift g // T turned by turn g % T. Lengths in
 metres, turns in radians.
@@ -17,7 +17,7 @@ import numpy as np
 
 from dali_cli.labels.point_fit import PointFit
 
-PRUNE_BLOCKS = ((4, 17), (2, 6))  # best_pose's blocks (along x across steps, one turn each)
+PRUNE_BLOCKS = ((8, 17), (4, 6), (2, 2))  # best_pose's blocks (along x across steps, one turn each)
 BOUND_RELATIVE, BOUND_PER_POINT = 1e-3, 1e-5  # block_lower_bounds' allowance for float32 rounding
 
 
@@ -138,31 +138,53 @@ def block_lower_bounds(
     pose_blocks(fit, block); None: every block) `(B,)` float64, no larger than the cost of any
     pose of the block (uv `(n, 2)` m, half_lw `(2,)` m).
 
-    Over a block a point's |a| and |b| (pose_costs) lie in intervals (the turned shifts' range
-    about the turned point); its cost is least on the box's boundary (0) when the intervals
-    reach it, else at their corner nearest it: inside, the largest |a|, |b|; outside, the
-    smallest. Made from pose_costs' own float32 inputs, then lowered by BOUND_RELATIVE and
-    BOUND_PER_POINT per point to cover the float32 rounding of both. `turned`: as pose_costs'."""
+    Over a block a point's a and b (pose_costs, before |.|) lie in intervals: the turned point
+    less the block's range of turned shifts, centre c and half width r. With d = |c|, the
+    largest |a| over the block is d + r and the smallest max(d - r, 0); a point's cost is least
+    on the box's boundary (0) when the intervals reach it, else at their corner nearest it:
+    inside, the largest |a|, |b|; outside, the smallest. Made from pose_costs' own float32
+    inputs in float32, then lowered by BOUND_RELATIVE and BOUND_PER_POINT per point to cover
+    the float32 rounding of both. `turned`: as pose_costs'."""
     a0, b0 = (turned or _turned(uv, fit))[:2]  # (T, n) each
-    ranges = pose_blocks(fit, block)[1]
-    blocks = np.arange(ranges.shape[1]) if blocks is None else blocks
-    low_a, high_a, low_b, high_b = ranges[:, blocks, None]  # (B, 1) each
-    turn = blocks % len(a0)
-    half_l, half_w = (np.float32(x) for x in half_lw)
-    for centre, low, high, half in ((a0, low_a, high_a, half_l), (b0, low_b, high_b, half_w)):
-        above, below = centre[turn] - low, centre[turn] - high  # (B, n); above >= below
-        far = np.maximum(above, -below)  # the largest |a| (|b|) over the block
-        near = np.maximum(np.maximum(below, -above), 0)  # the smallest
-        if centre is a0:
-            side, outside = half - far, np.maximum(near - half, 0)
+    middle, radius = block_intervals(fit, block)  # (2, B) each
+    n_turns = len(a0)
+    half = np.asarray(half_lw, np.float32)
+    side = outside = None
+    for axis, centre in enumerate((a0, b0)):
+        if blocks is None:  # every block: block = shift block * T + turn, no gather needed
+            mid = middle[axis].reshape(-1, n_turns, 1)
+            d = np.abs(centre - mid).reshape(-1, centre.shape[1])  # (B, n)
+            r = radius[axis, :, None]
         else:
-            np.minimum(side, half - far, out=side)
-            outside += np.maximum(near - half, 0)
+            d = np.abs(centre[blocks % n_turns] - middle[axis, blocks, None])
+            r = radius[axis, blocks, None]
+        inside = (half[axis] - r) - d  # half - the largest |a| (|b|)
+        d -= r + half[axis]  # the smallest |a| (|b|) outside the box, where positive
+        np.maximum(d, 0, out=d)
+        if side is None:
+            side, outside = inside, d
+        else:
+            np.minimum(side, inside, out=side)
+            outside += d
     np.maximum(side, 0, out=side)
     np.minimum(side, np.float32(fit.side_cap_m), out=side)
-    bound = (side * side).sum(-1, dtype=np.float64)
-    bound += fit.outside_weight * (outside * outside).sum(-1, dtype=np.float64)
+    bound = np.einsum("ij,ij->i", side, side).astype(np.float64)
+    bound += fit.outside_weight * np.einsum("ij,ij->i", outside, outside)
     return bound * (1 - BOUND_RELATIVE) - BOUND_PER_POINT * len(uv)
+
+
+@lru_cache(maxsize=8)
+def block_intervals(fit: PointFit, block: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Each block's range of turned shifts (pose_blocks) as middle and half width `(2, B)`
+    float32 each (along, across; read only), the half width grown by a part in 10^6 so that
+    the float32 middle +- half width still covers the range."""
+    ranges = pose_blocks(fit, block)[1]
+    middle = (ranges[[0, 2]] + ranges[[1, 3]]) / 2
+    radius = (ranges[[1, 3]] - ranges[[0, 2]]) / 2 * np.float32(1 + 1e-6)
+    made = middle.astype(np.float32), radius.astype(np.float32)
+    for array in made:
+        array.flags.writeable = False
+    return made
 
 
 def best_pose(uv: np.ndarray, half_lw: np.ndarray, fit: PointFit) -> int:
