@@ -4,7 +4,7 @@ random canvases, one thread, the two interleaved; prints the compile time and ea
 step.
 
 Usage:
-  .venv/bin/python bench/training_compile.py [--model models/kitti-hdl64e] [--steps 6]
+  .venv/bin/python bench/training_compile.py --model models/kitti-hdl64e [--steps 6]
 """
 
 from __future__ import annotations
@@ -21,7 +21,9 @@ from dali_cli.detector.model import Backbone, CenterHead
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--model", default="models/kitti-hdl64e")
+    parser.add_argument(
+        "--model", required=True, help="a model directory, e.g. models/kitti-hdl64e"
+    )
     parser.add_argument("--steps", type=int, default=6)
     parser.add_argument("--batch-size", type=int, default=2)
     args = parser.parse_args()
