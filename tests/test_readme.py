@@ -75,7 +75,7 @@ def test_the_tiny_figures_read_as_ranges():
     assert not within_stated(117, stated, "pseudo", COUNT_MARGIN * 110)
 
 
-@pytest.mark.slow  # runs `make tiny` (about 3 minutes on 2 idle cores)
+@pytest.mark.slow  # runs `make tiny` (about 7 minutes on 2 busy cores)
 @pytest.mark.skipif(shutil.which("make") is None, reason="make is not installed")
 def test_the_readmes_tiny_run_figures_are_what_make_tiny_prints(tmp_path):
     """`make tiny` on this machine prints figures inside the README's ranges. The ranges are
