@@ -14,6 +14,7 @@ import argparse
 import numpy as np
 import pyarrow.parquet as pq
 
+from dali_cli.evaluation.errors import turned_around
 from dali_cli.geometry import bev_iou, wrap_angle
 from dali_cli.store.box_tables import BOX_FIELDS, read_boxes
 
@@ -21,19 +22,25 @@ RANGES_M = ((0, 20), (20, 40), (40, 80))
 
 
 def matched(gt: np.ndarray, gt_frames, pred: np.ndarray, pred_frames) -> np.ndarray:
-    """(range m, heading against the ray rad in [0, pi], backwards) of each matched label."""
-    rows = []
+    """(range m, heading against the ray rad in [0, pi], backwards) `(M, 3)` of each label
+    matched to its best-overlapping prediction of the frame (BEV IoU > 0.5)."""
+    truths, partners = [], []
     for frame in np.unique(gt_frames):
         g, p = gt[gt_frames == frame], pred[pred_frames == frame]
         if not len(p):
             continue
         iou = bev_iou(g, p)
         best = iou.argmax(1)
-        for i in np.flatnonzero(iou[np.arange(len(g)), best] > 0.5):
-            ray = np.arctan2(g[i, 1], g[i, 0])
-            backwards = abs(wrap_angle(p[best[i], 6] - g[i, 6])) > np.pi / 2
-            rows.append((np.hypot(g[i, 0], g[i, 1]), abs(wrap_angle(g[i, 6] - ray)), backwards))
-    return np.array(rows, float).reshape(-1, 3)
+        hit = iou[np.arange(len(g)), best] > 0.5
+        truths.append(g[hit])
+        partners.append(p[best[hit]])
+    truth = np.concatenate(truths) if truths else np.zeros((0, 7))
+    partner = np.concatenate(partners) if partners else np.zeros((0, 7))
+    ray = np.arctan2(truth[:, 1], truth[:, 0])
+    heading = np.abs(wrap_angle(truth[:, 6] - ray))
+    return np.column_stack(
+        [np.hypot(truth[:, 0], truth[:, 1]), heading, turned_around(partner, truth)]
+    )
 
 
 def main() -> None:

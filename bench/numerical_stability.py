@@ -136,6 +136,13 @@ def chain_variables(chain: str, run_dir: Path, threads: int, make_vars: list[str
     return [*make_vars, f"DEMO_RUN={run_dir}", f"DEMO_THREADS={threads}"]
 
 
+def shown(path: str) -> str:
+    """A run's directory as the results file names it: relative to the repository when inside
+    it (the file is committed; a machine's own paths stay out of it)."""
+    resolved = Path(path).resolve()
+    return str(resolved.relative_to(ROOT)) if resolved.is_relative_to(ROOT) else path
+
+
 def run_make_chain(chain: str, path: str, threads: int, runs: Path, make_vars: list[str]) -> dict:
     run_dir = runs / f"{chain}-{path}-t{threads}"
     variables = chain_variables(chain, run_dir, threads, make_vars)
@@ -329,7 +336,7 @@ def main() -> None:
         "created": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "command": " ".join(sys.argv),
         "paths": {path: KERNEL_PATHS[path] for path in paths},
-        "runs": results,
+        "runs": [{**result, "run": shown(result["run"])} for result in results],
         "spread": summarize(results),
         "isolated_stages": isolated,
     }
