@@ -247,8 +247,14 @@ class BoxRefiner(nn.Module):
         flip logit), IoU logits (K,)."""
         half = sizes[:, None, :] / 2  # (K, 1, 3)
         relative = torch.cat([features[..., :3] / half, features[..., 3:6] / half], dim=-1)
-        x = self.point_mlp(torch.cat([features, relative], dim=-1))  # (K, N, 2c)
-        pooled = x.amax(dim=1)  # (K, 2c)
+        # the points as one (K N, 15) matrix: the in-place ReLUs then act on whole tensors, not on
+        # views of the linear layers' outputs (whose backward copied slices: a third of the
+        # refiner's step); the last ReLU after the max, with which it commutes, on 2c values a box
+        # instead of N x 2c. Outputs and gradients bit for bit those of the plain stack
+        # (tests/test_refine.py).
+        x = torch.cat([features, relative], dim=-1).flatten(0, 1)  # (K N, 15)
+        x = self.point_mlp[:-1](x).unflatten(0, features.shape[:2])  # (K, N, 2c)
+        pooled = torch.relu(x.amax(dim=1))  # (K, 2c)
         hidden = self.box_mlp(torch.cat([pooled, sizes], dim=1))
         # float32 out also under bf16 autocast: the losses and the box decoding stay in float32
         return self.residual(hidden).float(), self.iou(hidden)[:, 0].float()
