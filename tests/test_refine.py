@@ -257,11 +257,12 @@ def plain_refiner_forward(refiner: BoxRefiner, features: torch.Tensor, sizes: to
     return refiner.residual(hidden), refiner.iou(hidden)[:, 0]
 
 
-@pytest.mark.parametrize("boxes", [0, 1, 37])
-def test_refiner_forward_and_gradients_equal_the_plain_stack_bit_for_bit(boxes):
+@pytest.mark.parametrize("boxes, bf16", [(0, False), (1, False), (37, False), (37, True)])
+def test_refiner_forward_and_gradients_equal_the_plain_stack_bit_for_bit(boxes, bf16):
     """The flattened point MLP with its last ReLU after the max gives the same outputs and the
-    same gradients as the plain stack, bit for bit: repeated points (ties at the max, as the
-    padding of a box with few points makes) and negative maxima (the ReLU's zero) included."""
+    same gradients as the plain stack, bit for bit, in float32 and under bf16 autocast: repeated
+    points (ties at the max, as the padding of a box with few points makes) and negative maxima
+    (the ReLU's zero) included."""
     torch.manual_seed(3)
     refiner = BoxRefiner(DetectorConfig())
     for weight in refiner.parameters():  # the residual layer starts at zero: give it gradients
@@ -272,7 +273,9 @@ def test_refiner_forward_and_gradients_equal_the_plain_stack_bit_for_bit(boxes):
     results = []
     for forward in (refiner, lambda f, s: plain_refiner_forward(refiner, f, s)):
         refiner.zero_grad()
-        residuals, iou_logits = forward(features, sizes)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            residuals, iou_logits = forward(features, sizes)
+        residuals, iou_logits = residuals.float(), iou_logits.float()
         (residuals.square().sum() + iou_logits.sum()).backward()
         results.append(
             (residuals.detach(), iou_logits.detach(), [w.grad for w in refiner.parameters()])
