@@ -797,9 +797,8 @@ demo: install
 	@echo "The full synthetic benchmark: make experiment"
 
 # the tiny run: one DALI iteration on TINY_FRAMES target frames from a source of TINY_SOURCE_FRAMES,
-# enough training that PTSN finds a scale,
-# pseudo-label keeps boxes at the default score cut and RC and CF replace them; then what each
-# step kept. Every model stage on TINY_THREADS torch threads: a model and its boxes are
+# enough training that PTSN finds a scale, pseudo-label keeps boxes at the default score cut and
+# RC and CF replace them; then what each step kept. Every model stage on TINY_THREADS torch threads: a model and its boxes are
 # byte-reproducible for a fixed thread count and CPU kernel path only (tests/test_repeat_run.py:
 # two runs, one result). TINY_EPOCHS=12, not 4: at 4 the source's boxes all scored 0.3-0.4, on
 # the cut, and another CPU's rounding moved the pseudo boxes from 175 to 237; at 12 the counts
