@@ -253,6 +253,20 @@ def test_make_models_builds_the_recipe_row_on_every_seed(setup):
     assert f"{setup['run']}-s3/baselines/source_x2_budget_tst2/eval" not in outs
 
 
+def test_make_models_replaces_neither_model_before_the_gate_passes(setup):
+    """The gate judges the adapted model before either card is written: a refused model leaves
+    models/waymo-like-source as well as models/kitti-hdl64e as they were (the adapted model's
+    card names the source it came from)."""
+    variables = [v for v in setup["variables"] if not v.startswith("SEEDS=")]
+    lines = make("-n", "models", *variables, "SEEDS=0", "MODELS_BEAMS=").stdout
+    lines = lines.replace("\\\n", " ").splitlines()  # continuation lines joined
+    gate = next(i for i, line in enumerate(lines) if "model_gate.py" in line)
+    cards = [i for i, line in enumerate(lines) if "model_card.py" in line]
+    outs = [line.split("--out ")[-1].split()[0] for line in lines if "model_card.py" in line]
+    assert outs == ["models/waymo-like-source", "models/kitti-hdl64e"]
+    assert gate < min(cards)
+
+
 def test_the_pairs_are_compared_on_every_set_with_a_paired_bootstrap(setup):
     data, commands = setup["data"], setup["commands"]
     compares = by_out(commands, "compare")
