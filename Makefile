@@ -523,8 +523,10 @@ $(RUN)/$(2)/$(call row_field,$(1),1)/manifest.json: $(RUN)/$(call row_field,$(1)
 endef
 $(foreach set,$(REAL_OBJECT_SETS),$(foreach row,$(REAL_ROWS),$(eval $(call OBJECTS_ROW,$(row),$(set)))))
 # x2 against the control and x2 + ST against control + ST on each set: a paired bootstrap over its
-# frames (KITTI R40, IoU 0.7); the predictions are the rows' evaluations'
+# frames (KITTI R40, IoU 0.7); the predictions are the rows' evaluations'. Only the pairs whose
+# two rows are among REAL_ROW_NAMES (real_pairs): fewer rows build no other row for a comparison
 REAL_PAIRS = x2:control x2_st:control_st x2_tst:control_tst
+real_pairs = $(foreach pair,$(REAL_PAIRS),$(if $(and $(filter $(call row_field,$(pair),1),$(REAL_ROW_NAMES)),$(filter $(call row_field,$(pair),2),$(REAL_ROW_NAMES))),$(pair)))
 real_eval_dir = $(if $(filter drive,$(2)),$(call row_field,$(filter $(1):%,$(REAL_ROW_TABLE)),3),$(2)/$(1))
 real_truth = $(if $(filter drive,$(1)),$(TARGET_VAL),$(REAL_DATA)/$(1))
 define REAL_COMPARE
@@ -534,15 +536,18 @@ $(RUN)/compare_real/$(2)-$(call row_field,$(1),1).json: $(RUN)/$(call real_eval_
 	    --pred $(call row_field,$(1),1)=$(RUN)/$(call real_eval_dir,$(call row_field,$(1),1),$(2))/predictions.parquet \
 	    --protocol kitti --iou 0.7 --recall-positions 40 --samples $(COMPARE_SAMPLES) --seed $(SEED) --no-progress --out $$@
 endef
-$(foreach set,drive $(REAL_OBJECT_SETS),$(foreach pair,$(REAL_PAIRS),$(eval $(call REAL_COMPARE,$(pair),$(set)))))
+$(foreach set,drive $(REAL_OBJECT_SETS),$(foreach pair,$(real_pairs),$(eval $(call REAL_COMPARE,$(pair),$(set)))))
 real-kitti-data: $(REAL_DATA)/target/manifest.json $(REAL_DATA)/drive_labels/manifest.json \
     $(foreach set,$(REAL_OBJECT_SETS),$(REAL_DATA)/$(set)/manifest.json)
 real-kitti-rows: $(foreach row,$(REAL_ROWS),$(RUN)/$(call row_field,$(row),3)/manifest.json) \
     $(foreach set,$(REAL_OBJECT_SETS),$(foreach row,$(REAL_ROWS),$(RUN)/$(set)/$(call row_field,$(row),1)/manifest.json)) \
-    $(foreach set,drive $(REAL_OBJECT_SETS),$(foreach pair,$(REAL_PAIRS),$(RUN)/compare_real/$(set)-$(call row_field,$(pair),1).json))
-# pseudo-label quality on the drive's frames (cars with >= 5 points, BEV IoU >= 0.5)
-REAL_PSEUDO = iter1/pseudo iter2/pseudo iter3/pseudo baselines/source_x2_budget/pseudo \
-    iter3/tracked baselines/source_x2_budget/tracked
+    $(foreach set,drive $(REAL_OBJECT_SETS),$(foreach pair,$(real_pairs),$(RUN)/compare_real/$(set)-$(call row_field,$(pair),1).json))
+# pseudo-label quality on the drive's frames (cars with >= 5 points, BEV IoU >= 0.5): the pseudo
+# labels the rows of REAL_ROW_NAMES self-train on (row:labels), so that fewer rows build no more
+REAL_PSEUDO_TABLE = x1:iter1/pseudo x2:iter2/pseudo x2_st:iter3/pseudo \
+    control_st:baselines/source_x2_budget/pseudo x2_tst:iter3/tracked \
+    control_tst:baselines/source_x2_budget/tracked
+REAL_PSEUDO = $(foreach name,$(REAL_ROW_NAMES),$(patsubst $(name):%,%,$(filter $(name):%,$(REAL_PSEUDO_TABLE))))
 # (REAL_PSEUDO empty, e.g. BEAMS_PSEUDO= for the first rows only: nothing to measure)
 real-kitti-pseudo: $(foreach dir,$(REAL_PSEUDO),$(RUN)/$(dir)/manifest.json) $(TARGET_VAL)/manifest.json
 	$(if $(strip $(REAL_PSEUDO)),$(BIN)/python bench/pseudo_labels.py --target $(TARGET_VAL) \

@@ -363,3 +363,40 @@ def test_the_holdout_adapts_on_every_drive_but_the_labelled_one(setup):
     )
     result = make("-n", "real-kitti-holdout", *variables[:-1], f"REAL_DRIVES={RAW}")
     assert result.returncode != 0 and "REAL_DRIVES must hold REAL_DRIVE" in result.stderr
+
+
+def pseudo_diagnostic(plan: str, seed: str) -> list[str] | None:
+    """The pseudo-label directories `bench/pseudo_labels.py` measures for one seed's run in a plan
+    (None: it does not run there)."""
+    for line in plan.replace("\\\n", " ").splitlines():
+        words = shlex.split(line)
+        if "bench/pseudo_labels.py" not in words or "--pseudo" not in words:
+            continue
+        after = words[words.index("--pseudo") + 1 :]
+        dirs = after[: next((i for i, w in enumerate(after) if w.startswith("--")), len(after))]
+        if all(f"-s{seed}/" in path for path in dirs):
+            return dirs
+    return None
+
+
+def test_fewer_rows_build_no_other_row_for_the_diagnostics(setup):
+    """The pseudo-label diagnostic measures the labels of the rows built, and the paired
+    comparisons pair rows built: fewer REAL_ROW_NAMES build no DALI iteration for either."""
+    run = f"{setup['run']}-s0"
+    everything = pseudo_diagnostic(make("-n", "real-kitti", *setup["variables"]).stdout, "0")
+    assert everything == [
+        f"{run}/{path}"
+        for path in ("iter1/pseudo", "iter2/pseudo", "iter3/pseudo",
+                     "baselines/source_x2_budget/pseudo", "iter3/tracked",
+                     "baselines/source_x2_budget/tracked")
+    ]  # fmt: skip
+    recipe = [*setup["variables"], "REAL_ROW_NAMES=control control_tst control_tst2"]
+    result = make("-n", "real-kitti", *recipe)
+    assert result.returncode == 0, result.stderr  # no comparison with a row it does not build
+    plan = result.stdout
+    assert pseudo_diagnostic(plan, "0") == [f"{run}/baselines/source_x2_budget/tracked"]
+    outs = {option(shlex.split(line.split("/bin/dali ", 1)[1]), "--out")
+            for line in plan.splitlines() if "/bin/dali " in line}  # fmt: skip
+    assert not any("/iter1/" in out or "/iter3/" in out for out in outs if out)
+    plan = make("-n", "real-kitti", *setup["variables"], "REAL_ROW_NAMES=source control").stdout
+    assert pseudo_diagnostic(plan, "0") is None
