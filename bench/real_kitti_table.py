@@ -46,6 +46,7 @@ ROWS = (
     ("control + ST", "baselines/source_x2_budget_st/eval", "control_st"),
     ("DALI x2 + tracked ST", "iter2_tst/eval", "x2_tst"),
     ("control + tracked ST", "baselines/source_x2_budget_tst/eval", "control_tst"),
+    ("control + tracked ST ×2", "baselines/source_x2_budget_tst2/eval", "control_tst2"),
     ("sim oracle (x2 budget)", "baselines/sim_oracle_x2_budget/eval", "oracle"),
 )
 CONTROL = "control"
@@ -382,10 +383,15 @@ PSEUDO_SETS = (
 def pseudo_section(
     runs: list[Path], data: Path, iou: float, min_points: int
 ) -> tuple[list[str], dict]:
-    """The pseudo labels of every run on the labelled drive's frames."""
+    """The pseudo labels of every run on the labelled drive's frames (none where the target does
+    not hold them: a run adapted without the drive, as `make real-kitti-holdout`'s)."""
+    frames = FrameSet(data / "drive_labels")
+    target = data / "target"
+    if target.is_dir() and not set(FrameSet(target).frame_ids) & set(frames.frame_ids):
+        note = f"None: the target ({target}) holds none of the labelled drive's frames."
+        return [note], {}
     truth = read_boxes(data / "drive_labels")
     truth = truth.select(np.asarray(truth["label"]).astype(str) == "Car")
-    frames = FrameSet(data / "drive_labels")
     lines = [
         f"Drive cars in the detection grid with ≥ {min_points} points; a match is BEV IoU > {iou:g}.",
         "",

@@ -5,6 +5,7 @@ wrote them."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -152,3 +153,38 @@ def test_a_set_too_small_for_r40_gets_its_ceiling_and_r400(tmp_path):
     assert any(line.startswith(pair) for line in lines)
     # the drive (one car in the fake truth, but no counts recorded) gets no such section
     assert sum(line.startswith("Only ") for line in lines) == 1
+
+
+def test_the_recipe_row_and_the_pseudo_labels_of_a_target_with_and_without_the_drive(tmp_path):
+    """The shipped recipe (control + tracked ST ×2) is a row of its own, paired with the control;
+    pseudo labels are measured on the labelled drive only where the target holds its frames (a
+    holdout run's target does not: no empty precision table)."""
+    runs, data = make_runs(tmp_path)
+    for run, bev in zip(runs, (70.0, 74.0), strict=True):
+        write(run / "baselines/source_x2_budget_tst2/eval", metrics(bev))
+        tracked = run / "baselines/source_x2_budget/tracked"
+        tracked.mkdir(parents=True)
+        write_boxes(tracked, BoxTable.from_arrays(["d-0"], [[10, 0, 0, 4, 2, 1.5, 0]], score=[0.9]))
+        (tracked / "manifest.json").write_text("{}")
+
+    def table(target_frame: str) -> list[str]:
+        shutil.rmtree(data / "target", ignore_errors=True)
+        with FrameSetWriter(data / "target", "kitti") as writer:
+            writer.append(target_frame, np.zeros((3, 4), np.float32))
+        result = subprocess.run(
+            [sys.executable, str(ROOT / "bench" / "real_kitti_table.py"), *map(str, runs),
+             "--data", str(data), "--sets", "drive"],
+            capture_output=True, text=True, check=True,
+        )  # fmt: skip
+        return result.stdout.splitlines()
+
+    lines = table("d-0")
+    assert any(line.startswith("| control + tracked ST ×2 | 72.0 ± 2.8 | 52.0 ± 2.8 |")
+               for line in lines)  # fmt: skip
+    # minus the control (40 and 44): +30 on both seeds
+    assert any(line.startswith("| control + tracked ST ×2 | +30.0 ± 0.0 |") for line in lines)
+    measured = [line for line in lines if "| baselines/source_x2_budget/tracked |" in line]
+    assert len(measured) == 2 and all(line.split(" | ")[2:4] == ["1", "1.0"] for line in measured)
+    lines = table("other-0")
+    assert not any("| baselines/source_x2_budget/tracked |" in line for line in lines)
+    assert any(line.startswith("None: the target") for line in lines)
