@@ -102,28 +102,44 @@ def trained_refiner_on_toy_scans(seed: int):
         (box + iou).backward()
         optimizer.step()
     refiner.eval()
-    points, cars = frames[5]  # held out
-    proposals = jitter_boxes(np.repeat(cars, 4, axis=0), np.random.default_rng(99))
-    truth = np.repeat(cars, 4, axis=0)
-    with torch.no_grad():
-        refined, predicted_iou = refine_boxes(refiner, points, proposals, config)
-    return iou_3d_pairs(proposals, truth), iou_3d_pairs(refined, truth), predicted_iou
+    held_out = [frames[5]]  # and four more scans, so that the ranking is judged on 120 boxes
+    rng = np.random.default_rng(3)
+    for _ in range(4):
+        cars = place_cars(
+            rng, 6, kitti.car_mean_lwh_m, kitti.mount_height_m, (6.0, 30.0), (-10.0, 10.0)
+        )
+        points = scan(cars, kitti, beams=64, points_per_beam=1000, azimuth_range_deg=(-60.0, 60.0))
+        points[:, 2] += kitti.mount_height_m
+        cars[:, 2] += kitti.mount_height_m
+        held_out.append((points, cars))
+    before, after, predicted = [], [], []
+    for index, (points, cars) in enumerate(held_out):
+        truth = np.repeat(cars, 4, axis=0)
+        proposals = jitter_boxes(truth, np.random.default_rng(99 + index))
+        with torch.no_grad():
+            refined, predicted_iou = refine_boxes(refiner, points, proposals, config)
+        before.append(iou_3d_pairs(proposals, truth))
+        after.append(iou_3d_pairs(refined, truth))
+        predicted.append(np.asarray(predicted_iou))
+    return np.concatenate(before), np.concatenate(after), np.concatenate(predicted)
 
 
 @pytest.mark.slow  # trains the refiner to convergence, three times
 def test_refiner_learns_to_correct_disturbed_boxes():
     """Trained on toy scans, the refiner raises the 3D IoU of new disturbed boxes and its IoU
     head ranks them. Training turns a change in the last bits (another CPU's kernels, MKL's
-    mode) into another model, as another seed would (docs/RESULTS.md, "Numerical stability"):
-    the head's correlation measured 0.15-0.45 over six seeds and two MKL modes on one CPU
-    (0.15 once), so the ranking is asserted on the median of three seeds, one run being a
-    draw from that spread."""
+    mode) into another model, as another seed would (docs/RESULTS.md, "Numerical stability"),
+    so the ranking is asserted on the median of three seeds, each judged on 120 held-out boxes:
+    a head that ranks nothing scatters about 0 with a standard error of 1 / sqrt(120) = 0.09.
+    On 24 boxes the correlation had measured 0.15-0.45 over six seeds on one CPU and 0.21-0.22
+    on all three seeds on another (an AMD EPYC without AVX-512), below the 0.25 asserted then;
+    on 120 boxes that CPU gives 0.34, 0.24 and 0.26."""
     correlations = []
     for seed in range(3):
         before, after, predicted_iou = trained_refiner_on_toy_scans(seed)
-        assert after.mean() > before.mean() + 0.1  # measured: 0.59 -> 0.74
+        assert after.mean() > before.mean() + 0.1  # measured: 0.56 -> 0.68-0.69
         correlations.append(np.corrcoef(predicted_iou, after)[0, 1])
-    assert np.median(correlations) > 0.25, correlations  # measured: 0.34
+    assert np.median(correlations) > 0.15, correlations  # measured: 0.26 (0.24-0.34)
 
 
 def toy_frames(count: int, seed: int):
