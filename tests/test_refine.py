@@ -69,6 +69,18 @@ def test_point_features_gather_every_point_in_the_grown_box():
         assert np.allclose(faces[:, :3] + faces[:, 3:], boxes[k, 3:6], atol=1e-4)
 
 
+def toy_kitti_scan(rng: np.random.Generator, kitti) -> tuple[np.ndarray, np.ndarray]:
+    """A 64-beam scan of six box-shaped cars 6-30 m ahead: points (N, 4) and cars (6, 7), both
+    with z from the ground."""
+    cars = place_cars(
+        rng, 6, kitti.car_mean_lwh_m, kitti.mount_height_m, (6.0, 30.0), (-10.0, 10.0)
+    )
+    points = scan(cars, kitti, beams=64, points_per_beam=1000, azimuth_range_deg=(-60.0, 60.0))
+    points[:, 2] += kitti.mount_height_m
+    cars[:, 2] += kitti.mount_height_m
+    return points, cars
+
+
 def trained_refiner_on_toy_scans(seed: int):
     """A refiner trained 400 steps on toy scans of box-shaped cars with disturbed ground truth
     as proposals (torch seed `seed`), then run on disturbed boxes of a held-out scan: the
@@ -78,13 +90,7 @@ def trained_refiner_on_toy_scans(seed: int):
     rng = np.random.default_rng(2)
     frames = []
     for _ in range(6):
-        cars = place_cars(
-            rng, 6, kitti.car_mean_lwh_m, kitti.mount_height_m, (6.0, 30.0), (-10.0, 10.0)
-        )
-        points = scan(cars, kitti, beams=64, points_per_beam=1000, azimuth_range_deg=(-60.0, 60.0))
-        points[:, 2] += kitti.mount_height_m
-        cars[:, 2] += kitti.mount_height_m
-        frames.append((points, cars))
+        frames.append(toy_kitti_scan(rng, kitti))
     torch.manual_seed(seed)
     refiner = BoxRefiner(config)
     optimizer = torch.optim.Adam(refiner.parameters(), lr=1e-3)
@@ -105,13 +111,7 @@ def trained_refiner_on_toy_scans(seed: int):
     held_out = [frames[5]]  # and four more scans, so that the ranking is judged on 120 boxes
     rng = np.random.default_rng(3)
     for _ in range(4):
-        cars = place_cars(
-            rng, 6, kitti.car_mean_lwh_m, kitti.mount_height_m, (6.0, 30.0), (-10.0, 10.0)
-        )
-        points = scan(cars, kitti, beams=64, points_per_beam=1000, azimuth_range_deg=(-60.0, 60.0))
-        points[:, 2] += kitti.mount_height_m
-        cars[:, 2] += kitti.mount_height_m
-        held_out.append((points, cars))
+        held_out.append(toy_kitti_scan(rng, kitti))
     before, after, predicted = [], [], []
     for index, (points, cars) in enumerate(held_out):
         truth = np.repeat(cars, 4, axis=0)
