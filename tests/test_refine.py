@@ -83,14 +83,12 @@ def toy_kitti_scan(rng: np.random.Generator, kitti) -> tuple[np.ndarray, np.ndar
 
 def trained_refiner_on_toy_scans(seed: int):
     """A refiner trained 400 steps on toy scans of box-shaped cars with disturbed ground truth
-    as proposals (torch seed `seed`), then run on disturbed boxes of a held-out scan: the
+    as proposals (torch seed `seed`), then run on disturbed boxes of five held-out scans: the
     proposals' 3D IoU with the truth before and after refinement, and the predicted IoU."""
     config = DetectorConfig(refine=True, refine_points=64)
     kitti = get_profile("kitti")
     rng = np.random.default_rng(2)
-    frames = []
-    for _ in range(6):
-        frames.append(toy_kitti_scan(rng, kitti))
+    frames = [toy_kitti_scan(rng, kitti) for _ in range(6)]
     torch.manual_seed(seed)
     refiner = BoxRefiner(config)
     optimizer = torch.optim.Adam(refiner.parameters(), lr=1e-3)
@@ -108,10 +106,9 @@ def trained_refiner_on_toy_scans(seed: int):
         (box + iou).backward()
         optimizer.step()
     refiner.eval()
-    held_out = [frames[5]]  # and four more scans, so that the ranking is judged on 120 boxes
+    # the sixth scan and four more, so that the ranking is judged on 120 boxes
     rng = np.random.default_rng(3)
-    for _ in range(4):
-        held_out.append(toy_kitti_scan(rng, kitti))
+    held_out = [frames[5]] + [toy_kitti_scan(rng, kitti) for _ in range(4)]
     before, after, predicted = [], [], []
     for index, (points, cars) in enumerate(held_out):
         truth = np.repeat(cars, 4, axis=0)
