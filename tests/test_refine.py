@@ -128,9 +128,7 @@ def test_refiner_learns_to_correct_disturbed_boxes():
     mode) into another model, as another seed would (docs/RESULTS.md, "Numerical stability"),
     so the ranking is asserted on the median of three seeds, each judged on 120 held-out boxes:
     a head that ranks nothing scatters about 0 with a standard error of 1 / sqrt(120) = 0.09.
-    On 24 boxes the correlation had measured 0.15-0.45 over six seeds on one CPU and 0.21-0.22
-    on all three seeds on another (an AMD EPYC without AVX-512), below the 0.25 asserted then;
-    on 120 boxes that CPU gives 0.34, 0.24 and 0.26."""
+    Measured on an AMD EPYC (AVX2): 0.34, 0.24 and 0.26."""
     correlations = []
     for seed in range(3):
         before, after, predicted_iou = trained_refiner_on_toy_scans(seed)
